@@ -1,0 +1,153 @@
+"""Compose the plugins of a config into a run: data stages, protocol, metrics, tracking."""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig, OmegaConf
+
+from acoustlab import __version__
+from acoustlab.cache import StageCache
+from acoustlab.dataset import SimulationPlan, load_or_build_simulated
+from acoustlab.errors import ConfigError
+from acoustlab.metrics import coverage_table, error_table, flat_metrics, summarise
+from acoustlab.pipeline import Components, LocalizationPipeline, add_solver_columns
+from acoustlab.registry import PLUGIN_GROUPS, build, build_feature_sets, build_scorers, group_options, to_plain
+from acoustlab.sites import site_from_config
+
+log = logging.getLogger(__name__)
+
+
+def _code_version() -> str:
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent, timeout=5
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        sha = ""
+    return f"{__version__}+{sha}" if sha else __version__
+
+
+def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    """Flatten nested dicts/lists into dotted keys."""
+    out: dict[str, Any] = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(flatten(v, f"{prefix}{k}."))
+    elif isinstance(d, list) and d and any(isinstance(v, (dict, list)) for v in d):
+        for i, v in enumerate(d):
+            out.update(flatten(v, f"{prefix}{i}."))
+    else:
+        out[prefix[:-1]] = d
+    return out
+
+
+def require_site(cfg: DictConfig) -> None:
+    """Stop with a clear message when no site was chosen."""
+    if cfg.get("site") is None:
+        sites = ", ".join(group_options("site"))
+        raise ConfigError(f"no site chosen: pass one with +site=NAME (available: {sites}), e.g. python -m acoustlab +site=frozen_lake")
+
+
+def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None) -> dict:
+    """Run one job: build plugins, get the (cached) dataset, run the protocol, write and log results.
+
+    Parameters
+    ----------
+    cfg : omegaconf.DictConfig
+        The composed config.
+    run_dir : pathlib.Path
+        Where ``metrics.json``, ``predictions.parquet`` and the resolved config are written.
+    choices : dict, optional
+        The chosen option of each config group (Hydra's runtime choices).
+
+    Returns
+    -------
+    dict
+        The metrics written to ``metrics.json``.
+    """
+    require_site(cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    choices = {g: str(v) for g, v in (choices or {}).items() if g in (*PLUGIN_GROUPS, "site", "experiment") and v is not None}
+
+    # Preflight: everything that can be wrong in the config fails here, before any expensive stage.
+    site = site_from_config(cfg.site)
+    simulator = build(cfg.simulator, "simulator")
+    simulator.validate(site)
+    feature_sets = build_feature_sets(cfg.features)
+    height = float(np.mean(site.source_height_range_m))
+    solver_cfg = cfg.solver
+    solver = build(solver_cfg, "solver", **({"source_height_m": height} if solver_cfg.get("source_height_m") is None and "source_height_m" in solver_cfg else {}))
+    components = Components(
+        site=site,
+        feature_sets=feature_sets,
+        solver=solver,
+        point_model=build(cfg.model, "model"),
+        gate=build(cfg.gate, "gate"),
+        error_model=build(cfg.error_model, "error_model"),
+        scorers=build_scorers(cfg.conformal),
+        levels=[float(v) for v in cfg.conformal.levels],
+        dropped_groups=[str(g) for g in cfg.features.get("drop", [])],
+        calibration_folds=int(cfg.conformal.get("calibration_folds", 5)),
+    )
+    for level in components.levels:
+        if not 0 < level < 1:
+            raise ConfigError(f"conformal.levels must lie in (0, 1); got {level}")
+    protocol = build(cfg.protocol, "protocol")
+    tracker = build(cfg.tracking, "tracking")
+
+    cache = StageCache(cfg.cache.dir, enabled=bool(cfg.cache.enabled))
+    plan = SimulationPlan(
+        n_events=int(cfg.data.n_events),
+        events_per_position=int(cfg.data.events_per_position),
+        seed=int(cfg.seed),
+        chunk_size=int(cfg.data.chunk_size),
+    )
+    dataset = load_or_build_simulated(
+        site, simulator, to_plain(cfg.simulator), feature_sets, to_plain(cfg.features.groups), plan, cache
+    )
+    dataset.features = add_solver_columns(dataset.features, dataset.events, site, solver)
+    predictions = protocol.run(dataset, LocalizationPipeline(components))
+
+    metrics = summarise(predictions, components.levels, list(components.scorers))
+    metrics["dataset_hash"] = dataset.dataset_hash
+    metrics["site"] = site.name
+    metrics["choices"] = choices
+    metrics["n_features"] = int(len(dataset.features.columns))
+    metrics["code_version"] = _code_version()
+
+    # Results land in the run dir first, so a tracker failure loses nothing.
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    predictions.to_parquet(run_dir / "predictions.parquet", index=False)
+    (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    log.info("errors (m): %s", {m: {k: round(v, 3) for k, v in s.items()} for m, s in metrics["errors"].items()})
+    log.info("coverage: %s", metrics["coverage"])
+    _track(tracker, cfg, choices, metrics, run_dir)
+    return metrics
+
+
+def _track(tracker: Any, cfg: DictConfig, choices: dict[str, str], metrics: dict, run_dir: Path) -> None:
+    params = {f"choice.{g}": v for g, v in choices.items()}
+    params.update(flatten(OmegaConf.to_container(cfg, resolve=True)))
+    run_name = f"{metrics['site']}-{choices.get('model', 'model')}"
+    tags = {"dataset_hash": metrics["dataset_hash"], "code_version": metrics["code_version"], "site": metrics["site"]}
+    try:
+        tracker.start(run_name, params, tags)
+        tracker.log_metrics(flat_metrics(metrics))
+        tracker.log_table(error_table(metrics), "tables/errors.json")
+        tracker.log_table(coverage_table(metrics), "tables/coverage.json")
+        for name in ("metrics.json", "predictions.parquet", "config_resolved.yaml"):
+            tracker.log_artifact(str(run_dir / name))
+        tracker.finish("FINISHED")
+    except Exception as exc:  # never lose a finished run to a tracking problem
+        log.warning("tracking failed (%s: %s); all results are kept in %s", type(exc).__name__, exc, run_dir)
+        try:
+            tracker.finish("FAILED")
+        except Exception:  # noqa: BLE001 - best effort
+            pass

@@ -1,0 +1,207 @@
+"""The cached data stages: simulate recordings, then extract features, in chunks.
+
+Simulation streams chunk by chunk to ``<cache>/simulation/<key>/`` (audio as .npy, events as
+parquet) so memory stays bounded by one chunk; features are computed chunk by chunk from there
+and stored as one parquet table in ``<cache>/features/<key>/``. Keys hash exactly the config that
+determines a stage plus the plugin code version (:func:`acoustlab.cache.plugin_version`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
+
+from acoustlab.cache import StageCache, atomic_save_npy, atomic_write_bytes, plugin_version
+from acoustlab.data import RecordingBatch, Site
+from acoustlab.errors import ConfigError, DataError
+from acoustlab.interfaces import FeatureSet, Simulator
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Dataset:
+    """Feature table and event table of a dataset, row-aligned.
+
+    Attributes
+    ----------
+    events : pandas.DataFrame
+        One row per event (see :data:`acoustlab.data.EVENT_COLUMNS`).
+    features : pandas.DataFrame
+        One row per event, columns ``group__name``.
+    dataset_hash : str
+        SHA-256 of the recordings and the event table (identical data ⇔ identical hash).
+    """
+
+    events: pd.DataFrame
+    features: pd.DataFrame
+    dataset_hash: str
+
+
+@dataclass(frozen=True)
+class SimulationPlan:
+    """Which events to simulate.
+
+    Attributes
+    ----------
+    n_events : int
+        Number of events.
+    events_per_position : int
+        Consecutive events sharing one source position (the exchangeable group).
+    seed : int
+        Base seed of every random draw.
+    chunk_size : int
+        Events per stored chunk (does not change the data).
+    """
+
+    n_events: int
+    events_per_position: int
+    seed: int
+    chunk_size: int = 64
+
+    def __post_init__(self) -> None:
+        if self.n_events < 1:
+            raise ConfigError(f"data.n_events must be >= 1; got {self.n_events}")
+        if self.events_per_position < 1:
+            raise ConfigError(f"data.events_per_position must be >= 1; got {self.events_per_position}")
+        if self.chunk_size < 1:
+            raise ConfigError(f"data.chunk_size must be >= 1; got {self.chunk_size}")
+
+    def chunks(self) -> list[tuple[int, int]]:
+        """[start, stop) event ranges of the chunks."""
+        return [(s, min(s + self.chunk_size, self.n_events)) for s in range(0, self.n_events, self.chunk_size)]
+
+
+def _chunk_name(start: int, stop: int) -> str:
+    return f"events_{start:07d}_{stop:07d}"
+
+
+def _update_hash(digest: Any, batch_audio: np.ndarray, events: pd.DataFrame) -> None:
+    digest.update(np.ascontiguousarray(batch_audio).tobytes())
+    digest.update(pd.util.hash_pandas_object(events, index=False).to_numpy().tobytes())
+
+
+def simulation_key(site: Site, simulator: Simulator, simulator_cfg: dict[str, Any], plan: SimulationPlan) -> str:
+    """Content address of a simulation: site, simulator config and code, events, seed."""
+    return StageCache.key(
+        {
+            "stage": "simulation",
+            "site": site.fingerprint(),
+            "simulator": simulator_cfg,
+            "plugin": plugin_version(simulator),
+            "n_events": plan.n_events,
+            "events_per_position": plan.events_per_position,
+            "seed": plan.seed,
+        }
+    )
+
+
+def simulate_to_cache(
+    site: Site, simulator: Simulator, simulator_cfg: dict[str, Any], plan: SimulationPlan, cache: StageCache
+) -> Path:
+    """Simulate (or find in the cache) every event; return the directory of the stored chunks."""
+    key = simulation_key(site, simulator, simulator_cfg, plan)
+    found = cache.lookup("simulation", key)
+    if found is not None:
+        return found
+    simulator.validate(site)
+    work = cache.partial_dir("simulation", key)
+    digest = hashlib.sha256()
+    chunks = plan.chunks()
+    for start, stop in tqdm(chunks, desc=f"simulate {site.name}", unit="chunk", disable=None):
+        audio_path = work / f"{_chunk_name(start, stop)}.npy"
+        events_path = work / f"{_chunk_name(start, stop)}.parquet"
+        if audio_path.exists() and events_path.exists():  # finished before an interruption
+            audio = np.load(audio_path)
+            events = pd.read_parquet(events_path)
+        else:
+            ids = np.arange(start, stop)
+            batch = simulator.simulate(site, ids, ids // plan.events_per_position, plan.seed)
+            audio, events = batch.audio, batch.events
+            atomic_save_npy(audio_path, audio)
+            atomic_write_bytes(events_path, events.to_parquet(index=False))
+        _update_hash(digest, audio, events)
+    manifest = {
+        "chunks": [_chunk_name(s, e) for s, e in chunks],
+        "sample_rate_hz": simulator.sample_rate_hz,
+        "dataset_hash": digest.hexdigest(),
+        "site": site.name,
+        "n_events": plan.n_events,
+    }
+    atomic_write_bytes(work / "manifest.json", json.dumps(manifest, indent=2).encode())
+    return cache.commit("simulation", key, work)
+
+
+def iter_simulated_batches(sim_dir: Path):
+    """Yield the stored chunks of a simulation as :class:`RecordingBatch` objects, in event order."""
+    manifest = json.loads((sim_dir / "manifest.json").read_text())
+    for name in manifest["chunks"]:
+        yield RecordingBatch(
+            audio=np.load(sim_dir / f"{name}.npy"),
+            sample_rate_hz=float(manifest["sample_rate_hz"]),
+            events=pd.read_parquet(sim_dir / f"{name}.parquet"),
+        )
+
+
+def extract_features(batch: RecordingBatch, site: Site, feature_sets: dict[str, FeatureSet]) -> pd.DataFrame:
+    """Every feature group on one batch, concatenated column-wise in the configured group order."""
+    tables = []
+    for name, fs in feature_sets.items():
+        table = fs.transform(batch, site)
+        if len(table) != batch.n_events:
+            raise DataError(f"feature group {name!r} returned {len(table)} rows for {batch.n_events} events")
+        wrong = [c for c in table.columns if not c.startswith(f"{fs.group}__")]
+        if wrong:
+            raise DataError(f"feature group {name!r} produced columns outside its group {fs.group!r}: {wrong[:3]}")
+        tables.append(table.reset_index(drop=True).astype(float))
+    return pd.concat(tables, axis=1)
+
+
+def load_or_build_simulated(
+    site: Site,
+    simulator: Simulator,
+    simulator_cfg: dict[str, Any],
+    feature_sets: dict[str, FeatureSet],
+    features_cfg: dict[str, Any],
+    plan: SimulationPlan,
+    cache: StageCache,
+) -> Dataset:
+    """The feature and event tables of a simulated dataset, from the cache when possible."""
+    sim_key = simulation_key(site, simulator, simulator_cfg, plan)
+    feat_key = StageCache.key(
+        {
+            "stage": "features",
+            "simulation": sim_key,
+            "features": features_cfg,
+            "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},
+        }
+    )
+    found = cache.lookup("features", feat_key)
+    if found is None:
+        sim_dir = simulate_to_cache(site, simulator, simulator_cfg, plan, cache)
+        manifest = json.loads((sim_dir / "manifest.json").read_text())
+        feats, events = [], []
+        n_chunks = len(manifest["chunks"])
+        for batch in tqdm(iter_simulated_batches(sim_dir), total=n_chunks, desc="features", unit="chunk", disable=None):
+            feats.append(extract_features(batch, site, feature_sets))
+            events.append(batch.events)
+        work = cache.partial_dir("features", feat_key)
+        atomic_write_bytes(work / "features.parquet", pd.concat(feats, ignore_index=True).to_parquet(index=False))
+        atomic_write_bytes(work / "events.parquet", pd.concat(events, ignore_index=True).to_parquet(index=False))
+        atomic_write_bytes(work / "manifest.json", json.dumps({"dataset_hash": manifest["dataset_hash"]}).encode())
+        found = cache.commit("features", feat_key, work)
+    dataset = Dataset(
+        events=pd.read_parquet(found / "events.parquet"),
+        features=pd.read_parquet(found / "features.parquet"),
+        dataset_hash=json.loads((found / "manifest.json").read_text())["dataset_hash"],
+    )
+    cache.cleanup()
+    return dataset

@@ -1,0 +1,75 @@
+"""Error and coverage summaries of a run's predictions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+METHODS = ("solver", "model", "gate")
+ERROR_QUANTILES = {"p50": 50, "p90": 90, "p95": 95, "p99": 99}
+
+
+def error_summary(errors_m: np.ndarray) -> dict[str, float]:
+    """n, mean and p50/p90/p95/p99 of 2-D errors in m (non-finite errors count as failures, ``n_failed``)."""
+    errors_m = np.asarray(errors_m, dtype=float)
+    finite = errors_m[np.isfinite(errors_m)]
+    out: dict[str, float] = {"n": int(errors_m.size), "n_failed": int(errors_m.size - finite.size)}
+    if finite.size == 0:
+        raise ValueError("no finite errors to summarise")
+    out["mean"] = float(finite.mean())
+    for name, q in ERROR_QUANTILES.items():
+        out[name] = float(np.percentile(finite, q))
+    return out
+
+
+def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict:
+    """The ``errors``, ``coverage`` and ``interval_width`` blocks of metrics.json."""
+    errors = {m: error_summary(predictions[f"error_{m}_m"].to_numpy()) for m in METHODS}
+    coverage: dict[str, dict[str, float]] = {}
+    width: dict[str, dict[str, dict[str, float]]] = {}
+    err = predictions["error_gate_m"].to_numpy()
+    for name in scorers:
+        coverage[name], width[name] = {}, {}
+        for level in levels:
+            radius = predictions[f"radius__{name}__{level:g}"].to_numpy()
+            coverage[name][f"{level:g}"] = float(np.mean(err <= radius))
+            finite = radius[np.isfinite(radius)]
+            width[name][f"{level:g}"] = {
+                "mean_m": float(finite.mean()) if finite.size else float("inf"),
+                "median_m": float(np.median(finite)) if finite.size else float("inf"),
+            }
+    return {
+        "errors": errors,
+        "coverage": coverage,
+        "interval_width": width,
+        "substitution_rate": float(predictions["substituted"].mean()),
+    }
+
+
+def error_table(metrics: dict) -> pd.DataFrame:
+    """errors block as a table: one row per method."""
+    return pd.DataFrame([{"method": m, **v} for m, v in metrics["errors"].items()])
+
+
+def coverage_table(metrics: dict) -> pd.DataFrame:
+    """coverage block as a table: one row per (scorer, nominal level)."""
+    rows = []
+    for scorer, by_level in metrics["coverage"].items():
+        for level, empirical in by_level.items():
+            w = metrics["interval_width"][scorer][level]
+            rows.append({"scorer": scorer, "nominal": float(level), "empirical": empirical, **w})
+    return pd.DataFrame(rows)
+
+
+def flat_metrics(metrics: dict) -> dict[str, float]:
+    """Scalar metrics for a tracker: ``error.<method>.<stat>``, ``coverage.<scorer>.<level>``…"""
+    flat = {}
+    for m, stats in metrics["errors"].items():
+        for k, v in stats.items():
+            flat[f"error.{m}.{k}"] = v
+    for s, by_level in metrics["coverage"].items():
+        for level, v in by_level.items():
+            flat[f"coverage.{s}.{level}"] = v
+            flat[f"width.{s}.{level}.median_m"] = metrics["interval_width"][s][level]["median_m"]
+    flat["substitution_rate"] = metrics["substitution_rate"]
+    return {k: float(v) for k, v in flat.items() if np.isfinite(v)}

@@ -1,0 +1,192 @@
+"""The localization method as one object: solver features → point model → gate → error model → conformal.
+
+Protocols decide which events train, calibrate and test; this module does the fitting and
+predicting for one such split, keeping positions (groups) apart everywhere.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from sklearn.base import clone
+from sklearn.model_selection import GroupKFold
+
+from acoustlab.data import Site, group_of
+from acoustlab.errors import ConfigError, DataError
+from acoustlab.interfaces import ConformalScorer, ErrorModel, FeatureSet, Gate, PointModel, Solver
+
+log = logging.getLogger(__name__)
+
+#: Solver columns that are the solver's point estimate (withheld from the error model).
+SOLVER_ESTIMATE_COLUMNS = ("solver__x_m", "solver__y_m")
+
+
+@dataclass
+class Components:
+    """Everything a protocol needs, already instantiated."""
+
+    site: Site
+    feature_sets: dict[str, FeatureSet]
+    solver: Solver
+    point_model: PointModel
+    gate: Gate
+    error_model: ErrorModel
+    scorers: dict[str, ConformalScorer]
+    levels: list[float]
+    dropped_groups: list[str] = field(default_factory=list)
+    calibration_folds: int = 5
+
+
+def tdoa_matrix(features: pd.DataFrame, n_mics: int) -> np.ndarray:
+    """(E, M) arrival-time differences to mic 0 from the ``tdoa__lag_0_j_s`` columns (column 0 is 0)."""
+    cols = [f"tdoa__lag_0_{j}_s" for j in range(1, n_mics)]
+    missing = [c for c in cols if c not in features.columns]
+    if missing:
+        raise DataError(f"the feature table lacks {missing}; the solver needs the 'tdoa' feature group")
+    return np.column_stack([np.zeros(len(features)), features[cols].to_numpy(dtype=float)])
+
+
+def add_solver_columns(features: pd.DataFrame, events: pd.DataFrame, site: Site, solver: Solver) -> pd.DataFrame:
+    """Run the solver on every event and append its estimate and diagnostics as group ``solver``."""
+    speed = events["speed_of_sound_m_s"].to_numpy(dtype=float) if "speed_of_sound_m_s" in events else None
+    if speed is None:
+        from acoustlab.physics import speed_of_sound_m_s
+
+        speed = speed_of_sound_m_s(events["temperature_c"].to_numpy(float), events["relative_humidity_pct"].to_numpy(float))
+    result = solver.solve(site.mic_positions_m, tdoa_matrix(features, site.n_mics), speed)
+    out = features.copy()
+    out["solver__x_m"] = result.position_m[:, 0]
+    out["solver__y_m"] = result.position_m[:, 1]
+    out["solver__residual_m"] = result.residual_m
+    out["solver__converged"] = result.converged.astype(float)
+    for name, values in result.diagnostics.items():
+        out[f"solver__{name}"] = np.asarray(values, dtype=float)
+    # Learned models take NaN as "missing"; an infinite GDOP (degenerate geometry) becomes missing too.
+    solver_cols = [c for c in out.columns if c.startswith("solver__")]
+    out[solver_cols] = out[solver_cols].replace([np.inf, -np.inf], np.nan)
+    return out
+
+
+def error_2d_m(estimate_m: np.ndarray, truth_m: np.ndarray) -> np.ndarray:
+    """Euclidean 2-D error in m (inf where the estimate is not finite)."""
+    err = np.sqrt(((np.asarray(estimate_m) - np.asarray(truth_m)[:, :2]) ** 2).sum(axis=1))
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+class LocalizationPipeline:
+    """Fits the learned parts of the method on training events and predicts for test events.
+
+    Parameters
+    ----------
+    components : Components
+        The instantiated plugins.
+    """
+
+    def __init__(self, components: Components) -> None:
+        self.c = components
+
+    def model_columns(self, features: pd.DataFrame) -> list[str]:
+        """Columns the point model sees: every group not dropped, the solver's estimate included."""
+        cols = [col for col in features.columns if group_of(col) not in self.c.dropped_groups]
+        if not cols:
+            raise ConfigError(f"dropping feature groups {self.c.dropped_groups} leaves the models no features")
+        return cols
+
+    def error_columns(self, features: pd.DataFrame) -> list[str]:
+        """Columns the error model sees: the point model's minus the solver's point estimate."""
+        return [c for c in self.model_columns(features) if c not in SOLVER_ESTIMATE_COLUMNS]
+
+    def _fit_point(self, x: pd.DataFrame, truth: np.ndarray) -> tuple[Any, Any]:
+        mx = clone(self.c.point_model).fit(x, truth[:, 0])
+        my = clone(self.c.point_model).fit(x, truth[:, 1])
+        return mx, my
+
+    @staticmethod
+    def _predict_point(models: tuple[Any, Any], x: pd.DataFrame) -> np.ndarray:
+        return np.column_stack([models[0].predict(x), models[1].predict(x)])
+
+    def _folds(self, groups: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        n_groups = np.unique(groups).size
+        k = min(self.c.calibration_folds, n_groups)
+        if k < 2:
+            raise DataError(f"calibration needs at least 2 source positions in training; got {n_groups}")
+        return list(GroupKFold(n_splits=k).split(np.zeros(groups.size), groups=groups))
+
+    def fit_predict(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray, test: np.ndarray) -> pd.DataFrame:
+        """Fit on rows ``train`` and predict rows ``test`` (integer positions into the tables).
+
+        Conformal calibration uses out-of-fold errors over training *positions* (group K-fold):
+        every calibration error comes from point and error models that never saw that position.
+
+        Returns
+        -------
+        pandas.DataFrame
+            One row per test event: truth, solver/model/gate estimates and errors (m), GDOP,
+            predicted error (m), substitution flag and ``radius__<scorer>__<level>`` (m).
+        """
+        site = self.c.site
+        truth = events[["x_m", "y_m"]].to_numpy(dtype=float)
+        groups = events["position_id"].to_numpy()
+        if np.intersect1d(groups[train], groups[test]).size:
+            raise DataError("a source position appears in both training and test rows")
+        mcols, ecols = self.model_columns(features), self.error_columns(features)
+        solver_xy = features[list(SOLVER_ESTIMATE_COLUMNS)].to_numpy(dtype=float)
+        gdop = features["solver__gdop"].to_numpy(dtype=float) if "solver__gdop" in features else np.ones(len(features))
+        gdop = np.where(np.isfinite(gdop), gdop, np.inf)
+
+        # Out-of-fold hybrid errors on the training positions, for the error model and calibration.
+        folds = self._folds(groups[train])
+        oof_model = np.empty((train.size, 2))
+        for fit_idx, held_idx in folds:
+            models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]])
+            oof_model[held_idx] = self._predict_point(models, features.iloc[train[held_idx]][mcols])
+        oof_gate = self.c.gate.decide(solver_xy[train], oof_model, features.iloc[train], site)
+        oof_err = error_2d_m(oof_gate.position_m, truth[train])
+        finite = np.isfinite(oof_err)
+        if not finite.all():
+            log.warning("%d training events have no finite hybrid estimate; left out of calibration", (~finite).sum())
+        oof_pred = np.empty(train.size)
+        for fit_idx, held_idx in folds:
+            fit_idx = fit_idx[finite[fit_idx]]
+            em = clone(self.c.error_model).fit(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx])
+            oof_pred[held_idx] = em.predict(features.iloc[train[held_idx]][ecols])
+        scorers = {
+            name: s.fit(oof_err[finite], oof_pred[finite], gdop[train][finite], self.c.levels)
+            for name, s in self.c.scorers.items()
+        }
+
+        # Final models on all training rows.
+        models = self._fit_point(features.iloc[train][mcols], truth[train])
+        model_xy = self._predict_point(models, features.iloc[test][mcols])
+        decision = self.c.gate.decide(solver_xy[test], model_xy, features.iloc[test], site)
+        error_model = clone(self.c.error_model).fit(features.iloc[train[finite]][ecols], oof_err[finite])
+        predicted = np.maximum(error_model.predict(features.iloc[test][ecols]), 1e-9)
+
+        out = pd.DataFrame(
+            {
+                "event_id": events["event_id"].to_numpy()[test],
+                "position_id": groups[test],
+                "true_x_m": truth[test, 0],
+                "true_y_m": truth[test, 1],
+                "solver_x_m": solver_xy[test, 0],
+                "solver_y_m": solver_xy[test, 1],
+                "model_x_m": model_xy[:, 0],
+                "model_y_m": model_xy[:, 1],
+                "gate_x_m": decision.position_m[:, 0],
+                "gate_y_m": decision.position_m[:, 1],
+                "substituted": decision.substituted,
+                "gdop": gdop[test],
+                "predicted_error_m": predicted,
+            }
+        )
+        for method in ("solver", "model", "gate"):
+            out[f"error_{method}_m"] = error_2d_m(out[[f"{method}_x_m", f"{method}_y_m"]].to_numpy(), truth[test])
+        for name, scorer in scorers.items():
+            radii = scorer.radius(predicted, gdop[test])
+            for k, level in enumerate(self.c.levels):
+                out[f"radius__{name}__{level:g}"] = radii[:, k]
+        return out

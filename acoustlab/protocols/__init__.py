@@ -1,0 +1,1 @@
+"""Evaluation protocols: how events are split into training, calibration and test sets."""

@@ -1,0 +1,82 @@
+"""The one module that instantiates plugins from Hydra configs, and lists what is registered.
+
+A plugin is registered by a YAML file with a ``_target_`` in its config group under ``conf/``;
+runtime inputs (the site, its geometry) are passed as keyword arguments here, never written into
+the config.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from acoustlab.errors import AcoustlabError, ConfigError
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+
+#: Config groups that hold plugins, with the contract each option must satisfy.
+PLUGIN_GROUPS = (
+    "simulator",
+    "features",
+    "solver",
+    "model",
+    "gate",
+    "error_model",
+    "conformal",
+    "protocol",
+    "field",
+    "tracking",
+)
+#: Every user-facing config group (``site`` and ``experiment`` are not plugins).
+ALL_GROUPS = ("site", *PLUGIN_GROUPS, "experiment")
+
+
+def group_options(group: str, conf_dir: Path = CONF_DIR) -> list[str]:
+    """Names of the options registered in a config group (YAML files in ``conf/<group>/``)."""
+    return sorted(p.stem for p in (conf_dir / group).glob("*.yaml"))
+
+
+def build(node: Any, what: str, **runtime: Any) -> Any:
+    """Instantiate one plugin config (a mapping with ``_target_``), adding runtime keyword arguments.
+
+    Raises
+    ------
+    ConfigError
+        With the config path and the reason when the class cannot be imported or built.
+    """
+    if node is None or (isinstance(node, DictConfig) and "_target_" not in node):
+        return None
+    try:
+        return instantiate(node, _convert_="all", **runtime)
+    except InstantiationException as exc:
+        cause = exc.__cause__
+        if isinstance(cause, AcoustlabError):
+            raise cause from None
+        raise ConfigError(f"cannot instantiate {what}: {exc}".replace("\n", " ")) from None
+
+
+def to_plain(node: Any) -> Any:
+    """A resolved plain-Python copy of a config node (for cache keys and params)."""
+    if isinstance(node, DictConfig) or OmegaConf.is_config(node):
+        return OmegaConf.to_container(node, resolve=True)
+    return node
+
+
+def build_feature_sets(features_cfg: DictConfig) -> dict[str, Any]:
+    """The feature groups in config order: ``{name: FeatureSet}``."""
+    groups = features_cfg.get("groups") or {}
+    if not groups:
+        raise ConfigError("features.groups is empty; configure at least the 'tdoa' group")
+    return {name: build(node, f"features.groups.{name}") for name, node in groups.items()}
+
+
+def build_scorers(conformal_cfg: DictConfig) -> dict[str, Any]:
+    """The conformal scorers to compare: ``{name: ConformalScorer}``."""
+    scorers = conformal_cfg.get("scorers") or {}
+    if not scorers:
+        raise ConfigError("conformal.scorers is empty; configure at least one scorer")
+    return {name: build(node, f"conformal.scorers.{name}") for name, node in scorers.items()}

@@ -1,0 +1,170 @@
+"""Signal maths shared by plugins: fractional delays, GCC, coloured noise (NumPy/SciPy FFTs)."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.fft as sfft
+import scipy.signal as ss
+
+
+def next_fast_len(n: int) -> int:
+    """FFT-friendly length >= n (real transforms)."""
+    return int(sfft.next_fast_len(int(n), real=True))
+
+
+def delay_and_scale(
+    signal: np.ndarray, delays_s: np.ndarray, gains: np.ndarray, sample_rate_hz: float, n_out: int
+) -> np.ndarray:
+    """Copies of a signal delayed by fractional amounts and scaled, via an FFT phase ramp.
+
+    The signal is zero-padded to cover ``n_out`` plus the largest delay, so the phase ramp's
+    circular wrap never reaches the output window.
+
+    Parameters
+    ----------
+    signal : numpy.ndarray
+        (S,) source signal.
+    delays_s : numpy.ndarray
+        (K,) delays in s (non-negative).
+    gains : numpy.ndarray
+        (K,) amplitude factors.
+    sample_rate_hz : float
+        Sampling rate in Hz.
+    n_out : int
+        Output length in samples.
+
+    Returns
+    -------
+    numpy.ndarray
+        (K, n_out) delayed, scaled copies (float64).
+    """
+    delays_s = np.asarray(delays_s, dtype=float)
+    max_shift = int(np.ceil(delays_s.max() * sample_rate_hz)) if delays_s.size else 0
+    n_fft = next_fast_len(max(n_out, signal.size) + max_shift + signal.size)
+    spectrum = sfft.rfft(signal, n=n_fft)
+    freqs = sfft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)
+    ramp = np.exp(-2j * np.pi * freqs[None, :] * delays_s[:, None])
+    out = sfft.irfft(spectrum[None, :] * ramp * np.asarray(gains, dtype=float)[:, None], n=n_fft, axis=-1)
+    return out[:, :n_out]
+
+
+def gcc(
+    audio: np.ndarray,
+    pairs: list[tuple[int, int]],
+    sample_rate_hz: float,
+    weighting: str = "phat",
+    band_hz: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised cross-correlation of every listed mic pair, for a batch of events.
+
+    For pair (i, j) the peak lies at lag τ = t_j − t_i (arrival at j minus arrival at i).
+
+    Parameters
+    ----------
+    audio : numpy.ndarray
+        (E, M, S) recordings.
+    pairs : list of (int, int)
+        Mic pairs.
+    sample_rate_hz : float
+        Sampling rate in Hz.
+    weighting : {"phat", "none"}
+        PHAT whitening (unit magnitude cross-spectrum) or plain cross-correlation.
+    band_hz : tuple of float, optional
+        Keep only this (low, high) band of the cross-spectrum, in Hz.
+
+    Returns
+    -------
+    cc : numpy.ndarray
+        (E, P, L) correlation over lags, lags centred (``fftshift``-ed).
+    lags_s : numpy.ndarray
+        (L,) lag of each column in s.
+    """
+    n_samples = audio.shape[-1]
+    n_fft = next_fast_len(2 * n_samples)
+    spectra = sfft.rfft(audio, n=n_fft, axis=-1)
+    i_idx = np.array([p[0] for p in pairs])
+    j_idx = np.array([p[1] for p in pairs])
+    cross = np.conj(spectra[:, i_idx, :]) * spectra[:, j_idx, :]
+    if weighting == "phat":
+        cross = cross / np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max(axis=-1, keepdims=True) + 1e-30)
+    elif weighting != "none":
+        raise ValueError(f"gcc weighting must be 'phat' or 'none'; got {weighting!r}")
+    if band_hz is not None:
+        freqs = sfft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)
+        cross = cross * ((freqs >= band_hz[0]) & (freqs <= band_hz[1]))
+    cc = sfft.fftshift(sfft.irfft(cross, n=n_fft, axis=-1), axes=-1)
+    lags_s = (np.arange(n_fft) - n_fft // 2) / sample_rate_hz
+    return cc, lags_s
+
+
+def parabolic_peak(values: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-sample peak offset and height by fitting a parabola through a peak and its neighbours.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        (..., L) sampled curve.
+    index : numpy.ndarray
+        (...) integer index of the peak along the last axis (interior or at an edge).
+
+    Returns
+    -------
+    offset : numpy.ndarray
+        (...) offset in samples in [−0.5, 0.5] to add to ``index``.
+    height : numpy.ndarray
+        (...) interpolated peak height.
+    """
+    n = values.shape[-1]
+    left = np.take_along_axis(values, np.clip(index - 1, 0, n - 1)[..., None], -1)[..., 0]
+    mid = np.take_along_axis(values, index[..., None], -1)[..., 0]
+    right = np.take_along_axis(values, np.clip(index + 1, 0, n - 1)[..., None], -1)[..., 0]
+    denom = left - 2 * mid + right
+    safe = np.abs(denom) > 1e-15
+    offset = np.where(safe, 0.5 * (left - right) / np.where(safe, denom, 1.0), 0.0)
+    offset = np.clip(offset, -0.5, 0.5)
+    height = mid - 0.25 * (left - right) * offset
+    return offset, height
+
+
+def coloured_noise(rng: np.random.Generator, shape: tuple[int, ...], kind: str, sample_rate_hz: float,
+                   band_hz: tuple[float, float] | None = None) -> np.ndarray:
+    """Unit-variance Gaussian noise: ``white``, ``pink`` (1/f power) or ``band`` (band-limited white).
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Source of randomness.
+    shape : tuple of int
+        Output shape; the last axis is time.
+    kind : {"white", "pink", "band"}
+        Spectral shape.
+    sample_rate_hz : float
+        Sampling rate in Hz (for ``band``).
+    band_hz : tuple of float, optional
+        (low, high) in Hz for ``band``; a 4th-order Butterworth band-pass, zero phase.
+
+    Returns
+    -------
+    numpy.ndarray
+        Noise with unit variance along the last axis.
+    """
+    white = rng.standard_normal(shape)
+    if kind == "white":
+        out = white
+    elif kind == "pink":
+        n = shape[-1]
+        spectrum = sfft.rfft(white, axis=-1)
+        freqs = sfft.rfftfreq(n)
+        scale = np.ones_like(freqs)
+        scale[1:] = 1.0 / np.sqrt(freqs[1:] / freqs[1])
+        scale[0] = 0.0
+        out = sfft.irfft(spectrum * scale, n=n, axis=-1)
+    elif kind == "band":
+        if band_hz is None:
+            raise ValueError("band noise needs band_hz=(low, high)")
+        nyq = sample_rate_hz / 2
+        sos = ss.butter(4, [band_hz[0] / nyq, min(band_hz[1] / nyq, 0.999)], btype="bandpass", output="sos")
+        out = ss.sosfiltfilt(sos, white, axis=-1)
+    else:
+        raise ValueError(f"noise kind must be white, pink or band; got {kind!r}")
+    return out / np.maximum(out.std(axis=-1, keepdims=True), 1e-30)

@@ -1,0 +1,56 @@
+"""GCC-PHAT dominant-peak TDOA per mic pair (feature group ``tdoa``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.data import RecordingBatch, Site
+from acoustlab.errors import ConfigError
+from acoustlab.physics import speed_of_sound_m_s
+from acoustlab.signal import gcc, parabolic_peak
+
+
+def tdoa_column(i: int, j: int) -> str:
+    """Name of the pair (i, j) lag column: arrival at mic j minus arrival at mic i, in s."""
+    return f"tdoa__lag_{i}_{j}_s"
+
+
+class GccPhatTdoa:
+    """Dominant GCC-PHAT peak per mic pair, searched within that pair's physical lag window.
+
+    The window of pair (i, j) is ±(d_ij / c_max + margin), with c_max the fastest sound speed of
+    the site's weather range; the peak is refined to sub-sample precision by a parabola.
+
+    Parameters
+    ----------
+    max_lag_margin_s : float
+        Extra lag allowed beyond the pair's distance over c, in s.
+    band_hz : list of float, optional
+        (low, high) band of the cross-spectrum in Hz; None for the full band.
+    """
+
+    group = "tdoa"
+    cache_version = "1"
+
+    def __init__(self, max_lag_margin_s: float = 0.002, band_hz: list[float] | None = None) -> None:
+        if max_lag_margin_s < 0:
+            raise ConfigError(f"features tdoa.max_lag_margin_s must be >= 0; got {max_lag_margin_s}")
+        self.max_lag_margin_s = float(max_lag_margin_s)
+        self.band_hz = None if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
+
+    def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
+        """One row per event: ``tdoa__lag_i_j_s`` for every pair i < j."""
+        pairs = site.mic_pairs
+        cc, lags_s = gcc(batch.audio, pairs, batch.sample_rate_hz, "phat", self.band_hz)
+        c_max = speed_of_sound_m_s(site.temperature_range_c[1], site.relative_humidity_range_pct[1])
+        mics = site.mic_positions_m
+        out = {}
+        for p, (i, j) in enumerate(pairs):
+            max_lag = np.linalg.norm(mics[i] - mics[j]) / c_max + self.max_lag_margin_s
+            window = np.abs(lags_s) <= max_lag
+            segment = cc[:, p, window]
+            peak = np.argmax(segment, axis=-1)
+            offset, _ = parabolic_peak(segment, peak)
+            out[tdoa_column(i, j)] = lags_s[window][0] + (peak + offset) / batch.sample_rate_hz
+        return pd.DataFrame(out)

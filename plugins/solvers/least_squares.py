@@ -1,0 +1,128 @@
+"""Batch least-squares TDOA solver (Levenberg–Marquardt from several starts), vectorised in NumPy.
+
+Written by hand rather than with :func:`scipy.optimize.least_squares` because that solves one
+event per call (≈4 ms each); here every event and every start point iterate together as arrays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from acoustlab.errors import ConfigError
+from acoustlab.geometry import gdop
+from acoustlab.interfaces import SolverResult
+
+
+class LeastSquaresSolver:
+    """2-D source position minimising range-difference residuals to mic 0.
+
+    Residual of mic j for a candidate p: (‖p − m_j‖ − ‖p − m_0‖) − c·τ_j, with 3-D distances (known mic
+    heights, an assumed source height). Starts from the array centroid and from points beyond each
+    mic, keeps the start with the smallest final residual.
+
+    Parameters
+    ----------
+    source_height_m : float, optional
+        Assumed source height in m; None uses the mean mic height (the app passes the site's
+        mid source height when this is left None).
+    n_iterations : int
+        Levenberg–Marquardt iterations.
+    tolerance_m : float
+        Step size below which an event counts as converged, in m.
+    tie_tolerance_m : float
+        RMS residual difference (m) within which two fits count as equally good.
+    """
+
+    cache_version = "1"
+
+    def __init__(self, source_height_m: float | None = None, n_iterations: int = 40, tolerance_m: float = 1e-4,
+                 tie_tolerance_m: float = 0.05) -> None:
+        if n_iterations < 1:
+            raise ConfigError(f"solver.n_iterations must be >= 1; got {n_iterations}")
+        self.source_height_m = source_height_m
+        self.n_iterations = int(n_iterations)
+        self.tolerance_m = float(tolerance_m)
+        self.tie_tolerance_m = float(tie_tolerance_m)
+
+    @staticmethod
+    def _starts(mics_xy: np.ndarray) -> np.ndarray:
+        centroid = mics_xy.mean(axis=0)
+        beyond = mics_xy + 0.5 * (mics_xy - centroid)
+        return np.vstack([centroid[None], beyond])  # (S, 2)
+
+    def _residuals(self, p: np.ndarray, mics: np.ndarray, z: np.ndarray, rd: np.ndarray):
+        """Residuals (..., M-1) and Jacobian (..., M-1, 2) at candidates p (..., 2)."""
+        diff = p[..., None, :] - mics[:, :2]  # (..., M, 2)
+        dz = z[..., None] - mics[:, 2]
+        dist = np.sqrt((diff**2).sum(-1) + dz**2)
+        dist = np.maximum(dist, 1e-9)
+        r = (dist[..., 1:] - dist[..., :1]) - rd
+        grad = diff / dist[..., None]
+        jac = grad[..., 1:, :] - grad[..., :1, :]
+        return r, jac
+
+    def solve(self, mic_positions_m: np.ndarray, tdoa_s: np.ndarray, speed_of_sound_m_s: float | np.ndarray) -> SolverResult:
+        """See :class:`acoustlab.interfaces.Solver`."""
+        mics = np.asarray(mic_positions_m, dtype=float)
+        if mics.ndim != 2 or mics.shape[1] not in (2, 3) or mics.shape[0] < 3:
+            raise ValueError(f"mic_positions_m must be (M>=3, 2|3); got shape {mics.shape}")
+        if mics.shape[1] == 2:
+            mics = np.column_stack([mics, np.zeros(len(mics))])
+        tdoa = np.atleast_2d(np.asarray(tdoa_s, dtype=float))
+        if tdoa.shape[1] != mics.shape[0]:
+            raise ValueError(f"tdoa_s must be (B, {mics.shape[0]}); got shape {tdoa.shape}")
+        b = tdoa.shape[0]
+        c = np.broadcast_to(np.asarray(speed_of_sound_m_s, dtype=float), (b,))
+        height = mics[:, 2].mean() if self.source_height_m is None else float(self.source_height_m)
+        rd = (c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]))[:, None, :]  # (B, 1, M-1)
+        starts = self._starts(mics[:, :2])
+        p = np.broadcast_to(starts, (b, starts.shape[0], 2)).copy()  # (B, S, 2)
+        z = np.full(p.shape[:2], height)
+        lam = np.full(p.shape[:2], 1e-2)
+        r, jac = self._residuals(p, mics, z, rd)
+        cost = (r**2).sum(-1)
+        step_norm = np.full(p.shape[:2], np.inf)
+        for _ in range(self.n_iterations):
+            jtj = np.einsum("...ki,...kj->...ij", jac, jac)
+            jtr = np.einsum("...ki,...k->...i", jac, r)
+            a = jtj + lam[..., None, None] * (np.eye(2) * (np.trace(jtj, axis1=-2, axis2=-1)[..., None, None] / 2 + 1e-9))
+            det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+            det = np.where(np.abs(det) < 1e-18, 1e-18, det)
+            step = -np.stack(
+                [a[..., 1, 1] * jtr[..., 0] - a[..., 0, 1] * jtr[..., 1], a[..., 0, 0] * jtr[..., 1] - a[..., 1, 0] * jtr[..., 0]],
+                axis=-1,
+            ) / det[..., None]
+            p_new = p + step
+            r_new, jac_new = self._residuals(p_new, mics, z, rd)
+            cost_new = (r_new**2).sum(-1)
+            better = cost_new < cost
+            p = np.where(better[..., None], p_new, p)
+            r = np.where(better[..., None], r_new, r)
+            jac = np.where(better[..., None, None], jac_new, jac)
+            cost = np.where(better, cost_new, cost)
+            step_norm = np.where(better, np.sqrt((step**2).sum(-1)), step_norm)
+            lam = np.where(better, lam * 0.3, lam * 10.0)
+        # Where several starts reach an equally good fit (the two roots of a 3-mic array), prefer
+        # the one nearest the array centroid and report how many distinct fits there were.
+        cost = np.where(np.isfinite(cost), cost, np.inf)
+        tied = cost <= cost.min(axis=1, keepdims=True) + self.tie_tolerance_m**2 * (mics.shape[0] - 1)
+        centre_dist = np.sqrt(((p - mics[:, :2].mean(axis=0)) ** 2).sum(-1))
+        best = np.argmin(np.where(tied, centre_dist, np.inf), axis=1)
+        rows = np.arange(b)
+        spread = np.sqrt(((p - p[rows, best][:, None, :]) ** 2).sum(-1))
+        n_roots = 1 + (tied & (spread > 1.0)).sum(axis=1)
+        position = p[rows, best]
+        residual = np.sqrt(cost[rows, best] / (mics.shape[0] - 1))
+        converged = (step_norm[rows, best] < self.tolerance_m) | (residual < 1e-6)
+        finite = np.isfinite(tdoa).all(axis=1) & np.isfinite(c)
+        position[~finite] = np.nan
+        residual[~finite] = np.nan
+        converged &= finite
+        geometry = np.full(b, np.nan)
+        geometry[finite] = gdop(mics, np.column_stack([position[finite], np.full(finite.sum(), height)]))
+        return SolverResult(
+            position_m=position,
+            residual_m=residual,
+            converged=converged,
+            diagnostics={"gdop": geometry, "n_roots": n_roots.astype(float), "source_height_m": np.full(b, height)},
+        )

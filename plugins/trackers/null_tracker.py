@@ -1,0 +1,26 @@
+"""A tracker that records nothing beyond the run directory (``tracking=none``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pandas as pd
+
+
+class NullTracker:
+    """Keeps results only in the run directory; every call is a no-op."""
+
+    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> None:
+        """Do nothing."""
+
+    def log_metrics(self, metrics: dict[str, float]) -> None:
+        """Do nothing."""
+
+    def log_table(self, table: pd.DataFrame, artifact_file: str) -> None:
+        """Do nothing."""
+
+    def log_artifact(self, path: str) -> None:
+        """Do nothing."""
+
+    def finish(self, status: str = "FINISHED") -> None:
+        """Do nothing."""
