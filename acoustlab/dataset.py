@@ -84,9 +84,19 @@ def _chunk_name(start: int, stop: int) -> str:
     return f"events_{start:07d}_{stop:07d}"
 
 
-def _update_hash(digest: Any, batch_audio: np.ndarray, events: pd.DataFrame) -> None:
-    digest.update(np.ascontiguousarray(batch_audio).tobytes())
-    digest.update(pd.util.hash_pandas_object(events, index=False).to_numpy().tobytes())
+class _DataHasher:
+    """SHA-256 over all audio then all event rows, independent of how events are chunked."""
+
+    def __init__(self) -> None:
+        self.audio = hashlib.sha256()
+        self.events = hashlib.sha256()
+
+    def update(self, batch_audio: np.ndarray, events: pd.DataFrame) -> None:
+        self.audio.update(np.ascontiguousarray(batch_audio).tobytes())
+        self.events.update(pd.util.hash_pandas_object(events, index=False).to_numpy().tobytes())
+
+    def hexdigest(self) -> str:
+        return hashlib.sha256((self.audio.hexdigest() + self.events.hexdigest()).encode()).hexdigest()
 
 
 def simulation_key(site: Site, simulator: Simulator, simulator_cfg: dict[str, Any], plan: SimulationPlan) -> str:
@@ -114,7 +124,7 @@ def simulate_to_cache(
         return found
     simulator.validate(site)
     work = cache.partial_dir("simulation", key)
-    digest = hashlib.sha256()
+    digest = _DataHasher()
     chunks = plan.chunks()
     for start, stop in tqdm(chunks, desc=f"simulate {site.name}", unit="chunk", disable=None):
         audio_path = work / f"{_chunk_name(start, stop)}.npy"
@@ -128,7 +138,7 @@ def simulate_to_cache(
             audio, events = batch.audio, batch.events
             atomic_save_npy(audio_path, audio)
             atomic_write_bytes(events_path, events.to_parquet(index=False))
-        _update_hash(digest, audio, events)
+        digest.update(audio, events)
     manifest = {
         "chunks": [_chunk_name(s, e) for s, e in chunks],
         "sample_rate_hz": simulator.sample_rate_hz,

@@ -28,21 +28,24 @@ class GccPhatTdoa:
         Extra lag allowed beyond the pair's distance over c, in s.
     band_hz : list of float, optional
         (low, high) band of the cross-spectrum in Hz; None for the full band.
+    upsample : int
+        Lag-resolution factor of the correlation before parabolic peak refinement.
     """
 
     group = "tdoa"
     cache_version = "1"
 
-    def __init__(self, max_lag_margin_s: float = 0.002, band_hz: list[float] | None = None) -> None:
+    def __init__(self, max_lag_margin_s: float = 0.002, band_hz: list[float] | None = None, upsample: int = 4) -> None:
         if max_lag_margin_s < 0:
             raise ConfigError(f"features tdoa.max_lag_margin_s must be >= 0; got {max_lag_margin_s}")
         self.max_lag_margin_s = float(max_lag_margin_s)
         self.band_hz = None if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
+        self.upsample = int(upsample)
 
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         """One row per event: ``tdoa__lag_i_j_s`` for every pair i < j."""
         pairs = site.mic_pairs
-        cc, lags_s = gcc(batch.audio, pairs, batch.sample_rate_hz, "phat", self.band_hz)
+        cc, lags_s = gcc(batch.audio, pairs, batch.sample_rate_hz, "phat", self.band_hz, self.upsample)
         c_max = speed_of_sound_m_s(site.temperature_range_c[1], site.relative_humidity_range_pct[1])
         mics = site.mic_positions_m
         out = {}
@@ -52,5 +55,6 @@ class GccPhatTdoa:
             segment = cc[:, p, window]
             peak = np.argmax(segment, axis=-1)
             offset, _ = parabolic_peak(segment, peak)
-            out[tdoa_column(i, j)] = lags_s[window][0] + (peak + offset) / batch.sample_rate_hz
+            lag_step_s = lags_s[1] - lags_s[0]
+            out[tdoa_column(i, j)] = lags_s[window][0] + (peak + offset) * lag_step_s
         return pd.DataFrame(out)

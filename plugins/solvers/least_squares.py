@@ -17,8 +17,8 @@ class LeastSquaresSolver:
     """2-D source position minimising range-difference residuals to mic 0.
 
     Residual of mic j for a candidate p: (‖p − m_j‖ − ‖p − m_0‖) − c·τ_j, with 3-D distances (known mic
-    heights, an assumed source height). Starts from the array centroid and from points beyond each
-    mic, keeps the start with the smallest final residual.
+    heights, an assumed source height). Starts from the array centroid, from points near each mic inside
+    the array and from points beyond each mic, keeps the start with the smallest final residual.
 
     Parameters
     ----------
@@ -35,7 +35,7 @@ class LeastSquaresSolver:
 
     cache_version = "1"
 
-    def __init__(self, source_height_m: float | None = None, n_iterations: int = 40, tolerance_m: float = 1e-4,
+    def __init__(self, source_height_m: float | None = None, n_iterations: int = 100, tolerance_m: float = 1e-4,
                  tie_tolerance_m: float = 0.05) -> None:
         if n_iterations < 1:
             raise ConfigError(f"solver.n_iterations must be >= 1; got {n_iterations}")
@@ -47,8 +47,9 @@ class LeastSquaresSolver:
     @staticmethod
     def _starts(mics_xy: np.ndarray) -> np.ndarray:
         centroid = mics_xy.mean(axis=0)
-        beyond = mics_xy + 0.5 * (mics_xy - centroid)
-        return np.vstack([centroid[None], beyond])  # (S, 2)
+        near = mics_xy + 0.25 * (centroid - mics_xy)  # inside the array, near each mic
+        beyond = mics_xy + 0.5 * (mics_xy - centroid)  # outside, beyond each mic
+        return np.vstack([centroid[None], near, beyond])  # (S, 2)
 
     def _residuals(self, p: np.ndarray, mics: np.ndarray, z: np.ndarray, rd: np.ndarray):
         """Residuals (..., M-1) and Jacobian (..., M-1, 2) at candidates p (..., 2)."""
@@ -101,7 +102,9 @@ class LeastSquaresSolver:
             jac = np.where(better[..., None, None], jac_new, jac)
             cost = np.where(better, cost_new, cost)
             step_norm = np.where(better, np.sqrt((step**2).sum(-1)), step_norm)
-            lam = np.where(better, lam * 0.3, lam * 10.0)
+            lam = np.clip(np.where(better, lam * 0.3, lam * 10.0), 1e-12, 1e8)
+            if np.all(~better & (lam >= 1e8) | (step_norm < 1e-9)):
+                break
         # Where several starts reach an equally good fit (the two roots of a 3-mic array), prefer
         # the one nearest the array centroid and report how many distinct fits there were.
         cost = np.where(np.isfinite(cost), cost, np.inf)

@@ -1,0 +1,28 @@
+"""The command line as a user runs it (subprocesses)."""
+
+import json
+
+import pytest
+
+from acoustlab.registry import ALL_GROUPS, group_options
+
+pytestmark = pytest.mark.slow
+
+
+def test_help_lists_every_option_of_every_group(run_cli):
+    proc = run_cli("--help")
+    assert proc.returncode == 0, proc.stderr
+    for group in ALL_GROUPS:
+        line = next((ln for ln in proc.stdout.splitlines() if ln.startswith(f"{group}: ")), None)
+        assert line is not None, f"--help does not list group {group}"
+        assert sorted(o.strip() for o in line.split(":", 1)[1].split(",")) == group_options(group)
+
+
+def test_multirun_over_two_sites_runs_two_jobs(run_cli, tmp_path):
+    out = tmp_path / "outputs"
+    proc = run_cli("-m", "+site=frozen_lake,forest", "+experiment=smoke", "tracking=none", outputs=out)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    metrics = sorted(out.glob("multirun/*/*/*/metrics.json"))
+    assert len(metrics) == 2
+    sites = {json.loads(p.read_text())["site"] for p in metrics}
+    assert sites == {"frozen_lake", "forest"}
