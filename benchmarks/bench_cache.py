@@ -1,0 +1,74 @@
+"""End-to-end wall time of the main command with a cold cache, a warm cache, and only the model changed.
+
+Usage: python benchmarks/bench_cache.py [--site frozen_lake] [--extra key=value ...]
+Writes benchmarks/results/cache_<site>.json and .md. Each command runs in a fresh subprocess
+(imports included), all in one session, so the ratios compare like with like.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+log = logging.getLogger("bench_cache")
+
+
+def timed(args: list[str]) -> float:
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True)
+    elapsed = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"command failed: {args}\n{proc.stderr[-3000:]}")
+    return elapsed
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--site", default="frozen_lake")
+    parser.add_argument("--extra", nargs="*", default=[])
+    opts = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        base = [f"+site={opts.site}", f"paths.outputs_dir={tmp}", *opts.extra]
+        rows = {
+            "cold cache (simulate + features + models + MLflow)": timed(base),
+            "warm cache, same config": timed(base),
+            "warm cache, model=random_forest": timed([*base, "model=random_forest"]),
+            "cache bypassed (cache.enabled=false)": timed([*base, "cache.enabled=false"]),
+        }
+    cold = rows["cold cache (simulate + features + models + MLflow)"]
+    result = {
+        "site": opts.site,
+        "extra_overrides": opts.extra,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpus": __import__("os").cpu_count(),
+        "wall_s": {k: round(v, 2) for k, v in rows.items()},
+        "ratio_to_cold": {k: round(v / cold, 3) for k, v in rows.items()},
+    }
+    out = REPO / "benchmarks" / "results"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"cache_{opts.site}.json").write_text(json.dumps(result, indent=2))
+    lines = [
+        f"# End-to-end wall time, site {opts.site}",
+        "",
+        f"`python benchmarks/bench_cache.py --site {opts.site}` ({result['cpus']} CPUs, Python {result['python']})",
+        "",
+        "| run | wall (s) | ratio to cold |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {k} | {v:.1f} | {result['ratio_to_cold'][k]:.2f} |" for k, v in rows.items()]
+    (out / f"cache_{opts.site}.md").write_text("\n".join(lines) + "\n")
+    log.info("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
