@@ -70,6 +70,10 @@ class Site:
         Free-text ground description, e.g. ``snow_over_ice``.
     ground_flow_resistivity_kpa_s_m2 : float
         Effective flow resistivity of the ground in kPa·s·m⁻².
+    ground_impedance_model : str
+        ``miki``, ``delany_bazley`` or ``rigid``.
+    ground_layer_thickness_m : float or None
+        Thickness of a hard-backed porous layer (snow over ice) in m; None for a deep ground.
     noise_regimes : tuple of NoiseRegime
         Background-noise kinds drawn uniformly per event.
     snr_range_db : tuple of float
@@ -91,6 +95,8 @@ class Site:
     relative_humidity_range_pct: tuple[float, float]
     ground_type: str
     ground_flow_resistivity_kpa_s_m2: float
+    ground_impedance_model: str
+    ground_layer_thickness_m: float | None
     noise_regimes: tuple[NoiseRegime, ...]
     snr_range_db: tuple[float, float]
     species_pool: tuple[str, ...]
@@ -124,6 +130,8 @@ class Site:
             "relative_humidity_range_pct": list(self.relative_humidity_range_pct),
             "ground_type": self.ground_type,
             "ground_flow_resistivity_kpa_s_m2": self.ground_flow_resistivity_kpa_s_m2,
+            "ground_impedance_model": self.ground_impedance_model,
+            "ground_layer_thickness_m": self.ground_layer_thickness_m,
             "noise_regimes": [
                 {"kind": r.kind, "files": list(r.files), "band_hz": r.band_hz} for r in self.noise_regimes
             ],

@@ -141,6 +141,12 @@ def site_from_config(cfg: Mapping[str, Any]) -> Site:
     sigma = float(ground.get("flow_resistivity_kpa_s_m2", 2e4))
     if sigma <= 0:
         raise ConfigError(f"site.ground.flow_resistivity_kpa_s_m2 must be > 0; got {sigma}")
+    impedance_model = str(ground.get("model", "miki"))
+    if impedance_model not in ("miki", "delany_bazley", "rigid"):
+        raise ConfigError(f"site.ground.model={impedance_model!r}; expected miki, delany_bazley or rigid")
+    layer = ground.get("layer_thickness_m")
+    if layer is not None and not float(layer) > 0:
+        raise ConfigError(f"site.ground.layer_thickness_m must be > 0 m or null; got {layer}")
     hull_expansion = float(cfg.get("hull_expansion", 0.0))
     if hull_expansion < 0:
         raise ConfigError(f"site.hull_expansion must be >= 0; got {hull_expansion}")
@@ -155,6 +161,8 @@ def site_from_config(cfg: Mapping[str, Any]) -> Site:
         ),
         ground_type=str(ground.get("type", "unspecified")),
         ground_flow_resistivity_kpa_s_m2=sigma,
+        ground_impedance_model=impedance_model,
+        ground_layer_thickness_m=None if layer is None else float(layer),
         noise_regimes=_noise_regimes(noise),
         snr_range_db=require_range("site.noise.snr_db", noise.get("snr_db")),
         species_pool=species,
