@@ -127,7 +127,7 @@ def _segments(file: str, sample_rate_hz: float, band: tuple[float, float]) -> tu
 def synthetic_call(rng: np.random.Generator, sample_rate_hz: float, kind: str | None = None) -> tuple[str, np.ndarray]:
     """A parametric synthetic call: FM sweep, trill or harmonic stack, with random parameters.
 
-    Frequencies stay between 1 kHz and min(9 kHz, 0.4 × sample rate); durations 50–400 ms.
+    Frequencies stay between 1 kHz and min(9 kHz, 0.4 × sample rate); durations 50–450 ms.
 
     Returns
     -------
@@ -147,6 +147,7 @@ def synthetic_call(rng: np.random.Generator, sample_rate_hz: float, kind: str | 
         n_notes = int(rng.integers(4, 15))
         note = rng.uniform(0.015, 0.04)
         gap = rng.uniform(0.005, 0.03)
+        n_notes = min(n_notes, int(0.45 / (note + gap)))
         f0 = rng.uniform(1500, f_top * 0.8)
         f1 = np.clip(f0 * rng.uniform(0.6, 1.6), 1000, f_top)
         t = np.arange(int(note * sample_rate_hz)) / sample_rate_hz
@@ -218,6 +219,6 @@ class CallPool:
 
     @property
     def max_duration_s(self) -> float:
-        """Longest call in the pool, in s (synthetic calls are at most 0.9 s)."""
+        """Longest call in the pool, in s (synthetic calls are at most 0.45 s)."""
         real = max((c.signal.size for c in self.real), default=0) / self.sample_rate_hz
-        return max(real, 0.9 if self.synthetic else 0.0)
+        return max(real, 0.45 if self.synthetic else 0.0)

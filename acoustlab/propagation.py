@@ -169,7 +169,7 @@ def cylinder_scattering_magnitude(ka: np.ndarray, angle_rad: np.ndarray) -> np.n
 
 
 def segment_trunk_clearance(a_xy: np.ndarray, b_xy: np.ndarray, trees_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance from each trunk centre to each segment a→b, and whether the foot lies inside it.
+    """Distance from each trunk centre to each segment a→b, and where along it the foot lies.
 
     Parameters
     ----------
@@ -182,8 +182,8 @@ def segment_trunk_clearance(a_xy: np.ndarray, b_xy: np.ndarray, trees_xy: np.nda
     -------
     distance_m : numpy.ndarray
         (P, T) perpendicular distance from trunk centre to the segment, in m.
-    between : numpy.ndarray
-        (P, T) True where the closest point is strictly between the ends.
+    fraction : numpy.ndarray
+        (P, T) position of the foot of the perpendicular along a→b (0 at a, 1 at b).
     """
     ab = b_xy - a_xy
     length2 = np.maximum((ab**2).sum(-1), 1e-12)
@@ -191,7 +191,7 @@ def segment_trunk_clearance(a_xy: np.ndarray, b_xy: np.ndarray, trees_xy: np.nda
     t = (at * ab[:, None, :]).sum(-1) / length2[:, None]
     closest = a_xy[:, None, :] + np.clip(t, 0, 1)[..., None] * ab[:, None, :]
     dist = np.sqrt(((trees_xy[None] - closest) ** 2).sum(-1))
-    return dist, (t > 0) & (t < 1)
+    return dist, t
 
 
 def trunk_detour_m(d_source_m: np.ndarray, d_receiver_m: np.ndarray, radius_m: np.ndarray, offset_m: np.ndarray) -> np.ndarray:
