@@ -74,7 +74,7 @@ def test_same_config_same_data_bit_for_bit_without_cache(compose_cfg, tmp_path, 
 
 
 def test_interrupted_simulation_resumes_from_finished_chunks(compose_cfg, tmp_path, monkeypatch, caplog):
-    from plugins.simulators.free_field import FreeFieldSimulator
+    from plugins.simulators.outdoor import OutdoorSimulator as FreeFieldSimulator
 
     original = FreeFieldSimulator.simulate
     calls = {"n": 0}

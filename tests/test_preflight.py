@@ -69,16 +69,30 @@ def test_empty_species_pool(compose_cfg):
         _site(compose_cfg, "site.species_pool=[]")
 
 
-def test_non_positive_sample_rate(compose_cfg):
-    cfg = compose_cfg(["+site=frozen_lake", "simulator.sample_rate_hz=0"])
+@pytest.mark.parametrize("simulator", ["free_field", "outdoor"])
+def test_non_positive_sample_rate(compose_cfg, simulator):
+    cfg = compose_cfg(["+site=frozen_lake", f"simulator={simulator}", "simulator.sample_rate_hz=0"])
     with pytest.raises(ConfigError, match="sample_rate_hz must be positive"):
         build(cfg.simulator, "simulator")
 
 
+def test_sample_rate_below_the_call_band(compose_cfg):
+    cfg = compose_cfg(["+site=frozen_lake", "simulator.sample_rate_hz=6000"])
+    with pytest.raises(ConfigError, match="below twice"):
+        build(cfg.simulator, "simulator")
+
+
 def test_empty_call_pool(compose_cfg):
-    cfg = compose_cfg(["+site=frozen_lake", "simulator.calls=[]"])
+    cfg = compose_cfg(["+site=frozen_lake", "simulator=free_field", "simulator.calls=[]"])
     with pytest.raises(ConfigError, match="call pool"):
         build(cfg.simulator, "simulator")
+    # only share-alike species, without opting in to them
+    cfg = compose_cfg(["+site=frozen_lake", "site.species_pool=[bewicks_wren]"])
+    with pytest.raises(ConfigError, match="call pool .* is empty .*include_share_alike"):
+        build(cfg.simulator, "simulator").validate(site_from_config(cfg.site))
+    cfg = compose_cfg(["+site=frozen_lake", "site.species_pool=[dodo]"])
+    with pytest.raises(ConfigError, match="unknown species \\['dodo'\\]"):
+        build(cfg.simulator, "simulator").validate(site_from_config(cfg.site))
 
 
 def test_recording_too_short_for_the_site(compose_cfg):

@@ -11,7 +11,7 @@ from plugins.features.gcc_phat import GccPhatTdoa, tdoa_column
 @pytest.fixture
 def sim_and_site(compose_cfg):
     def _make(site="frozen_lake", *overrides):
-        cfg = compose_cfg([f"+site={site}", *overrides])
+        cfg = compose_cfg([f"+site={site}", "simulator=free_field", *overrides])
         return build(cfg.simulator, "simulator"), site_from_config(cfg.site)
 
     return _make
