@@ -309,65 +309,111 @@ class OutdoorSimulator:
         return np.einsum("bf,bmf->mf", weights, spectra)
 
     # ---------------------------------------------------------------------------- simulate
+    def _audio_setup(self, site: Site) -> tuple[CallPool, int, int, np.ndarray]:
+        pool = self._pool(site)
+        n_out = int(round(self.duration_s * self.sample_rate_hz))
+        n_fft = next_fast_len(n_out + int(pool.max_duration_s * self.sample_rate_hz) + 1)
+        return pool, n_out, n_fft, sfft.rfftfreq(n_fft, d=1.0 / self.sample_rate_hz)
+
+    def deployment_gains_db(self, site: Site, seed: int) -> np.ndarray:
+        """(M,) recorder gain errors in dB, fixed for a deployment (seed)."""
+        std = self.impairments.gain_mismatch_db_std
+        if not std:
+            return np.zeros(site.n_mics)
+        return np.random.default_rng([int(seed), _DEPLOYMENT_STREAM]).normal(0, std, site.n_mics)
+
+    def render_event(
+        self,
+        site: Site,
+        source_m: np.ndarray,
+        rng: np.random.Generator,
+        call: Any = None,
+        snr_offset_db: float = 0.0,
+        forced_failure: tuple[int, str] | None = None,
+        gains_db: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Render one event at ``source_m`` with every random draw taken from ``rng``.
+
+        Parameters
+        ----------
+        site : Site
+            The site.
+        source_m : numpy.ndarray
+            (3,) source position in m.
+        rng : numpy.random.Generator
+            The event's generator (weather, SNR, noise, call when ``call`` is None, impairments).
+        call : acoustlab.calls.Call, optional
+            A fixed stimulus; drawn from the site's pool when None.
+        snr_offset_db : float
+            Added to the drawn SNR (e.g. a quieter playback setting).
+        forced_failure : (int, str), optional
+            A (mic, mode) hardware failure applied regardless of ``failure_probability``.
+        gains_db : numpy.ndarray, optional
+            (M,) recorder gain errors in dB.
+
+        Returns
+        -------
+        audio : numpy.ndarray
+            (M, S) float32 recording.
+        row : dict
+            The event's metadata (weather, SNR, call, impairments), without ids and position.
+        """
+        pool, n_out, n_fft, freqs = self._audio_setup(site)
+        m = site.n_mics
+        imp = self.impairments
+        weather = draw_weather(rng, site)
+        snr_db = rng.uniform(*site.snr_range_db) + snr_offset_db
+        regime = int(rng.integers(len(site.noise_regimes)))
+        call = pool.draw(rng) if call is None else call
+        emission = rng.uniform(*self._onset)
+        clock = rng.normal(0, imp.clock_offset_std_s, m) if imp.clock_offset_std_s else np.zeros(m)
+        speed = 1 + rng.normal(0, imp.sound_speed_perturbation, (m, 3)) if imp.sound_speed_perturbation else np.ones((m, 3))
+        h = self.transfer_functions(site, source_m, weather.temperature_c, weather.relative_humidity_pct, freqs, n_fft, emission, clock, speed)
+        spectrum = sfft.rfft(call.signal, n=n_fft)
+        clean = sfft.irfft(spectrum[None, :] * (h["direct"] + h["ground"] + h["trunks"]), n=n_fft, axis=-1)[:, :n_out]
+        nearest = int(np.argmin(np.sqrt(((site.mic_positions_m - source_m) ** 2).sum(-1))))
+        noise_std = noise_std_for_snr(clean[nearest], call.signal.size / self.sample_rate_hz, self.sample_rate_hz, snr_db)
+        rec = clean + noise_std * noise_matrix(rng, site, regime, n_out, self.sample_rate_hz, self.diffuse_noise_fraction)
+        row: dict[str, Any] = {
+            "temperature_c": weather.temperature_c,
+            "relative_humidity_pct": weather.relative_humidity_pct,
+            "speed_of_sound_m_s": float(speed_of_sound_m_s(weather.temperature_c, weather.relative_humidity_pct)),
+            "snr_db": snr_db,
+            "noise_regime": site.noise_regimes[regime].kind,
+            "call": call.label,
+            "call_licence": call.licence,
+            "call_duration_s": call.signal.size / self.sample_rate_hz,
+            "emission_time_s": emission,
+            "interference_mic": -1,
+            "interference_kind": "",
+            "failed_mic": -1,
+            "failure_mode": "",
+        }
+        if imp.interference_probability and rng.random() < imp.interference_probability:
+            mic = int(rng.integers(m))
+            kind = INTERFERENCE_KINDS[int(rng.integers(len(INTERFERENCE_KINDS)))]
+            rec[mic] = add_interference(rng, rec[mic], self.sample_rate_hz, kind)
+            row.update(interference_mic=mic, interference_kind=kind)
+        failure = forced_failure
+        if failure is None and imp.failure_probability and rng.random() < imp.failure_probability:
+            failure = (int(rng.integers(m)), FAILURE_MODES[int(rng.integers(len(FAILURE_MODES)))])
+        if failure is not None:
+            rec[failure[0]] = fail_channel(rng, rec[failure[0]], failure[1])
+            row.update(failed_mic=failure[0], failure_mode=failure[1])
+        if gains_db is not None:
+            rec = rec * (10 ** (np.asarray(gains_db) / 20))[:, None]
+        return rec.astype(np.float32), row
+
     def simulate(self, site: Site, event_ids: np.ndarray, position_ids: np.ndarray, seed: int) -> RecordingBatch:
         """Render events; see :class:`acoustlab.interfaces.Simulator`."""
         event_ids = np.asarray(event_ids, dtype=np.int64)
         position_ids = np.asarray(position_ids, dtype=np.int64)
-        pool = self._pool(site)
-        n_out = int(round(self.duration_s * self.sample_rate_hz))
-        n_fft = next_fast_len(n_out + int(pool.max_duration_s * self.sample_rate_hz) + 1)
-        freqs = sfft.rfftfreq(n_fft, d=1.0 / self.sample_rate_hz)
-        m = site.n_mics
-        imp = self.impairments
-        gains_db = np.random.default_rng([int(seed), _DEPLOYMENT_STREAM]).normal(0, imp.gain_mismatch_db_std, m) if imp.gain_mismatch_db_std else np.zeros(m)
-        audio = np.empty((event_ids.size, m, n_out), dtype=np.float32)
+        _, n_out, _, _ = self._audio_setup(site)
+        gains_db = self.deployment_gains_db(site, seed)
+        audio = np.empty((event_ids.size, site.n_mics, n_out), dtype=np.float32)
         rows = []
         for k, (eid, pid) in enumerate(zip(event_ids, position_ids, strict=True)):
             source = draw_source(site, seed, int(pid))
-            rng = event_rng(seed, int(eid))
-            weather = draw_weather(rng, site)
-            snr_db = rng.uniform(*site.snr_range_db)
-            regime = int(rng.integers(len(site.noise_regimes)))
-            call = pool.draw(rng)
-            emission = rng.uniform(*self._onset)
-            clock = rng.normal(0, imp.clock_offset_std_s, m) if imp.clock_offset_std_s else np.zeros(m)
-            speed = 1 + rng.normal(0, imp.sound_speed_perturbation, (m, 3)) if imp.sound_speed_perturbation else np.ones((m, 3))
-            h = self.transfer_functions(site, source, weather.temperature_c, weather.relative_humidity_pct, freqs, n_fft, emission, clock, speed)
-            spectrum = sfft.rfft(call.signal, n=n_fft)
-            clean = sfft.irfft(spectrum[None, :] * (h["direct"] + h["ground"] + h["trunks"]), n=n_fft, axis=-1)[:, :n_out]
-            nearest = int(np.argmin(np.sqrt(((site.mic_positions_m - source) ** 2).sum(-1))))
-            noise_std = noise_std_for_snr(clean[nearest], call.signal.size / self.sample_rate_hz, self.sample_rate_hz, snr_db)
-            rec = clean + noise_std * noise_matrix(rng, site, regime, n_out, self.sample_rate_hz, self.diffuse_noise_fraction)
-            row = {
-                "event_id": int(eid),
-                "position_id": int(pid),
-                "x_m": source[0],
-                "y_m": source[1],
-                "z_m": source[2],
-                "temperature_c": weather.temperature_c,
-                "relative_humidity_pct": weather.relative_humidity_pct,
-                "speed_of_sound_m_s": float(speed_of_sound_m_s(weather.temperature_c, weather.relative_humidity_pct)),
-                "snr_db": snr_db,
-                "noise_regime": site.noise_regimes[regime].kind,
-                "call": call.label,
-                "call_licence": call.licence,
-                "call_duration_s": call.signal.size / self.sample_rate_hz,
-                "emission_time_s": emission,
-                "interference_mic": -1,
-                "interference_kind": "",
-                "failed_mic": -1,
-                "failure_mode": "",
-            }
-            if imp.interference_probability and rng.random() < imp.interference_probability:
-                mic = int(rng.integers(m))
-                kind = INTERFERENCE_KINDS[int(rng.integers(len(INTERFERENCE_KINDS)))]
-                rec[mic] = add_interference(rng, rec[mic], self.sample_rate_hz, kind)
-                row.update(interference_mic=mic, interference_kind=kind)
-            if imp.failure_probability and rng.random() < imp.failure_probability:
-                mic = int(rng.integers(m))
-                mode = FAILURE_MODES[int(rng.integers(len(FAILURE_MODES)))]
-                rec[mic] = fail_channel(rng, rec[mic], mode)
-                row.update(failed_mic=mic, failure_mode=mode)
-            audio[k] = rec * (10 ** (gains_db / 20))[:, None]
-            rows.append(row)
+            audio[k], row = self.render_event(site, source, event_rng(seed, int(eid)), gains_db=gains_db)
+            rows.append({"event_id": int(eid), "position_id": int(pid), "x_m": source[0], "y_m": source[1], "z_m": source[2], **row})
         return RecordingBatch(audio=audio, sample_rate_hz=self.sample_rate_hz, events=pd.DataFrame(rows))
