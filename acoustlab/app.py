@@ -103,15 +103,24 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     tracker = build(cfg.tracking, "tracking")
 
     cache = StageCache(cfg.cache.dir, enabled=bool(cfg.cache.enabled))
+    if int(cfg.data.get("shard_count", 1)) > 1 and not cache.enabled:
+        raise ConfigError("data.shard_count > 1 fills the cache shard by shard; it needs cache.enabled=true")
     plan = SimulationPlan(
         n_events=int(cfg.data.n_events),
         events_per_position=int(cfg.data.events_per_position),
         seed=int(cfg.seed),
         chunk_size=int(cfg.data.chunk_size),
+        n_jobs=int(cfg.data.get("n_jobs", 1)),
+        shard_index=int(cfg.data.get("shard_index", 0)),
+        shard_count=int(cfg.data.get("shard_count", 1)),
     )
     dataset = load_or_build_simulated(
         site, simulator, to_plain(cfg.simulator), feature_sets, to_plain(cfg.features.groups), plan, cache
     )
+    if dataset is None:
+        log.info("sharded simulation run: shard %d of %d is in the cache; run without data.shard_count to finish",
+                 plan.shard_index + 1, plan.shard_count)
+        return {"shard": {"index": plan.shard_index, "count": plan.shard_count}}
     dataset.features = add_solver_columns(dataset.features, dataset.events, site, solver)
     predictions = protocol.run(dataset, LocalizationPipeline(components))
 

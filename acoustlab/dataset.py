@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from joblib import Parallel, delayed
 from tqdm.auto import tqdm
 
 from acoustlab.cache import StageCache, atomic_save_npy, atomic_write_bytes, plugin_version
@@ -60,12 +61,20 @@ class SimulationPlan:
         Base seed of every random draw.
     chunk_size : int
         Events per stored chunk (does not change the data).
+    n_jobs : int
+        Worker processes rendering chunks in parallel (does not change the data).
+    shard_index, shard_count : int
+        Render only chunks ``k`` with ``k % shard_count == shard_index`` (a cluster job array
+        filling a shared cache); ``shard_count=1`` renders everything.
     """
 
     n_events: int
     events_per_position: int
     seed: int
     chunk_size: int = 64
+    n_jobs: int = 1
+    shard_index: int = 0
+    shard_count: int = 1
 
     def __post_init__(self) -> None:
         if self.n_events < 1:
@@ -74,6 +83,10 @@ class SimulationPlan:
             raise ConfigError(f"data.events_per_position must be >= 1; got {self.events_per_position}")
         if self.chunk_size < 1:
             raise ConfigError(f"data.chunk_size must be >= 1; got {self.chunk_size}")
+        if self.shard_count < 1 or not 0 <= self.shard_index < self.shard_count:
+            raise ConfigError(
+                f"data.shard_index must be in [0, data.shard_count); got {self.shard_index} of {self.shard_count}"
+            )
 
     def chunks(self) -> list[tuple[int, int]]:
         """[start, stop) event ranges of the chunks."""
@@ -114,31 +127,54 @@ def simulation_key(site: Site, simulator: Simulator, simulator_cfg: dict[str, An
     )
 
 
+def _render_chunk(site: Site, simulator: Simulator, plan: SimulationPlan, start: int, stop: int, work: Path) -> None:
+    """Render events [start, stop) and store them atomically (a worker's unit of work)."""
+    audio_path = work / f"{_chunk_name(start, stop)}.npy"
+    events_path = work / f"{_chunk_name(start, stop)}.parquet"
+    if audio_path.exists() and events_path.exists():  # finished before an interruption, or by another shard
+        return
+    ids = np.arange(start, stop)
+    batch = simulator.simulate(site, ids, ids // plan.events_per_position, plan.seed)
+    atomic_save_npy(audio_path, batch.audio)
+    atomic_write_bytes(events_path, batch.events.to_parquet(index=False))
+
+
 def simulate_to_cache(
     site: Site, simulator: Simulator, simulator_cfg: dict[str, Any], plan: SimulationPlan, cache: StageCache
-) -> Path:
-    """Simulate (or find in the cache) every event; return the directory of the stored chunks."""
+) -> Path | None:
+    """Simulate (or find in the cache) every event; return the directory of the stored chunks.
+
+    Chunks are rendered by ``plan.n_jobs`` worker processes and written as they finish, so memory
+    holds one chunk per worker. With ``plan.shard_count > 1`` only this shard's chunks are rendered
+    into the shared work directory and None is returned; a later unsharded run finds them there.
+    """
     key = simulation_key(site, simulator, simulator_cfg, plan)
     found = cache.lookup("simulation", key)
     if found is not None:
         return found
     simulator.validate(site)
     work = cache.partial_dir("simulation", key)
-    digest = _DataHasher()
     chunks = plan.chunks()
-    for start, stop in tqdm(chunks, desc=f"simulate {site.name}", unit="chunk", disable=None):
-        audio_path = work / f"{_chunk_name(start, stop)}.npy"
-        events_path = work / f"{_chunk_name(start, stop)}.parquet"
-        if audio_path.exists() and events_path.exists():  # finished before an interruption
-            audio = np.load(audio_path)
-            events = pd.read_parquet(events_path)
-        else:
-            ids = np.arange(start, stop)
-            batch = simulator.simulate(site, ids, ids // plan.events_per_position, plan.seed)
-            audio, events = batch.audio, batch.events
-            atomic_save_npy(audio_path, audio)
-            atomic_write_bytes(events_path, events.to_parquet(index=False))
-        digest.update(audio, events)
+    mine = [c for k, c in enumerate(chunks) if k % plan.shard_count == plan.shard_index]
+    todo = [c for c in mine if not (work / f"{_chunk_name(*c)}.npy").exists() or not (work / f"{_chunk_name(*c)}.parquet").exists()]
+    if len(todo) < len(mine):
+        log.info("resuming simulation: %d of %d chunks already rendered", len(mine) - len(todo), len(mine))
+    desc = f"simulate {site.name}" + (f" shard {plan.shard_index + 1}/{plan.shard_count}" if plan.shard_count > 1 else "")
+    if plan.n_jobs == 1 or len(todo) <= 1:
+        for start, stop in tqdm(todo, desc=desc, unit="chunk", disable=None):
+            _render_chunk(site, simulator, plan, start, stop, work)
+    else:
+        jobs = Parallel(n_jobs=plan.n_jobs, return_as="generator_unordered")(
+            delayed(_render_chunk)(site, simulator, plan, start, stop, work) for start, stop in todo
+        )
+        for _ in tqdm(jobs, total=len(todo), desc=desc, unit="chunk", disable=None):
+            pass
+    if plan.shard_count > 1:
+        log.info("shard %d of %d rendered into %s", plan.shard_index + 1, plan.shard_count, work)
+        return None
+    digest = _DataHasher()
+    for start, stop in chunks:
+        digest.update(np.load(work / f"{_chunk_name(start, stop)}.npy"), pd.read_parquet(work / f"{_chunk_name(start, stop)}.parquet"))
     manifest = {
         "chunks": [_chunk_name(s, e) for s, e in chunks],
         "sample_rate_hz": simulator.sample_rate_hz,
@@ -183,8 +219,11 @@ def load_or_build_simulated(
     features_cfg: dict[str, Any],
     plan: SimulationPlan,
     cache: StageCache,
-) -> Dataset:
-    """The feature and event tables of a simulated dataset, from the cache when possible."""
+) -> Dataset | None:
+    """The feature and event tables of a simulated dataset, from the cache when possible.
+
+    Returns None for a sharded run (``plan.shard_count > 1``), which only renders its shard.
+    """
     sim_key = simulation_key(site, simulator, simulator_cfg, plan)
     feat_key = StageCache.key(
         {
@@ -197,6 +236,8 @@ def load_or_build_simulated(
     found = cache.lookup("features", feat_key)
     if found is None:
         sim_dir = simulate_to_cache(site, simulator, simulator_cfg, plan, cache)
+        if sim_dir is None:
+            return None
         manifest = json.loads((sim_dir / "manifest.json").read_text())
         feats, events = [], []
         n_chunks = len(manifest["chunks"])

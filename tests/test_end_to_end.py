@@ -14,6 +14,7 @@ pytestmark = pytest.mark.slow
 
 
 def smoke(compose_cfg, tmp_path, *overrides, site="frozen_lake"):
+    """The smoke experiment with outputs under ``tmp_path`` and no tracking."""
     return compose_cfg(
         [f"+site={site}", "+experiment=smoke", f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking=none", *overrides]
     )
@@ -148,3 +149,16 @@ def test_tracking_failure_loses_nothing(compose_cfg, tmp_path, caplog):
         del os.environ["MLFLOW_HTTP_REQUEST_MAX_RETRIES"], os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
     assert (tmp_path / "run" / "metrics.json").exists() and (tmp_path / "run" / "predictions.parquet").exists()
     assert any("tracking failed" in r.message for r in caplog.records)
+
+
+def test_parallel_and_sharded_generation_give_the_same_data(compose_cfg, tmp_path):
+    serial = run_experiment(smoke(compose_cfg, tmp_path / "serial"), tmp_path / "a")
+    parallel = run_experiment(smoke(compose_cfg, tmp_path / "parallel", "data.n_jobs=2"), tmp_path / "b")
+    assert parallel["dataset_hash"] == serial["dataset_hash"]
+    for index in (0, 1):
+        out = run_experiment(smoke(compose_cfg, tmp_path / "sharded", "data.shard_count=2", f"data.shard_index={index}"), tmp_path / f"s{index}")
+        assert out == {"shard": {"index": index, "count": 2}}
+    partial = list((tmp_path / "sharded" / "outputs" / "cache" / "simulation").glob("*.partial/*.npy"))
+    assert len(partial) == 4  # 120 events in chunks of 32, split over two shards
+    final = run_experiment(smoke(compose_cfg, tmp_path / "sharded"), tmp_path / "c")
+    assert final["dataset_hash"] == serial["dataset_hash"]
