@@ -19,6 +19,7 @@ sampled SNR at the nearest mic.
 from __future__ import annotations
 
 import logging
+from functools import lru_cache
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -48,6 +49,10 @@ log = logging.getLogger(__name__)
 
 #: Stream of per-deployment draws (recorder gains), independent of events.
 _DEPLOYMENT_STREAM = 2
+#: Frequencies at which the ground reflection coefficient is evaluated before interpolation.
+_Q_GRID_POINTS = 256
+#: Length (samples) of the zero-phase band kernels that shape scattered arrivals.
+_BAND_KERNEL_TAPS = 128
 #: ISO 9613-2 Annex A octave centres (Hz) for foliage attenuation.
 _OCTAVES_HZ = np.array([63, 125, 250, 500, 1000, 2000, 4000, 8000], dtype=float)
 
@@ -69,6 +74,15 @@ def band_weights(freqs_hz: np.ndarray, centres_hz: np.ndarray) -> np.ndarray:
         else:
             w[b] = np.where(lf > lc[b], 1.0, w[b])
     return w
+
+
+@lru_cache(maxsize=8)
+def band_kernels(sample_rate_hz: float, centres_hz: tuple | np.ndarray, taps: int) -> np.ndarray:
+    """(B, taps) zero-phase FIR kernels of the log-frequency bands; they sum to a unit impulse."""
+    centres = np.asarray(centres_hz, dtype=float)
+    freqs = sfft.rfftfreq(taps, d=1.0 / sample_rate_hz)
+    weights = band_weights(np.maximum(freqs, freqs[1] / 2), centres)
+    return np.fft.fftshift(sfft.irfft(weights, n=taps, axis=-1), axes=-1)
 
 
 class OutdoorSimulator:
@@ -156,6 +170,7 @@ class OutdoorSimulator:
         self.flow_resistivity_factor = float(perturbation.get("flow_resistivity_factor", 1.0))
         self.absorption_factor = float(perturbation.get("absorption_factor", 1.0))
         self._pools: dict[tuple, CallPool] = {}
+        self._setup: dict[tuple, tuple] = {}
 
     # ----------------------------------------------------------------------------------- setup
     def _pool(self, site: Site) -> CallPool:
@@ -253,14 +268,19 @@ class OutdoorSimulator:
         if self.ground:
             heights = source_m[2] + mics[:, 2]
             r2 = np.sqrt(horiz**2 + heights**2)
+            # Q(f) is smooth in frequency (the delays are in path()), so evaluate it on a coarse
+            # log-frequency grid and interpolate: the Faddeeva function is the costly part.
+            coarse = np.geomspace(max(freqs_hz[1], 1.0), max(freqs_hz[-1], 2.0), _Q_GRID_POINTS)
             z = ground_impedance(
-                freqs_hz,
+                coarse,
                 site.ground_flow_resistivity_kpa_s_m2 * self.flow_resistivity_factor,
                 site.ground_impedance_model,
                 site.ground_layer_thickness_m,
                 c,
             )
-            q = to_fft_convention(spherical_reflection_coefficient(np.maximum(freqs_hz, 1.0), z, r2, heights / r2, c))
+            q_coarse = to_fft_convention(spherical_reflection_coefficient(coarse, z, r2, heights / r2, c))
+            lf, lc = np.log(np.maximum(freqs_hz, coarse[0])), np.log(coarse)
+            q = np.stack([np.interp(lf, lc, q_coarse[k].real) + 1j * np.interp(lf, lc, q_coarse[k].imag) for k in range(m)])
             out["ground"] = q * path(r2, detour, speed[:, 1])
         else:
             out["ground"] = np.zeros((m, freqs_hz.size), complex)
@@ -285,14 +305,10 @@ class OutdoorSimulator:
         u_out = (mics[:, None, :2] - trees[None]) / np.maximum(d2h, 1e-9)[..., None]  # (M, T, 2)
         angle = np.arccos(np.clip((u_in[None] * u_out).sum(-1), -1, 1))  # 0 = forward
         delay = emission_s + total / (c * speed[:, None]) + clock[:, None]
-        in_window = keep & (delay < (n_fft - 2) / self.sample_rate_hz)
+        in_window = keep & (delay < (n_fft - _BAND_KERNEL_TAPS) / self.sample_rate_hz)
         centres = self.bands_hz[self.bands_hz < self.sample_rate_hz / 2]
         alpha_c = np.interp(centres, freqs_hz, alpha)
-        grid = np.zeros((centres.size, m, n_fft))
-        pos = delay * self.sample_rate_hz
-        i0 = np.floor(pos).astype(int)
-        frac = pos - i0
-        mic_idx = np.broadcast_to(np.arange(m)[:, None], pos.shape)
+        amps = np.zeros((centres.size,) + angle.shape)  # (B, M, T)
         for b, fc in enumerate(centres):
             k = 2 * np.pi * fc / c
             if self.trunk_model == "cylinder":
@@ -301,19 +317,50 @@ class OutdoorSimulator:
                 mag = np.broadcast_to((np.pi / 4) * (k * radii[None, :]) ** 2, angle.shape)
             amp = mag * np.sqrt(2 / (np.pi * k)) / np.sqrt(d1 * d2 * total) * 10 ** (-alpha_c[b] * total / 20)
             forward_lobe = (total - r1[:, None]) < 0.5 * (c / fc)
-            amp = np.where(in_window & ~forward_lobe, amp, 0.0)
-            np.add.at(grid[b], (mic_idx, i0), amp * (1 - frac))
-            np.add.at(grid[b], (mic_idx, np.minimum(i0 + 1, n_fft - 1)), amp * frac)
-        weights = band_weights(freqs_hz, centres)  # (B, F)
-        spectra = sfft.rfft(grid, axis=-1)  # (B, M, F)
-        return np.einsum("bf,bmf->mf", weights, spectra)
+            amps[b] = np.where(in_window & ~forward_lobe, amp, 0.0)
+        active = np.nonzero(amps.any(axis=0))  # (mic, tree) pairs with a scattered arrival
+        ir = np.zeros((m, n_fft))
+        if active[0].size:
+            kernels = band_kernels(self.sample_rate_hz, tuple(centres), _BAND_KERNEL_TAPS)  # (B, L)
+            path_kernels = amps[:, active[0], active[1]].T @ kernels  # (P, L)
+            pos = delay[active] * self.sample_rate_hz
+            i0 = np.floor(pos).astype(int)
+            frac = (pos - i0)[:, None]
+            half = _BAND_KERNEL_TAPS // 2
+            taps = i0[:, None] - half + np.arange(_BAND_KERNEL_TAPS)[None, :]
+            flat = active[0][:, None] * n_fft + taps
+            ok = (taps >= 0) & (taps < n_fft - 1)
+            ir_flat = np.bincount(flat[ok], weights=(path_kernels * (1 - frac))[ok], minlength=m * n_fft)
+            ir_flat += np.bincount(flat[ok] + 1, weights=(path_kernels * frac)[ok], minlength=m * n_fft + 1)[: m * n_fft]
+            ir = ir_flat.reshape(m, n_fft)
+        return sfft.rfft(ir, axis=-1)
 
-    # ---------------------------------------------------------------------------- simulate
-    def _audio_setup(self, site: Site) -> tuple[CallPool, int, int, np.ndarray]:
-        pool = self._pool(site)
-        n_out = int(round(self.duration_s * self.sample_rate_hz))
-        n_fft = next_fast_len(n_out + int(pool.max_duration_s * self.sample_rate_hz) + 1)
-        return pool, n_out, n_fft, sfft.rfftfreq(n_fft, d=1.0 / self.sample_rate_hz)
+    def _audio_setup(self, site: Site) -> tuple[CallPool, int, int, np.ndarray, int]:
+        """Call pool, output length, transform length, its frequencies and the propagation window.
+
+        Every arrival (direct, ground, or scattered by any trunk of the site) ends within the
+        propagation window, so the response is computed over that window only and the rest of a
+        long recording holds noise alone.
+        """
+        key = (site.name, id(site))
+        if key not in self._setup:
+            pool = self._pool(site)
+            n_out = int(round(self.duration_s * self.sample_rate_hz))
+            polygon, buffer_m = source_region(site.mic_positions_m, site.hull_expansion)
+            mics = site.mic_positions_m
+            heights = max(site.source_height_range_m[1], mics[:, 2].max())
+            longest = np.sqrt(((polygon[:, None] - mics[None, :, :2]) ** 2).sum(-1)).max() + buffer_m
+            if self.trunks_enabled and site.tree_positions_m.shape[0]:
+                trees = site.tree_positions_m
+                to_tree = np.sqrt(((polygon[:, None] - trees[None]) ** 2).sum(-1)).max(axis=0) + buffer_m
+                from_tree = np.sqrt(((trees[:, None] - mics[None, :, :2]) ** 2).sum(-1)).max(axis=1)
+                longest = max(longest, float((to_tree + from_tree).max()))
+            c_min = speed_of_sound_m_s(site.temperature_range_c[0], site.relative_humidity_range_pct[0])
+            window_s = self._onset[1] + (longest + heights) / (0.98 * c_min) + pool.max_duration_s
+            n_prop = min(n_out, int(np.ceil(window_s * self.sample_rate_hz)) + _BAND_KERNEL_TAPS)
+            n_fft = next_fast_len(n_prop + int(pool.max_duration_s * self.sample_rate_hz) + _BAND_KERNEL_TAPS)
+            self._setup[key] = (pool, n_out, n_fft, sfft.rfftfreq(n_fft, d=1.0 / self.sample_rate_hz), n_prop)
+        return self._setup[key]
 
     def deployment_gains_db(self, site: Site, seed: int) -> np.ndarray:
         """(M,) recorder gain errors in dB, fixed for a deployment (seed)."""
@@ -358,7 +405,7 @@ class OutdoorSimulator:
         row : dict
             The event's metadata (weather, SNR, call, impairments), without ids and position.
         """
-        pool, n_out, n_fft, freqs = self._audio_setup(site)
+        pool, n_out, n_fft, freqs, n_prop = self._audio_setup(site)
         m = site.n_mics
         imp = self.impairments
         weather = draw_weather(rng, site)
@@ -370,7 +417,8 @@ class OutdoorSimulator:
         speed = 1 + rng.normal(0, imp.sound_speed_perturbation, (m, 3)) if imp.sound_speed_perturbation else np.ones((m, 3))
         h = self.transfer_functions(site, source_m, weather.temperature_c, weather.relative_humidity_pct, freqs, n_fft, emission, clock, speed)
         spectrum = sfft.rfft(call.signal, n=n_fft)
-        clean = sfft.irfft(spectrum[None, :] * (h["direct"] + h["ground"] + h["trunks"]), n=n_fft, axis=-1)[:, :n_out]
+        clean = np.zeros((m, n_out))
+        clean[:, :n_prop] = sfft.irfft(spectrum[None, :] * (h["direct"] + h["ground"] + h["trunks"]), n=n_fft, axis=-1)[:, :n_prop]
         nearest = int(np.argmin(np.sqrt(((site.mic_positions_m - source_m) ** 2).sum(-1))))
         noise_std = noise_std_for_snr(clean[nearest], call.signal.size / self.sample_rate_hz, self.sample_rate_hz, snr_db)
         rec = clean + noise_std * noise_matrix(rng, site, regime, n_out, self.sample_rate_hz, self.diffuse_noise_fraction)
@@ -408,7 +456,7 @@ class OutdoorSimulator:
         """Render events; see :class:`acoustlab.interfaces.Simulator`."""
         event_ids = np.asarray(event_ids, dtype=np.int64)
         position_ids = np.asarray(position_ids, dtype=np.int64)
-        _, n_out, _, _ = self._audio_setup(site)
+        _, n_out, _, _, _ = self._audio_setup(site)
         gains_db = self.deployment_gains_db(site, seed)
         audio = np.empty((event_ids.size, site.n_mics, n_out), dtype=np.float32)
         rows = []
