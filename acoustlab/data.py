@@ -85,6 +85,9 @@ class Site:
     hull_expansion : float
         Sources are drawn inside the mics' convex hull grown by this fraction of the largest
         mic-to-mic distance.
+    foliage_db_per_m : tuple of float or None
+        Foliage attenuation in dB/m for the octaves 63 Hz … 8 kHz (ISO 9613-2 Annex A), applied
+        along every path; None for open sites.
     """
 
     name: str
@@ -102,6 +105,7 @@ class Site:
     species_pool: tuple[str, ...]
     source_height_range_m: tuple[float, float]
     hull_expansion: float
+    foliage_db_per_m: tuple[float, ...] | None = None
 
     @property
     def n_mics(self) -> int:
@@ -139,6 +143,7 @@ class Site:
             "species_pool": list(self.species_pool),
             "source_height_range_m": list(self.source_height_range_m),
             "hull_expansion": self.hull_expansion,
+            "foliage_db_per_m": None if self.foliage_db_per_m is None else list(self.foliage_db_per_m),
         }
 
 

@@ -147,6 +147,14 @@ def site_from_config(cfg: Mapping[str, Any]) -> Site:
     layer = ground.get("layer_thickness_m")
     if layer is not None and not float(layer) > 0:
         raise ConfigError(f"site.ground.layer_thickness_m must be > 0 m or null; got {layer}")
+    foliage = cfg.get("foliage_db_per_m")
+    if foliage is not None:
+        try:
+            foliage = tuple(float(v) for v in foliage)
+        except (TypeError, ValueError):
+            raise ConfigError(f"site.foliage_db_per_m must be 8 numbers (dB/m, octaves 63 Hz–8 kHz); got {foliage!r}") from None
+        if len(foliage) != 8 or min(foliage) < 0:
+            raise ConfigError(f"site.foliage_db_per_m must be 8 non-negative numbers (dB/m, octaves 63 Hz–8 kHz); got {foliage!r}")
     hull_expansion = float(cfg.get("hull_expansion", 0.0))
     if hull_expansion < 0:
         raise ConfigError(f"site.hull_expansion must be >= 0; got {hull_expansion}")
@@ -168,4 +176,5 @@ def site_from_config(cfg: Mapping[str, Any]) -> Site:
         species_pool=species,
         source_height_range_m=require_range("site.source_height_m", cfg.get("source_height_m"), lower=0.0),
         hull_expansion=hull_expansion,
+        foliage_db_per_m=foliage,
     )

@@ -168,3 +168,22 @@ def test_impairments_are_recorded_and_applied():
     for e in dead:
         mic = batch.events.loc[e, "failed_mic"]
         assert np.abs(batch.audio[e, mic]).max() < 0.01 * np.abs(batch.audio[e]).max()
+
+
+def test_both_scattering_renderers_agree(monkeypatch):
+    import plugins.simulators.outdoor as outdoor
+
+    rng = np.random.default_rng(3)
+    trees = rng.uniform(-20, 60, size=(40, 2))
+    site = make_site(MICS, trees, rng.uniform(0.1, 0.6, 40))
+    sim = OutdoorSimulator(sample_rate_hz=FS, ground=False)
+    src = np.array([18.0, 11.0, 1.5])
+    monkeypatch.setattr(outdoor, "_KERNEL_COST_FACTOR", 1e9)
+    kernels = sim.transfer_functions(site, src, 10.0, 60.0, FREQS, N_FFT)["trunks"]
+    monkeypatch.setattr(outdoor, "_KERNEL_COST_FACTOR", 0.0)
+    bands = sim.transfer_functions(site, src, 10.0, 60.0, FREQS, N_FFT)["trunks"]
+    a, b = impulse_response(kernels), impulse_response(bands)
+    assert np.abs(a).max() > 0
+    # same arrivals; the band shaping differs only by the kernels' finite frequency resolution
+    assert np.abs(a - b).max() < 0.1 * np.abs(a).max()
+    assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.98

@@ -53,6 +53,8 @@ _DEPLOYMENT_STREAM = 2
 _Q_GRID_POINTS = 256
 #: Length (samples) of the zero-phase band kernels that shape scattered arrivals.
 _BAND_KERNEL_TAPS = 128
+#: Relative cost at which per-path kernels beat per-band FFTs for trunk scattering (measured)
+_KERNEL_COST_FACTOR = 0.5
 #: ISO 9613-2 Annex A octave centres (Hz) for foliage attenuation.
 _OCTAVES_HZ = np.array([63, 125, 250, 500, 1000, 2000, 4000, 8000], dtype=float)
 
@@ -109,7 +111,7 @@ class OutdoorSimulator:
         Apply ISO 9613-1 absorption on every path.
     foliage_db_per_m : sequence of float, optional
         Foliage attenuation per octave 63 Hz–8 kHz in dB/m (ISO 9613-2 Annex A: 0.02 … 0.12),
-        applied over the whole path length; null for none.
+        applied over the whole path length; null uses the site's ``foliage_db_per_m``.
     diffuse_noise_fraction : float
         Fraction of the noise power shared by all mics.
     impairments : mapping
@@ -242,8 +244,9 @@ class OutdoorSimulator:
         alpha = np.zeros_like(freqs_hz)
         if self.air_absorption:
             alpha = self.absorption_factor * air_absorption_db_per_m(freqs_hz, temperature_c, humidity_pct)
-        if self.foliage_db_per_m is not None:
-            alpha = alpha + np.interp(np.log(np.maximum(freqs_hz, 1)), np.log(_OCTAVES_HZ), self.foliage_db_per_m)
+        foliage = self.foliage_db_per_m if self.foliage_db_per_m is not None else site.foliage_db_per_m
+        if foliage is not None:
+            alpha = alpha + np.interp(np.log(np.maximum(freqs_hz, 1)), np.log(_OCTAVES_HZ), np.asarray(foliage, dtype=float))
         horiz = np.sqrt(((mics[:, :2] - source_m[:2]) ** 2).sum(-1))
         r1 = np.sqrt(horiz**2 + (mics[:, 2] - source_m[2]) ** 2)
 
@@ -319,21 +322,34 @@ class OutdoorSimulator:
             forward_lobe = (total - r1[:, None]) < 0.5 * (c / fc)
             amps[b] = np.where(in_window & ~forward_lobe, amp, 0.0)
         active = np.nonzero(amps.any(axis=0))  # (mic, tree) pairs with a scattered arrival
-        ir = np.zeros((m, n_fft))
-        if active[0].size:
+        if not active[0].size:
+            return np.zeros((m, freqs_hz.size), complex)
+        pos = delay[active] * self.sample_rate_hz
+        i0 = np.floor(pos).astype(int)
+        frac = pos - i0
+        n_paths = active[0].size
+        # Two exact ways to shape each arrival by its band amplitudes; take the cheaper one:
+        # per-path kernels placed in the time domain (few trees), or one impulse train per band
+        # filtered in the frequency domain (many trees).
+        if n_paths * _BAND_KERNEL_TAPS <= centres.size * m * n_fft * _KERNEL_COST_FACTOR:
             kernels = band_kernels(self.sample_rate_hz, tuple(centres), _BAND_KERNEL_TAPS)  # (B, L)
             path_kernels = amps[:, active[0], active[1]].T @ kernels  # (P, L)
-            pos = delay[active] * self.sample_rate_hz
-            i0 = np.floor(pos).astype(int)
-            frac = (pos - i0)[:, None]
             half = _BAND_KERNEL_TAPS // 2
             taps = i0[:, None] - half + np.arange(_BAND_KERNEL_TAPS)[None, :]
             flat = active[0][:, None] * n_fft + taps
             ok = (taps >= 0) & (taps < n_fft - 1)
-            ir_flat = np.bincount(flat[ok], weights=(path_kernels * (1 - frac))[ok], minlength=m * n_fft)
-            ir_flat += np.bincount(flat[ok] + 1, weights=(path_kernels * frac)[ok], minlength=m * n_fft + 1)[: m * n_fft]
-            ir = ir_flat.reshape(m, n_fft)
-        return sfft.rfft(ir, axis=-1)
+            ir = np.bincount(flat[ok], weights=(path_kernels * (1 - frac)[:, None])[ok], minlength=m * n_fft)
+            ir += np.bincount(flat[ok] + 1, weights=(path_kernels * frac[:, None])[ok], minlength=m * n_fft + 1)[: m * n_fft]
+            return sfft.rfft(ir.reshape(m, n_fft), axis=-1)
+        flat = active[0] * n_fft + i0
+        out = np.zeros((m, freqs_hz.size), complex)
+        weights = band_weights(freqs_hz, centres)
+        for b in range(centres.size):
+            a = amps[b][active]
+            train = np.bincount(flat, weights=a * (1 - frac), minlength=m * n_fft)
+            train += np.bincount(flat + 1, weights=a * frac, minlength=m * n_fft + 1)[: m * n_fft]
+            out += weights[b][None, :] * sfft.rfft(train.reshape(m, n_fft), axis=-1)
+        return out
 
     def _audio_setup(self, site: Site) -> tuple[CallPool, int, int, np.ndarray, int]:
         """Call pool, output length, transform length, its frequencies and the propagation window.
