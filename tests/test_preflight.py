@@ -124,3 +124,15 @@ def test_site_from_csv_files(tmp_path, compose_cfg):
     )
     assert site.n_mics == 4 and site.tree_positions_m.shape == (2, 2)
     np.testing.assert_allclose(site.trunk_diameters_m, [0.3, 0.45])
+
+
+def test_unreadable_noise_recording_names_the_file(tmp_path, compose_cfg):
+    from acoustlab.audio import load_mono
+
+    bad = tmp_path / "broken.flac"
+    bad.write_bytes(b"not audio at all")
+    with pytest.raises(DataError, match="cannot read audio file .*broken.flac"):
+        load_mono(str(bad), 24000.0)
+    cfg = compose_cfg(["+site=frozen_lake", f"site.noise.regimes=[{{kind: recorded, files: [{tmp_path / 'absent.flac'}]}}]"])
+    with pytest.raises(DataError, match="absent.flac does not exist"):
+        site_from_config(cfg.site)
