@@ -197,6 +197,12 @@ def iter_simulated_batches(sim_dir: Path):
         )
 
 
+def _chunk_features(sim_dir: Path, name: str, sample_rate_hz: float, site: Site, feature_sets: dict[str, FeatureSet]):
+    """Features and events of one stored chunk (a worker's unit of work)."""
+    batch = RecordingBatch(audio=np.load(sim_dir / f"{name}.npy"), sample_rate_hz=sample_rate_hz, events=pd.read_parquet(sim_dir / f"{name}.parquet"))
+    return extract_features(batch, site, feature_sets), batch.events
+
+
 def extract_features(batch: RecordingBatch, site: Site, feature_sets: dict[str, FeatureSet]) -> pd.DataFrame:
     """Every feature group on one batch, concatenated column-wise in the configured group order."""
     tables = []
@@ -239,11 +245,13 @@ def load_or_build_simulated(
         if sim_dir is None:
             return None
         manifest = json.loads((sim_dir / "manifest.json").read_text())
-        feats, events = [], []
-        n_chunks = len(manifest["chunks"])
-        for batch in tqdm(iter_simulated_batches(sim_dir), total=n_chunks, desc="features", unit="chunk", disable=None):
-            feats.append(extract_features(batch, site, feature_sets))
-            events.append(batch.events)
+        names = manifest["chunks"]
+        jobs = Parallel(n_jobs=plan.n_jobs, return_as="generator")(
+            delayed(_chunk_features)(sim_dir, name, float(manifest["sample_rate_hz"]), site, feature_sets) for name in names
+        )
+        results = list(tqdm(jobs, total=len(names), desc="features", unit="chunk", disable=None))
+        feats = [r[0] for r in results]
+        events = [r[1] for r in results]
         work = cache.partial_dir("features", feat_key)
         atomic_write_bytes(work / "features.parquet", pd.concat(feats, ignore_index=True).to_parquet(index=False))
         atomic_write_bytes(work / "events.parquet", pd.concat(events, ignore_index=True).to_parquet(index=False))

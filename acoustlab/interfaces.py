@@ -42,6 +42,9 @@ class FeatureSet(Protocol):
 
     group: str
 
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        """(column name, unit, definition) of every column ``transform`` returns, in order."""
+
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         """One row per event of ``batch`` (same order), columns ``group__name``, all float."""
 

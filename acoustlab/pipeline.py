@@ -23,6 +23,16 @@ log = logging.getLogger(__name__)
 
 #: Solver columns that are the solver's point estimate (withheld from the error model).
 SOLVER_ESTIMATE_COLUMNS = ("solver__x_m", "solver__y_m")
+#: The ``solver`` feature group appended by :func:`add_solver_columns` (name, unit, definition).
+SOLVER_CATALOG = (
+    ("solver__x_m", "m", "solver's estimate, x (east)"),
+    ("solver__y_m", "m", "solver's estimate, y (north)"),
+    ("solver__residual_m", "m", "RMS range-difference residual at the estimate"),
+    ("solver__converged", "1", "1 where the iteration converged"),
+    ("solver__gdop", "1", "TDOA geometric dilution of precision at the estimate"),
+    ("solver__n_roots", "1", "number of distinct positions that fit the TDOAs equally well"),
+    ("solver__source_height_m", "m", "source height assumed by the solver"),
+)
 
 
 @dataclass

@@ -42,6 +42,10 @@ class GccPhatTdoa:
         self.band_hz = None if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
         self.upsample = int(upsample)
 
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        """(name, unit, definition) of every column, in table order."""
+        return [(tdoa_column(i, j), "s", f"lag t_{j} − t_{i} of the dominant GCC-PHAT peak") for i, j in site.mic_pairs]
+
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         """One row per event: ``tdoa__lag_i_j_s`` for every pair i < j."""
         pairs = site.mic_pairs

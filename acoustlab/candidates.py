@@ -1,0 +1,92 @@
+"""GCC peak candidates per mic pair, shared by the ``tdoa``, ``xcorr`` and ``uncertainty`` groups.
+
+For each pair (i, j) the correlation is searched only within that pair's physical lag window
+±(d_ij / c_max + margin); the K highest local maxima are kept (sub-sample lag by parabolic
+interpolation on an upsampled correlation), with their heights and the peak-to-sidelobe ratio.
+The last result is memoised so several feature groups on one batch compute the GCC once.
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+
+from acoustlab.data import RecordingBatch, Site
+from acoustlab.physics import speed_of_sound_m_s
+from acoustlab.signal import gcc, parabolic_peak
+
+
+@dataclass
+class PairCandidates:
+    """Peak candidates of every pair of a batch.
+
+    Attributes
+    ----------
+    lags_s : numpy.ndarray
+        (E, P, K) candidate lags t_j − t_i in s, best first (NaN where fewer peaks exist).
+    heights : numpy.ndarray
+        (E, P, K) GCC heights of the candidates.
+    sidelobe : numpy.ndarray
+        (E, P) RMS of the correlation within the lag window (for peak-to-sidelobe ratios).
+    """
+
+    lags_s: np.ndarray
+    heights: np.ndarray
+    sidelobe: np.ndarray
+
+
+#: Results for the most recent batch (weakly referenced), keyed by parameters.
+_memo_batch: list = [None]
+_memo: dict[tuple, PairCandidates] = {}
+
+
+def lag_windows_s(site: Site, margin_s: float) -> np.ndarray:
+    """(P,) maximum |lag| of each pair in s: distance over the fastest sound speed plus a margin."""
+    c_max = speed_of_sound_m_s(site.temperature_range_c[1], site.relative_humidity_range_pct[1])
+    mics = site.mic_positions_m
+    return np.array([np.linalg.norm(mics[i] - mics[j]) / c_max + margin_s for i, j in site.mic_pairs])
+
+
+def pair_candidates(
+    batch: RecordingBatch,
+    site: Site,
+    n_candidates: int = 3,
+    margin_s: float = 0.002,
+    band_hz: tuple[float, float] | None = None,
+    weighting: str = "phat",
+    upsample: int = 4,
+) -> PairCandidates:
+    """The K best GCC peaks of every mic pair of every event (see the module docstring)."""
+    key = (n_candidates, margin_s, band_hz, weighting, upsample, site.mic_positions_m.tobytes())
+    if _memo_batch[0] is None or _memo_batch[0]() is not batch:
+        _memo.clear()
+        _memo_batch[0] = weakref.ref(batch)
+    if key in _memo:
+        return _memo[key]
+    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample)
+    step = lags[1] - lags[0]
+    e, p = cc.shape[:2]
+    out_lags = np.full((e, p, n_candidates), np.nan)
+    out_heights = np.full((e, p, n_candidates), np.nan)
+    sidelobe = np.empty((e, p))
+    for k, max_lag in enumerate(lag_windows_s(site, margin_s)):
+        window = np.abs(lags) <= max_lag
+        seg = cc[:, k, window]
+        first_lag = lags[window][0]
+        sidelobe[:, k] = np.sqrt(np.mean(seg**2, axis=-1))
+        # local maxima (with edges allowed), then the K highest
+        is_peak = np.ones_like(seg, dtype=bool)
+        is_peak[:, 1:] &= seg[:, 1:] >= seg[:, :-1]
+        is_peak[:, :-1] &= seg[:, :-1] > seg[:, 1:]
+        masked = np.where(is_peak, seg, -np.inf)
+        top = np.argpartition(-masked, min(n_candidates, masked.shape[-1] - 1), axis=-1)[:, :n_candidates]
+        order = np.take_along_axis(top, np.argsort(-np.take_along_axis(masked, top, -1), axis=-1), -1)
+        valid = np.take_along_axis(masked, order, -1) > -np.inf
+        offset, height = parabolic_peak(seg[:, None, :].repeat(n_candidates, 1), order)
+        out_lags[:, k] = np.where(valid, first_lag + (order + offset) * step, np.nan)
+        out_heights[:, k] = np.where(valid, height, np.nan)
+    result = PairCandidates(out_lags, out_heights, sidelobe)
+    _memo[key] = result
+    return result

@@ -1,0 +1,82 @@
+"""Context feature groups: ``geometry`` (the array) and ``environment`` (weather, levels, SNR)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.data import RecordingBatch, Site
+from acoustlab.physics import speed_of_sound_m_s
+
+FRAME_S = 0.01
+
+
+class ArrayGeometry:
+    """``geometry``: mic spacing per pair and the array aperture, in m (constant within a site)."""
+
+    group = "geometry"
+    cache_version = "1"
+
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        return [(f"geometry__spacing_{i}_{j}_m", "m", f"distance between mics {i} and {j}") for i, j in site.mic_pairs] + [
+            ("geometry__aperture_m", "m", "largest mic-to-mic distance")
+        ]
+
+    def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
+        mics = site.mic_positions_m
+        cols = {f"geometry__spacing_{i}_{j}_m": np.full(batch.n_events, np.linalg.norm(mics[i] - mics[j])) for i, j in site.mic_pairs}
+        cols["geometry__aperture_m"] = np.full(batch.n_events, site.max_mic_distance_m)
+        return pd.DataFrame(cols)
+
+
+def frame_levels_db(audio: np.ndarray, sample_rate_hz: float) -> np.ndarray:
+    """(E, M, F) RMS level of 10 ms frames in dB (re 1)."""
+    frame = max(int(FRAME_S * sample_rate_hz), 1)
+    e, m, n = audio.shape
+    k = n // frame
+    power = (audio[..., : k * frame].astype(float).reshape(e, m, k, frame) ** 2).mean(-1)
+    return 10 * np.log10(np.maximum(power, 1e-30))
+
+
+class Environment:
+    """``environment``: measured weather, the speed of sound, and per-mic received level, noise level and SNR.
+
+    Received level: mean power of the loudest 10 % of 10 ms frames (the call); noise level: mean
+    power of the quietest 20 %; SNR their difference, all in dB.
+    """
+
+    group = "environment"
+    cache_version = "1"
+
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        rows = [
+            ("environment__temperature_c", "°C", "air temperature recorded with the event"),
+            ("environment__relative_humidity_pct", "%", "relative humidity recorded with the event"),
+            ("environment__speed_of_sound_m_s", "m/s", "speed of sound from temperature and humidity"),
+        ]
+        for m in range(site.n_mics):
+            rows += [
+                (f"environment__level_{m}_db", "dB", "received level: power of the loudest 10 % of 10 ms frames"),
+                (f"environment__noise_{m}_db", "dB", "noise level: power of the quietest 20 % of 10 ms frames"),
+                (f"environment__snr_{m}_db", "dB", "received level minus noise level"),
+            ]
+        return rows
+
+    def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
+        ev = batch.events
+        t = ev["temperature_c"].to_numpy(float)
+        rh = ev["relative_humidity_pct"].to_numpy(float)
+        cols = {
+            "environment__temperature_c": t,
+            "environment__relative_humidity_pct": rh,
+            "environment__speed_of_sound_m_s": np.where(np.isfinite(t) & np.isfinite(rh), speed_of_sound_m_s(np.nan_to_num(t, nan=10.0), np.nan_to_num(rh, nan=50.0)), np.nan),
+        }
+        levels = np.sort(frame_levels_db(batch.audio, batch.sample_rate_hz), axis=-1)
+        k = levels.shape[-1]
+        loud = 10 * np.log10(np.mean(10 ** (levels[..., -max(k // 10, 1) :] / 10), axis=-1))
+        quiet = 10 * np.log10(np.mean(10 ** (levels[..., : max(k // 5, 1)] / 10), axis=-1))
+        for m in range(site.n_mics):
+            cols[f"environment__level_{m}_db"] = loud[:, m]
+            cols[f"environment__noise_{m}_db"] = quiet[:, m]
+            cols[f"environment__snr_{m}_db"] = loud[:, m] - quiet[:, m]
+        return pd.DataFrame(cols)

@@ -1,0 +1,120 @@
+"""GCC-based feature groups: ``tdoa`` (candidate lags), ``xcorr`` (confidences), ``uncertainty``."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.candidates import pair_candidates
+from acoustlab.data import RecordingBatch, Site
+from acoustlab.errors import ConfigError
+
+
+class _GccGroup:
+    """Shared parameters of the GCC groups (one GCC per batch is computed and memoised)."""
+
+    cache_version = "1"
+
+    def __init__(
+        self,
+        n_candidates: int = 3,
+        max_lag_margin_s: float = 0.002,
+        weighting: str = "phat",
+        upsample: int = 4,
+        band_hz: Sequence[float] | None = (300.0, 10000.0),
+    ) -> None:
+        if n_candidates < 1:
+            raise ConfigError(f"features: n_candidates must be >= 1; got {n_candidates}")
+        if weighting not in ("phat", "none"):
+            raise ConfigError(f"features: weighting must be 'phat' or 'none'; got {weighting!r}")
+        self.n_candidates = int(n_candidates)
+        self.max_lag_margin_s = float(max_lag_margin_s)
+        self.weighting = weighting
+        self.upsample = int(upsample)
+        # PHAT whitens every bin it is given: bins without signal (e.g. above the 11 kHz content
+        # of recordings made at 22 kHz) then produce spurious peaks, so restrict it to the calls' band.
+        self.band_hz = None if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
+
+    def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
+        band = self.band_hz if band_hz is None else band_hz
+        return pair_candidates(batch, site, self.n_candidates, self.max_lag_margin_s, band, self.weighting, self.upsample)
+
+
+class TdoaCandidates(_GccGroup):
+    """``tdoa``: the K best GCC peak lags of every pair (t_j − t_i, s); the first is the dominant peak."""
+
+    group = "tdoa"
+
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        rows = []
+        for i, j in site.mic_pairs:
+            for k in range(self.n_candidates):
+                suffix = "" if k == 0 else f"_c{k + 1}"
+                rows.append((f"tdoa__lag_{i}_{j}{suffix}_s", "s", f"lag t_{j} − t_{i} of GCC peak rank {k + 1} within the pair's lag window"))
+        return rows
+
+    def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
+        cand = self._candidates(batch, site)
+        names = [r[0] for r in self.catalog(site)]
+        return pd.DataFrame(cand.lags_s.reshape(batch.n_events, -1), columns=names)
+
+
+class XcorrConfidence(_GccGroup):
+    """``xcorr``: GCC heights of the K candidates per pair, plus the dominant height in extra bands."""
+
+    group = "xcorr"
+
+    def __init__(self, extra_bands_hz: Sequence[Sequence[float]] = ((1000.0, 4000.0),), **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.extra_bands_hz = [(float(lo), float(hi)) for lo, hi in extra_bands_hz]
+
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        rows = []
+        for i, j in site.mic_pairs:
+            for k in range(self.n_candidates):
+                rows.append((f"xcorr__peak_{i}_{j}_c{k + 1}", "1", f"GCC height of peak rank {k + 1}"))
+            for lo, hi in self.extra_bands_hz:
+                rows.append((f"xcorr__peak_{i}_{j}_{lo:.0f}_{hi:.0f}hz", "1", f"dominant GCC height with the cross-spectrum limited to {lo:.0f}–{hi:.0f} Hz"))
+        return rows
+
+    def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
+        cand = self._candidates(batch, site)
+        cols = {}
+        banded = [pair_candidates(batch, site, 1, self.max_lag_margin_s, b, self.weighting, self.upsample) for b in self.extra_bands_hz]
+        for p, (i, j) in enumerate(site.mic_pairs):
+            for k in range(self.n_candidates):
+                cols[f"xcorr__peak_{i}_{j}_c{k + 1}"] = cand.heights[:, p, k]
+            for (lo, hi), b in zip(self.extra_bands_hz, banded, strict=True):
+                cols[f"xcorr__peak_{i}_{j}_{lo:.0f}_{hi:.0f}hz"] = b.heights[:, p, 0]
+        return pd.DataFrame(cols)
+
+
+class PeakUncertainty(_GccGroup):
+    """``uncertainty``: how clearly the dominant GCC peak stands out, per pair."""
+
+    group = "uncertainty"
+
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        rows = []
+        for i, j in site.mic_pairs:
+            rows += [
+                (f"uncertainty__separability_{i}_{j}", "1", "(h1 − h2) / h1 of the two highest peaks"),
+                (f"uncertainty__lag_gap_{i}_{j}_s", "s", "|lag1 − lag2| of the two highest peaks"),
+                (f"uncertainty__psr_{i}_{j}_db", "dB", "20 log10(h1 / RMS of the correlation in the lag window)"),
+            ]
+        return rows
+
+    def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
+        cand = self._candidates(batch, site)
+        h1, lag1 = cand.heights[..., 0], cand.lags_s[..., 0]
+        h2 = cand.heights[..., 1] if self.n_candidates > 1 else np.zeros_like(h1)
+        lag2 = cand.lags_s[..., 1] if self.n_candidates > 1 else lag1
+        cols = {}
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for p, (i, j) in enumerate(site.mic_pairs):
+                cols[f"uncertainty__separability_{i}_{j}"] = np.where(h1[:, p] > 0, (h1[:, p] - np.nan_to_num(h2[:, p])) / h1[:, p], 0.0)
+                cols[f"uncertainty__lag_gap_{i}_{j}_s"] = np.abs(lag1[:, p] - lag2[:, p])
+                cols[f"uncertainty__psr_{i}_{j}_db"] = 20 * np.log10(np.maximum(h1[:, p], 1e-12) / np.maximum(cand.sidelobe[:, p], 1e-12))
+        return pd.DataFrame(cols)

@@ -1,0 +1,171 @@
+"""Waveform feature groups estimated blindly from the recordings: ``ir``, ``spectral``, ``envelope``.
+
+Nothing here reads the simulator's ground truth, so field recordings get exactly the same features.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import scipy.signal as ss
+
+from acoustlab.candidates import lag_windows_s
+from acoustlab.data import RecordingBatch, Site
+
+FRAME_S = 0.005
+
+
+def envelope(audio: np.ndarray, sample_rate_hz: float, band_hz: tuple[float, float], smooth_s: float = 0.005) -> np.ndarray:
+    """Smoothed Hilbert envelope of band-passed signals, (E, M, S)."""
+    nyq = sample_rate_hz / 2
+    sos = ss.butter(4, [band_hz[0] / nyq, min(band_hz[1] / nyq, 0.99)], btype="bandpass", output="sos")
+    x = ss.sosfiltfilt(sos, audio, axis=-1)
+    env = np.abs(ss.hilbert(x, axis=-1))
+    win = max(int(smooth_s * sample_rate_hz), 1)
+    return ss.oaconvolve(env, np.ones((1, 1, win)) / win, mode="same", axes=-1)
+
+
+class BlindIrSummaries:
+    """``ir``: reverberation summaries of each channel from its band-passed energy envelope.
+
+    Per mic: decay slope of the envelope over 0–100 ms after its peak (dB/s), early-to-late energy
+    ratio (0–50 ms vs 50–300 ms after onset, dB), onset sharpness (10 %→90 % rise time, s) and the
+    spread of arrivals (time the envelope stays within 10 dB of its peak, s).
+
+    Parameters
+    ----------
+    band_hz : list of float
+        (low, high) analysis band in Hz.
+    """
+
+    group = "ir"
+    cache_version = "1"
+
+    def __init__(self, band_hz=(1000.0, 8000.0)) -> None:
+        self.band_hz = (float(band_hz[0]), float(band_hz[1]))
+
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        rows = []
+        for m in range(site.n_mics):
+            rows += [
+                (f"ir__decay_{m}_db_s", "dB/s", "slope of the envelope (dB) over 0–100 ms after its peak"),
+                (f"ir__early_late_{m}_db", "dB", "energy 0–50 ms after onset over 50–300 ms after onset"),
+                (f"ir__rise_time_{m}_s", "s", "10 % to 90 % rise time of the envelope before its peak"),
+                (f"ir__spread_{m}_s", "s", "time the envelope stays within 10 dB of its peak"),
+            ]
+        return rows
+
+    def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
+        fs = batch.sample_rate_hz
+        env = envelope(batch.audio, fs, self.band_hz)
+        e, m, n = env.shape
+        peak = np.argmax(env, axis=-1)
+        peak_val = np.take_along_axis(env, peak[..., None], -1)[..., 0]
+        t = np.arange(n) / fs
+        env_db = 20 * np.log10(np.maximum(env, 1e-12) / np.maximum(peak_val, 1e-12)[..., None])
+        rel = t[None, None, :] - t[peak][..., None]
+        decay_sel = (rel >= 0) & (rel <= 0.1)
+        # least-squares slope over the masked window, vectorised
+        w = decay_sel.astype(float)
+        cnt = np.maximum(w.sum(-1), 2)
+        mt = (w * rel).sum(-1) / cnt
+        my = (w * env_db).sum(-1) / cnt
+        slope = (w * (rel - mt[..., None]) * (env_db - my[..., None])).sum(-1) / np.maximum((w * (rel - mt[..., None]) ** 2).sum(-1), 1e-12)
+        above10 = env >= 0.1 * peak_val[..., None]
+        onset = np.argmax(above10, axis=-1)  # first sample at 10 % of the peak
+        above90 = env >= 0.9 * peak_val[..., None]
+        first90 = np.argmax(above90, axis=-1)
+        rise = np.maximum(first90 - onset, 0) / fs
+        energy = env**2
+        rel_on = t[None, None, :] - t[onset][..., None]
+        early = (energy * ((rel_on >= 0) & (rel_on < 0.05))).sum(-1)
+        late = (energy * ((rel_on >= 0.05) & (rel_on < 0.3))).sum(-1)
+        early_late = 10 * np.log10(np.maximum(early, 1e-20) / np.maximum(late, 1e-20))
+        spread = (env_db > -10).sum(-1) / fs
+        cols = {}
+        for k in range(m):
+            cols[f"ir__decay_{k}_db_s"] = slope[:, k]
+            cols[f"ir__early_late_{k}_db"] = early_late[:, k]
+            cols[f"ir__rise_time_{k}_s"] = rise[:, k]
+            cols[f"ir__spread_{k}_s"] = spread[:, k]
+        return pd.DataFrame(cols)
+
+
+class SpectralSummaries:
+    """``spectral``: spectral centroid, bandwidth and 85 % roll-off per mic, and pairwise centroid differences.
+
+    Computed on the 100 ms around each channel's loudest 5 ms frame (the call), in Hz.
+    """
+
+    group = "spectral"
+    cache_version = "1"
+
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        rows = []
+        for m in range(site.n_mics):
+            rows += [
+                (f"spectral__centroid_{m}_hz", "Hz", "power-weighted mean frequency around the loudest frame"),
+                (f"spectral__bandwidth_{m}_hz", "Hz", "power-weighted standard deviation of frequency"),
+                (f"spectral__rolloff_{m}_hz", "Hz", "frequency below which 85 % of the power lies"),
+            ]
+        rows += [(f"spectral__centroid_diff_{i}_{j}_hz", "Hz", f"centroid of mic {i} minus mic {j}") for i, j in site.mic_pairs]
+        return rows
+
+    def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
+        fs = batch.sample_rate_hz
+        frame = max(int(FRAME_S * fs), 1)
+        e, m, n = batch.audio.shape
+        n_frames = n // frame
+        power = (batch.audio[..., : n_frames * frame].astype(float).reshape(e, m, n_frames, frame) ** 2).mean(-1)
+        centre = np.argmax(power, axis=-1) * frame + frame // 2
+        half = int(0.05 * fs)
+        idx = np.clip(centre[..., None] + np.arange(-half, half)[None, None, :], 0, n - 1)
+        seg = np.take_along_axis(batch.audio.astype(float), idx, -1) * np.hanning(2 * half)
+        spec = np.abs(np.fft.rfft(seg, axis=-1)) ** 2
+        f = np.fft.rfftfreq(2 * half, 1 / fs)
+        total = np.maximum(spec.sum(-1), 1e-30)
+        centroid = (spec * f).sum(-1) / total
+        bandwidth = np.sqrt((spec * (f - centroid[..., None]) ** 2).sum(-1) / total)
+        cum = np.cumsum(spec, axis=-1) / total[..., None]
+        rolloff = f[np.argmax(cum >= 0.85, axis=-1)]
+        cols = {}
+        for k in range(m):
+            cols[f"spectral__centroid_{k}_hz"] = centroid[:, k]
+            cols[f"spectral__bandwidth_{k}_hz"] = bandwidth[:, k]
+            cols[f"spectral__rolloff_{k}_hz"] = rolloff[:, k]
+        for i, j in site.mic_pairs:
+            cols[f"spectral__centroid_diff_{i}_{j}_hz"] = centroid[:, i] - centroid[:, j]
+        return pd.DataFrame(cols)
+
+
+class EnvelopeDelays:
+    """``envelope``: delay of the Hilbert-envelope cross-correlation per pair, within its lag window (s).
+
+    Envelopes ignore the carrier phase, so they are robust where GCC-PHAT locks onto a wrong
+    fine-structure peak, at the price of precision.
+    """
+
+    group = "envelope"
+    cache_version = "1"
+
+    def __init__(self, band_hz=(1000.0, 8000.0), max_lag_margin_s: float = 0.002) -> None:
+        self.band_hz = (float(band_hz[0]), float(band_hz[1]))
+        self.max_lag_margin_s = float(max_lag_margin_s)
+
+    def catalog(self, site: Site) -> list[tuple[str, str, str]]:
+        return [(f"envelope__lag_{i}_{j}_s", "s", "lag t_j − t_i of the envelope cross-correlation maximum") for i, j in site.mic_pairs]
+
+    def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
+        fs = batch.sample_rate_hz
+        env = envelope(batch.audio, fs, self.band_hz, smooth_s=0.002)
+        env = env - env.mean(-1, keepdims=True)
+        n = env.shape[-1]
+        n_fft = 2 * n
+        spec = np.fft.rfft(env, n=n_fft, axis=-1)
+        cols = {}
+        for (i, j), max_lag in zip(site.mic_pairs, lag_windows_s(site, self.max_lag_margin_s), strict=True):
+            cc = np.fft.fftshift(np.fft.irfft(np.conj(spec[:, i]) * spec[:, j], n=n_fft, axis=-1), axes=-1)
+            lags = (np.arange(n_fft) - n_fft // 2) / fs
+            window = np.abs(lags) <= max_lag
+            cols[f"envelope__lag_{i}_{j}_s"] = lags[window][np.argmax(cc[:, window], axis=-1)]
+        return pd.DataFrame(cols)
