@@ -85,6 +85,8 @@ class Solver(Protocol):
 
         ``mic_positions_m`` is (M, 2) or (M, 3); ``tdoa_s`` is (B, M), the arrival time at each
         mic minus that at mic 0 (column 0 is zero); ``speed_of_sound_m_s`` a float or (B,).
+        Solvers that can use received levels accept an optional ``received_level_db`` (B, M)
+        keyword; the pipeline passes it when the ``environment`` features exist.
         """
 
 

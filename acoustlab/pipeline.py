@@ -6,6 +6,7 @@ predicting for one such split, keeping positions (groups) apart everywhere.
 
 from __future__ import annotations
 
+import inspect
 import logging
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,6 +33,8 @@ SOLVER_CATALOG = (
     ("solver__gdop", "1", "TDOA geometric dilution of precision at the estimate"),
     ("solver__n_roots", "1", "number of distinct positions that fit the TDOAs equally well"),
     ("solver__source_height_m", "m", "source height assumed by the solver"),
+    ("solver__residual_s", "s", "RMS residual expressed as time"),
+    ("solver__conditioning", "1", "condition number of the TDOA Jacobian at the estimate"),
 )
 
 
@@ -67,7 +70,11 @@ def add_solver_columns(features: pd.DataFrame, events: pd.DataFrame, site: Site,
         from acoustlab.physics import speed_of_sound_m_s
 
         speed = speed_of_sound_m_s(events["temperature_c"].to_numpy(float), events["relative_humidity_pct"].to_numpy(float))
-    result = solver.solve(site.mic_positions_m, tdoa_matrix(features, site.n_mics), speed)
+    level_cols = [f"environment__level_{m}_db" for m in range(site.n_mics)]
+    kwargs = {}
+    if all(col in features.columns for col in level_cols) and "received_level_db" in inspect.signature(solver.solve).parameters:
+        kwargs["received_level_db"] = features[level_cols].to_numpy(dtype=float)
+    result = solver.solve(site.mic_positions_m, tdoa_matrix(features, site.n_mics), speed, **kwargs)
     out = features.copy()
     out["solver__x_m"] = result.position_m[:, 0]
     out["solver__y_m"] = result.position_m[:, 1]
@@ -75,6 +82,9 @@ def add_solver_columns(features: pd.DataFrame, events: pd.DataFrame, site: Site,
     out["solver__converged"] = result.converged.astype(float)
     for name, values in result.diagnostics.items():
         out[f"solver__{name}"] = np.asarray(values, dtype=float)
+    for name, _, _ in SOLVER_CATALOG:  # every solver fills the same columns (NaN where it has no such diagnostic)
+        if name not in out.columns:
+            out[name] = np.nan
     # Learned models take NaN as "missing"; an infinite GDOP (degenerate geometry) becomes missing too.
     solver_cols = [c for c in out.columns if c.startswith("solver__")]
     out[solver_cols] = out[solver_cols].replace([np.inf, -np.inf], np.nan)

@@ -1,0 +1,154 @@
+"""Closed-form hyperbolic (TDOA) solver with explicit root disambiguation and LM refinement.
+
+With mic 0's horizontal position as origin, q_j the other mics, h_j = z_s − z_j (assumed source
+height, known mic heights) and range differences d_j = c (t_j − t_0), squaring
+r_j = r_0 + d_j gives the linear system −2 q_j·p − 2 d_j r_0 = d_j² − |q_j|² − h_j² + h_0². Its
+least-squares solution in p for a given r_0 is p = u + v r_0; substituting into r_0² = |p|² + h_0²
+gives a quadratic in r_0 with up to two positive roots — the two branches where hyperbolas meet.
+The root is chosen explicitly: smaller TDOA residual (decisive with ≥ 4 mics), then inside the
+plausibility box, then energy consistency with the received levels; every event reports how many
+roots there were. The chosen root is refined by Levenberg–Marquardt on all range differences.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from acoustlab.errors import ConfigError
+from acoustlab.geometry import bounding_box, gdop
+from acoustlab.interfaces import SolverResult
+from acoustlab.tdoa import energy_residual_db, levenberg_marquardt, range_residuals
+
+
+class HyperbolicSolver:
+    """Batch closed-form TDOA solver (see the module docstring).
+
+    Parameters
+    ----------
+    source_height_m : float, optional
+        Assumed source height in m; None uses the mean mic height (the app passes the site's mid
+        source height when this is left None).
+    box_margin_fraction : float
+        Plausibility box: the mics' bounding box grown by this fraction of the array extent.
+    residual_tie_m : float
+        Roots whose RMS residuals differ by less than this (m) count as equally good fits.
+    n_iterations : int
+        Levenberg–Marquardt iterations after the closed form.
+    """
+
+    cache_version = "1"
+
+    def __init__(self, source_height_m: float | None = None, box_margin_fraction: float = 0.25, residual_tie_m: float = 0.05, n_iterations: int = 30) -> None:
+        if n_iterations < 0:
+            raise ConfigError(f"solver.n_iterations must be >= 0; got {n_iterations}")
+        self.source_height_m = source_height_m
+        self.box_margin_fraction = float(box_margin_fraction)
+        self.residual_tie_m = float(residual_tie_m)
+        self.n_iterations = int(n_iterations)
+
+    def roots(self, mics: np.ndarray, rd: np.ndarray, height: float) -> tuple[np.ndarray, np.ndarray]:
+        """Closed-form candidate positions (B, 2, 2) and their validity (B, 2) for range differences (B, M−1)."""
+        origin = mics[0, :2]
+        q = mics[1:, :2] - origin
+        h = height - mics[:, 2]
+        a_mat = -2 * q  # (M-1, 2)
+        pinv = np.linalg.pinv(a_mat)  # (2, M-1)
+        b = rd**2 - (q**2).sum(-1) - h[1:] ** 2 + h[0] ** 2  # (B, M-1)
+        u = b @ pinv.T  # (B, 2)
+        v = (2 * rd) @ pinv.T  # (B, 2): p = u + v r0 since −g = 2 d
+        a2 = (v**2).sum(-1) - 1
+        a1 = 2 * (u * v).sum(-1)
+        a0 = (u**2).sum(-1) + h[0] ** 2
+        disc = a1**2 - 4 * a2 * a0
+        sqrt_disc = np.sqrt(np.maximum(disc, 0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            linear = np.abs(a2) < 1e-12
+            r_plus = np.where(linear, -a0 / a1, (-a1 + sqrt_disc) / (2 * a2))
+            r_minus = np.where(linear, np.nan, (-a1 - sqrt_disc) / (2 * a2))
+        # with a negative discriminant (noisy TDOAs) take the vertex: the closest approach
+        vertex = np.where(linear, np.nan, -a1 / (2 * a2))
+        r_plus = np.where(disc < 0, vertex, r_plus)
+        r_minus = np.where(disc < 0, np.nan, r_minus)
+        r0 = np.stack([r_plus, r_minus], axis=1)  # (B, 2)
+        valid = np.isfinite(r0) & (r0 >= abs(h[0]) - 1e-6)
+        cand = u[:, None, :] + v[:, None, :] * r0[..., None] + origin
+        cand = np.where(valid[..., None], cand, np.nan)
+        # two numerically identical roots count once
+        same = valid[:, 1] & valid[:, 0] & (np.linalg.norm(cand[:, 0] - cand[:, 1], axis=-1) < 1e-6)
+        valid[:, 1] &= ~same
+        return cand, valid
+
+    def solve(
+        self,
+        mic_positions_m: np.ndarray,
+        tdoa_s: np.ndarray,
+        speed_of_sound_m_s: float | np.ndarray,
+        received_level_db: np.ndarray | None = None,
+    ) -> SolverResult:
+        """See :class:`acoustlab.interfaces.Solver`; ``received_level_db`` (B, M) enables energy disambiguation."""
+        mics = np.asarray(mic_positions_m, dtype=float)
+        if mics.ndim != 2 or mics.shape[1] not in (2, 3) or mics.shape[0] < 3:
+            raise ValueError(f"mic_positions_m must be (M>=3, 2|3); got shape {mics.shape}")
+        if mics.shape[1] == 2:
+            mics = np.column_stack([mics, np.zeros(len(mics))])
+        tdoa = np.atleast_2d(np.asarray(tdoa_s, dtype=float))
+        if tdoa.shape[1] != mics.shape[0]:
+            raise ValueError(f"tdoa_s must be (B, {mics.shape[0]}); got shape {tdoa.shape}")
+        bsz = tdoa.shape[0]
+        c = np.broadcast_to(np.asarray(speed_of_sound_m_s, dtype=float), (bsz,))
+        height = mics[:, 2].mean() if self.source_height_m is None else float(self.source_height_m)
+        finite = np.isfinite(tdoa).all(axis=1) & np.isfinite(c)
+        rd = np.where(finite[:, None], c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]), 0.0)
+        cand, valid = self.roots(mics, rd, height)
+        n_roots = valid.sum(axis=1)
+
+        # refine every valid root, then choose among the refined roots
+        start = np.where(valid[..., None], cand, mics[:, :2].mean(axis=0))
+        heights = np.full(start.shape[:-1], height)
+        refined, cost, step = levenberg_marquardt(start, mics, heights, rd[:, None, :], self.n_iterations)
+        residual = np.sqrt(cost / (mics.shape[0] - 1))
+        residual = np.where(valid, residual, np.inf)
+        low, high = bounding_box(mics, self.box_margin_fraction)
+        inside = ((refined >= low) & (refined <= high)).all(-1) & valid
+        score = np.where(valid, 0.0, np.inf)
+        best_res = residual.min(axis=1, keepdims=True)
+        worse_fit = residual > best_res + self.residual_tie_m
+        score = score + worse_fit * 1e6 + (~inside) * 1e3
+        if received_level_db is not None:
+            energy = energy_residual_db(np.asarray(received_level_db, dtype=float), mics, refined, heights)
+            score = score + np.nan_to_num(energy, nan=0.0)
+        else:  # no levels: among equally good, plausible roots prefer the one nearer the array
+            score = score + 1e-3 * np.linalg.norm(refined - mics[:, :2].mean(axis=0), axis=-1)
+        none_valid = ~valid.any(axis=1)
+        choice = np.argmin(np.where(np.isfinite(score), score, np.inf), axis=1)
+        rows = np.arange(bsz)
+        position = refined[rows, choice]
+        res = residual[rows, choice]
+        # fall back to LM from the centroid where the closed form gave nothing
+        if none_valid.any():
+            p_fb, cost_fb, _ = levenberg_marquardt(
+                np.broadcast_to(mics[:, :2].mean(axis=0), (none_valid.sum(), 2)), mics, np.full(none_valid.sum(), height), rd[none_valid], max(self.n_iterations, 50)
+            )
+            position[none_valid] = p_fb
+            res[none_valid] = np.sqrt(cost_fb / (mics.shape[0] - 1))
+        converged = (step[rows, choice] < 1e-3) | (res < 1e-6)
+        r, jac = range_residuals(position, mics, np.full(bsz, height), rd)
+        sv = np.linalg.svd(jac, compute_uv=False)
+        conditioning = sv[:, 0] / np.maximum(sv[:, -1], 1e-12)
+        position[~finite] = np.nan
+        res = np.where(finite, res, np.nan)
+        converged &= finite
+        geometry = np.full(bsz, np.nan)
+        geometry[finite] = gdop(mics, np.column_stack([position[finite], np.full(finite.sum(), height)]))
+        return SolverResult(
+            position_m=position,
+            residual_m=res,
+            converged=converged,
+            diagnostics={
+                "residual_s": res / c,
+                "conditioning": np.where(finite, conditioning, np.nan),
+                "gdop": geometry,
+                "n_roots": n_roots.astype(float),
+                "source_height_m": np.full(bsz, height),
+            },
+        )
