@@ -1,0 +1,57 @@
+"""Real recordings as input: acoustlab and OpenSoundscape layouts, and clear errors."""
+
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from acoustlab.dataset import extract_features
+from acoustlab.errors import ConfigError, DataError
+from acoustlab.pipeline import tdoa_matrix
+from acoustlab.registry import build, build_feature_sets
+from acoustlab.sites import PACKAGE_DATA, site_from_config
+
+EXAMPLE = PACKAGE_DATA / "examples" / "loca2021"
+UPSTREAM_TDOA_S = [0.0, 0.0325, -0.002, 0.0316, -0.0086, 0.024]
+BAND = [f"features.groups.{g}.band_hz=[6000,10500]" for g in ("tdoa", "xcorr", "uncertainty")]
+
+
+def test_shipped_real_array_gives_the_reference_tdoas(compose_cfg):
+    cfg = compose_cfg(["+site=loca2021", "field=recordings", *BAND])
+    site = site_from_config(cfg.site)
+    batch = build(cfg.field, "field").load(site)
+    assert batch.audio.shape[:2] == (1, 6) and np.isnan(batch.true_position_m).all()
+    table = extract_features(batch, site, build_feature_sets(cfg.features))
+    np.testing.assert_allclose(tdoa_matrix(table, 6)[0], UPSTREAM_TDOA_S, atol=1e-3)
+
+
+def test_opensoundscape_layout(tmp_path, compose_cfg):
+    mics = pd.read_csv(EXAMPLE / "mics.csv")
+    for f in mics["file"]:
+        shutil.copy(EXAMPLE / f, tmp_path / f)
+    pd.DataFrame({"file": mics["file"], "x": mics["x_m"], "y": mics["y_m"], "z": mics["z_m"]}).to_csv(tmp_path / "coords.csv", index=False)
+    det = pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1})
+    det = pd.concat([det, pd.DataFrame({"file": mics["file"][:2], "start_time": 0.6, "end_time": 0.8, "zeep": 1})])
+    det.to_csv(tmp_path / "detections.csv", index=False)
+    cfg = compose_cfg(["+site=loca2021", "field=recordings", f"field.audio_dir={tmp_path}", "field.mics_csv=null", "field.events_csv=null",
+                       f"field.coords_csv={tmp_path / 'coords.csv'}", f"field.detections_csv={tmp_path / 'detections.csv'}", *BAND])
+    site = site_from_config(cfg.site)
+    batch = build(cfg.field, "field").load(site)
+    assert batch.n_events == 1  # the second window has only 2 receivers (< min_receivers=3)
+    table = extract_features(batch, site, build_feature_sets(cfg.features))
+    np.testing.assert_allclose(tdoa_matrix(table, 6)[0], UPSTREAM_TDOA_S, atol=1e-3)
+
+
+def test_bad_inputs_are_named(tmp_path, compose_cfg):
+    cfg = compose_cfg(["+site=loca2021", "field=recordings", "field.mics_csv=null"])
+    with pytest.raises(ConfigError, match="mics_csv and events_csv"):
+        build(cfg.field, "field")
+    events = tmp_path / "events.csv"
+    events.write_text("event_id,start\n0,0.2\n")
+    cfg = compose_cfg(["+site=loca2021", "field=recordings", f"field.events_csv={events}"])
+    with pytest.raises(DataError, match=r"events.csv lacks columns \['start_s', 'end_s'\]"):
+        build(cfg.field, "field").load(site_from_config(cfg.site))
+    cfg = compose_cfg(["+site=frozen_lake", "field=recordings"])
+    with pytest.raises(DataError, match="do not match site 'frozen_lake'"):
+        build(cfg.field, "field").load(site_from_config(cfg.site))
