@@ -159,3 +159,45 @@ def gdop(mic_positions_m: np.ndarray, source_position_m: np.ndarray) -> np.ndarr
     trace_inv = (hth[:, 0, 0] + hth[:, 1, 1]) / np.where(det > 1e-12, det, np.nan)
     out = np.sqrt(trace_inv)
     return np.where(np.isfinite(out), out, np.inf)
+
+
+def tdoa_crb_s(snr_db: np.ndarray, rms_bandwidth_hz: np.ndarray, duration_s: np.ndarray, bandwidth_hz: np.ndarray) -> np.ndarray:
+    """Cramér–Rao bound on a time-delay estimate between two sensors, in s (standard deviation).
+
+    For a signal with RMS bandwidth β observed for T seconds over a band W at a per-sensor SNR,
+    var(τ) ≥ 1 / (8 π² β² · SNR · T W) (high-SNR form of the Knapp–Carter bound).
+
+    Parameters
+    ----------
+    snr_db : array_like
+        Per-sensor signal-to-noise ratio within the band, dB.
+    rms_bandwidth_hz : array_like
+        RMS bandwidth β = √(∫ f² S / ∫ S), Hz.
+    duration_s : array_like
+        Observation time T, s.
+    bandwidth_hz : array_like
+        Band W over which the SNR holds, Hz.
+    """
+    snr = 10 ** (np.asarray(snr_db, dtype=float) / 10)
+    tw = np.maximum(np.asarray(duration_s, dtype=float) * np.asarray(bandwidth_hz, dtype=float), 1.0)
+    return 1.0 / np.sqrt(8 * np.pi**2 * np.asarray(rms_bandwidth_hz, dtype=float) ** 2 * snr * tw)
+
+
+def position_crb_m(
+    mic_positions_m: np.ndarray,
+    source_position_m: np.ndarray,
+    snr_db: np.ndarray,
+    rms_bandwidth_hz: np.ndarray,
+    duration_s: np.ndarray,
+    bandwidth_hz: np.ndarray,
+    speed_of_sound_m_s: float | np.ndarray,
+) -> np.ndarray:
+    """Cramér–Rao bound on the RMS 2-D position error, m: GDOP × c × σ_τ (equal, independent TDOA errors).
+
+    Returns
+    -------
+    numpy.ndarray
+        (B,) bound in m for the (B, 2|3) source positions.
+    """
+    sigma = tdoa_crb_s(snr_db, rms_bandwidth_hz, duration_s, bandwidth_hz)
+    return gdop(mic_positions_m, source_position_m) * np.asarray(speed_of_sound_m_s, dtype=float) * sigma

@@ -38,7 +38,14 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
                 "mean_m": float(finite.mean()) if finite.size else float("inf"),
                 "median_m": float(np.median(finite)) if finite.size else float("inf"),
             }
+    extra = {}
+    if "crb_m" in predictions:
+        crb = predictions["crb_m"].to_numpy(float)
+        crb = crb[np.isfinite(crb)]
+        if crb.size:
+            extra["crb_m"] = {"p50": float(np.median(crb)), "p90": float(np.percentile(crb, 90))}
     return {
+        **extra,
         "errors": errors,
         "coverage": coverage,
         "interval_width": width,
@@ -72,4 +79,6 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
             flat[f"coverage.{s}.{level}"] = v
             flat[f"width.{s}.{level}.median_m"] = metrics["interval_width"][s][level]["median_m"]
     flat["substitution_rate"] = metrics["substitution_rate"]
+    for k, v in metrics.get("crb_m", {}).items():
+        flat[f"crb.{k}_m"] = v
     return {k: float(v) for k, v in flat.items() if np.isfinite(v)}

@@ -18,6 +18,7 @@ from sklearn.model_selection import GroupKFold
 
 from acoustlab.data import Site, group_of
 from acoustlab.errors import ConfigError, DataError
+from acoustlab.geometry import position_crb_m
 from acoustlab.interfaces import ConformalScorer, ErrorModel, FeatureSet, Gate, PointModel, Solver
 
 log = logging.getLogger(__name__)
@@ -63,6 +64,18 @@ def tdoa_matrix(features: pd.DataFrame, n_mics: int) -> np.ndarray:
     return np.column_stack([np.zeros(len(features)), features[cols].to_numpy(dtype=float)])
 
 
+def pair_candidate_lags(features: pd.DataFrame, site: Site) -> np.ndarray | None:
+    """(E, P, K) candidate lags of every pair from the ``tdoa`` columns (None without candidates)."""
+    first = [f"tdoa__lag_{i}_{j}_s" for i, j in site.mic_pairs]
+    if not all(c in features.columns for c in first):
+        return None
+    k = 1
+    while all(f"tdoa__lag_{i}_{j}_c{k + 1}_s" in features.columns for i, j in site.mic_pairs):
+        k += 1
+    cols = [[f"tdoa__lag_{i}_{j}_s"] + [f"tdoa__lag_{i}_{j}_c{r + 1}_s" for r in range(1, k)] for i, j in site.mic_pairs]
+    return np.stack([features[c].to_numpy(dtype=float) for c in cols], axis=1)
+
+
 def add_solver_columns(features: pd.DataFrame, events: pd.DataFrame, site: Site, solver: Solver) -> pd.DataFrame:
     """Run the solver on every event and append its estimate and diagnostics as group ``solver``."""
     speed = events["speed_of_sound_m_s"].to_numpy(dtype=float) if "speed_of_sound_m_s" in events else None
@@ -74,6 +87,10 @@ def add_solver_columns(features: pd.DataFrame, events: pd.DataFrame, site: Site,
     kwargs = {}
     if all(col in features.columns for col in level_cols) and "received_level_db" in inspect.signature(solver.solve).parameters:
         kwargs["received_level_db"] = features[level_cols].to_numpy(dtype=float)
+    params = inspect.signature(solver.solve).parameters
+    candidates = pair_candidate_lags(features, site)
+    if candidates is not None and "pair_lag_candidates_s" in params:
+        kwargs["pair_lag_candidates_s"] = candidates
     result = solver.solve(site.mic_positions_m, tdoa_matrix(features, site.n_mics), speed, **kwargs)
     out = features.copy()
     out["solver__x_m"] = result.position_m[:, 0]
@@ -89,6 +106,29 @@ def add_solver_columns(features: pd.DataFrame, events: pd.DataFrame, site: Site,
     solver_cols = [c for c in out.columns if c.startswith("solver__")]
     out[solver_cols] = out[solver_cols].replace([np.inf, -np.inf], np.nan)
     return out
+
+
+def crb_from_features(features: pd.DataFrame, events: pd.DataFrame, site: Site) -> np.ndarray | None:
+    """Per-event Cramér–Rao bound on position (m) at the true position, from measured signal features.
+
+    Uses the median over mics of the per-mic SNR, RMS bandwidth √(centroid² + bandwidth²), band
+    2 × bandwidth and the envelope spread as observation time; None when those features are absent.
+    """
+    m = site.n_mics
+    need = [f"environment__snr_{k}_db" for k in range(m)] + [f"spectral__centroid_{k}_hz" for k in range(m)]
+    need += [f"spectral__bandwidth_{k}_hz" for k in range(m)] + [f"ir__spread_{k}_s" for k in range(m)]
+    if not all(c in features.columns for c in need) or events[["x_m", "y_m"]].isna().any().any():
+        return None
+
+    def med(prefix: str, unit: str) -> np.ndarray:
+        return np.median(features[[f"{prefix}_{k}_{unit}" for k in range(m)]].to_numpy(float), axis=1)
+
+    centroid, bandwidth = med("spectral__centroid", "hz"), med("spectral__bandwidth", "hz")
+    c = events["speed_of_sound_m_s"].to_numpy(float) if "speed_of_sound_m_s" in events else 343.0
+    return position_crb_m(
+        site.mic_positions_m, events[["x_m", "y_m", "z_m"]].to_numpy(float), med("environment__snr", "db"),
+        np.sqrt(centroid**2 + bandwidth**2), med("ir__spread", "s"), 2 * bandwidth, c,
+    )
 
 
 def error_2d_m(estimate_m: np.ndarray, truth_m: np.ndarray) -> np.ndarray:
@@ -203,6 +243,9 @@ class LocalizationPipeline:
                 "predicted_error_m": predicted,
             }
         )
+        crb = crb_from_features(features.iloc[test], events.iloc[test], site)
+        if crb is not None:
+            out["crb_m"] = crb
         for method in ("solver", "model", "gate"):
             out[f"error_{method}_m"] = error_2d_m(out[[f"{method}_x_m", f"{method}_y_m"]].to_numpy(), truth[test])
         for name, scorer in scorers.items():

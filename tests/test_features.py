@@ -87,3 +87,12 @@ def test_every_features_option_has_a_catalog():
         from acoustlab.catalog import feature_catalog
 
         assert len(feature_catalog("frozen_lake", option)) > 3
+
+
+def test_srp_phat_finds_clean_sources(clean_batches):
+    from plugins.features.srp_phat import SrpPhat
+
+    site, batch, _ = clean_batches["frozen_lake"]
+    est = SrpPhat().transform(batch, site)[["srp__x_m", "srp__y_m"]].to_numpy()
+    err = np.linalg.norm(est - batch.true_position_m[:, :2], axis=1)
+    assert np.median(err) < 0.3 and np.mean(err < 1.0) >= 0.8

@@ -83,3 +83,34 @@ def test_input_shapes_are_checked():
         HyperbolicSolver().solve(TRIANGLE, np.zeros((2, 4)), 340.0)
     with pytest.raises(ValueError, match="mic_positions_m"):
         HyperbolicSolver().solve(TRIANGLE[:2], np.zeros((2, 2)), 340.0)
+
+
+def test_crb_scales_with_snr_bandwidth_and_geometry():
+    from acoustlab.geometry import gdop, position_crb_m, tdoa_crb_s
+
+    base = tdoa_crb_s(20.0, 3000.0, 0.1, 2000.0)
+    assert tdoa_crb_s(40.0, 3000.0, 0.1, 2000.0) == pytest.approx(base / 10)  # 20 dB more SNR: σ / 10
+    assert tdoa_crb_s(20.0, 6000.0, 0.1, 2000.0) == pytest.approx(base / 2)  # twice the RMS bandwidth
+    src = np.array([[24.0, 15.0, 1.2], [24.0, 300.0, 1.2]])
+    crb = position_crb_m(TRIANGLE, src, 20.0, 3000.0, 0.1, 2000.0, 340.0)
+    np.testing.assert_allclose(crb, gdop(TRIANGLE, src) * 340.0 * base)
+    assert crb[1] > 10 * crb[0]
+
+
+def test_robust_solver_recovers_when_the_true_lag_is_a_lower_candidate():
+    from plugins.solvers.robust import ConsistentCandidatesSolver
+
+    rng = np.random.default_rng(0)
+    xy = sample_in_expanded_hull(rng, HEXAGON, 0.1, 100)
+    src = np.column_stack([xy, np.full(len(xy), 1.5)])
+    d = np.sqrt(((src[:, None] - HEXAGON[None]) ** 2).sum(-1))
+    pairs = [(i, j) for i in range(6) for j in range(i + 1, 6)]
+    true = np.stack([(d[:, j] - d[:, i]) / 340.0 for i, j in pairs], 1)
+    cands = np.stack([true + rng.uniform(-0.05, 0.05, true.shape), true, true + rng.uniform(-0.05, 0.05, true.shape)], -1)
+    keep = rng.random(true.shape) < 0.5  # half the pairs have the right dominant peak
+    cands[keep, 0], cands[keep, 1] = true[keep], cands[keep, 0].copy()
+    tdoa = np.column_stack([np.zeros(len(xy)), cands[:, [pairs.index((0, j)) for j in range(1, 6)], 0]])
+    robust = ConsistentCandidatesSolver(source_height_m=1.5).solve(HEXAGON, tdoa, 340.0, pair_lag_candidates_s=cands)
+    plain = HyperbolicSolver(source_height_m=1.5).solve(HEXAGON, tdoa, 340.0)
+    assert np.percentile(np.linalg.norm(robust.position_m - xy, axis=1), 95) < 1e-3
+    assert np.percentile(np.linalg.norm(plain.position_m - xy, axis=1), 50) > 1.0
