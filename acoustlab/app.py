@@ -95,7 +95,12 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         levels=[float(v) for v in cfg.conformal.levels],
         dropped_groups=[str(g) for g in cfg.features.get("drop", [])],
         calibration_folds=int(cfg.conformal.get("calibration_folds", 5)),
+        model_target=str(cfg.pipeline.model_target),
+        dropped_from_model=[str(g) for g in cfg.pipeline.get("drop_from_model", [])],
+        dropped_from_error_model=[str(g) for g in cfg.pipeline.get("drop_from_error_model", [])],
     )
+    if components.model_target not in ("absolute", "correction"):
+        raise ConfigError(f"pipeline.model_target must be 'absolute' or 'correction'; got {components.model_target!r}")
     for level in components.levels:
         if not 0 < level < 1:
             raise ConfigError(f"conformal.levels must lie in (0, 1); got {level}")
@@ -125,6 +130,11 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     predictions = protocol.run(dataset, LocalizationPipeline(components))
 
     metrics = summarise(predictions, components.levels, list(components.scorers))
+    tau_grid = getattr(components.gate, "tau_grid_", None)
+    if tau_grid is not None:
+        metrics["tau_star_db"] = float(components.gate.tau_)
+        metrics["tau_rule_met"] = bool(components.gate.tau_rule_met_)
+        metrics["tau_grid"] = tau_grid.to_dict(orient="records")
     metrics["dataset_hash"] = dataset.dataset_hash
     metrics["site"] = site.name
     metrics["choices"] = choices
@@ -151,6 +161,8 @@ def _track(tracker: Any, cfg: DictConfig, choices: dict[str, str], metrics: dict
         tracker.log_metrics(flat_metrics(metrics))
         tracker.log_table(error_table(metrics), "tables/errors.json")
         tracker.log_table(coverage_table(metrics), "tables/coverage.json")
+        if "tau_grid" in metrics:
+            tracker.log_table(pd.DataFrame(metrics["tau_grid"]), "tables/tau_grid.json")
         for name in ("metrics.json", "predictions.parquet", "config_resolved.yaml"):
             tracker.log_artifact(str(run_dir / name))
         tracker.finish("FINISHED")

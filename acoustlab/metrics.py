@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+from scipy.stats import spearmanr
 
 METHODS = ("solver", "model", "gate")
 ERROR_QUANTILES = {"p50": 50, "p90": 90, "p95": 95, "p99": 99}
@@ -44,6 +45,21 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
         crb = crb[np.isfinite(crb)]
         if crb.size:
             extra["crb_m"] = {"p50": float(np.median(crb)), "p90": float(np.percentile(crb, 90))}
+    err_gate = predictions["error_gate_m"].to_numpy(float)
+    ok = np.isfinite(err_gate)
+    rho = {}
+    if ok.sum() >= 3:
+        rho["error_model"] = float(spearmanr(predictions["predicted_error_m"].to_numpy(float)[ok], err_gate[ok]).statistic)
+        g = predictions["gdop"].to_numpy(float)
+        rho["gdop"] = float(spearmanr(g[ok], err_gate[ok]).statistic)
+    by_position: dict[str, dict[str, dict[str, float]]] = {}
+    for name in scorers:
+        by_position[name] = {}
+        for level in levels:
+            hit = (predictions["error_gate_m"] <= predictions[f"radius__{name}__{level:g}"]).groupby(predictions["position_id"]).mean()
+            by_position[name][f"{level:g}"] = {"mean": float(hit.mean()), "min": float(hit.min()), "n_positions": int(hit.size)}
+    extra["spearman_rho"] = rho
+    extra["coverage_by_position"] = by_position
     return {
         **extra,
         "errors": errors,
@@ -81,4 +97,8 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
     flat["substitution_rate"] = metrics["substitution_rate"]
     for k, v in metrics.get("crb_m", {}).items():
         flat[f"crb.{k}_m"] = v
+    for k, v in metrics.get("spearman_rho", {}).items():
+        flat[f"spearman_rho.{k}"] = v
+    if "tau_star_db" in metrics:
+        flat["tau_star_db"] = metrics["tau_star_db"]
     return {k: float(v) for k, v in flat.items() if np.isfinite(v)}

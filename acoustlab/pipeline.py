@@ -18,7 +18,7 @@ from sklearn.model_selection import GroupKFold
 
 from acoustlab.data import Site, group_of
 from acoustlab.errors import ConfigError, DataError
-from acoustlab.geometry import position_crb_m
+from acoustlab.geometry import gdop, position_crb_m
 from acoustlab.interfaces import ConformalScorer, ErrorModel, FeatureSet, Gate, PointModel, Solver
 
 log = logging.getLogger(__name__)
@@ -53,6 +53,9 @@ class Components:
     levels: list[float]
     dropped_groups: list[str] = field(default_factory=list)
     calibration_folds: int = 5
+    model_target: str = "absolute"
+    dropped_from_model: list[str] = field(default_factory=list)
+    dropped_from_error_model: list[str] = field(default_factory=list)
 
 
 def tdoa_matrix(features: pd.DataFrame, n_mics: int) -> np.ndarray:
@@ -149,25 +152,44 @@ class LocalizationPipeline:
     def __init__(self, components: Components) -> None:
         self.c = components
 
-    def model_columns(self, features: pd.DataFrame) -> list[str]:
-        """Columns the point model sees: every group not dropped, the solver's estimate included."""
-        cols = [col for col in features.columns if group_of(col) not in self.c.dropped_groups]
+    def _columns(self, features: pd.DataFrame, dropped: list[str], who: str) -> list[str]:
+        drop = set(self.c.dropped_groups) | set(dropped)
+        cols = [col for col in features.columns if group_of(col) not in drop]
         if not cols:
-            raise ConfigError(f"dropping feature groups {self.c.dropped_groups} leaves the models no features")
+            raise ConfigError(f"dropping feature groups {sorted(drop)} leaves the {who} no features")
         return cols
 
-    def error_columns(self, features: pd.DataFrame) -> list[str]:
-        """Columns the error model sees: the point model's minus the solver's point estimate."""
-        return [c for c in self.model_columns(features) if c not in SOLVER_ESTIMATE_COLUMNS]
+    def model_columns(self, features: pd.DataFrame) -> list[str]:
+        """Columns the point model sees: every group not dropped, the solver's estimate included."""
+        return self._columns(features, self.c.dropped_from_model, "point model")
 
-    def _fit_point(self, x: pd.DataFrame, truth: np.ndarray) -> tuple[Any, Any]:
-        mx = clone(self.c.point_model).fit(x, truth[:, 0])
-        my = clone(self.c.point_model).fit(x, truth[:, 1])
+    def error_columns(self, features: pd.DataFrame) -> list[str]:
+        """Columns the error model sees: groups not dropped for it, never the solver's point estimate."""
+        cols = self._columns(features, self.c.dropped_from_error_model, "error model")
+        return [c for c in cols if c not in SOLVER_ESTIMATE_COLUMNS]
+
+    def _offset(self, solver_xy: np.ndarray) -> np.ndarray:
+        """What the point model's target is relative to: 0 (absolute) or the solver's estimate (correction)."""
+        if self.c.model_target == "absolute":
+            return np.zeros_like(solver_xy)
+        centre = self.c.site.mic_positions_m[:, :2].mean(axis=0)
+        return np.where(np.isfinite(solver_xy), solver_xy, centre)
+
+    def _fit_point(self, x: pd.DataFrame, truth: np.ndarray, solver_xy: np.ndarray) -> tuple[Any, Any]:
+        target = truth[:, :2] - self._offset(solver_xy)
+        mx = clone(self.c.point_model).fit(x, target[:, 0])
+        my = clone(self.c.point_model).fit(x, target[:, 1])
         return mx, my
 
-    @staticmethod
-    def _predict_point(models: tuple[Any, Any], x: pd.DataFrame) -> np.ndarray:
-        return np.column_stack([models[0].predict(x), models[1].predict(x)])
+    def _predict_point(self, models: tuple[Any, Any], x: pd.DataFrame, solver_xy: np.ndarray) -> np.ndarray:
+        return np.column_stack([models[0].predict(x), models[1].predict(x)]) + self._offset(solver_xy)
+
+    def _gdop_at(self, position_m: np.ndarray, features: pd.DataFrame) -> np.ndarray:
+        """GDOP at estimated positions (finite, ≥ 1e-6; a large value where the geometry is singular)."""
+        height = features["solver__source_height_m"].to_numpy(float) if "solver__source_height_m" in features else np.full(len(position_m), np.mean(self.c.site.source_height_range_m))
+        pos = np.column_stack([np.nan_to_num(position_m), np.nan_to_num(height)])
+        g = gdop(self.c.site.mic_positions_m, pos)
+        return np.clip(np.where(np.isfinite(g), g, 1e6), 1e-6, 1e6)
 
     def _folds(self, groups: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         n_groups = np.unique(groups).size
@@ -195,17 +217,20 @@ class LocalizationPipeline:
             raise DataError("a source position appears in both training and test rows")
         mcols, ecols = self.model_columns(features), self.error_columns(features)
         solver_xy = features[list(SOLVER_ESTIMATE_COLUMNS)].to_numpy(dtype=float)
-        gdop = features["solver__gdop"].to_numpy(dtype=float) if "solver__gdop" in features else np.ones(len(features))
-        gdop = np.where(np.isfinite(gdop), gdop, np.inf)
+        solver_gdop = features["solver__gdop"].to_numpy(dtype=float) if "solver__gdop" in features else np.full(len(features), np.nan)
 
         # Out-of-fold hybrid errors on the training positions, for the error model and calibration.
         folds = self._folds(groups[train])
         oof_model = np.empty((train.size, 2))
         for fit_idx, held_idx in folds:
-            models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]])
-            oof_model[held_idx] = self._predict_point(models, features.iloc[train[held_idx]][mcols])
+            models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]], solver_xy[train[fit_idx]])
+            oof_model[held_idx] = self._predict_point(models, features.iloc[train[held_idx]][mcols], solver_xy[train[held_idx]])
+        # gates with a threshold learnt on simulation (τ*) choose it on the out-of-fold predictions
+        if hasattr(self.c.gate, "select_threshold") and getattr(self.c.gate, "tau_db", None) is None:
+            self.c.gate.select_threshold(solver_xy[train], oof_model, features.iloc[train], site, truth[train])
         oof_gate = self.c.gate.decide(solver_xy[train], oof_model, features.iloc[train], site)
         oof_err = error_2d_m(oof_gate.position_m, truth[train])
+        gdop_train = self._gdop_at(oof_gate.position_m, features.iloc[train])
         finite = np.isfinite(oof_err)
         if not finite.all():
             log.warning("%d training events have no finite hybrid estimate; left out of calibration", (~finite).sum())
@@ -215,14 +240,15 @@ class LocalizationPipeline:
             em = clone(self.c.error_model).fit(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx])
             oof_pred[held_idx] = em.predict(features.iloc[train[held_idx]][ecols])
         scorers = {
-            name: s.fit(oof_err[finite], oof_pred[finite], gdop[train][finite], self.c.levels)
+            name: s.fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels)
             for name, s in self.c.scorers.items()
         }
 
         # Final models on all training rows.
-        models = self._fit_point(features.iloc[train][mcols], truth[train])
-        model_xy = self._predict_point(models, features.iloc[test][mcols])
+        models = self._fit_point(features.iloc[train][mcols], truth[train], solver_xy[train])
+        model_xy = self._predict_point(models, features.iloc[test][mcols], solver_xy[test])
         decision = self.c.gate.decide(solver_xy[test], model_xy, features.iloc[test], site)
+        gdop_test = self._gdop_at(decision.position_m, features.iloc[test])
         error_model = clone(self.c.error_model).fit(features.iloc[train[finite]][ecols], oof_err[finite])
         predicted = np.maximum(error_model.predict(features.iloc[test][ecols]), 1e-9)
 
@@ -239,7 +265,8 @@ class LocalizationPipeline:
                 "gate_x_m": decision.position_m[:, 0],
                 "gate_y_m": decision.position_m[:, 1],
                 "substituted": decision.substituted,
-                "gdop": gdop[test],
+                "gdop": gdop_test,
+                "solver_gdop": solver_gdop[test],
                 "predicted_error_m": predicted,
             }
         )
@@ -249,7 +276,7 @@ class LocalizationPipeline:
         for method in ("solver", "model", "gate"):
             out[f"error_{method}_m"] = error_2d_m(out[[f"{method}_x_m", f"{method}_y_m"]].to_numpy(), truth[test])
         for name, scorer in scorers.items():
-            radii = scorer.radius(predicted, gdop[test])
+            radii = scorer.radius(predicted, gdop_test)
             for k, level in enumerate(self.c.levels):
                 out[f"radius__{name}__{level:g}"] = radii[:, k]
         return out

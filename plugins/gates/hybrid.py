@@ -1,0 +1,130 @@
+"""Two-stage plausibility gate: bounding box, then energy consistency with a threshold τ* chosen on simulation.
+
+Stage 1: the solver's estimate must lie inside the mics' bounding box grown by a margin
+proportional to the array extent. Stage 2: the received level per mic in the call band gives
+pairwise log-amplitude ratios; their RMS residual against the ratios that 1/r spreading predicts
+from the solver's estimate must not exceed τ (dB). Where either stage fails the point model's
+estimate is used.
+
+τ* is chosen on simulation only: on a grid of τ, the most permissive value (largest τ, fewest
+substitutions) whose gated errors have a p99 at least ``p99_factor`` times lower and a median at
+most ``p50_tolerance`` higher than the bare solver's.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.data import Site
+from acoustlab.errors import ConfigError, DataError
+from acoustlab.geometry import bounding_box
+from acoustlab.interfaces import GateDecision
+from acoustlab.tdoa import energy_residual_db
+
+log = logging.getLogger(__name__)
+
+
+def select_tau(solver_err: np.ndarray, gated_err_by_tau: np.ndarray, taus: np.ndarray, p99_factor: float = 3.0, p50_tolerance: float = 0.2) -> tuple[float, pd.DataFrame, bool]:
+    """The τ* rule on precomputed errors.
+
+    Parameters
+    ----------
+    solver_err : numpy.ndarray
+        (N,) bare solver errors in m.
+    gated_err_by_tau : numpy.ndarray
+        (T, N) gated errors for each τ of ``taus``.
+    taus : numpy.ndarray
+        (T,) thresholds in dB.
+
+    Returns
+    -------
+    tau : float
+        The chosen τ* (dB); when no τ meets the rule, the τ with the lowest p99 among those within
+        the median tolerance (inf if none).
+    grid : pandas.DataFrame
+        ``tau_db, p50_m, p99_m, substitution_rate`` per τ, for logging.
+    met : bool
+        Whether the rule was met.
+    """
+    s50, s99 = np.percentile(solver_err, 50), np.percentile(solver_err, 99)
+    p50 = np.percentile(gated_err_by_tau, 50, axis=1)
+    p99 = np.percentile(gated_err_by_tau, 99, axis=1)
+    grid = pd.DataFrame({"tau_db": taus, "p50_m": p50, "p99_m": p99})
+    ok = (p99 * p99_factor <= s99) & (p50 <= (1 + p50_tolerance) * s50)
+    if ok.any():
+        return float(taus[ok].max()), grid, True
+    within = p50 <= (1 + p50_tolerance) * s50
+    if within.any():
+        return float(taus[within][np.argmin(p99[within])]), grid, False
+    return float("inf"), grid, False
+
+
+class HybridGate:
+    """Bounding box then energy consistency (see the module docstring).
+
+    Parameters
+    ----------
+    margin_fraction : float
+        Box margin as a fraction of the largest mic-to-mic distance.
+    tau_db : float, optional
+        Fixed energy threshold in dB; None selects τ* on the training simulation.
+    tau_grid_db : list of float
+        Candidate thresholds, dB.
+    p99_factor, p50_tolerance : float
+        The selection rule (≥ 3× lower p99, ≤ 20 % higher median by default).
+    """
+
+    def __init__(self, margin_fraction: float = 0.25, tau_db: float | None = None, tau_grid_db=(1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30),
+                 p99_factor: float = 3.0, p50_tolerance: float = 0.2) -> None:
+        self.margin_fraction = float(margin_fraction)
+        self.tau_db = None if tau_db is None else float(tau_db)
+        self.tau_grid_db = np.asarray(tau_grid_db, dtype=float)
+        if self.tau_grid_db.size == 0:
+            raise ConfigError("gate.tau_grid_db is empty")
+        self.p99_factor = float(p99_factor)
+        self.p50_tolerance = float(p50_tolerance)
+        self.tau_grid_: pd.DataFrame | None = None
+
+    @staticmethod
+    def _energy(features: pd.DataFrame, site: Site, position_m: np.ndarray) -> np.ndarray:
+        cols = [f"environment__level_{m}_db" for m in range(site.n_mics)]
+        missing = [c for c in cols if c not in features.columns]
+        if missing:
+            raise DataError(f"the hybrid gate needs the 'environment' feature group (received levels); missing {missing[:2]}")
+        height = features["solver__source_height_m"].to_numpy(float) if "solver__source_height_m" in features else np.mean(site.source_height_range_m)
+        return energy_residual_db(features[cols].to_numpy(float), site.mic_positions_m, position_m, height)
+
+    def _inside(self, position_m: np.ndarray, site: Site) -> np.ndarray:
+        low, high = bounding_box(site.mic_positions_m, self.margin_fraction)
+        return np.isfinite(position_m).all(1) & (position_m >= low).all(1) & (position_m <= high).all(1)
+
+    def select_threshold(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray) -> float:
+        """Choose τ* on simulated (training) events with known positions; store ``tau_`` and ``tau_grid_``."""
+        def err(p):
+            e = np.sqrt(((p - truth_m[:, :2]) ** 2).sum(1))
+            return np.where(np.isfinite(e), e, 1e9)
+
+        energy = np.nan_to_num(self._energy(features, site, np.nan_to_num(solver_position_m)), nan=np.inf)
+        inside = self._inside(solver_position_m, site)
+        gated = np.stack([err(np.where((inside & (energy <= t))[:, None], solver_position_m, model_position_m)) for t in self.tau_grid_db])
+        subs = np.array([np.mean(~(inside & (energy <= t))) for t in self.tau_grid_db])
+        tau, grid, met = select_tau(err(solver_position_m), gated, self.tau_grid_db, self.p99_factor, self.p50_tolerance)
+        grid["substitution_rate"] = subs
+        self.tau_, self.tau_grid_, self.tau_rule_met_ = tau, grid, met
+        if not met:
+            log.warning("no τ on the grid gives %.0f× lower p99 within +%.0f %% median; using τ=%.3g dB", self.p99_factor, 100 * self.p50_tolerance, tau)
+        log.info("τ* = %.3g dB (rule met: %s)", tau, met)
+        return tau
+
+    def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
+        """See :class:`acoustlab.interfaces.Gate`."""
+        tau = self.tau_db if self.tau_db is not None else getattr(self, "tau_", None)
+        if tau is None:
+            raise DataError("the hybrid gate has no τ: set gate.tau_db or let the pipeline select τ* on simulation first")
+        inside = self._inside(solver_position_m, site)
+        energy = np.nan_to_num(self._energy(features, site, np.nan_to_num(solver_position_m)), nan=np.inf)
+        keep = inside & (energy <= tau)
+        return GateDecision(np.where(keep[:, None], solver_position_m, model_position_m), ~keep)
