@@ -104,6 +104,9 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     for level in components.levels:
         if not 0 < level < 1:
             raise ConfigError(f"conformal.levels must lie in (0, 1); got {level}")
+    for learned in (components.point_model, components.error_model):
+        if hasattr(learned, "preflight"):  # e.g. TabPFN: weights must exist before anything is simulated
+            learned.preflight()
     protocol = build(cfg.protocol, "protocol")
     tracker = build(cfg.tracking, "tracking")
 

@@ -73,6 +73,8 @@ def test_point_models_fit_and_predict(compose_cfg):
     rng = np.random.default_rng(0)
     x, y = rng.normal(size=(60, 4)), rng.normal(size=60)
     for option in group_options("model"):
+        if option == "tabpfn":
+            continue  # needs weights; tested with a tiny checkpoint in test_tabpfn.py
         cfg = compose_cfg(["+site=frozen_lake", f"model={option}"])
         model = build(cfg.model, "model").fit(x, y)
         assert model.predict(x).shape == (60,)

@@ -1,0 +1,144 @@
+"""TabPFN point and error models with the real ``tabpfn`` package (extra: ``pip install -e ".[tabpfn]"``).
+
+One regressor per coordinate (the pipeline clones the point model for x and for y). TabPFN is
+an in-context learner: ``fit`` stores the training rows, ``predict`` runs the transformer, in
+batches. Weights are never downloaded here: :meth:`TabPFNPointModel.preflight` checks that the
+checkpoint exists before any simulation runs and otherwise stops with one message on how to get it.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sklearn.base import BaseEstimator, RegressorMixin
+from sklearn.utils.validation import check_is_fitted
+
+from acoustlab.errors import ConfigError
+
+WEIGHTS_HELP = (
+    "TabPFN weights not found at {path}. Download them once on a machine with internet: "
+    "python -c 'from tabpfn.model_loading import download_all_models; download_all_models()' "
+    "(v2.5 and later need a Hugging Face licence acceptance and TABPFN_TOKEN), then point "
+    "TABPFN_MODEL_CACHE_DIR at the folder or set model.model_path=/path/to/file.ckpt. Licences: "
+    "v2 weights are Apache-2.0 with attribution; v2.5, v2.6, v3 and v3.5 are non-commercial."
+)
+
+
+def _tabpfn():
+    try:
+        import tabpfn
+    except ImportError:
+        raise ConfigError('model=tabpfn needs the optional dependencies: pip install -e ".[tabpfn]" (install a CPU torch first on CPU-only machines)') from None
+    return tabpfn
+
+
+class TabPFNPointModel(RegressorMixin, BaseEstimator):
+    """TabPFN regressor for one coordinate (scikit-learn estimator).
+
+    Parameters
+    ----------
+    model_path : str
+        Checkpoint file, or ``auto`` for the default file of ``model_version`` in the TabPFN cache
+        (``TABPFN_MODEL_CACHE_DIR``).
+    model_version : str, optional
+        ``v2``, ``v2.5``, ``v2.6``, ``v3``, ``v3.5`` for ``auto``; None uses ``TABPFN_MODEL_VERSION``
+        or v3.5.
+    n_estimators : int
+        Ensemble members (8 on a GPU; 1–4 keep CPU runs short).
+    device : str
+        ``auto`` (CUDA when available), ``cpu`` or ``cuda``.
+    ignore_pretraining_limits : bool
+        Allow more than 1,000 training rows on a CPU. The protocols cap training at 1,000 rows, so
+        this stays False unless the cap is raised.
+    batch_size : int
+        Rows predicted per call (bounds memory).
+    random_state : int
+        Seed.
+    """
+
+    def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
+                 ignore_pretraining_limits: bool = False, batch_size: int = 2000, random_state: int = 0) -> None:
+        self.model_path = model_path
+        self.model_version = model_version
+        self.n_estimators = n_estimators
+        self.device = device
+        self.ignore_pretraining_limits = ignore_pretraining_limits
+        self.batch_size = batch_size
+        self.random_state = random_state
+
+    def resolved_path(self) -> Path:
+        """The checkpoint file this model will load."""
+        _tabpfn()
+        from tabpfn.model_loading import resolve_model_path
+
+        version = self.model_version or os.environ.get("TABPFN_MODEL_VERSION", "v3.5")
+        path = None if self.model_path in (None, "auto") else str(self.model_path)
+        return resolve_model_path(path, "regressor", version)[0][0]
+
+    def preflight(self) -> None:
+        """Raise one clear :class:`ConfigError` if the weights are missing (called before any simulation)."""
+        path = self.resolved_path()
+        if not path.is_file():
+            raise ConfigError(WEIGHTS_HELP.format(path=path))
+
+    def _device(self) -> str:
+        if self.device != "auto":
+            return self.device
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+
+    def _regressor(self):
+        tabpfn = _tabpfn()
+        return tabpfn.TabPFNRegressor(
+            model_path=str(self.resolved_path()), n_estimators=int(self.n_estimators), device=self._device(),
+            ignore_pretraining_limits=bool(self.ignore_pretraining_limits), random_state=self.random_state,
+        )
+
+    def fit(self, X: Any, y: np.ndarray) -> "TabPFNPointModel":
+        """Store the training rows in a fresh TabPFN regressor."""
+        self.preflight()
+        X = np.asarray(X, dtype=np.float32)
+        if X.shape[0] > 1000 and not self.ignore_pretraining_limits:
+            raise ConfigError(f"TabPFN got {X.shape[0]} training rows; cap them at 1,000 or set model.ignore_pretraining_limits=true deliberately")
+        self.regressor_ = self._regressor().fit(X, np.asarray(y, dtype=np.float32))
+        self.n_features_in_ = X.shape[1]
+        return self
+
+    def _batched(self, X: Any, **kwargs: Any) -> np.ndarray:
+        check_is_fitted(self, "regressor_")
+        X = np.asarray(X, dtype=np.float32)
+        parts = [self.regressor_.predict(X[i : i + self.batch_size], **kwargs) for i in range(0, X.shape[0], self.batch_size)]
+        if kwargs.get("output_type") == "quantiles":
+            return np.concatenate([np.column_stack(p) for p in parts], axis=0)
+        return np.concatenate(parts, axis=0)
+
+    def predict(self, X: Any) -> np.ndarray:
+        """(B,) predictions (the mean of TabPFN's predictive distribution)."""
+        return self._batched(X)
+
+    def predict_quantiles(self, X: Any, quantiles: list[float]) -> np.ndarray:
+        """(B, Q) quantiles of the predictive distribution."""
+        return self._batched(X, output_type="quantiles", quantiles=list(quantiles))
+
+
+class TabPFNErrorModel(TabPFNPointModel):
+    """TabPFN error model: predicts a quantile (default the median) of the hybrid estimate's error, m.
+
+    Parameters
+    ----------
+    quantile : float
+        Quantile of TabPFN's predictive distribution returned by ``predict``.
+    """
+
+    def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
+                 ignore_pretraining_limits: bool = False, batch_size: int = 2000, random_state: int = 0, quantile: float = 0.5) -> None:
+        super().__init__(model_path, model_version, n_estimators, device, ignore_pretraining_limits, batch_size, random_state)
+        self.quantile = quantile
+
+    def predict(self, X: Any) -> np.ndarray:
+        """(B,) the ``quantile`` of the predicted error distribution, floored at 1 mm."""
+        return np.maximum(self.predict_quantiles(X, [self.quantile])[:, 0], 1e-3)

@@ -1,0 +1,110 @@
+"""TabPFN plugins on a tiny randomly initialised checkpoint of the real architecture (built here).
+
+The checkpoint's predictions are meaningless (random weights): these tests check the real code
+path — loading, fitting, batched prediction, quantiles, cloning, the weights preflight — not
+accuracy. Tests that need real weights carry the ``needs_weights`` marker.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+tabpfn = pytest.importorskip("tabpfn", reason='TabPFN is an optional extra: pip install -e ".[tabpfn]"')
+torch = pytest.importorskip("torch")
+
+from acoustlab.errors import ConfigError  # noqa: E402
+from plugins.models.tabpfn_models import TabPFNErrorModel, TabPFNPointModel  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    from scipy.stats import norm
+    from tabpfn.architectures import tabpfn_v2
+    from tabpfn.architectures.shared.bar_distribution import FullSupportBarDistribution
+    from tabpfn.constants import ModelVersion
+    from tabpfn.inference_config import InferenceConfig
+
+    cfg, _ = tabpfn_v2.parse_config(dict(emsize=32, nlayers=2, nhead=2, features_per_group=2, num_buckets=100, max_num_classes=0))
+    torch.manual_seed(0)
+    model = tabpfn_v2.get_architecture(cfg)
+    borders = torch.tensor(norm.ppf(np.linspace(0.001, 0.999, 101)), dtype=torch.float32)
+    crit = FullSupportBarDistribution(borders)
+    state = dict(model.state_dict())
+    state.update({f"criterion.{k}": v for k, v in crit.state_dict().items()})
+    path = tmp_path_factory.mktemp("tabpfn") / "tiny-regressor.ckpt"  # no version string in the name: read as v2
+    torch.save(
+        {
+            "state_dict": state,
+            "config": dataclasses.asdict(cfg),
+            "architecture_name": "tabpfn_v2",
+            "inference_config": dataclasses.asdict(InferenceConfig.get_default("regression", ModelVersion.V2)),
+        },
+        path,
+    )
+    return str(path)
+
+
+def data(n=120, d=6, seed=0):
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, d)).astype(np.float32)
+    return x, (x[:, 0] * 3 + rng.normal(size=n)).astype(np.float32)
+
+
+def test_fit_predict_in_batches_and_quantiles(tiny_checkpoint):
+    x, y = data()
+    model = TabPFNPointModel(model_path=tiny_checkpoint, n_estimators=1, device="cpu", batch_size=25).fit(x[:100], y[:100])
+    pred = model.predict(x[100:])
+    assert pred.shape == (20,) and np.isfinite(pred).all()
+    q = model.predict_quantiles(x[100:], [0.1, 0.5, 0.9])
+    assert q.shape == (20, 3) and (np.diff(q, axis=1) >= -1e-6).all()
+
+
+def test_error_model_predicts_a_positive_quantile(tiny_checkpoint):
+    x, y = data()
+    err = TabPFNErrorModel(model_path=tiny_checkpoint, n_estimators=1, device="cpu").fit(x, np.abs(y))
+    assert (err.predict(x[:10]) > 0).all()
+
+
+def test_clone_and_row_cap(tiny_checkpoint):
+    from sklearn.base import clone
+
+    model = TabPFNPointModel(model_path=tiny_checkpoint, n_estimators=1, device="cpu")
+    assert clone(model).get_params() == model.get_params()
+    x, y = data(n=1001)
+    with pytest.raises(ConfigError, match="1,000"):
+        model.fit(x, y)
+
+
+def test_missing_weights_give_one_clear_message(tmp_path):
+    with pytest.raises(ConfigError, match="TabPFN weights not found .*download_all_models.*TABPFN_MODEL_CACHE_DIR.*non-commercial"):
+        TabPFNPointModel(model_path=str(tmp_path / "absent.ckpt")).preflight()
+
+
+@pytest.mark.slow
+def test_smoke_run_with_tabpfn_point_and_error_models(tiny_checkpoint, compose_cfg, tmp_path):
+    from acoustlab.app import run_experiment
+
+    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", "model=tabpfn", "error_model=tabpfn", "tracking=none",
+                       f"model.model_path={tiny_checkpoint}", f"error_model.model_path={tiny_checkpoint}",
+                       "model.n_estimators=1", "error_model.n_estimators=1", "model.device=cpu", "error_model.device=cpu",
+                       f"paths.outputs_dir={tmp_path}"])
+    metrics = run_experiment(cfg, tmp_path / "run", {"model": "tabpfn"})
+    assert metrics["errors"]["model"]["n"] > 0 and np.isfinite(metrics["errors"]["model"]["p50"])
+
+
+def test_preflight_stops_a_run_before_simulation(compose_cfg, tmp_path):
+    from acoustlab.app import run_experiment
+
+    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", "model=tabpfn", f"model.model_path={tmp_path / 'none.ckpt'}",
+                       "tracking=none", f"paths.outputs_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match="TabPFN weights not found"):
+        run_experiment(cfg, tmp_path / "run")
+    assert not (tmp_path / "cache").exists()
+
+
+@pytest.mark.needs_weights
+def test_real_weights_learn_a_simple_function():
+    x, y = data(n=300)
+    model = TabPFNPointModel(n_estimators=2).fit(x[:250], y[:250])
+    assert np.corrcoef(model.predict(x[250:]), y[250:])[0, 1] > 0.8
