@@ -41,3 +41,40 @@ def test_fixed_conformal_covers_on_exchangeable_data(seed, n, level):
     mean = float(np.mean(covered))
     mc = 3 * np.std(covered) / np.sqrt(reps)
     assert level - mc <= mean <= level + 1 / (n + 1) + mc
+
+
+def test_gdop_scaled_and_mondrian_cover_on_exchangeable_data():
+    from plugins.conformal.gdop_scaled import GdopScaledConformal
+    from plugins.conformal.mondrian import MondrianGdopConformal
+
+    rng = np.random.default_rng(0)
+    reps, n, m = 300, 150, 60
+    hits = {"gdop": [], "mondrian": []}
+    for _ in range(reps):
+        g = rng.uniform(1, 10, n + m)
+        err = g * rng.lognormal(size=n + m)  # error grows with GDOP
+        pred = np.ones(n + m)
+        gs = GdopScaledConformal().fit(err[:n], pred[:n], g[:n], [0.8])
+        mo = MondrianGdopConformal(3).fit(err[:n], pred[:n], g[:n], [0.8])
+        hits["gdop"].append(np.mean(err[n:] <= gs.radius(pred[n:], g[n:])[:, 0]))
+        hits["mondrian"].append(np.mean(err[n:] <= mo.radius(pred[n:], g[n:])[:, 0]))
+    assert 0.78 <= np.mean(hits["gdop"]) <= 0.82 + 1 / (n + 1)
+    assert 0.78 <= np.mean(hits["mondrian"]) <= 0.84
+
+
+def test_same_intervals_as_crepes():
+    crepes = pytest.importorskip("crepes")
+    from plugins.conformal.gdop_scaled import GdopScaledConformal
+
+    rng = np.random.default_rng(1)
+    err, pred, g = rng.lognormal(size=200), rng.uniform(0.5, 2, 200), rng.uniform(1, 5, 200)
+    ours = FixedConformal().fit(err, pred, g, [0.8, 0.95])
+    # crepes on residuals with sigmas = the error model's output (normalised conformal regression)
+    cr = crepes.ConformalRegressor().fit(residuals=err, sigmas=pred)
+    test_pred, test_sig = np.zeros(5), rng.uniform(0.5, 2, 5)
+    for k, level in enumerate([0.8, 0.95]):
+        interval = cr.predict_int(y_hat=test_pred, sigmas=test_sig, confidence=level)
+        np.testing.assert_allclose(ours.radius(test_sig, test_sig)[:, k], interval[:, 1], rtol=1e-9)
+    gs = GdopScaledConformal().fit(err, pred, g, [0.9])
+    cr = crepes.ConformalRegressor().fit(residuals=err, sigmas=g)
+    np.testing.assert_allclose(gs.radius(test_pred, test_sig)[:, 0], cr.predict_int(y_hat=test_pred, sigmas=test_sig, confidence=0.9)[:, 1], rtol=1e-9)

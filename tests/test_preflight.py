@@ -42,7 +42,9 @@ def test_cli_without_site_fails_in_one_line(run_cli):
 def test_cli_unknown_option_fails_in_one_line(run_cli):
     proc = run_cli("+site=frozen_lake", "model=nope")
     assert proc.returncode == 2
-    assert proc.stderr.strip().count("\n") == 0 and "available: random_forest, xgboost" in proc.stderr
+    from acoustlab.registry import group_options
+
+    assert proc.stderr.strip().count("\n") == 0 and f"available: {', '.join(group_options('model'))}" in proc.stderr
 
 
 def _site(compose_cfg, *overrides):
