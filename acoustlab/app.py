@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from acoustlab import __version__
 from acoustlab.cache import StageCache
-from acoustlab.dataset import SimulationPlan, load_or_build_simulated
+from acoustlab.dataset import SimulationPlan, load_or_build_field, load_or_build_simulated
 from acoustlab.errors import ConfigError
 from acoustlab.metrics import coverage_table, error_table, flat_metrics, summarise
 from acoustlab.pipeline import Components, LocalizationPipeline, add_solver_columns
@@ -130,9 +130,22 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
                  plan.shard_index + 1, plan.shard_count)
         return {"shard": {"index": plan.shard_index, "count": plan.shard_count}}
     dataset.features = add_solver_columns(dataset.features, dataset.events, site, solver)
-    predictions = protocol.run(dataset, LocalizationPipeline(components))
+    field_data = None
+    if getattr(protocol, "needs_field", False):
+        field_source = build(cfg.field, "field")
+        if field_source is None:
+            raise ConfigError(f"protocol={choices.get('protocol', 'field')} needs field recordings: choose field=playback_standin or field=recordings")
+        field_data = load_or_build_field(site, field_source, to_plain(cfg.field), feature_sets, to_plain(cfg.features.groups), cache)
+        field_data.features = add_solver_columns(field_data.features, field_data.events, site, solver)
+    predictions = protocol.run(dataset, LocalizationPipeline(components), field=field_data)
 
-    metrics = summarise(predictions, components.levels, list(components.scorers))
+    summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
+    metrics = summarise(predictions[summary_rows], components.levels, list(components.scorers))
+    if not summary_rows.all():
+        metrics["all_detections"] = summarise(predictions, components.levels, list(components.scorers))
+        metrics["excluded_from_summary"] = int((~summary_rows).sum())
+    if field_data is not None:
+        metrics["field_dataset_hash"] = field_data.dataset_hash
     tau_grid = getattr(components.gate, "tau_grid_", None)
     if tau_grid is not None:
         metrics["tau_star_db"] = float(components.gate.tau_)

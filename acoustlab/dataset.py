@@ -264,3 +264,36 @@ def load_or_build_simulated(
     )
     cache.cleanup()
     return dataset
+
+
+def load_or_build_field(
+    site: Site, field_source: Any, field_cfg: dict[str, Any], feature_sets: dict[str, FeatureSet], features_cfg: dict[str, Any], cache: StageCache
+) -> Dataset:
+    """Feature and event tables of a field source's recordings, cached like the simulated ones."""
+    key = StageCache.key(
+        {
+            "stage": "field_features",
+            "site": site.fingerprint(),
+            "field": field_cfg,
+            "field_plugin": plugin_version(field_source),
+            "features": features_cfg,
+            "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},
+        }
+    )
+    found = cache.lookup("field_features", key)
+    if found is None:
+        batch = field_source.load(site)
+        digest = _DataHasher()
+        digest.update(batch.audio, batch.events)
+        work = cache.partial_dir("field_features", key)
+        atomic_write_bytes(work / "features.parquet", extract_features(batch, site, feature_sets).to_parquet(index=False))
+        atomic_write_bytes(work / "events.parquet", batch.events.to_parquet(index=False))
+        atomic_write_bytes(work / "manifest.json", json.dumps({"dataset_hash": digest.hexdigest()}).encode())
+        found = cache.commit("field_features", key, work)
+    dataset = Dataset(
+        events=pd.read_parquet(found / "events.parquet"),
+        features=pd.read_parquet(found / "features.parquet"),
+        dataset_hash=json.loads((found / "manifest.json").read_text())["dataset_hash"],
+    )
+    cache.cleanup()
+    return dataset

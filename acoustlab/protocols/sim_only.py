@@ -60,7 +60,7 @@ class SimOnlyProtocol:
         log.info("sim-only split: %d training rows, %d test rows", train.size, test.size)
         return np.sort(train), np.sort(test)
 
-    def run(self, dataset: Dataset, pipeline: LocalizationPipeline) -> pd.DataFrame:
-        """Per-event predictions on the withheld positions."""
+    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field: Dataset | None = None) -> pd.DataFrame:
+        """Per-event predictions on the withheld positions (``field`` is not used)."""
         train, test = self.split(dataset.events)
         return pipeline.fit_predict(dataset.features, dataset.events, train, test)

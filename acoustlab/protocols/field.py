@@ -1,0 +1,147 @@
+"""Field protocols: train on simulation, test on field recordings (``field_eval``) or rotate over
+field positions adding part of the other positions' field data to training (``lopo``).
+
+Positions are the exchangeable groups everywhere: a withheld field position never appears in
+training or in conformal calibration (calibration is out-of-fold over training positions).
+Field position ids are offset so they never collide with simulated ones.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.dataset import Dataset
+from acoustlab.errors import ConfigError, DataError
+from acoustlab.pipeline import LocalizationPipeline
+
+log = logging.getLogger(__name__)
+
+#: Added to field position ids so they never equal a simulated position id.
+FIELD_POSITION_OFFSET = 10**9
+
+
+def combine(sim: Dataset, field: Dataset) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray, np.ndarray]:
+    """Stack simulated and field tables; return features, events and the row indices of each part."""
+    missing = set(sim.features.columns) ^ set(field.features.columns)
+    if missing:
+        raise DataError(f"simulated and field feature tables differ in columns {sorted(missing)[:5]}")
+    fev = field.events.copy()
+    if fev[["x_m", "y_m"]].isna().any().any():
+        raise DataError("field evaluation needs true positions for every field event (x_m, y_m)")
+    fev["position_id"] = fev["position_id"].astype(np.int64) + FIELD_POSITION_OFFSET
+    fev["is_field"] = True
+    sev = sim.events.copy()
+    sev["is_field"] = False
+    events = pd.concat([sev, fev], ignore_index=True)
+    features = pd.concat([sim.features, field.features[sim.features.columns]], ignore_index=True)
+    n_sim = len(sim.events)
+    return features, events, np.arange(n_sim), np.arange(n_sim, len(events))
+
+
+def cap_rows(rows: np.ndarray, groups: np.ndarray, max_rows: int, rng: np.random.Generator) -> np.ndarray:
+    """At most ``max_rows`` of ``rows``, keeping whole groups, chosen at random."""
+    if rows.size <= max_rows:
+        return rows
+    keep, total = [], 0
+    sizes = pd.Series(groups[rows]).value_counts()
+    for g in rng.permutation(np.unique(groups[rows])):
+        if total + sizes[g] > max_rows:
+            continue
+        keep.append(g)
+        total += sizes[g]
+    return rows[np.isin(groups[rows], keep)]
+
+
+class FieldEvalProtocol:
+    """Train on simulation only (capped at ``max_train_rows``); test on every field event.
+
+    Parameters
+    ----------
+    max_train_rows : int
+        Training cap (whole simulated positions kept together).
+    exclude_failed_from_summary : bool
+        Leave positions with a known hardware failure out of the per-detection summaries
+        (they stay in ``predictions.parquet``).
+    seed : int
+        Seed of the training subsample.
+    """
+
+    needs_simulation = True
+    needs_field = True
+
+    def __init__(self, max_train_rows: int = 1000, exclude_failed_from_summary: bool = True, seed: int = 0) -> None:
+        self.max_train_rows = int(max_train_rows)
+        self.exclude_failed_from_summary = bool(exclude_failed_from_summary)
+        self.seed = int(seed)
+
+    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field: Dataset | None = None) -> pd.DataFrame:
+        if field is None:
+            raise ConfigError("protocol=field_eval needs field data: choose a field source, e.g. field=playback_standin")
+        features, events, sim_rows, field_rows = combine(dataset, field)
+        groups = events["position_id"].to_numpy()
+        train = cap_rows(sim_rows, groups, self.max_train_rows, np.random.default_rng([self.seed, 2]))
+        out = pipeline.fit_predict(features, events, train, field_rows)
+        return _annotate(out, events, field_rows, self.exclude_failed_from_summary)
+
+
+class LopoProtocol:
+    """Leave one field position out in turn; train on simulation plus a fraction of the other positions' field data.
+
+    Parameters
+    ----------
+    field_fraction : float
+        Fraction of the training budget filled with field events of the other positions.
+    max_train_rows : int
+        Training cap, field rows included.
+    exclude_failed_from_summary : bool
+        As in :class:`FieldEvalProtocol`.
+    seed : int
+        Seed of the subsamples.
+    """
+
+    needs_simulation = True
+    needs_field = True
+
+    def __init__(self, field_fraction: float = 0.2, max_train_rows: int = 1000, exclude_failed_from_summary: bool = True, seed: int = 0) -> None:
+        if not 0 <= field_fraction < 1:
+            raise ConfigError(f"protocol.field_fraction must be in [0, 1); got {field_fraction}")
+        self.field_fraction = float(field_fraction)
+        self.max_train_rows = int(max_train_rows)
+        self.exclude_failed_from_summary = bool(exclude_failed_from_summary)
+        self.seed = int(seed)
+
+    def splits(self, events: pd.DataFrame, sim_rows: np.ndarray, field_rows: np.ndarray):
+        """Yield (withheld position, train rows, test rows) for every field position."""
+        groups = events["position_id"].to_numpy()
+        n_field = int(round(self.field_fraction * self.max_train_rows))
+        for k, pos in enumerate(np.unique(groups[field_rows])):
+            rng = np.random.default_rng([self.seed, 3, k])
+            test = field_rows[groups[field_rows] == pos]
+            others = field_rows[groups[field_rows] != pos]
+            field_part = rng.choice(others, size=min(n_field, others.size), replace=False) if n_field else np.array([], int)
+            sim_part = cap_rows(sim_rows, groups, self.max_train_rows - field_part.size, rng)
+            yield pos, np.sort(np.concatenate([sim_part, field_part])), test
+
+    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field: Dataset | None = None) -> pd.DataFrame:
+        if field is None:
+            raise ConfigError("protocol=lopo needs field data: choose a field source, e.g. field=playback_standin")
+        features, events, sim_rows, field_rows = combine(dataset, field)
+        pooled = []
+        for pos, train, test in self.splits(events, sim_rows, field_rows):
+            log.info("LOPO: withholding field position %d (%d test, %d training rows)", pos - FIELD_POSITION_OFFSET, test.size, train.size)
+            out = pipeline.fit_predict(features, events, train, test)
+            out["withheld_position"] = pos - FIELD_POSITION_OFFSET
+            pooled.append(_annotate(out, events, test, self.exclude_failed_from_summary))
+        return pd.concat(pooled, ignore_index=True)
+
+
+def _annotate(out: pd.DataFrame, events: pd.DataFrame, rows: np.ndarray, exclude_failed: bool) -> pd.DataFrame:
+    out = out.copy()
+    out["position_id"] = out["position_id"] - FIELD_POSITION_OFFSET
+    failed = events["hardware_failure"].to_numpy(bool)[rows] if "hardware_failure" in events else np.zeros(rows.size, bool)
+    out["hardware_failure"] = failed
+    out["in_summary"] = ~failed if exclude_failed else True
+    return out
