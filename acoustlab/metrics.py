@@ -49,9 +49,10 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
     ok = np.isfinite(err_gate)
     rho = {}
     if ok.sum() >= 3:
-        rho["error_model"] = float(spearmanr(predictions["predicted_error_m"].to_numpy(float)[ok], err_gate[ok]).statistic)
-        g = predictions["gdop"].to_numpy(float)
-        rho["gdop"] = float(spearmanr(g[ok], err_gate[ok]).statistic)
+        # a constant predictor (e.g. the constant error model) has no rank correlation: reported as None
+        for name, values in (("error_model", predictions["predicted_error_m"].to_numpy(float)), ("gdop", predictions["gdop"].to_numpy(float))):
+            v = values[ok]
+            rho[name] = float(spearmanr(v, err_gate[ok]).statistic) if np.ptp(v) > 0 and np.ptp(err_gate[ok]) > 0 else None
     by_position: dict[str, dict[str, dict[str, float]]] = {}
     for name in scorers:
         by_position[name] = {}
@@ -98,7 +99,8 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
     for k, v in metrics.get("crb_m", {}).items():
         flat[f"crb.{k}_m"] = v
     for k, v in metrics.get("spearman_rho", {}).items():
-        flat[f"spearman_rho.{k}"] = v
+        if v is not None:
+            flat[f"spearman_rho.{k}"] = v
     if "tau_star_db" in metrics:
         flat["tau_star_db"] = metrics["tau_star_db"]
     return {k: float(v) for k, v in flat.items() if np.isfinite(v)}
