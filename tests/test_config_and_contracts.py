@@ -60,7 +60,7 @@ def test_every_option_composes_and_instantiates_to_its_contract(compose_cfg, gro
     if group == "field" and obj is None:
         return  # 'none': no field data
     if group == "protocol":
-        assert callable(getattr(obj, "run", None)) and callable(getattr(obj, "split", None))
+        assert callable(getattr(obj, "run", None)) and hasattr(obj, "needs_simulation")
         return
     assert isinstance(obj, CONTRACTS[group]), f"{group}={option} does not satisfy {CONTRACTS[group].__name__}"
     if group in ("model", "error_model"):
