@@ -75,7 +75,7 @@ def main() -> None:
         "`python benchmarks/bench_real_array.py` (GCC-PHAT band 6–10.5 kHz, hyperbolic solver, source height scanned 0–400 m: a flight call may come from high above)",
         "",
         "TDOA to recorder 3 (ms): " + ", ".join(f"{1e3 * v:.1f}" for v in tdoa[0])
-        + f" — OpenSoundscape's reference: " + ", ".join(f"{1e3 * v:.1f}" for v in UPSTREAM_TDOA_S)
+        + " — OpenSoundscape's reference: " + ", ".join(f"{1e3 * v:.1f}" for v in UPSTREAM_TDOA_S)
         + f" (largest difference {result['max_abs_diff_to_upstream_ms']:.2f} ms; its tests allow ±10 ms).",
         "",
         f"Position: x = {result['position_m'][0]:.1f} m, y = {result['position_m'][1]:.1f} m, best-fitting height "

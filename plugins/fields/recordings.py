@@ -20,7 +20,6 @@ Unknown true positions are NaN; events without a ``position_id`` each get their 
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pandas as pd

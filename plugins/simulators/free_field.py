@@ -14,12 +14,12 @@ import numpy as np
 import pandas as pd
 import scipy.signal as ss
 
-from acoustlab.audio import load_mono
 from acoustlab.data import RecordingBatch, Site, require_range
 from acoustlab.errors import ConfigError
 from acoustlab.geometry import sample_in_expanded_hull, source_region
 from acoustlab.physics import speed_of_sound_m_s
-from acoustlab.signal import coloured_noise, delay_and_scale
+from acoustlab.signal import delay_and_scale
+from acoustlab.simulation import noise_matrix
 
 log = logging.getLogger(__name__)
 
@@ -123,23 +123,6 @@ class FreeFieldSimulator:
                     f"site noise band {regime.band_hz} Hz reaches the Nyquist frequency of {self.sample_rate_hz} Hz"
                 )
 
-    def _noise(self, rng: np.random.Generator, site: Site, regime_index: int, n_samples: int) -> np.ndarray:
-        """(M, n_samples) unit-variance noise, independent per microphone."""
-        regime = site.noise_regimes[regime_index]
-        m = site.n_mics
-        if regime.kind != "recorded":
-            return coloured_noise(rng, (m, n_samples), regime.kind, self.sample_rate_hz, regime.band_hz)
-        out = np.empty((m, n_samples))
-        for k in range(m):
-            rec = load_mono(regime.files[int(rng.integers(len(regime.files)))], self.sample_rate_hz)
-            if rec.size <= n_samples:
-                rec = np.tile(rec, n_samples // max(rec.size, 1) + 2)
-            start = int(rng.integers(rec.size - n_samples))
-            seg = rec[start : start + n_samples].astype(float)
-            seg = seg - seg.mean()
-            out[k] = seg / max(seg.std(), 1e-12)
-        return out
-
     def simulate(self, site: Site, event_ids: np.ndarray, position_ids: np.ndarray, seed: int) -> RecordingBatch:
         """Render events; see :class:`acoustlab.interfaces.Simulator`."""
         event_ids = np.asarray(event_ids, dtype=np.int64)
@@ -169,7 +152,7 @@ class FreeFieldSimulator:
             # SNR is defined at the nearest mic: received call power over the call's duration vs noise power.
             signal_power = np.mean(call**2) / dist.min() ** 2
             noise_std = np.sqrt(signal_power / 10 ** (snr_db / 10))
-            audio[k] = clean + noise_std * self._noise(rng, site, regime_index, n_samples)
+            audio[k] = clean + noise_std * noise_matrix(rng, site, regime_index, n_samples, self.sample_rate_hz)
             rows.append(
                 {
                     "event_id": int(eid),

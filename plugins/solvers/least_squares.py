@@ -11,6 +11,7 @@ import numpy as np
 from acoustlab.errors import ConfigError
 from acoustlab.geometry import gdop
 from acoustlab.interfaces import SolverResult
+from acoustlab.tdoa import levenberg_marquardt
 
 
 class LeastSquaresSolver:
@@ -51,17 +52,6 @@ class LeastSquaresSolver:
         beyond = mics_xy + 0.5 * (mics_xy - centroid)  # outside, beyond each mic
         return np.vstack([centroid[None], near, beyond])  # (S, 2)
 
-    def _residuals(self, p: np.ndarray, mics: np.ndarray, z: np.ndarray, rd: np.ndarray):
-        """Residuals (..., M-1) and Jacobian (..., M-1, 2) at candidates p (..., 2)."""
-        diff = p[..., None, :] - mics[:, :2]  # (..., M, 2)
-        dz = z[..., None] - mics[:, 2]
-        dist = np.sqrt((diff**2).sum(-1) + dz**2)
-        dist = np.maximum(dist, 1e-9)
-        r = (dist[..., 1:] - dist[..., :1]) - rd
-        grad = diff / dist[..., None]
-        jac = grad[..., 1:, :] - grad[..., :1, :]
-        return r, jac
-
     def solve(self, mic_positions_m: np.ndarray, tdoa_s: np.ndarray, speed_of_sound_m_s: float | np.ndarray) -> SolverResult:
         """See :class:`acoustlab.interfaces.Solver`."""
         mics = np.asarray(mic_positions_m, dtype=float)
@@ -77,34 +67,9 @@ class LeastSquaresSolver:
         height = mics[:, 2].mean() if self.source_height_m is None else float(self.source_height_m)
         rd = (c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]))[:, None, :]  # (B, 1, M-1)
         starts = self._starts(mics[:, :2])
-        p = np.broadcast_to(starts, (b, starts.shape[0], 2)).copy()  # (B, S, 2)
-        z = np.full(p.shape[:2], height)
-        lam = np.full(p.shape[:2], 1e-2)
-        r, jac = self._residuals(p, mics, z, rd)
-        cost = (r**2).sum(-1)
-        step_norm = np.full(p.shape[:2], np.inf)
-        for _ in range(self.n_iterations):
-            jtj = np.einsum("...ki,...kj->...ij", jac, jac)
-            jtr = np.einsum("...ki,...k->...i", jac, r)
-            a = jtj + lam[..., None, None] * (np.eye(2) * (np.trace(jtj, axis1=-2, axis2=-1)[..., None, None] / 2 + 1e-9))
-            det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
-            det = np.where(np.abs(det) < 1e-18, 1e-18, det)
-            step = -np.stack(
-                [a[..., 1, 1] * jtr[..., 0] - a[..., 0, 1] * jtr[..., 1], a[..., 0, 0] * jtr[..., 1] - a[..., 1, 0] * jtr[..., 0]],
-                axis=-1,
-            ) / det[..., None]
-            p_new = p + step
-            r_new, jac_new = self._residuals(p_new, mics, z, rd)
-            cost_new = (r_new**2).sum(-1)
-            better = cost_new < cost
-            p = np.where(better[..., None], p_new, p)
-            r = np.where(better[..., None], r_new, r)
-            jac = np.where(better[..., None, None], jac_new, jac)
-            cost = np.where(better, cost_new, cost)
-            step_norm = np.where(better, np.sqrt((step**2).sum(-1)), step_norm)
-            lam = np.clip(np.where(better, lam * 0.3, lam * 10.0), 1e-12, 1e8)
-            if np.all(~better & (lam >= 1e8) | (step_norm < 1e-9)):
-                break
+        p0 = np.broadcast_to(starts, (b, starts.shape[0], 2))  # (B, S, 2)
+        z = np.full(p0.shape[:2], height)
+        p, cost, step_norm = levenberg_marquardt(p0, mics, z, rd, self.n_iterations)
         # Where several starts reach an equally good fit (the two roots of a 3-mic array), prefer
         # the one nearest the array centroid and report how many distinct fits there were.
         cost = np.where(np.isfinite(cost), cost, np.inf)
