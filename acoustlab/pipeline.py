@@ -193,7 +193,8 @@ class LocalizationPipeline:
 
     def _folds(self, groups: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         n_groups = np.unique(groups).size
-        k = min(self.c.calibration_folds, n_groups)
+        # calibration_folds = -1: leave one position out (one fold per training position)
+        k = n_groups if self.c.calibration_folds == -1 else min(self.c.calibration_folds, n_groups)
         if k < 2:
             raise DataError(f"calibration needs at least 2 source positions in training; got {n_groups}")
         return list(GroupKFold(n_splits=k).split(np.zeros(groups.size), groups=groups))

@@ -162,3 +162,8 @@ def test_parallel_and_sharded_generation_give_the_same_data(compose_cfg, tmp_pat
     assert len(partial) == 4  # 120 events in chunks of 32, split over two shards
     final = run_experiment(smoke(compose_cfg, tmp_path / "sharded"), tmp_path / "c")
     assert final["dataset_hash"] == serial["dataset_hash"]
+
+
+def test_leave_one_position_out_calibration(compose_cfg, tmp_path):
+    metrics = run_experiment(smoke(compose_cfg, tmp_path, "conformal.calibration_folds=-1", "model.n_estimators=10"), tmp_path / "a")
+    assert all(0 <= v <= 1 for v in metrics["coverage"]["fixed"].values())
