@@ -1,7 +1,7 @@
 """Where the bare solver's gross errors come from, per site, on the default simulation.
 
 Usage: python benchmarks/bench_error_tail.py [--n-events 1100]
-For every simulated event: the solver's 2-D error with the measured TDOAs, the error it would
+For every simulated event: the default solver's 2-D error with the measured TDOAs, the error it would
 make with the *true* TDOAs (so geometric ambiguity is separated from measurement failure), the
 worst TDOA error in samples, the SNR and whether a trunk blocks a direct path. Writes
 benchmarks/results/error_tail.{json,md}. Uses (and fills) the project cache under outputs/.
@@ -79,7 +79,7 @@ def main() -> None:
     lines = [
         "# Where the bare solver's gross errors come from",
         "",
-        f"`python benchmarks/bench_error_tail.py --n-events {opts.n_events}` (default outdoor simulator, least-squares solver, all events)",
+        f"`python benchmarks/bench_error_tail.py --n-events {opts.n_events}` (default simulator, features and solver, all events)",
         "",
         "| | frozen_lake | forest |",
         "|---|---|---|",
