@@ -186,17 +186,6 @@ def simulate_to_cache(
     return cache.commit("simulation", key, work)
 
 
-def iter_simulated_batches(sim_dir: Path):
-    """Yield the stored chunks of a simulation as :class:`RecordingBatch` objects, in event order."""
-    manifest = json.loads((sim_dir / "manifest.json").read_text())
-    for name in manifest["chunks"]:
-        yield RecordingBatch(
-            audio=np.load(sim_dir / f"{name}.npy"),
-            sample_rate_hz=float(manifest["sample_rate_hz"]),
-            events=pd.read_parquet(sim_dir / f"{name}.parquet"),
-        )
-
-
 def _chunk_features(sim_dir: Path, name: str, sample_rate_hz: float, site: Site, feature_sets: dict[str, FeatureSet]):
     """Features and events of one stored chunk (a worker's unit of work)."""
     batch = RecordingBatch(audio=np.load(sim_dir / f"{name}.npy"), sample_rate_hz=sample_rate_hz, events=pd.read_parquet(sim_dir / f"{name}.parquet"))
@@ -215,6 +204,24 @@ def extract_features(batch: RecordingBatch, site: Site, feature_sets: dict[str, 
             raise DataError(f"feature group {name!r} produced columns outside its group {fs.group!r}: {wrong[:3]}")
         tables.append(table.reset_index(drop=True).astype(float))
     return pd.concat(tables, axis=1)
+
+
+def _store_tables(cache: StageCache, stage: str, key: str, features: pd.DataFrame, events: pd.DataFrame, dataset_hash: str) -> Path:
+    """Write a feature-stage entry (features, events, data hash) and commit it to the cache."""
+    work = cache.partial_dir(stage, key)
+    atomic_write_bytes(work / "features.parquet", features.to_parquet(index=False))
+    atomic_write_bytes(work / "events.parquet", events.to_parquet(index=False))
+    atomic_write_bytes(work / "manifest.json", json.dumps({"dataset_hash": dataset_hash}).encode())
+    return cache.commit(stage, key, work)
+
+
+def _read_tables(entry: Path) -> Dataset:
+    """The Dataset stored in a feature-stage entry."""
+    return Dataset(
+        events=pd.read_parquet(entry / "events.parquet"),
+        features=pd.read_parquet(entry / "features.parquet"),
+        dataset_hash=json.loads((entry / "manifest.json").read_text())["dataset_hash"],
+    )
 
 
 def load_or_build_simulated(
@@ -252,16 +259,9 @@ def load_or_build_simulated(
         results = list(tqdm(jobs, total=len(names), desc="features", unit="chunk", disable=None))
         feats = [r[0] for r in results]
         events = [r[1] for r in results]
-        work = cache.partial_dir("features", feat_key)
-        atomic_write_bytes(work / "features.parquet", pd.concat(feats, ignore_index=True).to_parquet(index=False))
-        atomic_write_bytes(work / "events.parquet", pd.concat(events, ignore_index=True).to_parquet(index=False))
-        atomic_write_bytes(work / "manifest.json", json.dumps({"dataset_hash": manifest["dataset_hash"]}).encode())
-        found = cache.commit("features", feat_key, work)
-    dataset = Dataset(
-        events=pd.read_parquet(found / "events.parquet"),
-        features=pd.read_parquet(found / "features.parquet"),
-        dataset_hash=json.loads((found / "manifest.json").read_text())["dataset_hash"],
-    )
+        found = _store_tables(cache, "features", feat_key, pd.concat(feats, ignore_index=True),
+                              pd.concat(events, ignore_index=True), manifest["dataset_hash"])
+    dataset = _read_tables(found)
     cache.cleanup()
     return dataset
 
@@ -285,15 +285,7 @@ def load_or_build_field(
         batch = field_source.load(site)
         digest = _DataHasher()
         digest.update(batch.audio, batch.events)
-        work = cache.partial_dir("field_features", key)
-        atomic_write_bytes(work / "features.parquet", extract_features(batch, site, feature_sets).to_parquet(index=False))
-        atomic_write_bytes(work / "events.parquet", batch.events.to_parquet(index=False))
-        atomic_write_bytes(work / "manifest.json", json.dumps({"dataset_hash": digest.hexdigest()}).encode())
-        found = cache.commit("field_features", key, work)
-    dataset = Dataset(
-        events=pd.read_parquet(found / "events.parquet"),
-        features=pd.read_parquet(found / "features.parquet"),
-        dataset_hash=json.loads((found / "manifest.json").read_text())["dataset_hash"],
-    )
+        found = _store_tables(cache, "field_features", key, extract_features(batch, site, feature_sets), batch.events, digest.hexdigest())
+    dataset = _read_tables(found)
     cache.cleanup()
     return dataset

@@ -9,6 +9,26 @@ from __future__ import annotations
 import numpy as np
 
 
+def solver_inputs(mic_positions_m, tdoa_s, speed_of_sound_m_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate the Solver contract's inputs and bring them to (M, 3) mics, (B, M) TDOAs and (B,) speeds.
+
+    Raises
+    ------
+    ValueError
+        Naming the argument and the expected shape.
+    """
+    mics = np.asarray(mic_positions_m, dtype=float)
+    if mics.ndim != 2 or mics.shape[1] not in (2, 3) or mics.shape[0] < 3:
+        raise ValueError(f"mic_positions_m must be (M>=3, 2|3); got shape {mics.shape}")
+    if mics.shape[1] == 2:
+        mics = np.column_stack([mics, np.zeros(len(mics))])
+    tdoa = np.atleast_2d(np.asarray(tdoa_s, dtype=float))
+    if tdoa.shape[1] != mics.shape[0]:
+        raise ValueError(f"tdoa_s must be (B, {mics.shape[0]}); got shape {tdoa.shape}")
+    speed = np.broadcast_to(np.asarray(speed_of_sound_m_s, dtype=float), (tdoa.shape[0],))
+    return mics, tdoa, speed
+
+
 def range_residuals(p: np.ndarray, mics: np.ndarray, height: np.ndarray, rd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Range-difference residuals and their Jacobian.
 

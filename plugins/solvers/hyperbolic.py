@@ -17,7 +17,7 @@ import numpy as np
 from acoustlab.errors import ConfigError
 from acoustlab.geometry import bounding_box, gdop
 from acoustlab.interfaces import SolverResult
-from acoustlab.tdoa import energy_residual_db, levenberg_marquardt, range_residuals
+from acoustlab.tdoa import energy_residual_db, levenberg_marquardt, range_residuals, solver_inputs
 
 
 class HyperbolicSolver:
@@ -86,16 +86,8 @@ class HyperbolicSolver:
         received_level_db: np.ndarray | None = None,
     ) -> SolverResult:
         """See :class:`acoustlab.interfaces.Solver`; ``received_level_db`` (B, M) enables energy disambiguation."""
-        mics = np.asarray(mic_positions_m, dtype=float)
-        if mics.ndim != 2 or mics.shape[1] not in (2, 3) or mics.shape[0] < 3:
-            raise ValueError(f"mic_positions_m must be (M>=3, 2|3); got shape {mics.shape}")
-        if mics.shape[1] == 2:
-            mics = np.column_stack([mics, np.zeros(len(mics))])
-        tdoa = np.atleast_2d(np.asarray(tdoa_s, dtype=float))
-        if tdoa.shape[1] != mics.shape[0]:
-            raise ValueError(f"tdoa_s must be (B, {mics.shape[0]}); got shape {tdoa.shape}")
+        mics, tdoa, c = solver_inputs(mic_positions_m, tdoa_s, speed_of_sound_m_s)
         bsz = tdoa.shape[0]
-        c = np.broadcast_to(np.asarray(speed_of_sound_m_s, dtype=float), (bsz,))
         height = mics[:, 2].mean() if self.source_height_m is None else float(self.source_height_m)
         finite = np.isfinite(tdoa).all(axis=1) & np.isfinite(c)
         rd = np.where(finite[:, None], c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]), 0.0)

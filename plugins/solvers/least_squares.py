@@ -11,7 +11,7 @@ import numpy as np
 from acoustlab.errors import ConfigError
 from acoustlab.geometry import gdop
 from acoustlab.interfaces import SolverResult
-from acoustlab.tdoa import levenberg_marquardt
+from acoustlab.tdoa import levenberg_marquardt, solver_inputs
 
 
 class LeastSquaresSolver:
@@ -54,16 +54,8 @@ class LeastSquaresSolver:
 
     def solve(self, mic_positions_m: np.ndarray, tdoa_s: np.ndarray, speed_of_sound_m_s: float | np.ndarray) -> SolverResult:
         """See :class:`acoustlab.interfaces.Solver`."""
-        mics = np.asarray(mic_positions_m, dtype=float)
-        if mics.ndim != 2 or mics.shape[1] not in (2, 3) or mics.shape[0] < 3:
-            raise ValueError(f"mic_positions_m must be (M>=3, 2|3); got shape {mics.shape}")
-        if mics.shape[1] == 2:
-            mics = np.column_stack([mics, np.zeros(len(mics))])
-        tdoa = np.atleast_2d(np.asarray(tdoa_s, dtype=float))
-        if tdoa.shape[1] != mics.shape[0]:
-            raise ValueError(f"tdoa_s must be (B, {mics.shape[0]}); got shape {tdoa.shape}")
+        mics, tdoa, c = solver_inputs(mic_positions_m, tdoa_s, speed_of_sound_m_s)
         b = tdoa.shape[0]
-        c = np.broadcast_to(np.asarray(speed_of_sound_m_s, dtype=float), (b,))
         height = mics[:, 2].mean() if self.source_height_m is None else float(self.source_height_m)
         rd = (c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]))[:, None, :]  # (B, 1, M-1)
         starts = self._starts(mics[:, :2])

@@ -15,6 +15,7 @@ import numpy as np
 
 from acoustlab.errors import ConfigError
 from acoustlab.interfaces import SolverResult
+from acoustlab.tdoa import solver_inputs
 from plugins.solvers.hyperbolic import HyperbolicSolver
 
 
@@ -50,11 +51,9 @@ class ConsistentCandidatesSolver:
     ) -> SolverResult:
         """See :class:`acoustlab.interfaces.Solver`; ``pair_lag_candidates_s`` is (B, P, K) over the pairs i < j."""
         base = HyperbolicSolver(source_height_m=self.source_height_m, n_iterations=10)
-        mics = np.asarray(mic_positions_m, dtype=float)
         if pair_lag_candidates_s is None:
-            return base.solve(mics, tdoa_s, speed_of_sound_m_s, received_level_db)
-        if mics.shape[1] == 2:
-            mics = np.column_stack([mics, np.zeros(len(mics))])
+            return base.solve(mic_positions_m, tdoa_s, speed_of_sound_m_s, received_level_db)
+        mics, _, c = solver_inputs(mic_positions_m, tdoa_s, speed_of_sound_m_s)
         m = mics.shape[0]
         pairs = [(i, j) for i in range(m) for j in range(i + 1, m)]
         cands = np.asarray(pair_lag_candidates_s, dtype=float)
@@ -69,7 +68,6 @@ class ConsistentCandidatesSolver:
         lags = cands[:, ref_pairs, :k]  # (B, M-1, k)
         hyp = np.take_along_axis(lags[:, None, :, :], combos[None, :, :, None], -1)[..., 0]  # (B, H, M-1)
         tdoa = np.concatenate([np.zeros((bsz, h, 1)), hyp], axis=-1).reshape(bsz * h, m)
-        c = np.broadcast_to(np.asarray(speed_of_sound_m_s, dtype=float), (bsz,))
         levels = None if received_level_db is None else np.repeat(np.asarray(received_level_db, dtype=float), h, axis=0)
         res = base.solve(mics, np.nan_to_num(tdoa, nan=0.0), np.repeat(c, h), levels)
         pos = res.position_m.reshape(bsz, h, 2)
