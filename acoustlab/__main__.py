@@ -8,6 +8,7 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from acoustlab.errors import AcoustlabError
@@ -24,16 +25,29 @@ def _fail(exc: AcoustlabError) -> None:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> None:
     from acoustlab.app import run_experiment
+    from acoustlab.sweep import parent_run_id_for
 
     hc = HydraConfig.get()
+    parent = parent_run_id_for(Path(hc.sweep.dir)) if hc.mode == RunMode.MULTIRUN else None
     try:
-        run_experiment(cfg, Path(hc.runtime.output_dir), dict(hc.runtime.choices))
+        run_experiment(cfg, Path(hc.runtime.output_dir), dict(hc.runtime.choices), parent_run_id=parent)
     except AcoustlabError as exc:
+        if hc.mode == RunMode.MULTIRUN:  # let Hydra record the failed job and run the others
+            log.error("job %s failed: %s", hc.job.num, exc)
+            raise
         _fail(exc)
 
 
 def main() -> None:
-    """Console-script entry point: preflight the command line, then hand over to Hydra."""
+    """Console-script entry point: preflight the command line, then hand over to Hydra.
+
+    ``acoustlab report ...`` and ``acoustlab upload ...`` run the report and upload commands.
+    """
+    if len(sys.argv) > 1 and sys.argv[1] in ("report", "upload"):
+        from acoustlab import report, tracking
+
+        command = sys.argv[1]
+        sys.exit((report.main if command == "report" else tracking.main)(sys.argv[2:]))
     try:
         check_argv(sys.argv[1:])
     except AcoustlabError as exc:

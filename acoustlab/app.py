@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import subprocess
+import time
 from pathlib import Path
 from typing import Any
 
@@ -16,15 +17,16 @@ from acoustlab import __version__
 from acoustlab.cache import StageCache
 from acoustlab.dataset import SimulationPlan, load_or_build_field, load_or_build_simulated
 from acoustlab.errors import ConfigError
-from acoustlab.metrics import coverage_table, error_table, flat_metrics, summarise
+from acoustlab.metrics import summarise
 from acoustlab.pipeline import Components, LocalizationPipeline, add_solver_columns
 from acoustlab.registry import PLUGIN_GROUPS, build, build_feature_sets, build_scorers, group_options, to_plain
 from acoustlab.sites import site_from_config
+from acoustlab.tracking import log_run_dir
 
 log = logging.getLogger(__name__)
 
 
-def _code_version() -> str:
+def code_version() -> str:
     try:
         sha = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent, timeout=5
@@ -34,20 +36,6 @@ def _code_version() -> str:
     return f"{__version__}+{sha}" if sha else __version__
 
 
-def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
-    """Flatten nested dicts/lists into dotted keys."""
-    out: dict[str, Any] = {}
-    if isinstance(d, dict):
-        for k, v in d.items():
-            out.update(flatten(v, f"{prefix}{k}."))
-    elif isinstance(d, list) and d and any(isinstance(v, (dict, list)) for v in d):
-        for i, v in enumerate(d):
-            out.update(flatten(v, f"{prefix}{i}."))
-    else:
-        out[prefix[:-1]] = d
-    return out
-
-
 def require_site(cfg: DictConfig) -> None:
     """Stop with a clear message when no site was chosen."""
     if cfg.get("site") is None:
@@ -55,7 +43,7 @@ def require_site(cfg: DictConfig) -> None:
         raise ConfigError(f"no site chosen: pass one with +site=NAME (available: {sites}), e.g. python -m acoustlab +site=frozen_lake")
 
 
-def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None) -> dict:
+def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None) -> dict:
     """Run one job: build plugins, get the (cached) dataset, run the protocol, write and log results.
 
     Parameters
@@ -66,12 +54,15 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         Where ``metrics.json``, ``predictions.parquet`` and the resolved config are written.
     choices : dict, optional
         The chosen option of each config group (Hydra's runtime choices).
+    parent_run_id : str, optional
+        The sweep's parent run in the tracker (set by :class:`acoustlab.sweep.SweepTrackingCallback`).
 
     Returns
     -------
     dict
         The metrics written to ``metrics.json``.
     """
+    started = time.perf_counter()
     require_site(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     choices = {g: str(v) for g, v in (choices or {}).items() if g in (*PLUGIN_GROUPS, "site", "experiment") and v is not None}
@@ -122,6 +113,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         shard_index=int(cfg.data.get("shard_index", 0)),
         shard_count=int(cfg.data.get("shard_count", 1)),
     )
+    timings: dict[str, float] = {"preflight_s": time.perf_counter() - started}
+    stage_start = time.perf_counter()
     dataset = load_or_build_simulated(
         site, simulator, to_plain(cfg.simulator), feature_sets, to_plain(cfg.features.groups), plan, cache
     )
@@ -137,7 +130,10 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
             raise ConfigError(f"protocol={choices.get('protocol', 'field')} needs field recordings: choose field=playback_standin or field=recordings")
         field_data = load_or_build_field(site, field_source, to_plain(cfg.field), feature_sets, to_plain(cfg.features.groups), cache)
         field_data.features = add_solver_columns(field_data.features, field_data.events, site, solver)
+    timings["data_s"] = time.perf_counter() - stage_start
+    stage_start = time.perf_counter()
     predictions = protocol.run(dataset, LocalizationPipeline(components), field=field_data)
+    timings["models_s"] = time.perf_counter() - stage_start
 
     summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
     metrics = summarise(predictions[summary_rows], components.levels, list(components.scorers))
@@ -155,36 +151,22 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     metrics["site"] = site.name
     metrics["choices"] = choices
     metrics["n_features"] = int(len(dataset.features.columns))
-    metrics["code_version"] = _code_version()
+    metrics["code_version"] = code_version()
 
     # Results land in the run dir first, so a tracker failure loses nothing.
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     predictions.to_parquet(run_dir / "predictions.parquet", index=False)
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    stage_start = time.perf_counter()
+    if bool(cfg.get("plots", True)):
+        from acoustlab.plots import write_run_plots  # matplotlib only when plotting
+
+        write_run_plots(predictions[summary_rows], metrics, site, run_dir / "plots")
+    timings["plots_s"] = time.perf_counter() - stage_start
+    timings["total_before_tracking_s"] = time.perf_counter() - started
+    metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     log.info("errors (m): %s", {m: {k: round(v, 3) for k, v in s.items()} for m, s in metrics["errors"].items()})
     log.info("coverage: %s", metrics["coverage"])
-    _track(tracker, cfg, choices, metrics, run_dir)
+    log.info("timings (s): %s", metrics["timings_s"])
+    log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
     return metrics
-
-
-def _track(tracker: Any, cfg: DictConfig, choices: dict[str, str], metrics: dict, run_dir: Path) -> None:
-    params = {f"choice.{g}": v for g, v in choices.items()}
-    params.update(flatten(OmegaConf.to_container(cfg, resolve=True)))
-    run_name = f"{metrics['site']}-{choices.get('model', 'model')}"
-    tags = {"dataset_hash": metrics["dataset_hash"], "code_version": metrics["code_version"], "site": metrics["site"]}
-    try:
-        tracker.start(run_name, params, tags)
-        tracker.log_metrics(flat_metrics(metrics))
-        tracker.log_table(error_table(metrics), "tables/errors.json")
-        tracker.log_table(coverage_table(metrics), "tables/coverage.json")
-        if "tau_grid" in metrics:
-            tracker.log_table(pd.DataFrame(metrics["tau_grid"]), "tables/tau_grid.json")
-        for name in ("metrics.json", "predictions.parquet", "config_resolved.yaml"):
-            tracker.log_artifact(str(run_dir / name))
-        tracker.finish("FINISHED")
-    except Exception as exc:  # never lose a finished run to a tracking problem
-        log.warning("tracking failed (%s: %s); all results are kept in %s", type(exc).__name__, exc, run_dir)
-        try:
-            tracker.finish("FAILED")
-        except Exception:  # noqa: BLE001 - best effort
-            pass

@@ -4,17 +4,22 @@ A stage's entry lives in ``<root>/<stage>/<key>/`` where ``key`` is the SHA-256 
 config that determines the stage plus the version of the plugin code. Entries are built in
 ``<key>.partial/`` and renamed into place when complete (an atomic rename on POSIX), so a reader
 never sees half an entry; chunk files inside ``.partial`` survive an interruption and are reused
-when the stage is run again.
+when the stage is run again. Jobs that need the same missing entry at the same time (a parallel
+sweep on a cold cache) take turns through a lock file ``<key>.lock``: one builds, the others wait
+and then read its entry.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import inspect
 import logging
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -90,14 +95,39 @@ class StageCache:
         """Where a finished entry lives."""
         return self.root / stage / key
 
-    def lookup(self, stage: str, key: str) -> Path | None:
-        """The finished entry's directory, or None on a miss; logs the hit or miss."""
+    def lookup(self, stage: str, key: str, log_miss: bool = True) -> Path | None:
+        """The finished entry's directory, or None on a miss; logs the hit (and the miss unless ``log_miss`` is False)."""
         path = self.final_dir(stage, key)
         if self.enabled and path.is_dir():
             log.info("cache hit: %s %s", stage, key[:12])
             return path
-        log.info("cache %s: %s %s", "miss" if self.enabled else "bypassed", stage, key[:12])
+        if log_miss:
+            log.info("cache %s: %s %s", "miss" if self.enabled else "bypassed", stage, key[:12])
         return None
+
+    @contextlib.contextmanager
+    def building(self, stage: str, key: str) -> Iterator[None]:
+        """Hold the entry's build lock (an exclusive POSIX lock on ``<key>.lock``; no-op when bypassed).
+
+        POSIX record locks (:func:`fcntl.lockf`) also work across nodes on NFS; on Lustre the file
+        system must be mounted with ``flock``. Call :meth:`lookup` again inside: another job may have
+        built the entry while this one waited.
+        """
+        if not self.enabled:
+            yield
+            return
+        path = self.root / stage / f"{key}.lock"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a+") as handle:
+            try:
+                fcntl.lockf(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                log.info("waiting for another job building %s %s", stage, key[:12])
+                fcntl.lockf(handle, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.lockf(handle, fcntl.LOCK_UN)
 
     def partial_dir(self, stage: str, key: str) -> Path:
         """A work directory for building an entry; reused after an interruption when caching is on."""

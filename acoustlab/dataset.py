@@ -152,6 +152,14 @@ def simulate_to_cache(
     found = cache.lookup("simulation", key)
     if found is not None:
         return found
+    if plan.shard_count > 1:  # shards of a job array write disjoint chunks of one work directory
+        return _render_simulation(site, simulator, plan, cache, key)
+    with cache.building("simulation", key):
+        return cache.lookup("simulation", key, log_miss=False) or _render_simulation(site, simulator, plan, cache, key)
+
+
+def _render_simulation(site: Site, simulator: Simulator, plan: SimulationPlan, cache: StageCache, key: str) -> Path | None:
+    """Render this job's (missing) chunks into the work directory; commit the entry unless sharded."""
     simulator.validate(site)
     work = cache.partial_dir("simulation", key)
     chunks = plan.chunks()
@@ -224,6 +232,18 @@ def _read_tables(entry: Path) -> Dataset:
     )
 
 
+def _features_to_cache(sim_dir: Path, site: Site, feature_sets: dict[str, FeatureSet], n_jobs: int, cache: StageCache, key: str) -> Path:
+    """Extract features from every stored simulation chunk (in ``n_jobs`` processes) and commit them."""
+    manifest = json.loads((sim_dir / "manifest.json").read_text())
+    names = manifest["chunks"]
+    jobs = Parallel(n_jobs=n_jobs, return_as="generator")(
+        delayed(_chunk_features)(sim_dir, name, float(manifest["sample_rate_hz"]), site, feature_sets) for name in names
+    )
+    results = list(tqdm(jobs, total=len(names), desc="features", unit="chunk", disable=None))
+    return _store_tables(cache, "features", key, pd.concat([r[0] for r in results], ignore_index=True),
+                         pd.concat([r[1] for r in results], ignore_index=True), manifest["dataset_hash"])
+
+
 def load_or_build_simulated(
     site: Site,
     simulator: Simulator,
@@ -248,19 +268,13 @@ def load_or_build_simulated(
     )
     found = cache.lookup("features", feat_key)
     if found is None:
-        sim_dir = simulate_to_cache(site, simulator, simulator_cfg, plan, cache)
-        if sim_dir is None:
-            return None
-        manifest = json.loads((sim_dir / "manifest.json").read_text())
-        names = manifest["chunks"]
-        jobs = Parallel(n_jobs=plan.n_jobs, return_as="generator")(
-            delayed(_chunk_features)(sim_dir, name, float(manifest["sample_rate_hz"]), site, feature_sets) for name in names
-        )
-        results = list(tqdm(jobs, total=len(names), desc="features", unit="chunk", disable=None))
-        feats = [r[0] for r in results]
-        events = [r[1] for r in results]
-        found = _store_tables(cache, "features", feat_key, pd.concat(feats, ignore_index=True),
-                              pd.concat(events, ignore_index=True), manifest["dataset_hash"])
+        with cache.building("features", feat_key):
+            found = cache.lookup("features", feat_key, log_miss=False)
+            if found is None:
+                sim_dir = simulate_to_cache(site, simulator, simulator_cfg, plan, cache)
+                if sim_dir is None:
+                    return None
+                found = _features_to_cache(sim_dir, site, feature_sets, plan.n_jobs, cache, feat_key)
     dataset = _read_tables(found)
     cache.cleanup()
     return dataset
@@ -282,10 +296,13 @@ def load_or_build_field(
     )
     found = cache.lookup("field_features", key)
     if found is None:
-        batch = field_source.load(site)
-        digest = _DataHasher()
-        digest.update(batch.audio, batch.events)
-        found = _store_tables(cache, "field_features", key, extract_features(batch, site, feature_sets), batch.events, digest.hexdigest())
+        with cache.building("field_features", key):
+            found = cache.lookup("field_features", key, log_miss=False)
+            if found is None:
+                batch = field_source.load(site)
+                digest = _DataHasher()
+                digest.update(batch.audio, batch.events)
+                found = _store_tables(cache, "field_features", key, extract_features(batch, site, feature_sets), batch.events, digest.hexdigest())
     dataset = _read_tables(found)
     cache.cleanup()
     return dataset

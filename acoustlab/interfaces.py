@@ -163,9 +163,20 @@ class FieldSource(Protocol):
 
 @runtime_checkable
 class Tracker(Protocol):
-    """Records a run's parameters, metrics, tables and artifacts (e.g. in MLflow)."""
+    """Records a run's parameters, metrics, tables and artifacts (e.g. in MLflow).
 
-    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> None: ...
+    A sweep (Hydra multirun) gets one parent run opened by :meth:`open_sweep` before its jobs and
+    closed by :meth:`close_sweep` after them; each job's run names it as ``parent_run_id``.
+    """
+
+    #: Where runs go, for messages (e.g. the tracking URI); None when nothing is recorded.
+    destination: str | None
+
+    def check_reachable(self) -> None:
+        """Raise an exception saying why when the store cannot be reached (before anything is logged)."""
+        ...
+
+    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None) -> None: ...
 
     def log_metrics(self, metrics: dict[str, float]) -> None: ...
 
@@ -174,3 +185,11 @@ class Tracker(Protocol):
     def log_artifact(self, path: str) -> None: ...
 
     def finish(self, status: str = "FINISHED") -> None: ...
+
+    def open_sweep(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> str | None:
+        """Create a sweep's parent run (not made active) and return its id; None when not tracked."""
+        ...
+
+    def close_sweep(self, run_id: str, status: str, tables: dict[str, pd.DataFrame], artifact_dirs: list[str]) -> None:
+        """Log the sweep's summary tables and artifact directories into its parent run and end it."""
+        ...

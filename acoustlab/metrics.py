@@ -103,4 +103,6 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
             flat[f"spearman_rho.{k}"] = v
     if "tau_star_db" in metrics:
         flat["tau_star_db"] = metrics["tau_star_db"]
+    for k, v in metrics.get("timings_s", {}).items():
+        flat[f"time.{k}"] = v
     return {k: float(v) for k, v in flat.items() if np.isfinite(v)}

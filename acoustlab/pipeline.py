@@ -154,6 +154,10 @@ class LocalizationPipeline:
 
     def _columns(self, features: pd.DataFrame, dropped: list[str], who: str) -> list[str]:
         drop = set(self.c.dropped_groups) | set(dropped)
+        known = {group_of(col) for col in features.columns}
+        unknown = sorted(drop - known)
+        if unknown:
+            raise ConfigError(f"cannot drop feature groups {unknown} from the {who}: no such group; available: {', '.join(sorted(known))}")
         cols = [col for col in features.columns if group_of(col) not in drop]
         if not cols:
             raise ConfigError(f"dropping feature groups {sorted(drop)} leaves the {who} no features")

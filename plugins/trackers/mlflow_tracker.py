@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import os
+import urllib.error
+import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -35,19 +37,48 @@ class MlflowTracker:
         self.tracking_uri = tracking_uri or f"sqlite:///{Path(store_dir).resolve() / 'mlflow.db'}"
         self._run = None
 
-    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> None:
-        """Open the run and log params (values longer than MLflow allows are truncated) and tags."""
+    @property
+    def destination(self) -> str:
+        """The tracking URI runs are logged to."""
+        return self.tracking_uri
+
+    def check_reachable(self, timeout_s: float = 5.0) -> None:
+        """For an ``http(s)://`` server, GET its ``/health`` endpoint; raise ConnectionError if it does not answer.
+
+        MLflow's own client retries an unreachable server for minutes; this probe fails in seconds.
+        """
+        if not self.tracking_uri.startswith(("http://", "https://")):
+            return
+        url = self.tracking_uri.rstrip("/") + "/health"
+        try:
+            with urllib.request.urlopen(url, timeout=timeout_s) as response:  # noqa: S310 - the user's own tracking URI
+                if response.status != 200:
+                    raise ConnectionError(f"MLflow server {self.tracking_uri} answered {response.status} on /health")
+        except (urllib.error.URLError, OSError) as exc:
+            raise ConnectionError(f"MLflow server {self.tracking_uri} cannot be reached ({exc})") from None
+
+    def _connect(self) -> None:
         import mlflow
 
         if self.tracking_uri.startswith("sqlite:///"):
             Path(self.tracking_uri[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
         mlflow.set_tracking_uri(self.tracking_uri)
         mlflow.set_experiment(self.experiment_name)
-        parent = os.environ.get("ACOUSTLAB_PARENT_RUN_ID")
-        self._run = mlflow.start_run(run_name=run_name, tags=tags, parent_run_id=parent or None)
-        clean = {k[:250]: str(v)[:_MAX_PARAM_CHARS] for k, v in params.items()}
-        mlflow.log_params(clean)
-        log.info("MLflow run %s in %s (experiment %r)", self._run.info.run_id, self.tracking_uri, self.experiment_name)
+
+    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None) -> None:
+        """Open the run (a child of ``parent_run_id`` when given) and log params and tags.
+
+        Parameter values longer than MLflow allows are truncated. Without ``parent_run_id`` the
+        environment variable ``ACOUSTLAB_PARENT_RUN_ID`` is used when set.
+        """
+        import mlflow
+
+        self._connect()
+        parent = parent_run_id or os.environ.get("ACOUSTLAB_PARENT_RUN_ID") or None
+        self._run = mlflow.start_run(run_name=run_name, tags=tags, parent_run_id=parent)
+        mlflow.log_params(_clean_params(params))
+        log.info("MLflow run %s in %s (experiment %r%s)", self._run.info.run_id, self.tracking_uri, self.experiment_name,
+                 f", child of {parent}" if parent else "")
 
     @property
     def run_id(self) -> str | None:
@@ -82,3 +113,32 @@ class MlflowTracker:
         if self._run is not None:
             mlflow.end_run(status=status)
             self._run = None
+
+    def open_sweep(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> str:
+        """Create a sweep's parent run without making it active (jobs may run in this process)."""
+        import mlflow
+
+        self.check_reachable()
+        self._connect()
+        client = mlflow.MlflowClient(self.tracking_uri)
+        experiment = client.get_experiment_by_name(self.experiment_name)
+        run = client.create_run(experiment.experiment_id, run_name=run_name, tags=tags)
+        for key, value in _clean_params(params).items():
+            client.log_param(run.info.run_id, key, value)
+        log.info("MLflow parent run %s for the sweep in %s", run.info.run_id, self.tracking_uri)
+        return run.info.run_id
+
+    def close_sweep(self, run_id: str, status: str, tables: dict[str, pd.DataFrame], artifact_dirs: list[str]) -> None:
+        """Log summary tables and directories (e.g. the sweep report) into the parent run and end it."""
+        import mlflow
+
+        client = mlflow.MlflowClient(self.tracking_uri)
+        for artifact_file, table in tables.items():
+            client.log_table(run_id, data=table, artifact_file=artifact_file)
+        for directory in artifact_dirs:
+            client.log_artifacts(run_id, directory, artifact_path=Path(directory).name)
+        client.set_terminated(run_id, status=status)
+
+
+def _clean_params(params: dict[str, Any]) -> dict[str, str]:
+    return {k[:250]: str(v)[:_MAX_PARAM_CHARS] for k, v in params.items()}

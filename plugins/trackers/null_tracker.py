@@ -10,7 +10,12 @@ import pandas as pd
 class NullTracker:
     """Keeps results only in the run directory; every call is a no-op."""
 
-    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> None:
+    destination = None
+
+    def check_reachable(self) -> None:
+        """Nothing to reach."""
+
+    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None) -> None:
         """Do nothing."""
 
     def log_metrics(self, metrics: dict[str, float]) -> None:
@@ -23,4 +28,11 @@ class NullTracker:
         """Do nothing."""
 
     def finish(self, status: str = "FINISHED") -> None:
+        """Do nothing."""
+
+    def open_sweep(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> None:
+        """No parent run."""
+        return None
+
+    def close_sweep(self, run_id: str, status: str, tables: dict[str, pd.DataFrame], artifact_dirs: list[str]) -> None:
         """Do nothing."""

@@ -1,0 +1,176 @@
+"""The plots of a run: error CDF per method, site map with conformal circles, coverage calibration,
+predicted against actual error. Written as PNG files with matplotlib's non-interactive Agg backend."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # no display on clusters and CI; must precede pyplot
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from matplotlib.collections import PatchCollection  # noqa: E402
+from matplotlib.patches import Circle  # noqa: E402
+
+from acoustlab.data import Site  # noqa: E402
+from acoustlab.metrics import METHODS  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+#: Events drawn on the site map (more make it unreadable); the first ones by event id.
+MAP_EVENTS = 40
+
+
+def radius_columns(predictions: pd.DataFrame) -> dict[tuple[str, float], str]:
+    """Map (scorer, level) to the ``radius__<scorer>__<level>`` column of a predictions table."""
+    out = {}
+    for col in predictions.columns:
+        if col.startswith("radius__"):
+            _, scorer, level = col.split("__")
+            out[(scorer, float(level))] = col
+    return out
+
+
+def _finite_positive(values: np.ndarray) -> np.ndarray:
+    values = np.asarray(values, dtype=float)
+    return values[np.isfinite(values)]
+
+
+def error_cdf(ax: plt.Axes, errors_by_label: dict[str, np.ndarray]) -> None:
+    """Empirical CDF of 2-D errors (m, log x axis), one curve per label."""
+    styles = ("-", "--", ":", "-.")
+    for i, (label, errors) in enumerate(errors_by_label.items()):
+        e = np.sort(_finite_positive(errors))
+        if e.size == 0:
+            continue
+        # identical curves (the gate keeping every solver fix) stay visible through the line styles
+        ax.step(np.maximum(e, 1e-3), np.arange(1, e.size + 1) / e.size, where="post", label=label,
+                ls=styles[i % len(styles)], lw=2.2 if i == 0 else 1.4)
+    ax.set_xscale("log")
+    ax.set_xlabel("2-D localization error (m)")
+    ax.set_ylabel("fraction of detections")
+    ax.set_ylim(0, 1.01)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+
+
+def coverage_calibration(ax: plt.Axes, coverage_by_label: dict[str, dict[float, float]]) -> None:
+    """Empirical against nominal coverage, one line per label, with the diagonal."""
+    ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="ideal")
+    for label, by_level in coverage_by_label.items():
+        levels = sorted(by_level)
+        ax.plot(levels, [by_level[lv] for lv in levels], marker="o", label=label)
+    ax.set_xlabel("nominal coverage")
+    ax.set_ylabel("empirical coverage")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_aspect("equal")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+
+
+def predicted_vs_actual(ax: plt.Axes, predicted_m: np.ndarray, actual_m: np.ndarray, rho: float | None) -> None:
+    """Scatter of the error model's prediction against the gate's actual error (log-log, m)."""
+    ok = np.isfinite(predicted_m) & np.isfinite(actual_m)
+    p, a = np.maximum(predicted_m[ok], 1e-3), np.maximum(actual_m[ok], 1e-3)
+    ax.scatter(p, a, s=8, alpha=0.5)
+    if p.size:
+        lo, hi = min(p.min(), a.min()), max(p.max(), a.max())
+        ax.plot([lo, hi], [lo, hi], color="0.6", lw=1, ls="--")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("predicted error (m)")
+    ax.set_ylabel("actual error of the gated estimate (m)")
+    ax.set_title("Spearman ρ = " + ("n/a (constant prediction)" if rho is None else f"{rho:.2f}"), fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+
+
+def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column: str | None) -> None:
+    """Mics, trunks, true and gated positions of the first :data:`MAP_EVENTS` events, with conformal circles."""
+    if len(site.tree_positions_m):
+        trunks = [Circle((x, y), max(d / 2, 0.15)) for (x, y), d in zip(site.tree_positions_m, site.trunk_diameters_m)]
+        ax.add_collection(PatchCollection(trunks, facecolor="tab:brown", edgecolor="none", alpha=0.5))
+    shown = predictions.sort_values("event_id").head(MAP_EVENTS)
+    if radius_column is not None:
+        circles = [Circle((x, y), r) for x, y, r in zip(shown["gate_x_m"], shown["gate_y_m"], shown[radius_column]) if np.isfinite(r)]
+        ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:orange", lw=0.6, alpha=0.6))
+    for _, row in shown.iterrows():
+        ax.plot([row["true_x_m"], row["gate_x_m"]], [row["true_y_m"], row["gate_y_m"]], color="0.5", lw=0.5)
+    ax.scatter(shown["true_x_m"], shown["true_y_m"], marker="x", color="tab:green", s=25, label="true source", zorder=3)
+    ax.scatter(shown["gate_x_m"], shown["gate_y_m"], marker=".", color="tab:orange", s=30, label="estimate (gate)", zorder=3)
+    mics = site.mic_positions_m
+    ax.scatter(mics[:, 0], mics[:, 1], marker="^", color="k", s=60, label="microphones", zorder=4)
+    # Frame the array and the true sources; wild estimates would shrink everything else to a dot.
+    xs = np.concatenate([mics[:, 0], shown["true_x_m"]])
+    ys = np.concatenate([mics[:, 1], shown["true_y_m"]])
+    pad = 0.25 * max(np.ptp(xs), np.ptp(ys), 1.0)
+    ax.set_xlim(xs.min() - pad, xs.max() + pad)
+    ax.set_ylim(ys.min() - pad, ys.max() + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    title = f"{site.name}: first {len(shown)} test events"
+    if radius_column is not None:
+        _, scorer, level = radius_column.split("__")
+        title += f"; circles: {scorer} conformal, {float(level):.0%}"
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+
+
+def _save(fig: plt.Figure, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def map_radius_column(predictions: pd.DataFrame) -> str | None:
+    """The circles on the map: GDOP-scaled when present (else the first scorer), at the level nearest 0.8."""
+    cols = radius_columns(predictions)
+    if not cols:
+        return None
+    scorers = sorted({s for s, _ in cols}, key=lambda s: (s != "gdop_scaled", s))
+    levels = sorted({lv for s, lv in cols if s == scorers[0]}, key=lambda lv: abs(lv - 0.8))
+    return cols[(scorers[0], levels[0])]
+
+
+def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None, out_dir: Path) -> list[Path]:
+    """Write the four plots of one run into ``out_dir`` and return their paths.
+
+    Parameters
+    ----------
+    predictions : pandas.DataFrame
+        The run's predictions table (``predictions.parquet``).
+    metrics : dict
+        The run's metrics (``metrics.json``).
+    site : Site or None
+        The site, for the map (skipped when None).
+    out_dir : pathlib.Path
+        Directory for the PNG files (created).
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    error_cdf(ax, {m: predictions[f"error_{m}_m"].to_numpy(float) for m in METHODS})
+    ax.set_title(f"{metrics.get('site', '')}: error CDF per method", fontsize=9)
+    paths.append(_save(fig, out_dir / "error_cdf.png"))
+
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    coverage_calibration(ax, {s: {float(lv): v for lv, v in by.items()} for s, by in metrics["coverage"].items()})
+    ax.set_title("coverage calibration (pooled test detections)", fontsize=9)
+    paths.append(_save(fig, out_dir / "coverage_calibration.png"))
+
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    predicted_vs_actual(ax, predictions["predicted_error_m"].to_numpy(float), predictions["error_gate_m"].to_numpy(float),
+                        metrics.get("spearman_rho", {}).get("error_model"))
+    paths.append(_save(fig, out_dir / "predicted_vs_actual_error.png"))
+
+    if site is not None:
+        fig, ax = plt.subplots(figsize=(6, 6))
+        site_map(ax, site, predictions, map_radius_column(predictions))
+        paths.append(_save(fig, out_dir / "site_map.png"))
+    log.info("plots written to %s", out_dir)
+    return paths

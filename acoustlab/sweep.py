@@ -1,0 +1,108 @@
+"""Sweeps (Hydra multirun): one parent run in the tracker with the jobs as children, and a report.
+
+:class:`SweepTrackingCallback` is registered in ``conf/config.yaml`` under ``hydra.callbacks``. Before
+the jobs start it opens the parent run and writes its id to ``<sweep dir>/.acoustlab_sweep.json``;
+each job (in this process, a joblib worker or a SLURM node: the sweep dir is on the shared file
+system) reads that file and logs its run as a child. After the jobs it writes the sweep's report
+(``<sweep dir>/report/``) and attaches it and the summary tables to the parent run.
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
+log = logging.getLogger(__name__)
+
+#: File in the sweep dir that tells jobs their parent run.
+SWEEP_FILE = ".acoustlab_sweep.json"
+
+
+def parent_run_id_for(sweep_dir: Path) -> str | None:
+    """The parent run id a sweep's jobs log under (None when the sweep has none)."""
+    path = Path(sweep_dir) / SWEEP_FILE
+    if not path.exists():
+        return None
+    return json.loads(path.read_text()).get("parent_run_id")
+
+
+class SweepTrackingCallback(Callback):
+    """Opens a parent tracker run per sweep, writes the sweep report, closes the parent run.
+
+    Parameters
+    ----------
+    report : bool
+        Write ``report/report.md`` and ``report/report.html`` into the sweep dir when the sweep ends.
+    """
+
+    def __init__(self, report: bool = True) -> None:
+        self.report = report
+        self._open: tuple[DictConfig, Path] | None = None
+
+    @staticmethod
+    def _tracker(config: DictConfig) -> Any:
+        from acoustlab.registry import build
+
+        return build(config.tracking, "tracking")
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """Open the parent run; a tracker failure only costs the grouping, never the sweep."""
+        from acoustlab.app import code_version
+
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        overrides = [str(o) for o in config.hydra.overrides.task]
+        run_id = destination = None
+        try:
+            tracker = self._tracker(config)
+            destination = getattr(tracker, "destination", None)
+            run_id = tracker.open_sweep(
+                f"sweep-{sweep_dir.parent.name}-{sweep_dir.name}",
+                {"sweep.overrides": " ".join(overrides), "sweep.dir": str(sweep_dir.resolve())},
+                {"acoustlab.sweep": "parent", "code_version": code_version(), "sweep_dir": str(sweep_dir.resolve())},
+            )
+        except Exception as exc:  # noqa: BLE001 - jobs still run and keep their results
+            log.warning("could not open the sweep's parent run (%s: %s); jobs are logged as separate runs", type(exc).__name__, exc)
+        (sweep_dir / SWEEP_FILE).write_text(json.dumps({"parent_run_id": run_id, "destination": destination, "overrides": overrides}, indent=2))
+        # Hydra skips on_multirun_end when a job failed: report what finished and mark the parent FAILED at exit.
+        self._open = (config, sweep_dir)
+        atexit.register(self._close_after_failure)
+
+    def _close_after_failure(self) -> None:
+        if self._open is not None:
+            config, _ = self._open
+            log.warning("the sweep ended with failed jobs: reporting the finished ones and marking the parent run FAILED")
+            self._finish(config, "FAILED")
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        """Write the report and close the parent run with the sweep's summary tables."""
+        self._finish(config, "FINISHED")
+
+    def _finish(self, config: DictConfig, status: str) -> None:
+        self._open = None
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        run_id = parent_run_id_for(sweep_dir)
+        report_dir = None
+        tables = {}
+        try:
+            from acoustlab.report import collect_runs, error_rows, write_report
+
+            runs = collect_runs([sweep_dir])
+            if runs:
+                tables["tables/sweep_errors.json"] = error_rows(runs)
+                if self.report:
+                    report_dir = write_report(runs, sweep_dir / "report", title=f"Sweep {sweep_dir}").parent
+        except Exception as exc:  # noqa: BLE001 - the runs themselves are already written
+            log.warning("could not write the sweep report (%s: %s); run python -m acoustlab.report %s", type(exc).__name__, exc, sweep_dir)
+        if run_id is None:
+            return
+        try:
+            self._tracker(config).close_sweep(run_id, status, tables, [str(report_dir)] if report_dir else [])
+        except Exception as exc:  # noqa: BLE001
+            log.warning("could not close the sweep's parent run %s (%s: %s)", run_id, type(exc).__name__, exc)

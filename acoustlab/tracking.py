@@ -1,0 +1,159 @@
+"""Log a finished run directory to a tracker; upload it later when the tracker was unreachable.
+
+A run writes everything to its run directory first (``metrics.json``, ``predictions.parquet``,
+``config_resolved.yaml``, ``plots/``); :func:`log_run_dir` then sends that directory to the tracker.
+When the tracker fails, the directory keeps a ``TRACKING_PENDING.json`` marker and the warning names
+the command that uploads it later::
+
+    python -m acoustlab.upload outputs/runs/2026-11-22/10-00-00-000000 [--tracking-uri URI]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import yaml
+
+from acoustlab.errors import AcoustlabError, ConfigError
+from acoustlab.metrics import coverage_table, error_table, flat_metrics
+
+log = logging.getLogger(__name__)
+
+#: Marker left in a run directory whose results did not reach the tracker.
+PENDING_FILE = "TRACKING_PENDING.json"
+#: Files of a run directory uploaded as artifacts (when present), plus the ``plots`` directory.
+RUN_ARTIFACTS = ("metrics.json", "predictions.parquet", "config_resolved.yaml")
+
+
+def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    """Flatten nested dicts/lists into dotted keys."""
+    out: dict[str, Any] = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(flatten(v, f"{prefix}{k}."))
+    elif isinstance(d, list) and d and any(isinstance(v, (dict, list)) for v in d):
+        for i, v in enumerate(d):
+            out.update(flatten(v, f"{prefix}{i}."))
+    else:
+        out[prefix[:-1]] = d
+    return out
+
+
+def run_params(run_dir: Path, metrics: dict) -> dict[str, Any]:
+    """Params of a run: ``choice.<group>`` for every chosen option plus the flattened resolved config."""
+    params: dict[str, Any] = {f"choice.{g}": v for g, v in metrics.get("choices", {}).items()}
+    config_file = run_dir / "config_resolved.yaml"
+    if config_file.exists():
+        params.update(flatten(yaml.safe_load(config_file.read_text()) or {}))
+    return params
+
+
+def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -> bool:
+    """Send a finished run directory to ``tracker``; never raises.
+
+    Parameters
+    ----------
+    tracker : Tracker
+        The tracker plugin (see :class:`acoustlab.interfaces.Tracker`).
+    run_dir : pathlib.Path
+        A run directory holding at least ``metrics.json``.
+    parent_run_id : str, optional
+        The sweep's parent run, making this run its child.
+
+    Returns
+    -------
+    bool
+        True when everything was logged; False when the tracker failed (a warning says how to
+        upload the directory later and ``TRACKING_PENDING.json`` marks it).
+    """
+    run_dir = Path(run_dir)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    choices = metrics.get("choices", {})
+    run_name = f"{metrics['site']}-{choices.get('model', 'model')}"
+    tags = {"dataset_hash": metrics["dataset_hash"], "code_version": metrics["code_version"], "site": metrics["site"],
+            "run_dir": str(run_dir.resolve())}
+    if "field_dataset_hash" in metrics:
+        tags["field_dataset_hash"] = metrics["field_dataset_hash"]
+    pending = run_dir / PENDING_FILE
+    try:
+        tracker.check_reachable()
+        tracker.start(run_name, run_params(run_dir, metrics), tags, parent_run_id=parent_run_id)
+        tracker.log_metrics(flat_metrics(metrics))
+        tracker.log_table(error_table(metrics), "tables/errors.json")
+        tracker.log_table(coverage_table(metrics), "tables/coverage.json")
+        if "tau_grid" in metrics:
+            tracker.log_table(pd.DataFrame(metrics["tau_grid"]), "tables/tau_grid.json")
+        for name in (*RUN_ARTIFACTS, "plots"):
+            if (run_dir / name).exists():
+                tracker.log_artifact(str(run_dir / name))
+        tracker.finish("FINISHED")
+    except Exception as exc:  # noqa: BLE001 - never lose a finished run to a tracking problem
+        destination = getattr(tracker, "destination", None)
+        pending.write_text(json.dumps({"destination": destination, "error": f"{type(exc).__name__}: {exc}"}, indent=2))
+        uri = f" --tracking-uri {destination}" if destination else ""
+        log.warning(
+            "tracking failed (%s: %s); nothing is lost: all results are in %s. Upload them later with: python -m acoustlab.upload %s%s",
+            type(exc).__name__, exc, run_dir, run_dir, uri,
+        )
+        try:
+            tracker.finish("FAILED")
+        except Exception:  # noqa: BLE001 - best effort
+            pass
+        return False
+    pending.unlink(missing_ok=True)
+    return True
+
+
+def _tracker_for(run_dir: Path, tracking_uri: str | None, experiment: str | None) -> Any:
+    from omegaconf import OmegaConf
+
+    from acoustlab.registry import build
+
+    config_file = run_dir / "config_resolved.yaml"
+    if not config_file.exists():
+        raise ConfigError(f"{config_file} is missing: {run_dir} is not an acoustlab run directory")
+    node = OmegaConf.load(config_file).get("tracking")
+    if node is None or "_target_" not in node or node._target_.endswith("NullTracker"):
+        node = OmegaConf.create({"_target_": "plugins.trackers.mlflow_tracker.MlflowTracker", "store_dir": "outputs"})
+    if tracking_uri:
+        node.tracking_uri = tracking_uri
+    if experiment:
+        node.experiment_name = experiment
+    return build(node, "tracking")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m acoustlab.upload RUN_DIR ... [--tracking-uri URI] [--experiment NAME]``."""
+    parser = argparse.ArgumentParser(prog="python -m acoustlab.upload", description="Upload run directories to MLflow (e.g. after the server was unreachable).")
+    parser.add_argument("run_dirs", nargs="+", type=Path, help="run directories (holding metrics.json), or folders searched for them")
+    parser.add_argument("--tracking-uri", help="MLflow tracking URI; default: the one in each run's config_resolved.yaml")
+    parser.add_argument("--experiment", help="MLflow experiment name; default: the run's own")
+    parser.add_argument("--only-pending", action="store_true", help=f"upload only runs marked with {PENDING_FILE}")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    run_dirs = []
+    for path in args.run_dirs:
+        if not path.exists():
+            print(f"acoustlab.upload: error: {path} does not exist", file=sys.stderr)
+            return 2
+        found = [path] if (path / "metrics.json").exists() else sorted(p.parent for p in path.rglob("metrics.json"))
+        run_dirs += [d for d in found if not args.only_pending or (d / PENDING_FILE).exists()]
+    if not run_dirs:
+        print(f"acoustlab.upload: error: no run directories (with metrics.json) under {', '.join(map(str, args.run_dirs))}", file=sys.stderr)
+        return 2
+    failed = 0
+    for run_dir in run_dirs:
+        try:
+            tracker = _tracker_for(run_dir, args.tracking_uri, args.experiment)
+        except AcoustlabError as exc:
+            print(f"acoustlab.upload: error: {exc}", file=sys.stderr)
+            return 2
+        failed += not log_run_dir(tracker, run_dir)
+    log.info("uploaded %d of %d run directories", len(run_dirs) - failed, len(run_dirs))
+    return 1 if failed else 0

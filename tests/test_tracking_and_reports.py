@@ -1,0 +1,199 @@
+"""MLflow parent/child runs for sweeps, a real mlflow server, the unreachable-server path, uploads,
+reports and the launchers (joblib processes, submitit's local executor)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.parse
+import urllib.request
+from pathlib import Path
+
+import mlflow
+import pytest
+
+from acoustlab import report, tracking
+from acoustlab.app import run_experiment
+
+pytestmark = pytest.mark.slow
+SMALL = ["+site=frozen_lake", "+experiment=smoke", "model.n_estimators=20"]
+
+
+def runs_in(store: Path) -> list:
+    client = mlflow.MlflowClient(f"sqlite:///{store}")
+    experiment = client.get_experiment_by_name("acoustlab")
+    return [] if experiment is None else client.search_runs([experiment.experiment_id])
+
+
+def test_parallel_sweep_on_a_cold_cache_has_a_parent_run_children_and_a_report(run_cli, tmp_path):
+    out = tmp_path / "outputs"
+    proc = run_cli("-m", "hydra/launcher=local_parallel", *SMALL, "model=xgboost,random_forest", outputs=out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    job_dirs = sorted(p.parent for p in out.glob("multirun/*/*/*/metrics.json"))
+    assert len(job_dirs) == 2
+    # two processes needed the same missing data at once: it was simulated once and shared
+    assert len(list((out / "cache" / "simulation").iterdir())) == 2  # the entry and its lock file
+    hashes = {json.loads((d / "metrics.json").read_text())["dataset_hash"] for d in job_dirs}
+    assert len(hashes) == 1
+
+    runs = runs_in(out / "mlflow.db")
+    parents = [r for r in runs if r.data.tags.get("acoustlab.sweep") == "parent"]
+    assert len(parents) == 1
+    parent = parents[0]
+    assert parent.info.status == "FINISHED"
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id]
+    assert sorted(r.data.params["choice.model"] for r in children) == ["random_forest", "xgboost"]
+    for child in children:
+        assert child.data.tags["dataset_hash"] in hashes and child.data.tags["code_version"]
+        assert "error.gate.p50" in child.data.metrics and "coverage.fixed.0.8" in child.data.metrics
+    client = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
+    assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {"report", "tables"}
+
+    sweep_dir = job_dirs[0].parent
+    md = (sweep_dir / "report" / "report.md").read_text()
+    assert "model=xgboost" in md and "model=random_forest" in md
+    assert (sweep_dir / "report" / "report.html").read_text().count("data:image/png;base64,") >= 2 + 2 * 4
+
+
+def test_a_failed_job_keeps_the_others_and_marks_the_parent_failed(run_cli, tmp_path):
+    out = tmp_path / "outputs"
+    proc = run_cli("-m", *SMALL, "pipeline.model_target=sideways,absolute", outputs=out)
+    assert proc.returncode != 0
+    assert "pipeline.model_target must be 'absolute' or 'correction'; got 'sideways'" in proc.stderr
+    finished = list(out.glob("multirun/*/*/*/metrics.json"))
+    assert [p.parent.name for p in finished] == ["1"]  # the valid job after the failed one ran and kept its results
+    parent = next(r for r in runs_in(out / "mlflow.db") if r.data.tags.get("acoustlab.sweep") == "parent")
+    assert parent.info.status == "FAILED"
+    assert (finished[0].parent.parent / "report" / "report.md").exists()
+
+
+def test_unreachable_server_loses_nothing_and_the_run_uploads_later(compose_cfg, tmp_path, caplog):
+    cfg = compose_cfg([*SMALL, f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking.tracking_uri=http://127.0.0.1:9"])
+    caplog.set_level(logging.WARNING)
+    started = time.perf_counter()
+    metrics = run_experiment(cfg, tmp_path / "run")
+    assert time.perf_counter() - started < 120  # the reachability probe fails fast, no long retry loop
+    run_dir = tmp_path / "run"
+    for name in ("metrics.json", "predictions.parquet", "config_resolved.yaml", "plots/error_cdf.png", "plots/site_map.png"):
+        assert (run_dir / name).exists(), name
+    warning = next(r.message for r in caplog.records if "tracking failed" in r.message)
+    assert f"python -m acoustlab.upload {run_dir}" in warning and "http://127.0.0.1:9" in warning
+    assert json.loads((run_dir / tracking.PENDING_FILE).read_text())["destination"] == "http://127.0.0.1:9"
+
+    store = tmp_path / "later.db"
+    assert tracking.main([str(tmp_path), "--only-pending", "--tracking-uri", f"sqlite:///{store}"]) == 0
+    assert not (run_dir / tracking.PENDING_FILE).exists()
+    (uploaded,) = runs_in(store)
+    assert uploaded.data.metrics["error.gate.p50"] == pytest.approx(metrics["errors"]["gate"]["p50"])
+    assert uploaded.data.params["data.n_events"] == "120" and uploaded.data.tags["dataset_hash"] == metrics["dataset_hash"]
+
+
+def test_upload_of_a_folder_without_runs_is_a_clear_error(tmp_path, capsys):
+    assert tracking.main([str(tmp_path)]) == 2
+    assert "no run directories" in capsys.readouterr().err
+
+
+def test_report_tables_match_the_runs(compose_cfg, tmp_path):
+    base = [*SMALL, f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking=none"]
+    m1 = run_experiment(compose_cfg(base), tmp_path / "runs" / "a")
+    m2 = run_experiment(compose_cfg([*base, "conformal=all", "error_model=gdop_only"]), tmp_path / "runs" / "b")
+    assert report.main([str(tmp_path / "runs"), "--out", str(tmp_path / "rep")]) == 0
+    runs = report.collect_runs([tmp_path / "runs"])
+    errors = report.error_rows(runs)
+    assert len(errors) == 6
+    gate = errors[errors["method"] == "gate"]["p95"].tolist()
+    assert gate == pytest.approx([m1["errors"]["gate"]["p95"], m2["errors"]["gate"]["p95"]])
+    coverage = report.coverage_rows(runs)
+    assert set(coverage["scorer"]) == {"fixed", "gdop_scaled", "mondrian_gdop"}
+    row = coverage[coverage["scorer"] == "gdop_scaled"].iloc[0]
+    assert row["coverage@0.8"] == pytest.approx(m2["coverage"]["gdop_scaled"]["0.8"])
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "Localization error per detection" in md and "Coverage and interval width" in md and "ρ GDOP" in md
+    for png in ("sweep_error_cdf.png", "sweep_coverage_calibration.png", "runs/0/site_map.png", "runs/1/error_cdf.png"):
+        assert (tmp_path / "rep" / png).stat().st_size > 1000, png
+
+
+def test_report_of_a_missing_path_is_a_clear_error(tmp_path, capsys):
+    assert report.main([str(tmp_path / "nope")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_submitit_local_launcher_runs_the_sweep(run_cli, tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    out = tmp_path / "outputs"
+    proc = run_cli("-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10", *SMALL, "model=xgboost,random_forest",
+                   "data.n_jobs=1", outputs=out, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert len(list(out.glob("multirun/*/*/*/metrics.json"))) == 2
+    runs = runs_in(out / "mlflow.db")
+    parent = next(r for r in runs if r.data.tags.get("acoustlab.sweep") == "parent")
+    assert sum(r.data.tags.get("mlflow.parentRunId") == parent.info.run_id for r in runs) == 2
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _rest(base: str, endpoint: str, body: dict | None = None, **query: str) -> dict:
+    url = f"{base}/api/2.0/mlflow/{endpoint}" + (f"?{urllib.parse.urlencode(query)}" if query else "")
+    data = None if body is None else json.dumps(body).encode()
+    request = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=30) as response:
+        return json.loads(response.read())
+
+
+@pytest.mark.mlflow_server
+def test_real_mlflow_server_receives_params_metrics_tables_and_artifacts(run_cli, tmp_path):
+    if shutil.which("mlflow") is None and not Path(sys.executable).with_name("mlflow").exists():
+        pytest.skip("the mlflow command is not installed")
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}"
+    server = subprocess.Popen(
+        [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
+         "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}", "--artifacts-destination", str(tmp_path / "artifacts")],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    try:
+        deadline = time.time() + 120
+        while True:
+            try:
+                urllib.request.urlopen(f"{base}/health", timeout=2)
+                break
+            except OSError:
+                if time.time() > deadline or server.poll() is not None:
+                    pytest.fail("mlflow server did not start within 120 s")
+                time.sleep(1)
+        out = tmp_path / "outputs"
+        proc = run_cli(*SMALL, f"tracking.tracking_uri={base}", outputs=out)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert not (out / "mlflow.db").exists()  # nothing went to the local store
+        metrics = json.loads(next(out.glob("runs/*/*/metrics.json")).read_text())
+
+        experiment = _rest(base, "experiments/get-by-name", experiment_name="acoustlab")["experiment"]
+        (run,) = _rest(base, "runs/search", {"experiment_ids": [experiment["experiment_id"]]})["runs"]
+        params = {p["key"]: p["value"] for p in run["data"]["params"]}
+        assert params["choice.model"] == "xgboost" and params["choice.site"] == "frozen_lake" and params["data.n_events"] == "120"
+        logged = {m["key"]: m["value"] for m in run["data"]["metrics"]}
+        assert logged["error.gate.p95"] == pytest.approx(metrics["errors"]["gate"]["p95"])
+        assert logged["coverage.fixed.0.95"] == pytest.approx(metrics["coverage"]["fixed"]["0.95"])
+        tags = {t["key"]: t["value"] for t in run["data"]["tags"]}
+        assert tags["dataset_hash"] == metrics["dataset_hash"]
+
+        run_id = run["info"]["run_id"]
+        top = {f["path"] for f in _rest(base, "artifacts/list", run_id=run_id).get("files", [])}
+        assert {"metrics.json", "predictions.parquet", "config_resolved.yaml", "plots", "tables"} <= top
+        tables = {f["path"] for f in _rest(base, "artifacts/list", run_id=run_id, path="tables")["files"]}
+        assert {"tables/errors.json", "tables/coverage.json"} <= tables
+        plots = {f["path"] for f in _rest(base, "artifacts/list", run_id=run_id, path="plots")["files"]}
+        assert {"plots/error_cdf.png", "plots/site_map.png", "plots/coverage_calibration.png", "plots/predicted_vs_actual_error.png"} <= plots
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
