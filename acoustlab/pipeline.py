@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 from sklearn.base import clone
 from sklearn.model_selection import GroupKFold
+from tqdm.auto import tqdm
 
 from acoustlab.data import Site, group_of
 from acoustlab.errors import ConfigError, DataError
@@ -227,7 +228,7 @@ class LocalizationPipeline:
         # Out-of-fold hybrid errors on the training positions, for the error model and calibration.
         folds = self._folds(groups[train])
         oof_model = np.empty((train.size, 2))
-        for fit_idx, held_idx in folds:
+        for fit_idx, held_idx in tqdm(folds, desc="point model, out-of-fold", unit="fold", disable=None, leave=False):
             models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]], solver_xy[train[fit_idx]])
             oof_model[held_idx] = self._predict_point(models, features.iloc[train[held_idx]][mcols], solver_xy[train[held_idx]])
         # gates with a threshold learnt on simulation (τ*) choose it on the out-of-fold predictions
@@ -240,7 +241,7 @@ class LocalizationPipeline:
         if not finite.all():
             log.warning("%d training events have no finite hybrid estimate; left out of calibration", (~finite).sum())
         oof_pred = np.empty(train.size)
-        for fit_idx, held_idx in folds:
+        for fit_idx, held_idx in tqdm(folds, desc="error model, out-of-fold", unit="fold", disable=None, leave=False):
             fit_idx = fit_idx[finite[fit_idx]]
             em = clone(self.c.error_model).fit(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx])
             oof_pred[held_idx] = em.predict(features.iloc[train[held_idx]][ecols])

@@ -57,12 +57,22 @@ def error_cdf(ax: plt.Axes, errors_by_label: dict[str, np.ndarray]) -> None:
     ax.legend(loc="lower right", fontsize=8)
 
 
-def coverage_calibration(ax: plt.Axes, coverage_by_label: dict[str, dict[float, float]]) -> None:
-    """Empirical against nominal coverage, one line per label, with the diagonal."""
+def coverage_calibration(ax: plt.Axes, coverage_by_label: dict[str, dict[float, float]], n_detections: int | None = None) -> None:
+    """Empirical against nominal coverage, one line per label, with the diagonal.
+
+    With ``n_detections`` the band where an exactly calibrated method's empirical coverage falls
+    95 % of the time for independent detections (binomial, ±1.96 standard errors) is shaded;
+    detections sharing a position are correlated, so the real band is wider.
+    """
     ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="ideal")
-    for label, by_level in coverage_by_label.items():
+    if n_detections:
+        grid = np.linspace(0, 1, 101)
+        half = 1.96 * np.sqrt(grid * (1 - grid) / n_detections)
+        ax.fill_between(grid, grid - half, grid + half, color="0.85", label=f"±1.96 s.e., n={n_detections}")
+    styles = ("-", "--", ":", "-.")
+    for i, (label, by_level) in enumerate(coverage_by_label.items()):
         levels = sorted(by_level)
-        ax.plot(levels, [by_level[lv] for lv in levels], marker="o", label=label)
+        ax.plot(levels, [by_level[lv] for lv in levels], marker="o", label=label, ls=styles[i % len(styles)])
     ax.set_xlabel("nominal coverage")
     ax.set_ylabel("empirical coverage")
     ax.set_xlim(0, 1)
@@ -159,7 +169,7 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
     paths.append(_save(fig, out_dir / "error_cdf.png"))
 
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
-    coverage_calibration(ax, {s: {float(lv): v for lv, v in by.items()} for s, by in metrics["coverage"].items()})
+    coverage_calibration(ax, {s: {float(lv): v for lv, v in by.items()} for s, by in metrics["coverage"].items()}, len(predictions))
     ax.set_title("coverage calibration (pooled test detections)", fontsize=9)
     paths.append(_save(fig, out_dir / "coverage_calibration.png"))
 

@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from acoustlab.dataset import Dataset
-from acoustlab.protocols.field import FIELD_POSITION_OFFSET, LopoProtocol, combine
+from acoustlab.protocols.field import FIELD_POSITION_OFFSET, FieldEvalProtocol, LopoProtocol, combine
 
 
 def toy(n_sim_pos=50, per=4, n_field_pos=6, per_field=10):
@@ -30,6 +30,34 @@ def test_lopo_never_trains_on_the_withheld_position():
         assert (groups[train] >= FIELD_POSITION_OFFSET).sum() == 20  # the field share of the budget
         seen.append(pos)
     assert len(seen) == 6
+
+
+class SpyPipeline:
+    """Records the training (and so calibration: it is out-of-fold over training rows) and test positions."""
+
+    def __init__(self):
+        self.calls = []
+
+    def fit_predict(self, features, events, train, test):
+        groups = events["position_id"].to_numpy()
+        self.calls.append((set(groups[train]), set(groups[test])))
+        return pd.DataFrame({"event_id": events["event_id"].to_numpy()[test], "position_id": groups[test]})
+
+
+@pytest.mark.parametrize("protocol", [FieldEvalProtocol(max_train_rows=100), LopoProtocol(field_fraction=0.3, max_train_rows=100)])
+def test_protocols_never_train_or_calibrate_on_a_withheld_position(protocol):
+    sim, field = toy()
+    spy = SpyPipeline()
+    out = protocol.run(sim, spy, field=field)
+    field_ids = {FIELD_POSITION_OFFSET + p for p in range(6)}
+    for train_pos, test_pos in spy.calls:
+        assert not train_pos & test_pos
+        assert test_pos <= field_ids
+        if isinstance(protocol, FieldEvalProtocol):
+            assert not train_pos & field_ids  # trained on simulation only
+    assert set().union(*(t for _, t in spy.calls)) == field_ids  # every field position is evaluated
+    assert len(spy.calls) == (1 if isinstance(protocol, FieldEvalProtocol) else 6)
+    assert len(out) == len(field.events)
 
 
 @pytest.mark.slow

@@ -73,6 +73,18 @@ def test_a_failed_job_keeps_the_others_and_marks_the_parent_failed(run_cli, tmp_
     assert (finished[0].parent.parent / "report" / "report.md").exists()
 
 
+def test_a_shard_sweep_fills_the_cache_for_one_final_run(run_cli, tmp_path):
+    out = tmp_path / "outputs"
+    proc = run_cli("-m", *SMALL, "tracking=none", "data.shard_count=2", "data.shard_index=range(0,2)", outputs=out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (partial,) = (out / "cache" / "simulation").glob("*.partial")
+    assert len(list(partial.glob("*.npy"))) == 4  # 120 events in chunks of 32, both shards rendered
+    assert not list(out.glob("multirun/*/*/*/metrics.json"))  # shard jobs only render
+    final = run_cli(*SMALL, "tracking=none", outputs=out)
+    assert final.returncode == 0, final.stderr[-3000:]
+    assert "resuming simulation: 4 of 4 chunks already rendered" in final.stdout + final.stderr
+
+
 def test_unreachable_server_loses_nothing_and_the_run_uploads_later(compose_cfg, tmp_path, caplog):
     cfg = compose_cfg([*SMALL, f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking.tracking_uri=http://127.0.0.1:9"])
     caplog.set_level(logging.WARNING)
@@ -117,6 +129,11 @@ def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     assert "Localization error per detection" in md and "Coverage and interval width" in md and "ρ GDOP" in md
     for png in ("sweep_error_cdf.png", "sweep_coverage_calibration.png", "runs/0/site_map.png", "runs/1/error_cdf.png"):
         assert (tmp_path / "rep" / png).stat().st_size > 1000, png
+    # the same through the console entry point: acoustlab report ...
+    proc = subprocess.run([sys.executable, "-m", "acoustlab", "report", str(tmp_path / "runs"), "--out", str(tmp_path / "cli")],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "cli" / "report.html").exists() and str(tmp_path / "cli" / "report.md") in proc.stdout
 
 
 def test_report_of_a_missing_path_is_a_clear_error(tmp_path, capsys):

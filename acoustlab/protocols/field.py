@@ -12,6 +12,7 @@ import logging
 
 import numpy as np
 import pandas as pd
+from tqdm.auto import tqdm
 
 from acoustlab.dataset import Dataset
 from acoustlab.errors import ConfigError, DataError
@@ -130,7 +131,8 @@ class LopoProtocol:
             raise ConfigError("protocol=lopo needs field data: choose a field source, e.g. field=playback_standin")
         features, events, sim_rows, field_rows = combine(dataset, field)
         pooled = []
-        for pos, train, test in self.splits(events, sim_rows, field_rows):
+        n_positions = np.unique(events["position_id"].to_numpy()[field_rows]).size
+        for pos, train, test in tqdm(self.splits(events, sim_rows, field_rows), total=n_positions, desc="LOPO", unit="position", disable=None):
             log.info("LOPO: withholding field position %d (%d test, %d training rows)", pos - FIELD_POSITION_OFFSET, test.size, train.size)
             out = pipeline.fit_predict(features, events, train, test)
             out["withheld_position"] = pos - FIELD_POSITION_OFFSET
