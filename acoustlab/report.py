@@ -121,6 +121,23 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def relative_rows(runs: list[RunResult]) -> pd.DataFrame:
+    """The gate's p50/p95/p99 error of every run and its ratio to the first run's (e.g. the full
+    feature set at the head of an ablation sweep). Empty for a single run."""
+    if len(runs) < 2:
+        return pd.DataFrame()
+    first = runs[0].metrics["errors"]["gate"]
+    rows = []
+    for r in runs:
+        gate = r.metrics["errors"]["gate"]
+        row = {"run": r.label}
+        for q in ("p50", "p95", "p99"):
+            row[f"gate {q} (m)"] = gate[q]
+            row[f"{q} / first"] = gate[q] / first[q] if first[q] > 0 else float("nan")
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def coverage_rows(runs: list[RunResult]) -> pd.DataFrame:
     """Empirical coverage and median interval radius (m) per run, scorer and nominal level."""
     rows = []
@@ -201,6 +218,7 @@ def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
 
 _SECTIONS = (
     ("Localization error per detection (m)", error_rows),
+    ("Gated error relative to the first run", relative_rows),
     ("Coverage and interval width of the conformal regions", coverage_rows),
     ("Ranking of errors and gating", uncertainty_rows),
     ("Provenance", provenance_rows),
@@ -250,6 +268,8 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str = "acoustlab r
     page = [f"<h1>{html.escape(title)}</h1>", f"<p>{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
             f"gross = error above {GROSS_ERROR_M:g} m.</p>"]
     for heading, table in tables:
+        if table.empty:
+            continue
         md += [f"## {heading}", "", table.to_markdown(index=False, floatfmt=".3g"), ""]
         page += [f"<h2>{html.escape(heading)}</h2>", table.to_html(index=False, float_format=lambda v: f"{v:.3g}", na_rep="—")]
     md += ["## Plots", ""]

@@ -5,8 +5,6 @@ path — loading, fitting, batched prediction, quantiles, cloning, the weights p
 accuracy. Tests that need real weights carry the ``needs_weights`` marker.
 """
 
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -19,30 +17,9 @@ from plugins.models.tabpfn_models import TabPFNErrorModel, TabPFNPointModel  # n
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):
-    from scipy.stats import norm
-    from tabpfn.architectures import tabpfn_v2
-    from tabpfn.architectures.shared.bar_distribution import FullSupportBarDistribution
-    from tabpfn.constants import ModelVersion
-    from tabpfn.inference_config import InferenceConfig
+    from plugins.models.tabpfn_checkpoint import build_random_checkpoint
 
-    cfg, _ = tabpfn_v2.parse_config(dict(emsize=32, nlayers=2, nhead=2, features_per_group=2, num_buckets=100, max_num_classes=0))
-    torch.manual_seed(0)
-    model = tabpfn_v2.get_architecture(cfg)
-    borders = torch.tensor(norm.ppf(np.linspace(0.001, 0.999, 101)), dtype=torch.float32)
-    crit = FullSupportBarDistribution(borders)
-    state = dict(model.state_dict())
-    state.update({f"criterion.{k}": v for k, v in crit.state_dict().items()})
-    path = tmp_path_factory.mktemp("tabpfn") / "tiny-regressor.ckpt"  # no version string in the name: read as v2
-    torch.save(
-        {
-            "state_dict": state,
-            "config": dataclasses.asdict(cfg),
-            "architecture_name": "tabpfn_v2",
-            "inference_config": dataclasses.asdict(InferenceConfig.get_default("regression", ModelVersion.V2)),
-        },
-        path,
-    )
-    return str(path)
+    return str(build_random_checkpoint(tmp_path_factory.mktemp("tabpfn") / "tiny-regressor.ckpt"))
 
 
 def data(n=120, d=6, seed=0):
