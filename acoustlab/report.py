@@ -121,19 +121,52 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def paired_ratio_ci(first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: int = 1000, seed: int = 0) -> tuple[float, float] | None:
+    """95 % interval of the ratio of the gate's ``q``-th error percentile (other / first), by a
+    paired bootstrap over source positions (the exchangeable unit).
+
+    Returns None when the two runs were not evaluated on the same events.
+    """
+    a = first.set_index("event_id")
+    b = other.set_index("event_id")
+    if len(a) != len(b) or not a.index.sort_values().equals(b.index.sort_values()):
+        return None
+    b = b.loc[a.index]
+    ea, eb = a["error_gate_m"].to_numpy(float), b["error_gate_m"].to_numpy(float)
+    ok = np.isfinite(ea) & np.isfinite(eb)
+    positions = a["position_id"].to_numpy()[ok]
+    ea, eb = ea[ok], eb[ok]
+    members = [np.flatnonzero(positions == p) for p in np.unique(positions)]
+    rng = np.random.default_rng(seed)
+    ratios = np.empty(n_boot)
+    for k in range(n_boot):
+        rows = np.concatenate([members[i] for i in rng.integers(0, len(members), len(members))])
+        denominator = np.percentile(ea[rows], q)
+        ratios[k] = np.percentile(eb[rows], q) / denominator if denominator > 0 else np.nan
+    low, high = np.nanpercentile(ratios, [2.5, 97.5])
+    return float(low), float(high)
+
+
 def relative_rows(runs: list[RunResult]) -> pd.DataFrame:
     """The gate's p50/p95/p99 error of every run and its ratio to the first run's (e.g. the full
-    feature set at the head of an ablation sweep). Empty for a single run."""
+    feature set at the head of an ablation sweep), with a 95 % interval from a paired bootstrap over
+    source positions when the runs share their test events. Empty for a single run."""
     if len(runs) < 2:
         return pd.DataFrame()
     first = runs[0].metrics["errors"]["gate"]
+    first_predictions = runs[0].predictions()
     rows = []
     for r in runs:
         gate = r.metrics["errors"]["gate"]
+        predictions = r.predictions()
         row = {"run": r.label}
-        for q in ("p50", "p95", "p99"):
-            row[f"gate {q} (m)"] = gate[q]
-            row[f"{q} / first"] = gate[q] / first[q] if first[q] > 0 else float("nan")
+        for name, q in (("p50", 50), ("p95", 95), ("p99", 99)):
+            row[f"gate {name} (m)"] = gate[name]
+            row[f"{name} / first"] = gate[name] / first[name] if first[name] > 0 else float("nan")
+            ci = None
+            if r is not runs[0] and first_predictions is not None and predictions is not None:
+                ci = paired_ratio_ci(first_predictions, predictions, q)
+            row[f"{name} / first, 95 % CI"] = "—" if ci is None else f"[{ci[0]:.2f}, {ci[1]:.2f}]"
         rows.append(row)
     return pd.DataFrame(rows)
 

@@ -214,3 +214,18 @@ def test_real_mlflow_server_receives_params_metrics_tables_and_artifacts(run_cli
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+def test_paired_bootstrap_ratio_interval_over_positions():
+    import numpy as np
+    import pandas as pd
+
+    rng = np.random.default_rng(0)
+    first = pd.DataFrame({"event_id": np.arange(60), "position_id": np.repeat(np.arange(12), 5), "error_gate_m": rng.lognormal(size=60)})
+    assert report.paired_ratio_ci(first, first, 95) == pytest.approx((1.0, 1.0))
+    doubled = first.assign(error_gate_m=2 * first["error_gate_m"]).sample(frac=1, random_state=1)  # order does not matter
+    assert report.paired_ratio_ci(first, doubled, 50) == pytest.approx((2.0, 2.0))
+    noisy = first.assign(error_gate_m=first["error_gate_m"] * rng.lognormal(sigma=0.5, size=60))
+    low, high = report.paired_ratio_ci(first, noisy, 95)
+    assert low < high
+    assert report.paired_ratio_ci(first, first.iloc[:50], 95) is None  # not the same test events
