@@ -15,8 +15,9 @@ pytestmark = pytest.mark.slow
 
 def smoke(compose_cfg, tmp_path, *overrides, site="frozen_lake"):
     """The smoke experiment with outputs under ``tmp_path`` and no tracking."""
+    small_model = [] if any(o.startswith("model.n_estimators=") for o in overrides) else ["model.n_estimators=40"]
     return compose_cfg(
-        [f"+site={site}", "+experiment=smoke", f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking=none", *overrides]
+        [f"+site={site}", "+experiment=smoke", f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking=none", *small_model, *overrides]
     )
 
 

@@ -66,7 +66,7 @@ def test_field_protocols_end_to_end(compose_cfg, tmp_path, protocol):
     from acoustlab.app import run_experiment
 
     cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", f"protocol={protocol}", "field=playback_standin",
-                       "field.stimuli={europe: 3, north_america: 3}", "gate=hybrid", "conformal=all", "tracking=none",
+                       "field.stimuli={europe: 3, north_america: 3}", "model.n_estimators=40", "gate=hybrid", "conformal=all", "tracking=none",
                        f"paths.outputs_dir={tmp_path}"])
     metrics = run_experiment(cfg, tmp_path / "run", {"protocol": protocol})
     preds = pd.read_parquet(tmp_path / "run" / "predictions.parquet")
