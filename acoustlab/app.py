@@ -7,10 +7,8 @@ import logging
 import subprocess
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from acoustlab import __version__

@@ -88,7 +88,7 @@ def main() -> None:
         "architecture": FULL_SIZE, "repeats": opts.repeats,
         "timings_s": {d: {k: round(v, 4) for k, v in r.items() if k.endswith("_s")} for d, r in results.items()},
     }
-    lines = [f"# TabPFN point model, CPU vs GPU (random weights, published v2 size)", "",
+    lines = ["# TabPFN point model, CPU vs GPU (random weights, published v2 size)", "",
              f"Measured with `python benchmarks/bench_tabpfn_device.py` (torch {summary['torch']}, GPU: {summary['gpu']}); "
              f"{opts.rows} training rows × {opts.features} features, {opts.test} test rows, n_estimators=4, median of {opts.repeats}.", "",
              "| device | fit (s) | predict (s) | quantiles (s) |", "|:--|--:|--:|--:|"]
