@@ -36,6 +36,10 @@ def _hydra_main(cfg: DictConfig) -> None:
             log.error("job %s failed: %s", hc.job.num, exc)
             raise
         _fail(exc)
+    except Exception:
+        if hc.mode == RunMode.MULTIRUN:  # Hydra re-raises only the first failed job's exception: log every one
+            log.exception("job %s failed", hc.job.num)
+        raise
 
 
 def main() -> None:

@@ -6,7 +6,9 @@ import json
 import logging
 import subprocess
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
@@ -41,31 +43,28 @@ def require_site(cfg: DictConfig) -> None:
         raise ConfigError(f"no site chosen: pass one with +site=NAME (available: {sites}), e.g. python -m acoustlab +site=frozen_lake")
 
 
-def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None) -> dict:
-    """Run one job: build plugins, get the (cached) dataset, run the protocol, write and log results.
+@dataclass
+class BuiltRun:
+    """Everything a run needs, built and checked from its config (see :func:`build_run`)."""
 
-    Parameters
-    ----------
-    cfg : omegaconf.DictConfig
-        The composed config.
-    run_dir : pathlib.Path
-        Where ``metrics.json``, ``predictions.parquet`` and the resolved config are written.
-    choices : dict, optional
-        The chosen option of each config group (Hydra's runtime choices).
-    parent_run_id : str, optional
-        The sweep's parent run in the tracker (set by :class:`acoustlab.sweep.SweepTrackingCallback`).
+    site: Any
+    simulator: Any
+    feature_sets: dict
+    components: Components
+    protocol: Any
+    tracker: Any
+    cache: StageCache
+    plan: SimulationPlan
 
-    Returns
-    -------
-    dict
-        The metrics written to ``metrics.json``.
+
+def build_run(cfg: DictConfig) -> BuiltRun:
+    """Build and check every plugin of a config without running anything expensive (the preflight).
+
+    Everything that can be wrong in a config fails here with a :class:`ConfigError` or
+    :class:`DataError` naming the field: site files, simulator settings and call/noise pools,
+    plugin options, conformal levels, TabPFN weights, sharding settings.
     """
-    started = time.perf_counter()
     require_site(cfg)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    choices = {g: str(v) for g, v in (choices or {}).items() if g in (*PLUGIN_GROUPS, "site", "experiment") and v is not None}
-
-    # Preflight: everything that can be wrong in the config fails here, before any expensive stage.
     site = site_from_config(cfg.site)
     simulator = build(cfg.simulator, "simulator")
     simulator.validate(site)
@@ -111,6 +110,35 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         shard_index=int(cfg.data.get("shard_index", 0)),
         shard_count=int(cfg.data.get("shard_count", 1)),
     )
+    return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan)
+
+
+def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None) -> dict:
+    """Run one job: build plugins, get the (cached) dataset, run the protocol, write and log results.
+
+    Parameters
+    ----------
+    cfg : omegaconf.DictConfig
+        The composed config.
+    run_dir : pathlib.Path
+        Where ``metrics.json``, ``predictions.parquet`` and the resolved config are written.
+    choices : dict, optional
+        The chosen option of each config group (Hydra's runtime choices).
+    parent_run_id : str, optional
+        The sweep's parent run in the tracker (set by :class:`acoustlab.sweep.SweepTrackingCallback`).
+
+    Returns
+    -------
+    dict
+        The metrics written to ``metrics.json``.
+    """
+    started = time.perf_counter()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    choices = {g: str(v) for g, v in (choices or {}).items() if g in (*PLUGIN_GROUPS, "site", "experiment") and v is not None}
+
+    built = build_run(cfg)
+    site, simulator, feature_sets, components, protocol, tracker, cache, plan = (
+        built.site, built.simulator, built.feature_sets, built.components, built.protocol, built.tracker, built.cache, built.plan)
     timings: dict[str, float] = {"preflight_s": time.perf_counter() - started}
     stage_start = time.perf_counter()
     dataset = load_or_build_simulated(
@@ -120,14 +148,14 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         log.info("sharded simulation run: shard %d of %d is in the cache; run without data.shard_count to finish",
                  plan.shard_index + 1, plan.shard_count)
         return {"shard": {"index": plan.shard_index, "count": plan.shard_count}}
-    dataset.features = add_solver_columns(dataset.features, dataset.events, site, solver)
+    dataset.features = add_solver_columns(dataset.features, dataset.events, site, components.solver)
     field_data = None
     if getattr(protocol, "needs_field", False):
         field_source = build(cfg.field, "field")
         if field_source is None:
             raise ConfigError(f"protocol={choices.get('protocol', 'field')} needs field recordings: choose field=playback_standin or field=recordings")
         field_data = load_or_build_field(site, field_source, to_plain(cfg.field), feature_sets, to_plain(cfg.features.groups), cache)
-        field_data.features = add_solver_columns(field_data.features, field_data.events, site, solver)
+        field_data.features = add_solver_columns(field_data.features, field_data.events, site, components.solver)
     timings["data_s"] = time.perf_counter() - stage_start
     stage_start = time.perf_counter()
     predictions = protocol.run(dataset, LocalizationPipeline(components), field=field_data)

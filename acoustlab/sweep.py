@@ -10,8 +10,10 @@ system) reads that file and logs its run as a child. After the jobs it writes th
 from __future__ import annotations
 
 import atexit
+import itertools
 import json
 import logging
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -32,17 +34,63 @@ def parent_run_id_for(sweep_dir: Path) -> str | None:
     return json.loads(path.read_text()).get("parent_run_id")
 
 
+def sweep_jobs(config: DictConfig) -> list[list[str]]:
+    """The override list of every job of a sweep, in launch order (as Hydra's basic sweeper expands
+    ``hydra.sweeper.params`` followed by the command line's overrides)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    params = config.hydra.sweeper.get("params") or {}
+    texts = [f"{k}={v}" for k, v in params.items()] + [str(o) for o in config.hydra.overrides.task]
+    choices = []
+    for override in OverridesParser.create().parse_overrides(texts):
+        key = override.get_key_element()
+        if override.is_sweep_override():
+            choices.append([f"{key}={value}" for value in override.sweep_string_iterator()])
+        else:
+            choices.append([f"{key}={override.get_value_element_as_str()}"])
+    return [list(job) for job in itertools.product(*choices)]
+
+
+def preflight_jobs(jobs: list[list[str]]) -> list[str]:
+    """Build and check every job's config (:func:`acoustlab.app.build_run`) without running it.
+
+    Returns
+    -------
+    list of str
+        One message per job that would fail (its overrides and the reason); empty when all pass.
+    """
+    from hydra import compose
+
+    from acoustlab.app import build_run
+    from acoustlab.errors import AcoustlabError
+
+    problems = []
+    for number, job in enumerate(jobs):
+        try:
+            build_run(compose(config_name="config", overrides=job))
+        except AcoustlabError as exc:
+            problems.append(f"job #{number} ({' '.join(job)}): {exc}")
+        except Exception as exc:  # noqa: BLE001 - a check we cannot run must not block the sweep
+            log.warning("preflight could not check job #%d (%s): %s: %s", number, " ".join(job), type(exc).__name__, exc)
+    return problems
+
+
 class SweepTrackingCallback(Callback):
-    """Opens a parent tracker run per sweep, writes the sweep report, closes the parent run.
+    """Checks every job, opens a parent tracker run per sweep, writes the report, closes the parent run.
 
     Parameters
     ----------
     report : bool
         Write ``report/report.md`` and ``report/report.html`` into the sweep dir when the sweep ends.
+    preflight : bool
+        Build and check every job's config before the first job starts (missing TabPFN weights, a
+        mistyped value, a bad site file…) and stop the sweep with one line per failing job, so a
+        cluster array fails in seconds instead of after its queue wait.
     """
 
-    def __init__(self, report: bool = True) -> None:
+    def __init__(self, report: bool = True, preflight: bool = True) -> None:
         self.report = report
+        self.preflight = preflight
         self._open: tuple[DictConfig, Path] | None = None
 
     @staticmethod
@@ -52,9 +100,19 @@ class SweepTrackingCallback(Callback):
         return build(config.tracking, "tracking")
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Open the parent run; a tracker failure only costs the grouping, never the sweep."""
+        """Preflight every job, then open the parent run (a tracker failure only costs the grouping)."""
         from acoustlab.app import code_version
 
+        if self.preflight:
+            jobs = sweep_jobs(config)
+            problems = preflight_jobs(jobs)
+            if problems:
+                for line in problems:
+                    print(f"acoustlab: error: {line}", file=sys.stderr)
+                print(f"acoustlab: {len(problems)} of {len(jobs)} sweep jobs would fail; nothing was run "
+                      "(hydra.callbacks.sweep_tracking.preflight=false runs the others anyway)", file=sys.stderr)
+                sys.exit(2)
+            log.info("preflight: all %d jobs of the sweep check out", len(jobs))
         sweep_dir = Path(str(config.hydra.sweep.dir))
         sweep_dir.mkdir(parents=True, exist_ok=True)
         overrides = [str(o) for o in config.hydra.overrides.task]

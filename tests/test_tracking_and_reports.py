@@ -63,7 +63,7 @@ def test_parallel_sweep_on_a_cold_cache_has_a_parent_run_children_and_a_report(r
 
 def test_a_failed_job_keeps_the_others_and_marks_the_parent_failed(run_cli, tmp_path):
     out = tmp_path / "outputs"
-    proc = run_cli("-m", *SMALL, "pipeline.model_target=sideways,absolute", outputs=out)
+    proc = run_cli("-m", *SMALL, "pipeline.model_target=sideways,absolute", "hydra.callbacks.sweep_tracking.preflight=false", outputs=out)
     assert proc.returncode != 0
     assert "pipeline.model_target must be 'absolute' or 'correction'; got 'sideways'" in proc.stderr
     finished = list(out.glob("multirun/*/*/*/metrics.json"))
@@ -71,6 +71,19 @@ def test_a_failed_job_keeps_the_others_and_marks_the_parent_failed(run_cli, tmp_
     parent = next(r for r in runs_in(out / "mlflow.db") if r.data.tags.get("acoustlab.sweep") == "parent")
     assert parent.info.status == "FAILED"
     assert (finished[0].parent.parent / "report" / "report.md").exists()
+
+
+def test_sweep_preflight_stops_before_any_job_and_names_the_failing_ones(run_cli, tmp_path):
+    out = tmp_path / "outputs"
+    proc = run_cli("-m", *SMALL, "pipeline.model_target=absolute,sideways", "conformal.levels=[0.8],[0.8,1.5]", outputs=out)
+    assert proc.returncode == 2
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("acoustlab: error: job #")]
+    # Hydra's order: the product of the overrides, the last one varying fastest
+    assert [e.split(" ")[3] for e in errors] == ["#1", "#2", "#3"]
+    assert "pipeline.model_target=absolute conformal.levels=[0.8,1.5]" in errors[0] and "conformal.levels must lie in (0, 1); got 1.5" in errors[0]
+    assert "got 'sideways'" in errors[1]
+    assert "3 of 4 sweep jobs would fail; nothing was run" in proc.stderr
+    assert not list(out.glob("multirun/*/*/*/metrics.json")) and not (out / "mlflow.db").exists()
 
 
 def test_a_shard_sweep_fills_the_cache_for_one_final_run(run_cli, tmp_path):
