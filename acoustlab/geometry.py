@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import ConvexHull, Delaunay
+from scipy.spatial import ConvexHull
 
 from acoustlab.errors import ConfigError
 
@@ -47,11 +47,13 @@ def distance_to_polygon_m(points_xy: np.ndarray, polygon_xy: np.ndarray) -> np.n
     numpy.ndarray
         (N,) distances in m.
     """
-    inside = Delaunay(polygon_xy).find_simplex(points_xy) >= 0
     a = polygon_xy
     b = np.roll(polygon_xy, -1, axis=0)
     ab = b - a  # (K, 2)
     ap = points_xy[:, None, :] - a[None, :, :]  # (N, K, 2)
+    # inside a convex polygon: on the same side of every edge (either orientation of the vertices)
+    cross = ab[None, :, 0] * ap[..., 1] - ab[None, :, 1] * ap[..., 0]  # (N, K)
+    inside = (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
     t = np.clip((ap * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300), 0.0, 1.0)
     closest = a[None] + t[..., None] * ab[None]
     d = np.sqrt(((points_xy[:, None, :] - closest) ** 2).sum(-1)).min(axis=1)

@@ -265,7 +265,9 @@ class OutdoorSimulator:
         def path(length_m: np.ndarray, extra_m: np.ndarray, factor: np.ndarray) -> np.ndarray:
             delay = emission_s + (length_m + extra_m) / (c * factor) + clock
             gain_db = alpha[None, :] * length_m[:, None] + occ_db
-            return (10 ** (-gain_db / 20) / length_m[:, None]) * np.exp(-2j * np.pi * freqs_hz[None, :] * delay[:, None])
+            # attenuation and delay in one complex exponential: 10^(−g/20)·e^(−2πifτ) = e^(−g·ln10/20 − 2πifτ)
+            exponent = (-np.log(10) / 20) * gain_db - 2j * np.pi * freqs_hz[None, :] * delay[:, None]
+            return np.exp(exponent) / length_m[:, None]
 
         out = {"direct": path(r1, detour, speed[:, 0]), "delay_direct_s": emission_s + (r1 + detour) / (c * speed[:, 0]) + clock}
         if self.ground:
