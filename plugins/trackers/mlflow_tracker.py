@@ -36,6 +36,11 @@ class MlflowTracker:
         self.store_dir = store_dir
         self.tracking_uri = tracking_uri or f"sqlite:///{Path(store_dir).resolve() / 'mlflow.db'}"
         self._run = None
+        if self.tracking_uri.startswith(("http://", "https://")):
+            # MLflow's defaults retry a dead server for minutes (7 retries, exponential back-off);
+            # a run that already kept its results should warn sooner. The user's own settings win.
+            os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "3")
+            os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "30")
 
     @property
     def destination(self) -> str:
