@@ -19,7 +19,7 @@ import logging
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -110,8 +110,8 @@ class StageCache:
         """Hold the entry's build lock (an exclusive POSIX lock on ``<key>.lock``; no-op when bypassed).
 
         POSIX record locks (:func:`fcntl.lockf`) also work across nodes on NFS; on Lustre the file
-        system must be mounted with ``flock``. Call :meth:`lookup` again inside: another job may have
-        built the entry while this one waited.
+        system must be mounted with ``flock``. :meth:`get_or_build` looks the entry up again inside:
+        another job may have built it while this one waited.
         """
         if not self.enabled:
             yield
@@ -128,6 +128,19 @@ class StageCache:
                 yield
             finally:
                 fcntl.lockf(handle, fcntl.LOCK_UN)
+
+    def get_or_build(self, stage: str, key: str, build: Callable[[], Path | None]) -> Path | None:
+        """The entry's directory from the cache, or ``build()``'s under the entry's build lock.
+
+        ``build`` writes and commits the entry (or returns None, e.g. for a shard that only renders
+        its part). Jobs missing the same entry at once take turns: the first builds, the others find
+        its entry when they get the lock.
+        """
+        found = self.lookup(stage, key)
+        if found is not None:
+            return found
+        with self.building(stage, key):
+            return self.lookup(stage, key, log_miss=False) or build()
 
     def partial_dir(self, stage: str, key: str) -> Path:
         """A work directory for building an entry; reused after an interruption when caching is on."""

@@ -12,6 +12,7 @@ import hashlib
 import json
 import logging
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -149,13 +150,10 @@ def simulate_to_cache(
     into the shared work directory and None is returned; a later unsharded run finds them there.
     """
     key = simulation_key(site, simulator, simulator_cfg, plan)
-    found = cache.lookup("simulation", key)
-    if found is not None:
-        return found
-    if plan.shard_count > 1:  # shards of a job array write disjoint chunks of one work directory
-        return _render_simulation(site, simulator, plan, cache, key)
-    with cache.building("simulation", key):
-        return cache.lookup("simulation", key, log_miss=False) or _render_simulation(site, simulator, plan, cache, key)
+    render = partial(_render_simulation, site, simulator, plan, cache, key)
+    if plan.shard_count > 1:  # shards of a job array write disjoint chunks of one work directory: no lock
+        return cache.lookup("simulation", key) or render()
+    return cache.get_or_build("simulation", key, render)
 
 
 def _render_simulation(site: Site, simulator: Simulator, plan: SimulationPlan, cache: StageCache, key: str) -> Path | None:
@@ -266,15 +264,13 @@ def load_or_build_simulated(
             "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},
         }
     )
-    found = cache.lookup("features", feat_key)
+    def build() -> Path | None:
+        sim_dir = simulate_to_cache(site, simulator, simulator_cfg, plan, cache)
+        return None if sim_dir is None else _features_to_cache(sim_dir, site, feature_sets, plan.n_jobs, cache, feat_key)
+
+    found = cache.get_or_build("features", feat_key, build)
     if found is None:
-        with cache.building("features", feat_key):
-            found = cache.lookup("features", feat_key, log_miss=False)
-            if found is None:
-                sim_dir = simulate_to_cache(site, simulator, simulator_cfg, plan, cache)
-                if sim_dir is None:
-                    return None
-                found = _features_to_cache(sim_dir, site, feature_sets, plan.n_jobs, cache, feat_key)
+        return None
     dataset = _read_tables(found)
     cache.cleanup()
     return dataset
@@ -294,15 +290,13 @@ def load_or_build_field(
             "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},
         }
     )
-    found = cache.lookup("field_features", key)
-    if found is None:
-        with cache.building("field_features", key):
-            found = cache.lookup("field_features", key, log_miss=False)
-            if found is None:
-                batch = field_source.load(site)
-                digest = _DataHasher()
-                digest.update(batch.audio, batch.events)
-                found = _store_tables(cache, "field_features", key, extract_features(batch, site, feature_sets), batch.events, digest.hexdigest())
+    def build() -> Path:
+        batch = field_source.load(site)
+        digest = _DataHasher()
+        digest.update(batch.audio, batch.events)
+        return _store_tables(cache, "field_features", key, extract_features(batch, site, feature_sets), batch.events, digest.hexdigest())
+
+    found = cache.get_or_build("field_features", key, build)
     dataset = _read_tables(found)
     cache.cleanup()
     return dataset
