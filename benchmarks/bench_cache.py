@@ -11,23 +11,11 @@ import argparse
 import json
 import logging
 import platform
-import subprocess
-import sys
 import tempfile
-import time
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
+from common import REPO, time_cli
+
 log = logging.getLogger("bench_cache")
-
-
-def timed(args: list[str]) -> float:
-    start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True)
-    elapsed = time.perf_counter() - start
-    if proc.returncode != 0:
-        raise SystemExit(f"command failed: {args}\n{proc.stderr[-3000:]}")
-    return elapsed
 
 
 def main() -> None:
@@ -39,10 +27,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         base = [f"+site={opts.site}", f"paths.outputs_dir={tmp}", *opts.extra]
         rows = {
-            "cold cache (simulate + features + models + MLflow)": timed(base),
-            "warm cache, same config": timed(base),
-            "warm cache, model=random_forest": timed([*base, "model=random_forest"]),
-            "cache bypassed (cache.enabled=false)": timed([*base, "cache.enabled=false"]),
+            "cold cache (simulate + features + models + MLflow)": time_cli(base),
+            "warm cache, same config": time_cli(base),
+            "warm cache, model=random_forest": time_cli([*base, "model=random_forest"]),
+            "cache bypassed (cache.enabled=false)": time_cli([*base, "cache.enabled=false"]),
         }
     cold = rows["cold cache (simulate + features + models + MLflow)"]
     result = {

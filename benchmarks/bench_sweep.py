@@ -11,27 +11,12 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-from common import machine, write_results
+from common import machine, time_cli, write_results
 
-REPO = Path(__file__).resolve().parent.parent
 log = logging.getLogger("bench_sweep")
-
-
-def timed(args: list[str]) -> float:
-    """Seconds one ``python -m acoustlab`` command takes, imports included."""
-    start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True)
-    elapsed = time.perf_counter() - start
-    if proc.returncode != 0:
-        raise SystemExit(f"command failed: {args}\n{proc.stderr[-3000:]}")
-    log.info("%6.1f s  %s", elapsed, " ".join(args))
-    return elapsed
 
 
 def job_timings(outputs: Path, pattern: str) -> list[dict]:
@@ -49,10 +34,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         base = [f"+site={opts.site}", f"paths.outputs_dir={out}"]
-        cold = timed(base)
-        warm = timed(base)
+        cold = time_cli(base)
+        warm = time_cli(base)
         singles = job_timings(out, "runs/*/*/metrics.json")
-        sweep = timed(["-m", *base, f"model={opts.models}"])
+        sweep = time_cli(["-m", *base, f"model={opts.models}"])
         sweep_jobs = job_timings(out, "multirun/*/*/*/metrics.json")
     models_s = sum(t["models_s"] for t in sweep_jobs)
     in_job_s = sum(t["total_before_tracking_s"] for t in sweep_jobs)

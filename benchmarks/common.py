@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import json
+import logging
 import platform
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +16,26 @@ from hydra.core.global_hydra import GlobalHydra
 
 from acoustlab.registry import CONF_DIR
 
+REPO = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
+log = logging.getLogger("benchmarks")
+
+
+def time_cli(args: list[str]) -> float:
+    """Seconds one ``python -m acoustlab ARGS`` command takes in a fresh process, imports included.
+
+    Raises
+    ------
+    SystemExit
+        With the command and the end of its stderr when it fails.
+    """
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True)
+    elapsed = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"command failed: {args}\n{proc.stderr[-3000:]}")
+    log.info("%6.1f s  %s", elapsed, " ".join(args))
+    return elapsed
 
 
 def compose_cfg(overrides: list[str]):
