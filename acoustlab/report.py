@@ -19,6 +19,7 @@ import logging
 import shutil
 import sys
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -54,8 +55,9 @@ class RunResult:
     overrides: dict[str, str]
     label: str = ""
 
+    @cached_property
     def predictions(self) -> pd.DataFrame | None:
-        """The run's predictions table, or None when absent."""
+        """The run's predictions table (read once), or None when absent."""
         path = self.run_dir / "predictions.parquet"
         return pd.read_parquet(path) if path.exists() else None
 
@@ -108,7 +110,7 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
     """Localization error per run and method (m): n, mean, p50, p90, p95, p99 and the gross-error rate."""
     rows = []
     for r in runs:
-        predictions = r.predictions()
+        predictions = r.predictions
         if predictions is not None and "in_summary" in predictions:
             predictions = predictions[predictions["in_summary"].to_numpy(bool)]
         for method in METHODS:
@@ -154,11 +156,11 @@ def relative_rows(runs: list[RunResult]) -> pd.DataFrame:
     if len(runs) < 2:
         return pd.DataFrame()
     first = runs[0].metrics["errors"]["gate"]
-    first_predictions = runs[0].predictions()
+    first_predictions = runs[0].predictions
     rows = []
     for r in runs:
         gate = r.metrics["errors"]["gate"]
-        predictions = r.predictions()
+        predictions = r.predictions
         row = {"run": r.label}
         for name, q in (("p50", 50), ("p95", 95), ("p99", 99)):
             row[f"gate {name} (m)"] = gate[name]
@@ -224,7 +226,7 @@ def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
     curves: dict[str, np.ndarray] = {}
     solver_seen = set()
     for r in runs:
-        predictions = r.predictions()
+        predictions = r.predictions
         if predictions is None:
             continue
         curves[f"gate: {r.label}"] = predictions["error_gate_m"].to_numpy(float)
