@@ -34,7 +34,7 @@ def radius_columns(predictions: pd.DataFrame) -> dict[tuple[str, float], str]:
     return out
 
 
-def _finite_positive(values: np.ndarray) -> np.ndarray:
+def _finite(values: np.ndarray) -> np.ndarray:
     values = np.asarray(values, dtype=float)
     return values[np.isfinite(values)]
 
@@ -43,7 +43,7 @@ def error_cdf(ax: plt.Axes, errors_by_label: dict[str, np.ndarray]) -> None:
     """Empirical CDF of 2-D errors (m, log x axis), one curve per label."""
     styles = ("-", "--", ":", "-.")
     for i, (label, errors) in enumerate(errors_by_label.items()):
-        e = np.sort(_finite_positive(errors))
+        e = np.sort(_finite(errors))
         if e.size == 0:
             continue
         # identical curves (the gate keeping every solver fix) stay visible through the line styles
