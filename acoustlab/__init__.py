@@ -1,9 +1,18 @@
 """acoustlab: physics-informed learning for robust acoustic localization with calibrated uncertainty.
 
-The core package holds the typed data model, the plugin contracts, shared physics and
-signal maths, caching, protocols, conformal maths, metrics and the Hydra entry point.
+The package is layered; each subpackage imports only from the ones listed before it
+(``tests/test_architecture.py`` enforces this):
+
+- ``core``: typed data model, plugin contracts (``typing.Protocol``), errors, column names, resources;
+- ``toolkit``: physics, propagation, DSP, geometry, TDOA and conformal maths (pure functions);
+- ``stages``: the cached data stages (sites, simulation, features), the cache, the solver stage;
+- ``method``: the localization pipeline and the evaluation protocols;
+- ``reporting``: metrics, plots, the sweep report, experiment logging (MLflow);
+- ``run``: the Hydra app, typed config schema, registry, preflight, sweep callback, upload, plugin checks.
+
 Plugins live in the top-level ``plugins`` package and are selected through Hydra config
-groups; ``acoustlab`` never imports ``plugins``.
+groups; ``acoustlab`` never imports ``plugins``. Entry points: ``python -m acoustlab``,
+``python -m acoustlab.report``, ``python -m acoustlab.upload``, ``python -m acoustlab.catalog``.
 """
 
 __version__ = "0.1.0"

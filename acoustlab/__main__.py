@@ -11,8 +11,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from acoustlab.errors import AcoustlabError
-from acoustlab.preflight import check_argv
+from acoustlab.core.errors import AcoustlabError
+from acoustlab.run.preflight import check_argv
 
 log = logging.getLogger("acoustlab")
 
@@ -24,8 +24,8 @@ def _fail(exc: AcoustlabError) -> None:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> None:
-    from acoustlab.app import run_experiment
-    from acoustlab.sweep import parent_run_id_for
+    from acoustlab.run.app import run_experiment
+    from acoustlab.run.sweep import parent_run_id_for
 
     hc = HydraConfig.get()
     parent = parent_run_id_for(Path(hc.sweep.dir)) if hc.mode == RunMode.MULTIRUN else None
@@ -48,10 +48,11 @@ def main() -> None:
     ``acoustlab report ...`` and ``acoustlab upload ...`` run the report and upload commands.
     """
     if len(sys.argv) > 1 and sys.argv[1] in ("report", "upload"):
-        from acoustlab import report, tracking
+        from acoustlab.reporting import report
+        from acoustlab.run import upload
 
         command = sys.argv[1]
-        sys.exit((report.main if command == "report" else tracking.main)(sys.argv[2:]))
+        sys.exit((report.main if command == "report" else upload.main)(sys.argv[2:]))
     try:
         check_argv(sys.argv[1:])
     except AcoustlabError as exc:

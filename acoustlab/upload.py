@@ -1,8 +1,8 @@
-"""``python -m acoustlab.upload RUN_DIR ...``: send run directories to MLflow after the fact."""
+"""``python -m acoustlab.upload RUN_DIR ...``: send run directories to MLflow after the fact (see :mod:`acoustlab.run.upload`)."""
 
 import sys
 
-from acoustlab.tracking import main
+from acoustlab.run.upload import main
 
 if __name__ == "__main__":
     sys.exit(main())

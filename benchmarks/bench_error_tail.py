@@ -13,14 +13,16 @@ import argparse
 import logging
 
 import numpy as np
-
-from acoustlab.cache import StageCache
-from acoustlab.dataset import SimulationPlan, load_or_build_simulated
-from acoustlab.pipeline import add_solver_columns, error_2d_m, tdoa_matrix
-from acoustlab.propagation import segment_trunk_clearance
-from acoustlab.registry import build, build_feature_sets, to_plain
-from acoustlab.sites import site_from_config
 from common import compose_cfg, machine, write_results
+
+from acoustlab.core.contracts import SolverInputs
+from acoustlab.method.pipeline import error_2d_m
+from acoustlab.run.registry import build, build_feature_sets, to_plain
+from acoustlab.stages.cache import StageCache
+from acoustlab.stages.dataset import SimulationPlan, load_or_build_simulated
+from acoustlab.stages.sites import site_from_config
+from acoustlab.stages.solver_columns import add_solver_columns, tdoa_matrix
+from acoustlab.toolkit.propagation import segment_trunk_clearance
 
 log = logging.getLogger("bench_error_tail")
 GROSS_M = 5.0
@@ -43,7 +45,7 @@ def analyse(site_name: str, n_events: int) -> dict:
     true_tdoa = (dist - dist[:, :1]) / c[:, None]
     measured = tdoa_matrix(table, site.n_mics)
     tdoa_err_samples = np.abs(measured - true_tdoa).max(axis=1) * simulator.sample_rate_hz
-    ideal = solver.solve(site.mic_positions_m, true_tdoa, c)
+    ideal = solver.solve(SolverInputs(site.mic_positions_m, true_tdoa, c))
     ideal_err = error_2d_m(ideal.position_m, truth)
     occluded = np.zeros(len(ev), bool)
     if site.tree_positions_m.shape[0]:

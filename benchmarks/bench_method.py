@@ -15,8 +15,9 @@ import logging
 import tempfile
 from pathlib import Path
 
-from acoustlab.app import run_experiment
 from common import compose_cfg, machine, write_results
+
+from acoustlab.run.app import run_experiment
 
 log = logging.getLogger("bench_method")
 

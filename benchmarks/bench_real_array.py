@@ -13,13 +13,14 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-
-from acoustlab.dataset import extract_features
-from acoustlab.pipeline import tdoa_matrix
-from acoustlab.physics import speed_of_sound_m_s
-from acoustlab.registry import build, build_feature_sets
-from acoustlab.sites import site_from_config
 from common import compose_cfg, write_results
+
+from acoustlab.core.contracts import SolverInputs
+from acoustlab.run.registry import build, build_feature_sets
+from acoustlab.stages.dataset import extract_features
+from acoustlab.stages.sites import site_from_config
+from acoustlab.stages.solver_columns import tdoa_matrix
+from acoustlab.toolkit.physics import speed_of_sound_m_s
 from plugins.solvers.hyperbolic import HyperbolicSolver
 
 log = logging.getLogger("bench_real_array")
@@ -30,7 +31,7 @@ UPSTREAM_TDOA_S = [0.0, 0.0325, -0.002, 0.0316, -0.0086, 0.024]  # OpenSoundscap
 def solve_scan(mics: np.ndarray, tdoa: np.ndarray, c: float, heights=np.concatenate([np.arange(0.0, 50.0, 0.5), np.arange(50.0, 400.0, 2.0)])):
     best = None
     for h in heights:
-        res = HyperbolicSolver(source_height_m=float(h), box_margin_fraction=3.0).solve(mics, tdoa, c)
+        res = HyperbolicSolver(source_height_m=float(h), box_margin_fraction=3.0).solve(SolverInputs(mics, tdoa, c))
         if best is None or res.residual_m[0] < best[1].residual_m[0]:
             best = (h, res)
     return best
@@ -38,7 +39,7 @@ def solve_scan(mics: np.ndarray, tdoa: np.ndarray, c: float, heights=np.concaten
 
 def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    overrides = [f"features.groups.{g}.band_hz={BAND}" for g in ("tdoa", "xcorr", "uncertainty")]
+    overrides = [f"features.gcc.band_hz={BAND}"]  # one GCC band for the tdoa, xcorr and uncertainty groups
     cfg = compose_cfg(["+site=loca2021", "field=recordings", *overrides])
     site = site_from_config(cfg.site)
     batch = build(cfg.field, "field").load(site)

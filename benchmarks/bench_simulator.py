@@ -23,12 +23,12 @@ import time
 import numpy as np
 import scipy.fft as sfft
 import scipy.signal as ss
-
-from acoustlab.cache import StageCache
-from acoustlab.dataset import SimulationPlan, simulate_to_cache
-from acoustlab.registry import build, to_plain
-from acoustlab.sites import site_from_config
 from common import compose_cfg, machine, write_results
+
+from acoustlab.run.registry import build, to_plain
+from acoustlab.stages.cache import StageCache
+from acoustlab.stages.dataset import SimulationPlan, simulate_to_cache
+from acoustlab.stages.sites import site_from_config
 
 log = logging.getLogger("bench_simulator")
 KOLI = {"drr_db": 7.6, "t20rev_s": 0.92, "env_slope_db_s": -98.0, "t20rev_octaves_s": {"1000": 1.50, "2000": 1.19, "4000": 0.72}}

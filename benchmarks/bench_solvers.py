@@ -14,13 +14,14 @@ import logging
 import time
 
 import numpy as np
-
-from acoustlab.cache import StageCache
-from acoustlab.dataset import SimulationPlan, load_or_build_simulated
-from acoustlab.pipeline import add_solver_columns, error_2d_m
-from acoustlab.registry import build, build_feature_sets, to_plain
-from acoustlab.sites import site_from_config
 from common import compose_cfg, machine, write_results
+
+from acoustlab.method.pipeline import error_2d_m
+from acoustlab.run.registry import build, build_feature_sets, to_plain
+from acoustlab.stages.cache import StageCache
+from acoustlab.stages.dataset import SimulationPlan, load_or_build_simulated
+from acoustlab.stages.sites import site_from_config
+from acoustlab.stages.solver_columns import add_solver_columns
 
 log = logging.getLogger("bench_solvers")
 SOLVERS = ("least_squares", "hyperbolic", "robust")

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from acoustlab.registry import ALL_GROUPS, group_options
+from acoustlab.run.registry import ALL_GROUPS, group_options
 
 pytestmark = pytest.mark.slow
 

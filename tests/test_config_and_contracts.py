@@ -4,9 +4,16 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from acoustlab import interfaces
-from acoustlab.registry import CONF_DIR, PLUGIN_GROUPS, build, build_feature_sets, build_scorers, group_options
-from acoustlab.sites import site_from_config
+from acoustlab.core import contracts as interfaces
+from acoustlab.run.registry import (
+    CONF_DIR,
+    PLUGIN_GROUPS,
+    build,
+    build_feature_sets,
+    build_scorers,
+    group_options,
+)
+from acoustlab.stages.sites import site_from_config
 
 CONTRACTS = {
     "simulator": interfaces.Simulator,
@@ -78,3 +85,93 @@ def test_point_models_fit_and_predict(compose_cfg):
         cfg = compose_cfg(["+site=frozen_lake", f"model={option}"])
         model = build(cfg.model, "model").fit(x, y)
         assert model.predict(x).shape == (60,)
+
+
+@pytest.mark.parametrize(
+    "override,reason",
+    [
+        ("data.n_event=5", "Could not override 'data.n_event'"),  # a typo in a key
+        ("data.n_events=abc", "Error merging override data.n_events=abc"),  # a wrong type
+        ("pipeline.model_target=sideways", "Error merging override pipeline.model_target=sideways"),  # not a choice
+        ("site.tempreature_c=[1,2]", "Could not override 'site.tempreature_c'"),
+        ("conformal.level=[0.9]", "Could not override 'conformal.level'"),
+    ],
+)
+def test_typed_schema_rejects_mistakes_when_composing(compose_cfg, override, reason):
+    from hydra.errors import ConfigCompositionException
+
+    with pytest.raises(ConfigCompositionException, match=reason.replace("[", r"\[")):
+        compose_cfg(["+site=frozen_lake", override])
+
+
+def test_a_gate_needing_a_missing_feature_group_fails_in_preflight(compose_cfg):
+    from acoustlab.core.errors import ConfigError
+    from acoustlab.run.app import build_run
+
+    cfg = compose_cfg(["+site=frozen_lake", "features=gcc_phat", "gate=hybrid", "tracking=none"])
+    with pytest.raises(ConfigError, match=r"gate HybridGate needs the feature groups \['environment'\]"):
+        build_run(cfg)
+    build_run(compose_cfg(["+site=frozen_lake", "features=gcc_phat", "gate=bounding_box", "tracking=none"]))
+
+
+def test_shared_gcc_settings_reach_all_three_groups(compose_cfg):
+    cfg = compose_cfg(["+site=frozen_lake", "features.gcc.band_hz=[6000,10500]", "features.gcc.upsample=3"])
+    sets = build_feature_sets(cfg.features)
+    for name in ("tdoa", "xcorr", "uncertainty"):
+        assert sets[name].band_hz == (6000.0, 10500.0) and sets[name].upsample == 3, name
+
+
+def test_physics_srp_extends_physics(compose_cfg):
+    physics = compose_cfg(["+site=frozen_lake", "features=physics"]).features
+    srp = compose_cfg(["+site=frozen_lake", "features=physics_srp"]).features
+    assert list(srp.groups) == [*physics.groups, "srp"]
+    assert OmegaConf.to_container(srp.groups, resolve=True)["tdoa"] == OmegaConf.to_container(physics.groups, resolve=True)["tdoa"]
+
+
+def test_cache_keys_cover_the_code_a_plugin_imports(tmp_path, monkeypatch):
+    from acoustlab.core import imports
+    from acoustlab.stages import cache
+
+    closure = imports.import_closure("plugins.simulators.outdoor")
+    assert "acoustlab.toolkit.propagation" in closure and "acoustlab.toolkit.physics" in closure
+    before = cache.code_digest("plugins.simulators.outdoor")
+    edited = tmp_path / "propagation.py"
+    edited.write_text(imports.module_source_path("acoustlab.toolkit.propagation").read_text() + "\n# an edit\n")
+    real = imports.module_source_path
+
+    def patched(module):
+        return edited if module == "acoustlab.toolkit.propagation" else real(module)
+
+    monkeypatch.setattr(cache, "module_source_path", patched)
+    assert cache.code_digest("plugins.simulators.outdoor") != before
+
+
+def test_a_foreign_plugins_package_is_refused(monkeypatch):
+    import sys
+    import types
+
+    from acoustlab.core.errors import ConfigError
+    from acoustlab.run import registry
+
+    foreign = types.ModuleType("plugins")
+    foreign.__file__ = "/site-packages/plugins/__init__.py"
+    monkeypatch.setitem(sys.modules, "plugins", foreign)
+    registry.check_plugins_package.cache_clear()
+    try:
+        with pytest.raises(ConfigError, match="is not acoustlab's"):
+            registry.build(OmegaConf.create({"_target_": "plugins.gates.simple.SolverOnlyGate"}), "gate")
+    finally:
+        registry.check_plugins_package.cache_clear()
+
+
+def test_batch_cache_computes_once_per_key():
+    import pandas as pd
+
+    from acoustlab.core.types import EVENT_COLUMNS, RecordingBatch
+
+    events = pd.DataFrame({c: [0.0] for c in EVENT_COLUMNS})
+    batch = RecordingBatch(np.zeros((1, 3, 8), np.float32), 16000.0, events)
+    calls = []
+    assert batch.derived("k", lambda: calls.append(1) or 42) == 42
+    assert batch.derived("k", lambda: calls.append(1) or 43) == 42
+    assert len(calls) == 1

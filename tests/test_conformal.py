@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from acoustlab.conformal import conformal_quantile
+from acoustlab.toolkit.conformal import conformal_quantile
 from plugins.conformal.fixed import FixedConformal
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from acoustlab.app import run_experiment
-from acoustlab.errors import ConfigError
+from acoustlab.core.errors import ConfigError
+from acoustlab.run.app import run_experiment
 
 pytestmark = pytest.mark.slow
 
@@ -101,7 +101,7 @@ def test_interrupted_simulation_resumes_from_finished_chunks(compose_cfg, tmp_pa
 
 
 def test_no_test_position_in_training(compose_cfg, tmp_path):
-    from acoustlab.registry import build
+    from acoustlab.run.registry import build
 
     cfg = smoke(compose_cfg, tmp_path)
     protocol = build(cfg.protocol, "protocol")

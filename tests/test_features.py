@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from acoustlab.catalog import DOCS, render
-from acoustlab.dataset import extract_features
-from acoustlab.registry import build, build_feature_sets, group_options
-from acoustlab.sites import site_from_config
+from acoustlab.run.catalog import DOCS, render
+from acoustlab.run.registry import build, build_feature_sets, group_options
+from acoustlab.stages.dataset import extract_features
+from acoustlab.stages.sites import site_from_config
 
 
 @pytest.fixture(scope="module")
@@ -14,7 +14,7 @@ def clean_batches():
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from acoustlab.registry import CONF_DIR
+    from acoustlab.run.registry import CONF_DIR
 
     out = {}
     for site_name in ("frozen_lake", "forest"):
@@ -84,7 +84,7 @@ def test_feature_catalog_doc_is_current():
 
 def test_every_features_option_has_a_catalog():
     for option in group_options("features"):
-        from acoustlab.catalog import feature_catalog
+        from acoustlab.run.catalog import feature_catalog
 
         assert len(feature_catalog("frozen_lake", option)) > 3
 

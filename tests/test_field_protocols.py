@@ -4,8 +4,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from acoustlab.dataset import Dataset
-from acoustlab.protocols.field import FIELD_POSITION_OFFSET, FieldEvalProtocol, LopoProtocol, combine
+from acoustlab.method.pipeline import MethodResult
+from acoustlab.method.protocols.field import (
+    FIELD_POSITION_OFFSET,
+    FieldEvalProtocol,
+    LopoProtocol,
+    combine,
+)
+from acoustlab.stages.dataset import Dataset
 
 
 def toy(n_sim_pos=50, per=4, n_field_pos=6, per_field=10):
@@ -41,14 +47,16 @@ class SpyPipeline:
     def fit_predict(self, features, events, train, test):
         groups = events["position_id"].to_numpy()
         self.calls.append((set(groups[train]), set(groups[test])))
-        return pd.DataFrame({"event_id": events["event_id"].to_numpy()[test], "position_id": groups[test]})
+        predictions = pd.DataFrame({"event_id": events["event_id"].to_numpy()[test], "position_id": groups[test]})
+        return MethodResult(predictions, [{"gate": {"tau_star_db": float(len(self.calls))}}])
 
 
 @pytest.mark.parametrize("protocol", [FieldEvalProtocol(max_train_rows=100), LopoProtocol(field_fraction=0.3, max_train_rows=100)])
 def test_protocols_never_train_or_calibrate_on_a_withheld_position(protocol):
     sim, field = toy()
     spy = SpyPipeline()
-    out = protocol.run(sim, spy, field=field)
+    result = protocol.run(sim, spy, field_recordings=field)
+    out = result.predictions
     field_ids = {FIELD_POSITION_OFFSET + p for p in range(6)}
     for train_pos, test_pos in spy.calls:
         assert not train_pos & test_pos
@@ -58,12 +66,14 @@ def test_protocols_never_train_or_calibrate_on_a_withheld_position(protocol):
     assert set().union(*(t for _, t in spy.calls)) == field_ids  # every field position is evaluated
     assert len(spy.calls) == (1 if isinstance(protocol, FieldEvalProtocol) else 6)
     assert len(out) == len(field.events)
+    # one diagnostics entry per split, each from that split's own fitted gate
+    assert [d["gate"]["tau_star_db"] for d in result.split_diagnostics] == [float(k + 1) for k in range(len(spy.calls))]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("protocol", ["field_eval", "lopo"])
 def test_field_protocols_end_to_end(compose_cfg, tmp_path, protocol):
-    from acoustlab.app import run_experiment
+    from acoustlab.run.app import run_experiment
 
     cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", f"protocol={protocol}", "field=playback_standin",
                        "field.stimuli={europe: 3, north_america: 3}", "model.n_estimators=40", "gate=hybrid", "conformal=all", "tracking=none",
@@ -76,3 +86,8 @@ def test_field_protocols_end_to_end(compose_cfg, tmp_path, protocol):
     assert "tau_star_db" in metrics and set(metrics["coverage"]) == {"fixed", "gdop_scaled", "mondrian_gdop"}
     if protocol == "lopo":
         assert (preds["withheld_position"] == preds["position_id"]).all()
+        # τ* is chosen per fold by that fold's own gate and reported per fold (not the last fold's only)
+        by_split = metrics["gate_by_split"]
+        assert [d["split"] for d in by_split] == [f"withheld_position={p}" for p in range(6)]
+        assert metrics["tau_star_db"] == pytest.approx(np.median([d["tau_star_db"] for d in by_split]))
+        assert all(len(d["tau_grid"]) == 12 for d in by_split)

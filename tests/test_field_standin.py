@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from acoustlab.registry import build
-from acoustlab.sites import site_from_config
+from acoustlab.run.registry import build
+from acoustlab.stages.sites import site_from_config
 
 
 def small_standin(compose_cfg):

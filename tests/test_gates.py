@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from acoustlab.data import NoiseRegime, Site
+from acoustlab.core.types import NoiseRegime, Site
 from plugins.gates.hybrid import HybridGate, select_tau
 from plugins.gates.simple import ModelOnlyGate, SolverOnlyGate
 
@@ -53,7 +53,7 @@ def test_simple_gates():
 
 
 def test_hybrid_gate_without_tau_or_levels_is_explained():
-    from acoustlab.errors import DataError
+    from acoustlab.core.errors import DataError
 
     with pytest.raises(DataError, match="no τ"):
         HybridGate().decide(np.zeros((1, 2)), np.zeros((1, 2)), pd.DataFrame(index=[0]), site3())

@@ -5,8 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from acoustlab.geometry import sample_in_expanded_hull
-from acoustlab.tdoa import energy_residual_db
+from acoustlab.core.contracts import SolverInputs
+from acoustlab.toolkit.geometry import sample_in_expanded_hull
+from acoustlab.toolkit.tdoa import energy_residual_db
 from plugins.solvers.hyperbolic import HyperbolicSolver
 
 TRIANGLE = np.array([[0.0, 0.0, 1.2], [50.0, 0.0, 1.2], [24.0, 44.0, 1.2]])
@@ -24,7 +25,7 @@ def exact(mics, xy, c=340.0, height=None):
 def test_exact_with_levels_everywhere_in_the_source_region(mics):
     xy = sample_in_expanded_hull(np.random.default_rng(1), mics, 0.2, 2000)
     tdoa, levels = exact(mics, xy)
-    res = HyperbolicSolver().solve(mics, tdoa, 340.0, received_level_db=levels)
+    res = HyperbolicSolver().solve(SolverInputs(mics, tdoa, 340.0, received_level_db=levels))
     err = np.linalg.norm(res.position_m - xy, axis=1)
     assert err.max() < 1e-4
     assert np.nanmax(res.residual_m) < 1e-6 and res.converged.all()
@@ -38,7 +39,7 @@ def test_two_roots_are_reported_and_energy_picks_the_right_one():
     cand, valid = solver.roots(TRIANGLE, 340.0 * (tdoa[:, 1:] - tdoa[:, :1]), 1.2)
     two = valid.sum(1) == 2
     assert two.any(), "the constructed sources should have two roots"
-    res = solver.solve(TRIANGLE, tdoa, 340.0, received_level_db=levels)
+    res = solver.solve(SolverInputs(TRIANGLE, tdoa, 340.0, received_level_db=levels))
     np.testing.assert_allclose(res.position_m[two], xy[two], atol=1e-4)
     assert (res.diagnostics["n_roots"][two] == 2).all()
     # the energy residual is what separates them: the wrong root is inconsistent with the levels
@@ -52,7 +53,7 @@ def test_known_mic_heights_and_assumed_source_height():
     mics[:, 2] = [1.5, 3.0, 1.0, 2.5, 4.0, 1.2]
     xy = sample_in_expanded_hull(np.random.default_rng(2), mics, 0.0, 300)
     tdoa, levels = exact(mics, xy, c=343.0, height=6.0)
-    res = HyperbolicSolver(source_height_m=6.0).solve(mics, tdoa, 343.0, received_level_db=levels)
+    res = HyperbolicSolver(source_height_m=6.0).solve(SolverInputs(mics, tdoa, 343.0, received_level_db=levels))
     assert np.linalg.norm(res.position_m - xy, axis=1).max() < 1e-4
 
 
@@ -63,8 +64,8 @@ def test_translation_and_rotation_invariance(shift, angle, u, v):
     rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
     moved = HEXAGON.copy()
     moved[:, :2] = HEXAGON[:, :2] @ rot.T + np.array(shift)
-    a = HyperbolicSolver().solve(HEXAGON, exact(HEXAGON, xy[None])[0], 343.0).position_m
-    b = HyperbolicSolver().solve(moved, exact(moved, (xy @ rot.T + np.array(shift))[None])[0], 343.0).position_m
+    a = HyperbolicSolver().solve(SolverInputs(HEXAGON, exact(HEXAGON, xy[None])[0], 343.0)).position_m
+    b = HyperbolicSolver().solve(SolverInputs(moved, exact(moved, (xy @ rot.T + np.array(shift))[None])[0], 343.0)).position_m
     np.testing.assert_allclose(b, a @ rot.T + np.array(shift), atol=1e-5)
 
 
@@ -72,21 +73,21 @@ def test_speed_of_sound_per_event_and_nan_tdoas():
     xy = np.array([[20.0, 10.0], [30.0, 15.0]])
     c = np.array([330.0, 345.0])
     tdoa = np.vstack([exact(TRIANGLE, xy[k : k + 1], c[k])[0] for k in range(2)])
-    res = HyperbolicSolver().solve(TRIANGLE, tdoa, c)
+    res = HyperbolicSolver().solve(SolverInputs(TRIANGLE, tdoa, c))
     np.testing.assert_allclose(res.position_m, xy, atol=1e-5)
-    bad = HyperbolicSolver().solve(TRIANGLE, np.array([[0.0, np.nan, 0.01]]), 340.0)
+    bad = HyperbolicSolver().solve(SolverInputs(TRIANGLE, np.array([[0.0, np.nan, 0.01]]), 340.0))
     assert np.isnan(bad.position_m).all() and not bad.converged[0]
 
 
 def test_input_shapes_are_checked():
     with pytest.raises(ValueError, match=r"tdoa_s must be \(B, 3\)"):
-        HyperbolicSolver().solve(TRIANGLE, np.zeros((2, 4)), 340.0)
+        HyperbolicSolver().solve(SolverInputs(TRIANGLE, np.zeros((2, 4)), 340.0))
     with pytest.raises(ValueError, match="mic_positions_m"):
-        HyperbolicSolver().solve(TRIANGLE[:2], np.zeros((2, 2)), 340.0)
+        HyperbolicSolver().solve(SolverInputs(TRIANGLE[:2], np.zeros((2, 2)), 340.0))
 
 
 def test_crb_scales_with_snr_bandwidth_and_geometry():
-    from acoustlab.geometry import gdop, position_crb_m, tdoa_crb_s
+    from acoustlab.toolkit.geometry import gdop, position_crb_m, tdoa_crb_s
 
     base = tdoa_crb_s(20.0, 3000.0, 0.1, 2000.0)
     assert tdoa_crb_s(40.0, 3000.0, 0.1, 2000.0) == pytest.approx(base / 10)  # 20 dB more SNR: σ / 10
@@ -110,7 +111,7 @@ def test_robust_solver_recovers_when_the_true_lag_is_a_lower_candidate():
     keep = rng.random(true.shape) < 0.5  # half the pairs have the right dominant peak
     cands[keep, 0], cands[keep, 1] = true[keep], cands[keep, 0].copy()
     tdoa = np.column_stack([np.zeros(len(xy)), cands[:, [pairs.index((0, j)) for j in range(1, 6)], 0]])
-    robust = ConsistentCandidatesSolver(source_height_m=1.5).solve(HEXAGON, tdoa, 340.0, pair_lag_candidates_s=cands)
-    plain = HyperbolicSolver(source_height_m=1.5).solve(HEXAGON, tdoa, 340.0)
+    robust = ConsistentCandidatesSolver(source_height_m=1.5).solve(SolverInputs(HEXAGON, tdoa, 340.0, pair_lag_candidates_s=cands))
+    plain = HyperbolicSolver(source_height_m=1.5).solve(SolverInputs(HEXAGON, tdoa, 340.0))
     assert np.percentile(np.linalg.norm(robust.position_m - xy, axis=1), 95) < 1e-3
     assert np.percentile(np.linalg.norm(plain.position_m - xy, axis=1), 50) > 1.0

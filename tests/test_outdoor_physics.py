@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import scipy.fft as sfft
 
-from acoustlab.data import NoiseRegime, Site
-from acoustlab.physics import speed_of_sound_m_s
-from acoustlab.propagation import (
+from acoustlab.core.types import NoiseRegime, Site
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.propagation import (
     cylinder_scattering_table,
     ground_impedance,
     spherical_reflection_coefficient,

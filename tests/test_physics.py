@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from acoustlab.physics import air_absorption_db_per_m, speed_of_sound_m_s
+from acoustlab.toolkit.physics import air_absorption_db_per_m, speed_of_sound_m_s
 
 FREQS = [500, 1000, 2000, 4000, 8000, 12000]
 # ISO 9613-1 reference values (dB/km), as tabulated in the project's physics notes.

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from acoustlab.errors import ConfigError, DataError
-from acoustlab.preflight import check_argv
-from acoustlab.registry import build
-from acoustlab.sites import site_from_config
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.run.preflight import check_argv
+from acoustlab.run.registry import build
+from acoustlab.stages.sites import site_from_config
 
 
 def test_missing_site_names_the_fix():
@@ -42,7 +42,7 @@ def test_cli_without_site_fails_in_one_line(run_cli):
 def test_cli_unknown_option_fails_in_one_line(run_cli):
     proc = run_cli("+site=frozen_lake", "model=nope")
     assert proc.returncode == 2
-    from acoustlab.registry import group_options
+    from acoustlab.run.registry import group_options
 
     assert proc.stderr.strip().count("\n") == 0 and f"available: {', '.join(group_options('model'))}" in proc.stderr
 
@@ -129,7 +129,7 @@ def test_site_from_csv_files(tmp_path, compose_cfg):
 
 
 def test_unreadable_noise_recording_names_the_file(tmp_path, compose_cfg):
-    from acoustlab.audio import load_mono
+    from acoustlab.toolkit.audio import load_mono
 
     bad = tmp_path / "broken.flac"
     bad.write_bytes(b"not audio at all")

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from acoustlab.signal import coloured_noise, delay_and_scale, gcc, parabolic_peak
+from acoustlab.toolkit.dsp import coloured_noise, delay_and_scale, gcc, parabolic_peak
 from plugins.simulators.free_field import synthetic_chirp
 
 FS = 16000.0

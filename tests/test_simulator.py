@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from acoustlab.registry import build
-from acoustlab.sites import site_from_config
+from acoustlab.run.registry import build
+from acoustlab.stages.sites import site_from_config
 from plugins.features.gcc_phat import GccPhatTdoa, tdoa_column
 
 
@@ -67,7 +67,7 @@ def test_snr_at_the_nearest_mic(sim_and_site):
 
 
 def test_sources_lie_in_the_expanded_hull(sim_and_site):
-    from acoustlab.geometry import distance_to_polygon_m, source_region
+    from acoustlab.toolkit.geometry import distance_to_polygon_m, source_region
 
     sim, site = sim_and_site()
     batch = sim.simulate(site, np.arange(40), np.arange(40), seed=0)

@@ -5,7 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from acoustlab.geometry import gdop, sample_in_expanded_hull
+from acoustlab.core.contracts import SolverInputs
+from acoustlab.toolkit.geometry import gdop, sample_in_expanded_hull
 from plugins.solvers.least_squares import LeastSquaresSolver
 
 TRIANGLE = np.array([[0.0, 0.0, 1.2], [50.0, 0.0, 1.2], [24.0, 44.0, 1.2]])
@@ -22,7 +23,7 @@ def test_noise_free_tdoas_give_the_exact_position_inside_the_hull(mics):
     rng = np.random.default_rng(0)
     xy = sample_in_expanded_hull(rng, mics, 0.0, 300)
     src = np.column_stack([xy, np.full(len(xy), mics[0, 2])])
-    res = LeastSquaresSolver().solve(mics, exact_tdoa(mics, src, 340.0), 340.0)
+    res = LeastSquaresSolver().solve(SolverInputs(mics, exact_tdoa(mics, src, 340.0), 340.0))
     err = np.linalg.norm(res.position_m - xy, axis=1)
     assert np.percentile(err, 99) < 1e-6
     assert res.converged.mean() > 0.99
@@ -48,14 +49,14 @@ def test_solver_is_invariant_to_translation_and_rotation(shift, angle, u, v):
     moved_src = src.copy()
     moved_src[:, :2] = src[:, :2] @ rot.T + np.array(shift)
     solver = LeastSquaresSolver()
-    a = solver.solve(mics, exact_tdoa(mics, src, 343.0), 343.0).position_m
-    b = solver.solve(moved, exact_tdoa(moved, moved_src, 343.0), 343.0).position_m
+    a = solver.solve(SolverInputs(mics, exact_tdoa(mics, src, 343.0), 343.0)).position_m
+    b = solver.solve(SolverInputs(moved, exact_tdoa(moved, moved_src, 343.0), 343.0)).position_m
     np.testing.assert_allclose(b, a @ rot.T + np.array(shift), atol=1e-5)
 
 
 def test_non_finite_tdoas_give_nan_not_garbage():
     tdoa = np.array([[0.0, np.nan, 0.01]])
-    res = LeastSquaresSolver().solve(TRIANGLE, tdoa, 340.0)
+    res = LeastSquaresSolver().solve(SolverInputs(TRIANGLE, tdoa, 340.0))
     assert np.isnan(res.position_m).all() and not res.converged[0]
 
 

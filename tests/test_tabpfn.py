@@ -11,7 +11,7 @@ import pytest
 tabpfn = pytest.importorskip("tabpfn", reason='TabPFN is an optional extra: pip install -e ".[tabpfn]"')
 torch = pytest.importorskip("torch")
 
-from acoustlab.errors import ConfigError  # noqa: E402
+from acoustlab.core.errors import ConfigError  # noqa: E402
 from plugins.models.tabpfn_models import TabPFNErrorModel, TabPFNPointModel  # noqa: E402
 
 
@@ -60,7 +60,7 @@ def test_missing_weights_give_one_clear_message(tmp_path):
 
 @pytest.mark.slow
 def test_smoke_run_with_tabpfn_point_and_error_models(tiny_checkpoint, compose_cfg, tmp_path):
-    from acoustlab.app import run_experiment
+    from acoustlab.run.app import run_experiment
 
     cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", "model=tabpfn", "error_model=tabpfn", "tracking=none",
                        f"model.model_path={tiny_checkpoint}", f"error_model.model_path={tiny_checkpoint}",
@@ -71,7 +71,7 @@ def test_smoke_run_with_tabpfn_point_and_error_models(tiny_checkpoint, compose_c
 
 
 def test_preflight_stops_a_run_before_simulation(compose_cfg, tmp_path):
-    from acoustlab.app import run_experiment
+    from acoustlab.run.app import run_experiment
 
     cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", "model=tabpfn", f"model.model_path={tmp_path / 'none.ckpt'}",
                        "tracking=none", f"paths.outputs_dir={tmp_path}"])

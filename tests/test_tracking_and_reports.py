@@ -18,8 +18,10 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from acoustlab import report, tracking
-from acoustlab.app import run_experiment
+from acoustlab.reporting import report
+from acoustlab.reporting.experiment_log import PENDING_FILE
+from acoustlab.run import upload
+from acoustlab.run.app import run_experiment
 
 pytestmark = pytest.mark.slow
 SMALL = ["+site=frozen_lake", "+experiment=smoke", "model.n_estimators=20"]
@@ -63,9 +65,9 @@ def test_parallel_sweep_on_a_cold_cache_has_a_parent_run_children_and_a_report(r
 
 def test_a_failed_job_keeps_the_others_and_marks_the_parent_failed(run_cli, tmp_path):
     out = tmp_path / "outputs"
-    proc = run_cli("-m", *SMALL, "pipeline.model_target=sideways,absolute", "hydra.callbacks.sweep_tracking.preflight=false", outputs=out)
+    proc = run_cli("-m", *SMALL, "conformal.levels=[1.5],[0.8]", "hydra.callbacks.sweep_tracking.preflight=false", outputs=out)
     assert proc.returncode != 0
-    assert "pipeline.model_target must be 'absolute' or 'correction'; got 'sideways'" in proc.stderr
+    assert "conformal.levels must lie in (0, 1); got 1.5" in proc.stderr
     finished = list(out.glob("multirun/*/*/*/metrics.json"))
     assert [p.parent.name for p in finished] == ["1"]  # the valid job after the failed one ran and kept its results
     parent = next(r for r in runs_in(out / "mlflow.db") if r.data.tags.get("acoustlab.sweep") == "parent")
@@ -81,7 +83,7 @@ def test_sweep_preflight_stops_before_any_job_and_names_the_failing_ones(run_cli
     # Hydra's order: the product of the overrides, the last one varying fastest
     assert [e.split(" ")[3] for e in errors] == ["#1", "#2", "#3"]
     assert "pipeline.model_target=absolute conformal.levels=[0.8,1.5]" in errors[0] and "conformal.levels must lie in (0, 1); got 1.5" in errors[0]
-    assert "got 'sideways'" in errors[1]
+    assert "Invalid value 'sideways', expected one of [absolute, correction]" in errors[1]  # the typed schema
     assert "3 of 4 sweep jobs would fail; nothing was run" in proc.stderr
     assert not list(out.glob("multirun/*/*/*/metrics.json")) and not (out / "mlflow.db").exists()
 
@@ -109,18 +111,18 @@ def test_unreachable_server_loses_nothing_and_the_run_uploads_later(compose_cfg,
         assert (run_dir / name).exists(), name
     warning = next(r.message for r in caplog.records if "tracking failed" in r.message)
     assert f"python -m acoustlab.upload {run_dir}" in warning and "http://127.0.0.1:9" in warning
-    assert json.loads((run_dir / tracking.PENDING_FILE).read_text())["destination"] == "http://127.0.0.1:9"
+    assert json.loads((run_dir / PENDING_FILE).read_text())["destination"] == "http://127.0.0.1:9"
 
     store = tmp_path / "later.db"
-    assert tracking.main([str(tmp_path), "--only-pending", "--tracking-uri", f"sqlite:///{store}"]) == 0
-    assert not (run_dir / tracking.PENDING_FILE).exists()
+    assert upload.main([str(tmp_path), "--only-pending", "--tracking-uri", f"sqlite:///{store}"]) == 0
+    assert not (run_dir / PENDING_FILE).exists()
     (uploaded,) = runs_in(store)
     assert uploaded.data.metrics["error.gate.p50"] == pytest.approx(metrics["errors"]["gate"]["p50"])
     assert uploaded.data.params["data.n_events"] == "120" and uploaded.data.tags["dataset_hash"] == metrics["dataset_hash"]
 
 
 def test_upload_of_a_folder_without_runs_is_a_clear_error(tmp_path, capsys):
-    assert tracking.main([str(tmp_path)]) == 2
+    assert upload.main([str(tmp_path)]) == 2
     assert "no run directories" in capsys.readouterr().err
 
 

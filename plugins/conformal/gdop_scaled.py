@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from acoustlab.conformal import conformal_quantile
+from acoustlab.toolkit.conformal import conformal_quantile
 
 
 class GdopScaledConformal:

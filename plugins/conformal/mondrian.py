@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from acoustlab.conformal import conformal_quantile
-from acoustlab.errors import ConfigError
+from acoustlab.core.errors import ConfigError
+from acoustlab.toolkit.conformal import conformal_quantile
 
 
 class MondrianGdopConformal:

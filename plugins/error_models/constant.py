@@ -8,7 +8,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.utils.validation import check_is_fitted
 
-from acoustlab.errors import ConfigError
+from acoustlab.core.errors import ConfigError
 
 
 class ConstantErrorModel(RegressorMixin, BaseEstimator):

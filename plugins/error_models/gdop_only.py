@@ -8,7 +8,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.utils.validation import check_is_fitted
 
-from acoustlab.errors import DataError
+from acoustlab.core.errors import DataError
 
 
 class GdopOnlyErrorModel(RegressorMixin, BaseEstimator):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from acoustlab.data import RecordingBatch, Site
-from acoustlab.physics import speed_of_sound_m_s
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 FRAME_S = 0.01
 

@@ -2,37 +2,58 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from acoustlab.candidates import pair_candidates
-from acoustlab.data import RecordingBatch, Site
-from acoustlab.errors import ConfigError
+from acoustlab.core import columns as col
+from acoustlab.core.errors import ConfigError
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.gcc_candidates import pair_candidates
 
 
 class _GccGroup:
-    """Shared parameters of the GCC groups (one GCC per batch is computed and memoised)."""
+    """Shared GCC settings of the ``tdoa``, ``xcorr`` and ``uncertainty`` groups.
+
+    The settings come as one mapping ``gcc`` (``features.gcc`` in the config, so the three groups
+    cannot drift apart) and/or as keyword arguments, which take precedence. The GCC itself is
+    computed once per batch and kept in the batch's cache (:meth:`RecordingBatch.derived`).
+
+    Parameters
+    ----------
+    gcc : mapping, optional
+        Any of the keyword arguments below.
+    n_candidates : int
+        GCC peaks kept per mic pair.
+    max_lag_margin_s : float
+        Lag window margin, s, beyond mic distance over the fastest sound speed.
+    weighting : {"phat", "none"}
+        Cross-spectrum weighting.
+    upsample : int
+        Correlation upsampling before parabolic peak refinement.
+    band_hz : (float, float), optional
+        Band the cross-spectrum is limited to, Hz.
+    """
 
     cache_version = "1"
+    DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "phat", "upsample": 4, "band_hz": (300.0, 10000.0)}
 
-    def __init__(
-        self,
-        n_candidates: int = 3,
-        max_lag_margin_s: float = 0.002,
-        weighting: str = "phat",
-        upsample: int = 4,
-        band_hz: Sequence[float] | None = (300.0, 10000.0),
-    ) -> None:
+    def __init__(self, gcc: Mapping[str, Any] | None = None, **settings: Any) -> None:
+        unknown = sorted((set(gcc or {}) | set(settings)) - set(self.DEFAULTS))
+        if unknown:
+            raise ConfigError(f"features: unknown GCC settings {unknown}; expected some of {sorted(self.DEFAULTS)}")
+        params = {**self.DEFAULTS, **(gcc or {}), **settings}
+        n_candidates, weighting, band_hz = params["n_candidates"], params["weighting"], params["band_hz"]
         if n_candidates < 1:
             raise ConfigError(f"features: n_candidates must be >= 1; got {n_candidates}")
         if weighting not in ("phat", "none"):
             raise ConfigError(f"features: weighting must be 'phat' or 'none'; got {weighting!r}")
         self.n_candidates = int(n_candidates)
-        self.max_lag_margin_s = float(max_lag_margin_s)
+        self.max_lag_margin_s = float(params["max_lag_margin_s"])
         self.weighting = weighting
-        self.upsample = int(upsample)
+        self.upsample = int(params["upsample"])
         # PHAT whitens every bin it is given: bins without signal (e.g. above the 11 kHz content
         # of recordings made at 22 kHz) then produce spurious peaks, so restrict it to the calls' band.
         self.band_hz = None if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
@@ -51,8 +72,7 @@ class TdoaCandidates(_GccGroup):
         rows = []
         for i, j in site.mic_pairs:
             for k in range(self.n_candidates):
-                suffix = "" if k == 0 else f"_c{k + 1}"
-                rows.append((f"tdoa__lag_{i}_{j}{suffix}_s", "s", f"lag t_{j} − t_{i} of GCC peak rank {k + 1} within the pair's lag window"))
+                rows.append((col.tdoa_lag(i, j, k + 1), "s", f"lag t_{j} − t_{i} of GCC peak rank {k + 1} within the pair's lag window"))
         return rows
 
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
@@ -66,8 +86,8 @@ class XcorrConfidence(_GccGroup):
 
     group = "xcorr"
 
-    def __init__(self, extra_bands_hz: Sequence[Sequence[float]] = ((1000.0, 4000.0),), **kwargs) -> None:
-        super().__init__(**kwargs)
+    def __init__(self, gcc: Mapping[str, Any] | None = None, extra_bands_hz: Sequence[Sequence[float]] = ((1000.0, 4000.0),), **settings: Any) -> None:
+        super().__init__(gcc, **settings)
         self.extra_bands_hz = [(float(lo), float(hi)) for lo, hi in extra_bands_hz]
 
     def catalog(self, site: Site) -> list[tuple[str, str, str]]:

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from acoustlab.data import RecordingBatch, Site
-from acoustlab.errors import ConfigError
-from acoustlab.physics import speed_of_sound_m_s
-from acoustlab.signal import gcc, parabolic_peak
+from acoustlab.core.errors import ConfigError
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.dsp import gcc, parabolic_peak
+from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 
 def tdoa_column(i: int, j: int) -> str:

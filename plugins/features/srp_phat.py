@@ -12,10 +12,10 @@ import numpy as np
 import pandas as pd
 from scipy.ndimage import maximum_filter1d
 
-from acoustlab.data import RecordingBatch, Site
-from acoustlab.geometry import bounding_box
-from acoustlab.physics import speed_of_sound_m_s
-from acoustlab.signal import gcc
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.dsp import gcc
+from acoustlab.toolkit.geometry import bounding_box
+from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 
 def _steered_power(cc: np.ndarray, lag0_s: float, step_s: float, grid: np.ndarray, mics: np.ndarray, pairs, height: float, c: np.ndarray) -> np.ndarray:

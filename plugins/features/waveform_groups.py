@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import scipy.signal as ss
 
-from acoustlab.candidates import lag_windows_s
-from acoustlab.data import RecordingBatch, Site
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.gcc_candidates import lag_windows_s
 
 FRAME_S = 0.005
 

@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from acoustlab.calls import Call, CallPool, catalog, synthetic_call
-from acoustlab.data import RecordingBatch, Site
-from acoustlab.errors import ConfigError
-from acoustlab.geometry import sample_in_expanded_hull
+from acoustlab.core.errors import ConfigError
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.calls import Call, CallPool, catalog, synthetic_call
+from acoustlab.toolkit.geometry import sample_in_expanded_hull
 from plugins.simulators.outdoor import OutdoorSimulator
 
 _POSITIONS_STREAM = 10
@@ -57,7 +57,7 @@ def build_stimuli(rng: np.random.Generator, sample_rate_hz: float, region: str, 
 
 
 class PlaybackStandIn:
-    """Field-playback stand-in (a :class:`acoustlab.interfaces.FieldSource`).
+    """Field-playback stand-in (a :class:`acoustlab.core.contracts.FieldSource`).
 
     Parameters
     ----------

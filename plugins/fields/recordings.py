@@ -20,14 +20,13 @@ Unknown true positions are NaN; events without a ``position_id`` each get their 
 
 from __future__ import annotations
 
-
 import numpy as np
 import pandas as pd
 
-from acoustlab.audio import load_mono
-from acoustlab.data import RecordingBatch, Site
-from acoustlab.errors import ConfigError, DataError
-from acoustlab.sites import resolve_path
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.resources import resolve_path
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.audio import load_mono
 
 
 def _read(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataFrame:
@@ -117,7 +116,7 @@ class RecordingFolder:
         return self.tables()[0][["x_m", "y_m", "z_m"]].to_numpy(float)
 
     def load(self, site: Site) -> RecordingBatch:
-        """Cut every event from the recordings; see :class:`acoustlab.interfaces.FieldSource`."""
+        """Cut every event from the recordings; see :class:`acoustlab.core.contracts.FieldSource`."""
         mics, events = self.tables()
         positions = mics[["x_m", "y_m", "z_m"]].to_numpy(float)
         if positions.shape != site.mic_positions_m.shape or not np.allclose(positions, site.mic_positions_m, atol=1e-3):
@@ -161,9 +160,10 @@ class RecordingFolder:
         return RecordingBatch(audio=audio, sample_rate_hz=fs, events=rows)
 
     def _multichannel(self, file: str, channel: int) -> np.ndarray:
+        from fractions import Fraction
+
         import soundfile as sf
         from scipy.signal import resample_poly
-        from fractions import Fraction
 
         path = resolve_path(self.audio_dir) / str(file)
         try:

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from acoustlab.data import Site
-from acoustlab.geometry import bounding_box
-from acoustlab.interfaces import GateDecision
+from acoustlab.core.contracts import GateDecision, StatelessGate
+from acoustlab.core.types import Site
+from acoustlab.toolkit.geometry import bounding_box
 
 
-class BoundingBoxGate:
+class BoundingBoxGate(StatelessGate):
     """Substitute the point model's estimate where the solver's is outside the box or not finite.
 
     Parameters
@@ -26,7 +26,7 @@ class BoundingBoxGate:
     def decide(
         self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site
     ) -> GateDecision:
-        """See :class:`acoustlab.interfaces.Gate`."""
+        """See :class:`acoustlab.core.contracts.Gate`."""
         low, high = bounding_box(site.mic_positions_m, self.margin_fraction)
         finite = np.isfinite(solver_position_m).all(axis=1)
         inside = finite & (solver_position_m >= low).all(axis=1) & (solver_position_m <= high).all(axis=1)

@@ -18,11 +18,12 @@ import logging
 import numpy as np
 import pandas as pd
 
-from acoustlab.data import Site
-from acoustlab.errors import ConfigError, DataError
-from acoustlab.geometry import bounding_box
-from acoustlab.interfaces import GateDecision
-from acoustlab.tdoa import energy_residual_db
+from acoustlab.core import columns as col
+from acoustlab.core.contracts import GateDecision
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.types import Site
+from acoustlab.toolkit.geometry import bounding_box
+from acoustlab.toolkit.tdoa import energy_residual_db
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +78,8 @@ class HybridGate:
         The selection rule (≥ 3× lower p99, ≤ 20 % higher median by default).
     """
 
+    required_feature_groups = ("environment",)
+
     def __init__(self, margin_fraction: float = 0.25, tau_db: float | None = None, tau_grid_db=(1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30),
                  p99_factor: float = 3.0, p50_tolerance: float = 0.2) -> None:
         self.margin_fraction = float(margin_fraction)
@@ -86,23 +89,29 @@ class HybridGate:
             raise ConfigError("gate.tau_grid_db is empty")
         self.p99_factor = float(p99_factor)
         self.p50_tolerance = float(p50_tolerance)
-        self.tau_grid_: pd.DataFrame | None = None
 
     @staticmethod
     def _energy(features: pd.DataFrame, site: Site, position_m: np.ndarray) -> np.ndarray:
-        cols = [f"environment__level_{m}_db" for m in range(site.n_mics)]
+        cols = [col.level_db(m) for m in range(site.n_mics)]
         missing = [c for c in cols if c not in features.columns]
         if missing:
             raise DataError(f"the hybrid gate needs the 'environment' feature group (received levels); missing {missing[:2]}")
-        height = features["solver__source_height_m"].to_numpy(float) if "solver__source_height_m" in features else np.mean(site.source_height_range_m)
+        height = features[col.SOLVER_SOURCE_HEIGHT].to_numpy(float) if col.SOLVER_SOURCE_HEIGHT in features else np.mean(site.source_height_range_m)
         return energy_residual_db(features[cols].to_numpy(float), site.mic_positions_m, position_m, height)
 
     def _inside(self, position_m: np.ndarray, site: Site) -> np.ndarray:
         low, high = bounding_box(site.mic_positions_m, self.margin_fraction)
         return np.isfinite(position_m).all(1) & (position_m >= low).all(1) & (position_m <= high).all(1)
 
-    def select_threshold(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray) -> float:
-        """Choose τ* on simulated (training) events with known positions; store ``tau_`` and ``tau_grid_``."""
+    def fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray) -> HybridGate:
+        """Choose τ* on training events with known positions (unless ``tau_db`` is fixed); return self.
+
+        Stores ``tau_`` (dB), ``tau_grid_`` (the rule's table) and ``tau_rule_met_``.
+        """
+        if self.tau_db is not None:
+            self.tau_, self.tau_grid_, self.tau_rule_met_ = self.tau_db, None, None
+            return self
+
         def err(p):
             e = np.sqrt(((p - truth_m[:, :2]) ** 2).sum(1))
             return np.where(np.isfinite(e), e, 1e9)
@@ -117,13 +126,22 @@ class HybridGate:
         if not met:
             log.warning("no τ on the grid gives %.0f× lower p99 within +%.0f %% median; using τ=%.3g dB", self.p99_factor, 100 * self.p50_tolerance, tau)
         log.info("τ* = %.3g dB (rule met: %s)", tau, met)
-        return tau
+        return self
+
+    def diagnostics(self) -> dict:
+        """``tau_star_db`` and, when τ* was chosen by the rule, ``tau_rule_met`` and ``tau_grid`` (records)."""
+        if getattr(self, "tau_", None) is None:
+            return {}
+        if self.tau_grid_ is None:
+            return {"tau_star_db": float(self.tau_)}
+        return {"tau_star_db": float(self.tau_), "tau_rule_met": bool(self.tau_rule_met_), "tau_grid": self.tau_grid_.to_dict(orient="records")}
+
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
-        """See :class:`acoustlab.interfaces.Gate`."""
+        """See :class:`acoustlab.core.contracts.Gate`."""
         tau = self.tau_db if self.tau_db is not None else getattr(self, "tau_", None)
         if tau is None:
-            raise DataError("the hybrid gate has no τ: set gate.tau_db or let the pipeline select τ* on simulation first")
+            raise DataError("the hybrid gate has no τ: set gate.tau_db or fit the gate on simulated events first")
         inside = self._inside(solver_position_m, site)
         energy = np.nan_to_num(self._energy(features, site, np.nan_to_num(solver_position_m)), nan=np.inf)
         keep = inside & (energy <= tau)

@@ -16,7 +16,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.utils.validation import check_is_fitted
 
-from acoustlab.errors import ConfigError
+from acoustlab.core.errors import ConfigError
 
 WEIGHTS_HELP = (
     "TabPFN weights not found at {path}. Download them once on a machine with internet: "

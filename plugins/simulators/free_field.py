@@ -14,12 +14,12 @@ import numpy as np
 import pandas as pd
 import scipy.signal as ss
 
-from acoustlab.data import RecordingBatch, Site, require_range
-from acoustlab.errors import ConfigError
-from acoustlab.geometry import sample_in_expanded_hull, source_region
-from acoustlab.physics import speed_of_sound_m_s
-from acoustlab.signal import delay_and_scale
-from acoustlab.simulation import noise_matrix
+from acoustlab.core.errors import ConfigError
+from acoustlab.core.types import RecordingBatch, Site, require_range
+from acoustlab.toolkit.dsp import delay_and_scale
+from acoustlab.toolkit.geometry import sample_in_expanded_hull, source_region
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.scene_sampling import noise_matrix
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +124,7 @@ class FreeFieldSimulator:
                 )
 
     def simulate(self, site: Site, event_ids: np.ndarray, position_ids: np.ndarray, seed: int) -> RecordingBatch:
-        """Render events; see :class:`acoustlab.interfaces.Simulator`."""
+        """Render events; see :class:`acoustlab.core.contracts.Simulator`."""
         event_ids = np.asarray(event_ids, dtype=np.int64)
         position_ids = np.asarray(position_ids, dtype=np.int64)
         n_samples = int(round(self.duration_s * self.sample_rate_hz))

@@ -19,21 +19,28 @@ sampled SNR at the nearest mic.
 from __future__ import annotations
 
 import logging
-from functools import lru_cache
 from collections.abc import Mapping, Sequence
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 import pandas as pd
 import scipy.fft as sfft
 
-from acoustlab.calls import CallPool
-from acoustlab.data import RecordingBatch, Site, require_range
-from acoustlab.errors import ConfigError
-from acoustlab.geometry import source_region
-from acoustlab.impairments import FAILURE_MODES, INTERFERENCE_KINDS, ImpairmentConfig, add_interference, fail_channel
-from acoustlab.physics import air_absorption_db_per_m, speed_of_sound_m_s
-from acoustlab.propagation import (
+from acoustlab.core.errors import ConfigError
+from acoustlab.core.types import RecordingBatch, Site, require_range
+from acoustlab.toolkit.calls import CallPool
+from acoustlab.toolkit.dsp import next_fast_len
+from acoustlab.toolkit.geometry import source_region
+from acoustlab.toolkit.impairments import (
+    FAILURE_MODES,
+    INTERFERENCE_KINDS,
+    ImpairmentConfig,
+    add_interference,
+    fail_channel,
+)
+from acoustlab.toolkit.physics import air_absorption_db_per_m, speed_of_sound_m_s
+from acoustlab.toolkit.propagation import (
     cylinder_scattering_magnitude,
     ground_impedance,
     occlusion_attenuation_db,
@@ -42,8 +49,13 @@ from acoustlab.propagation import (
     to_fft_convention,
     trunk_detour_m,
 )
-from acoustlab.signal import next_fast_len
-from acoustlab.simulation import draw_source, draw_weather, event_rng, noise_matrix, noise_std_for_snr
+from acoustlab.toolkit.scene_sampling import (
+    draw_source,
+    draw_weather,
+    event_rng,
+    noise_matrix,
+    noise_std_for_snr,
+)
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +127,7 @@ class OutdoorSimulator:
     diffuse_noise_fraction : float
         Fraction of the noise power shared by all mics.
     impairments : mapping
-        :class:`acoustlab.impairments.ImpairmentConfig` fields (all off by default).
+        :class:`acoustlab.toolkit.impairments.ImpairmentConfig` fields (all off by default).
     perturbation : mapping
         Mismatch knobs for field stand-ins: ``flow_resistivity_factor`` and ``absorption_factor``.
     """
@@ -407,7 +419,7 @@ class OutdoorSimulator:
             (3,) source position in m.
         rng : numpy.random.Generator
             The event's generator (weather, SNR, noise, call when ``call`` is None, impairments).
-        call : acoustlab.calls.Call, optional
+        call : acoustlab.toolkit.calls.Call, optional
             A fixed stimulus; drawn from the site's pool when None.
         snr_offset_db : float
             Added to the drawn SNR (e.g. a quieter playback setting).
@@ -471,7 +483,7 @@ class OutdoorSimulator:
         return rec.astype(np.float32), row
 
     def simulate(self, site: Site, event_ids: np.ndarray, position_ids: np.ndarray, seed: int) -> RecordingBatch:
-        """Render events; see :class:`acoustlab.interfaces.Simulator`."""
+        """Render events; see :class:`acoustlab.core.contracts.Simulator`."""
         event_ids = np.asarray(event_ids, dtype=np.int64)
         position_ids = np.asarray(position_ids, dtype=np.int64)
         _, n_out, _, _, _ = self._audio_setup(site)

@@ -14,10 +14,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from acoustlab.errors import ConfigError
-from acoustlab.geometry import bounding_box, gdop
-from acoustlab.interfaces import SolverResult
-from acoustlab.tdoa import energy_residual_db, levenberg_marquardt, range_residuals, solver_inputs
+from acoustlab.core.contracts import SolverInputs, SolverResult
+from acoustlab.core.errors import ConfigError
+from acoustlab.toolkit.geometry import bounding_box, gdop
+from acoustlab.toolkit.tdoa import (
+    energy_residual_db,
+    levenberg_marquardt,
+    range_residuals,
+    solver_inputs,
+)
 
 
 class HyperbolicSolver:
@@ -26,8 +31,8 @@ class HyperbolicSolver:
     Parameters
     ----------
     source_height_m : float, optional
-        Assumed source height in m; None uses the mean mic height (the app passes the site's mid
-        source height when this is left None).
+        Assumed source height in m; None uses ``SolverInputs.source_height_m`` (the site's mid
+        source height), else the mean mic height.
     box_margin_fraction : float
         Plausibility box: the mics' bounding box grown by this fraction of the array extent.
     residual_tie_m : float
@@ -37,6 +42,7 @@ class HyperbolicSolver:
     """
 
     cache_version = "1"
+    required_feature_groups = ("tdoa",)
 
     def __init__(self, source_height_m: float | None = None, box_margin_fraction: float = 0.25, residual_tie_m: float = 0.05, n_iterations: int = 30) -> None:
         if n_iterations < 0:
@@ -78,17 +84,11 @@ class HyperbolicSolver:
         valid[:, 1] &= ~same
         return cand, valid
 
-    def solve(
-        self,
-        mic_positions_m: np.ndarray,
-        tdoa_s: np.ndarray,
-        speed_of_sound_m_s: float | np.ndarray,
-        received_level_db: np.ndarray | None = None,
-    ) -> SolverResult:
-        """See :class:`acoustlab.interfaces.Solver`; ``received_level_db`` (B, M) enables energy disambiguation."""
-        mics, tdoa, c = solver_inputs(mic_positions_m, tdoa_s, speed_of_sound_m_s)
+    def solve(self, inputs: SolverInputs) -> SolverResult:
+        """See :class:`acoustlab.core.contracts.Solver`; ``inputs.received_level_db`` enables energy disambiguation."""
+        mics, tdoa, c, height = solver_inputs(inputs, self.source_height_m)
+        received_level_db = inputs.received_level_db
         bsz = tdoa.shape[0]
-        height = mics[:, 2].mean() if self.source_height_m is None else float(self.source_height_m)
         finite = np.isfinite(tdoa).all(axis=1) & np.isfinite(c)
         rd = np.where(finite[:, None], c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]), 0.0)
         cand, valid = self.roots(mics, rd, height)

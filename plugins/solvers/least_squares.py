@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from acoustlab.errors import ConfigError
-from acoustlab.geometry import gdop
-from acoustlab.interfaces import SolverResult
-from acoustlab.tdoa import levenberg_marquardt, solver_inputs
+from acoustlab.core.contracts import SolverInputs, SolverResult
+from acoustlab.core.errors import ConfigError
+from acoustlab.toolkit.geometry import gdop
+from acoustlab.toolkit.tdoa import levenberg_marquardt, solver_inputs
 
 
 class LeastSquaresSolver:
@@ -24,8 +24,8 @@ class LeastSquaresSolver:
     Parameters
     ----------
     source_height_m : float, optional
-        Assumed source height in m; None uses the mean mic height (the app passes the site's
-        mid source height when this is left None).
+        Assumed source height in m; None uses ``SolverInputs.source_height_m`` (the site's mid
+        source height), else the mean mic height.
     n_iterations : int
         Levenberg–Marquardt iterations.
     tolerance_m : float
@@ -35,6 +35,7 @@ class LeastSquaresSolver:
     """
 
     cache_version = "1"
+    required_feature_groups = ("tdoa",)
 
     def __init__(self, source_height_m: float | None = None, n_iterations: int = 100, tolerance_m: float = 1e-4,
                  tie_tolerance_m: float = 0.05) -> None:
@@ -52,11 +53,10 @@ class LeastSquaresSolver:
         beyond = mics_xy + 0.5 * (mics_xy - centroid)  # outside, beyond each mic
         return np.vstack([centroid[None], near, beyond])  # (S, 2)
 
-    def solve(self, mic_positions_m: np.ndarray, tdoa_s: np.ndarray, speed_of_sound_m_s: float | np.ndarray) -> SolverResult:
-        """See :class:`acoustlab.interfaces.Solver`."""
-        mics, tdoa, c = solver_inputs(mic_positions_m, tdoa_s, speed_of_sound_m_s)
+    def solve(self, inputs: SolverInputs) -> SolverResult:
+        """See :class:`acoustlab.core.contracts.Solver`."""
+        mics, tdoa, c, height = solver_inputs(inputs, self.source_height_m)
         b = tdoa.shape[0]
-        height = mics[:, 2].mean() if self.source_height_m is None else float(self.source_height_m)
         rd = (c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]))[:, None, :]  # (B, 1, M-1)
         starts = self._starts(mics[:, :2])
         p0 = np.broadcast_to(starts, (b, starts.shape[0], 2))  # (B, S, 2)

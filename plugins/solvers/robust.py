@@ -13,9 +13,9 @@ import itertools
 
 import numpy as np
 
-from acoustlab.errors import ConfigError
-from acoustlab.interfaces import SolverResult
-from acoustlab.tdoa import solver_inputs
+from acoustlab.core.contracts import SolverInputs, SolverResult
+from acoustlab.core.errors import ConfigError
+from acoustlab.toolkit.tdoa import solver_inputs
 from plugins.solvers.hyperbolic import HyperbolicSolver
 
 
@@ -25,7 +25,7 @@ class ConsistentCandidatesSolver:
     Parameters
     ----------
     source_height_m : float, optional
-        Assumed source height in m (None: the app passes the site's mid height).
+        Assumed source height in m (None: ``SolverInputs.source_height_m``, the site's mid height).
     tolerance_s : float
         A pair is consistent when one of its candidate lags is this close to the predicted lag, s.
     max_hypotheses : int
@@ -33,6 +33,7 @@ class ConsistentCandidatesSolver:
     """
 
     cache_version = "1"
+    required_feature_groups = ("tdoa",)
 
     def __init__(self, source_height_m: float | None = None, tolerance_s: float = 2.5e-4, max_hypotheses: int = 729) -> None:
         if tolerance_s <= 0:
@@ -41,19 +42,13 @@ class ConsistentCandidatesSolver:
         self.tolerance_s = float(tolerance_s)
         self.max_hypotheses = int(max_hypotheses)
 
-    def solve(
-        self,
-        mic_positions_m: np.ndarray,
-        tdoa_s: np.ndarray,
-        speed_of_sound_m_s: float | np.ndarray,
-        received_level_db: np.ndarray | None = None,
-        pair_lag_candidates_s: np.ndarray | None = None,
-    ) -> SolverResult:
-        """See :class:`acoustlab.interfaces.Solver`; ``pair_lag_candidates_s`` is (B, P, K) over the pairs i < j."""
-        base = HyperbolicSolver(source_height_m=self.source_height_m, n_iterations=10)
+    def solve(self, inputs: SolverInputs) -> SolverResult:
+        """See :class:`acoustlab.core.contracts.Solver`; ``inputs.pair_lag_candidates_s`` is (B, P, K) over the pairs i < j."""
+        mics, _, c, height = solver_inputs(inputs, self.source_height_m)
+        base = HyperbolicSolver(source_height_m=height, n_iterations=10)
+        received_level_db, pair_lag_candidates_s = inputs.received_level_db, inputs.pair_lag_candidates_s
         if pair_lag_candidates_s is None:
-            return base.solve(mic_positions_m, tdoa_s, speed_of_sound_m_s, received_level_db)
-        mics, _, c = solver_inputs(mic_positions_m, tdoa_s, speed_of_sound_m_s)
+            return base.solve(inputs)
         m = mics.shape[0]
         pairs = [(i, j) for i in range(m) for j in range(i + 1, m)]
         cands = np.asarray(pair_lag_candidates_s, dtype=float)
@@ -69,7 +64,7 @@ class ConsistentCandidatesSolver:
         hyp = np.take_along_axis(lags[:, None, :, :], combos[None, :, :, None], -1)[..., 0]  # (B, H, M-1)
         tdoa = np.concatenate([np.zeros((bsz, h, 1)), hyp], axis=-1).reshape(bsz * h, m)
         levels = None if received_level_db is None else np.repeat(np.asarray(received_level_db, dtype=float), h, axis=0)
-        res = base.solve(mics, np.nan_to_num(tdoa, nan=0.0), np.repeat(c, h), levels)
+        res = base.solve(SolverInputs(mics, np.nan_to_num(tdoa, nan=0.0), np.repeat(c, h), received_level_db=levels))
         pos = res.position_m.reshape(bsz, h, 2)
         height = res.diagnostics["source_height_m"].reshape(bsz, h)
         src = np.concatenate([pos, height[..., None]], axis=-1)

@@ -1,4 +1,4 @@
-"""Log a finished run directory to a tracker; upload it later when the tracker was unreachable.
+"""Log a finished run directory to the experiment tracker (MLflow); mark it when the tracker failed.
 
 A run writes everything to its run directory first (``metrics.json``, ``predictions.parquet``,
 ``config_resolved.yaml``, ``plots/``); :func:`log_run_dir` then sends that directory to the tracker.
@@ -10,18 +10,15 @@ the command that uploads it later::
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
-import sys
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 import yaml
 
-from acoustlab.errors import AcoustlabError, ConfigError
-from acoustlab.metrics import coverage_table, error_table, flat_metrics
+from acoustlab.reporting.metrics import coverage_table, error_table, flat_metrics
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +57,7 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
     Parameters
     ----------
     tracker : Tracker
-        The tracker plugin (see :class:`acoustlab.interfaces.Tracker`).
+        The tracker plugin (see :class:`acoustlab.core.contracts.Tracker`).
     run_dir : pathlib.Path
         A run directory holding at least ``metrics.json``.
     parent_run_id : str, optional
@@ -108,52 +105,3 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
         return False
     pending.unlink(missing_ok=True)
     return True
-
-
-def _tracker_for(run_dir: Path, tracking_uri: str | None, experiment: str | None) -> Any:
-    from omegaconf import OmegaConf
-
-    from acoustlab.registry import build
-
-    config_file = run_dir / "config_resolved.yaml"
-    if not config_file.exists():
-        raise ConfigError(f"{config_file} is missing: {run_dir} is not an acoustlab run directory")
-    node = OmegaConf.load(config_file).get("tracking")
-    if node is None or "_target_" not in node or node._target_.endswith("NullTracker"):
-        node = OmegaConf.create({"_target_": "plugins.trackers.mlflow_tracker.MlflowTracker", "store_dir": "outputs"})
-    if tracking_uri:
-        node.tracking_uri = tracking_uri
-    if experiment:
-        node.experiment_name = experiment
-    return build(node, "tracking")
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m acoustlab.upload RUN_DIR ... [--tracking-uri URI] [--experiment NAME]``."""
-    parser = argparse.ArgumentParser(prog="python -m acoustlab.upload", description="Upload run directories to MLflow (e.g. after the server was unreachable).")
-    parser.add_argument("run_dirs", nargs="+", type=Path, help="run directories (holding metrics.json), or folders searched for them")
-    parser.add_argument("--tracking-uri", help="MLflow tracking URI; default: the one in each run's config_resolved.yaml")
-    parser.add_argument("--experiment", help="MLflow experiment name; default: the run's own")
-    parser.add_argument("--only-pending", action="store_true", help=f"upload only runs marked with {PENDING_FILE}")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    run_dirs = []
-    for path in args.run_dirs:
-        if not path.exists():
-            print(f"acoustlab.upload: error: {path} does not exist", file=sys.stderr)
-            return 2
-        found = [path] if (path / "metrics.json").exists() else sorted(p.parent for p in path.rglob("metrics.json"))
-        run_dirs += [d for d in found if not args.only_pending or (d / PENDING_FILE).exists()]
-    if not run_dirs:
-        print(f"acoustlab.upload: error: no run directories (with metrics.json) under {', '.join(map(str, args.run_dirs))}", file=sys.stderr)
-        return 2
-    failed = 0
-    for run_dir in run_dirs:
-        try:
-            tracker = _tracker_for(run_dir, args.tracking_uri, args.experiment)
-        except AcoustlabError as exc:
-            print(f"acoustlab.upload: error: {exc}", file=sys.stderr)
-            return 2
-        failed += not log_run_dir(tracker, run_dir)
-    log.info("uploaded %d of %d run directories", len(run_dirs) - failed, len(run_dirs))
-    return 1 if failed else 0

@@ -7,6 +7,8 @@ the config.
 
 from __future__ import annotations
 
+import functools
+import importlib
 from pathlib import Path
 from typing import Any
 
@@ -14,9 +16,9 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from acoustlab.errors import AcoustlabError, ConfigError
-
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+from acoustlab.core.errors import AcoustlabError, ConfigError
+from acoustlab.core.resources import CONF_DIR
+from acoustlab.run import schema  # noqa: F401 - registers the typed config schema before any compose
 
 #: Config groups that hold plugins, with the contract each option must satisfy.
 PLUGIN_GROUPS = (
@@ -40,6 +42,27 @@ def group_options(group: str, conf_dir: Path = CONF_DIR) -> list[str]:
     return sorted(p.stem for p in (conf_dir / group).glob("*.yaml"))
 
 
+@functools.cache
+def check_plugins_package() -> None:
+    """Make sure the importable top-level ``plugins`` package is acoustlab's, not another project's.
+
+    Raises
+    ------
+    ConfigError
+        Naming where the foreign ``plugins`` package was found.
+    """
+    try:
+        package = importlib.import_module("plugins")
+    except ImportError as exc:
+        raise ConfigError(f"acoustlab's 'plugins' package cannot be imported ({exc}); reinstall acoustlab (pip install -e .)") from None
+    if getattr(package, "ACOUSTLAB_PLUGINS", False) is not True:
+        where = getattr(package, "__file__", None) or list(getattr(package, "__path__", []))
+        raise ConfigError(
+            f"the top-level package 'plugins' imported from {where} is not acoustlab's (another installed project "
+            "ships a package of that name); uninstall that project or install acoustlab in its own environment"
+        )
+
+
 def build(node: Any, what: str, **runtime: Any) -> Any:
     """Instantiate one plugin config (a mapping with ``_target_``), adding runtime keyword arguments.
 
@@ -50,6 +73,8 @@ def build(node: Any, what: str, **runtime: Any) -> Any:
     """
     if node is None or (isinstance(node, DictConfig) and "_target_" not in node):
         return None
+    if str(node.get("_target_", "")).startswith("plugins."):
+        check_plugins_package()
     try:
         return instantiate(node, _convert_="all", **runtime)
     except InstantiationException as exc:

@@ -13,7 +13,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import pandas as pd
 
-from acoustlab.data import RecordingBatch, Site
+from acoustlab.core.types import RecordingBatch, Site
 
 
 @runtime_checkable
@@ -27,7 +27,7 @@ class Simulator(Protocol):
     sample_rate_hz: float
 
     def validate(self, site: Site) -> None:
-        """Raise :class:`acoustlab.errors.ConfigError` if this simulator cannot run at ``site``."""
+        """Raise :class:`acoustlab.core.errors.ConfigError` if this simulator cannot run at ``site``."""
 
     def simulate(self, site: Site, event_ids: np.ndarray, position_ids: np.ndarray, seed: int) -> RecordingBatch:
         """Render events ``event_ids`` (int array) at source positions ``position_ids`` with base seed ``seed``.
@@ -71,23 +71,49 @@ class SolverResult:
     diagnostics: dict[str, np.ndarray] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class SolverInputs:
+    """Everything a TDOA solver may read for a batch of events; solvers read nothing else.
+
+    Attributes
+    ----------
+    mic_positions_m : numpy.ndarray
+        (M, 2) or (M, 3) mic positions in m (a missing z is 0).
+    tdoa_s : numpy.ndarray
+        (B, M) arrival time at each mic minus that at mic 0, s (column 0 is zero).
+    speed_of_sound_m_s : float or numpy.ndarray
+        Speed of sound, m/s: one value or (B,).
+    received_level_db : numpy.ndarray, optional
+        (B, M) received level per mic in the call band, dB (the ``environment`` feature group);
+        None when those features were not computed.
+    pair_lag_candidates_s : numpy.ndarray, optional
+        (B, P, K) the K highest GCC peak lags of every mic pair i < j (the ``tdoa`` group with
+        candidates), s; None when only one lag per pair exists.
+    source_height_m : float, optional
+        The source height to assume, m (the middle of the site's source-height range); a solver's
+        own ``source_height_m`` setting takes precedence; None: the mean mic height.
+    """
+
+    mic_positions_m: np.ndarray
+    tdoa_s: np.ndarray
+    speed_of_sound_m_s: float | np.ndarray
+    received_level_db: np.ndarray | None = None
+    pair_lag_candidates_s: np.ndarray | None = None
+    source_height_m: float | None = None
+
+
 @runtime_checkable
 class Solver(Protocol):
-    """Localises sources from time differences of arrival."""
+    """Localises sources from time differences of arrival.
 
-    def solve(
-        self,
-        mic_positions_m: np.ndarray,
-        tdoa_s: np.ndarray,
-        speed_of_sound_m_s: float | np.ndarray,
-    ) -> SolverResult:
-        """Positions from TDOAs.
+    ``required_feature_groups`` names the feature groups whose columns the solver needs (checked
+    before anything runs); optional inputs (levels, candidates) are filled when their groups exist.
+    """
 
-        ``mic_positions_m`` is (M, 2) or (M, 3); ``tdoa_s`` is (B, M), the arrival time at each
-        mic minus that at mic 0 (column 0 is zero); ``speed_of_sound_m_s`` a float or (B,).
-        Solvers that can use received levels accept an optional ``received_level_db`` (B, M)
-        keyword; the pipeline passes it when the ``environment`` features exist.
-        """
+    required_feature_groups: tuple[str, ...]
+
+    def solve(self, inputs: SolverInputs) -> SolverResult:
+        """Positions and diagnostics for every event of ``inputs``."""
 
 
 @runtime_checkable
@@ -124,12 +150,43 @@ class GateDecision:
 
 @runtime_checkable
 class Gate(Protocol):
-    """Chooses, per event, between the solver's and the point model's estimate."""
+    """Chooses, per event, between the solver's and the point model's estimate.
+
+    The pipeline works on a fresh copy of the configured gate for every split: it calls
+    :meth:`fit` on the split's out-of-fold training predictions (a no-op for gates with nothing to
+    learn), then :meth:`decide`, and reports :meth:`diagnostics` per split.
+    ``required_feature_groups`` names the feature groups :meth:`decide` reads (checked before
+    anything runs).
+    """
+
+    required_feature_groups: tuple[str, ...]
+
+    def fit(
+        self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray
+    ) -> Any:
+        """Learn what the gate needs from training events with known positions; return self."""
 
     def decide(
         self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site
     ) -> GateDecision:
         """Return the hybrid estimate; ``features`` holds the events' feature rows in the same order."""
+
+    def diagnostics(self) -> dict[str, Any]:
+        """JSON-serialisable facts about the fitted gate (e.g. the chosen threshold); {} when none."""
+
+
+class StatelessGate:
+    """Mixin for gates that learn nothing: :meth:`fit` returns self, :meth:`diagnostics` is empty."""
+
+    required_feature_groups: tuple[str, ...] = ()
+
+    def fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray) -> Any:
+        """Nothing to learn."""
+        return self
+
+    def diagnostics(self) -> dict[str, Any]:
+        """No diagnostics."""
+        return {}
 
 
 @runtime_checkable

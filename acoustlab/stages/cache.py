@@ -1,7 +1,8 @@
 """Content-addressed on-disk cache for the expensive stages (simulation, features).
 
 A stage's entry lives in ``<root>/<stage>/<key>/`` where ``key`` is the SHA-256 of exactly the
-config that determines the stage plus the version of the plugin code. Entries are built in
+config that determines the stage plus the version of the code that produced it (the plugin and
+every module of the project it imports). Entries are built in
 ``<key>.partial/`` and renamed into place when complete (an atomic rename on POSIX), so a reader
 never sees half an entry; chunk files inside ``.partial`` survive an interruption and are reused
 when the stage is run again. Jobs that need the same missing entry at the same time (a parallel
@@ -14,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import hashlib
-import inspect
 import logging
 import os
 import shutil
@@ -25,23 +25,30 @@ from typing import Any
 
 import numpy as np
 
-from acoustlab.data import stable_hash
+from acoustlab.core.imports import import_closure, module_source_path
+from acoustlab.core.types import stable_hash
 
 log = logging.getLogger(__name__)
 
 
 def plugin_version(obj: Any) -> str:
-    """A version string for a plugin's code: its class path, ``cache_version`` and source hash.
+    """A version string for a plugin's code: its class path, ``cache_version`` and a source digest.
 
-    Editing the plugin's module therefore invalidates the entries it produced.
+    The digest covers the plugin's module and every acoustlab or plugins module it reaches through
+    imports (:func:`acoustlab.core.imports.import_closure`), so an edit to, say, the propagation
+    physics a simulator uses invalidates the entries that simulator produced.
     """
     cls = obj if isinstance(obj, type) else type(obj)
-    try:
-        source = inspect.getsource(inspect.getmodule(cls))
-    except (OSError, TypeError):
-        source = ""
-    digest = hashlib.sha256(source.encode()).hexdigest()[:16]
-    return f"{cls.__module__}.{cls.__qualname__}:{getattr(cls, 'cache_version', '0')}:{digest}"
+    return f"{cls.__module__}.{cls.__qualname__}:{getattr(cls, 'cache_version', '0')}:{code_digest(cls.__module__)}"
+
+
+def code_digest(module: str) -> str:
+    """SHA-256 (16 hex digits) of the source of ``module`` and every own module it imports."""
+    digest = hashlib.sha256()
+    for name in import_closure(module):
+        path = module_source_path(name)
+        digest.update(name.encode() + b"\0" + (path.read_bytes() if path is not None else b"") + b"\0")
+    return digest.hexdigest()[:16]
 
 
 def atomic_save_npy(path: Path, array: np.ndarray) -> None:

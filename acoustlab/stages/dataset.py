@@ -3,7 +3,7 @@
 Simulation streams chunk by chunk to ``<cache>/simulation/<key>/`` (audio as .npy, events as
 parquet) so memory stays bounded by one chunk; features are computed chunk by chunk from there
 and stored as one parquet table in ``<cache>/features/<key>/``. Keys hash exactly the config that
-determines a stage plus the plugin code version (:func:`acoustlab.cache.plugin_version`).
+determines a stage plus the plugin code version (:func:`acoustlab.stages.cache.plugin_version`).
 """
 
 from __future__ import annotations
@@ -21,10 +21,16 @@ import pandas as pd
 from joblib import Parallel, delayed
 from tqdm.auto import tqdm
 
-from acoustlab.cache import StageCache, atomic_save_npy, atomic_write_bytes, plugin_version
-from acoustlab.data import RecordingBatch, Site
-from acoustlab.errors import ConfigError, DataError
-from acoustlab.interfaces import FeatureSet, Simulator
+from acoustlab.core.contracts import FeatureSet, Simulator
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.stages.cache import (
+    StageCache,
+    atomic_save_npy,
+    atomic_write_bytes,
+    code_digest,
+    plugin_version,
+)
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +42,7 @@ class Dataset:
     Attributes
     ----------
     events : pandas.DataFrame
-        One row per event (see :data:`acoustlab.data.EVENT_COLUMNS`).
+        One row per event (see :data:`acoustlab.core.types.EVENT_COLUMNS`).
     features : pandas.DataFrame
         One row per event, columns ``group__name``.
     dataset_hash : str
@@ -118,6 +124,7 @@ def simulation_key(site: Site, simulator: Simulator, simulator_cfg: dict[str, An
     return StageCache.key(
         {
             "stage": "simulation",
+            "stage_code": code_digest(__name__),
             "site": site.fingerprint(),
             "simulator": simulator_cfg,
             "plugin": plugin_version(simulator),
@@ -259,6 +266,7 @@ def load_or_build_simulated(
     feat_key = StageCache.key(
         {
             "stage": "features",
+            "stage_code": code_digest(__name__),
             "simulation": sim_key,
             "features": features_cfg,
             "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},
@@ -283,6 +291,7 @@ def load_or_build_field(
     key = StageCache.key(
         {
             "stage": "field_features",
+            "stage_code": code_digest(__name__),
             "site": site.fingerprint(),
             "field": field_cfg,
             "field_plugin": plugin_version(field_source),

@@ -8,25 +8,41 @@ from __future__ import annotations
 
 import numpy as np
 
+from acoustlab.core.contracts import SolverInputs
 
-def solver_inputs(mic_positions_m, tdoa_s, speed_of_sound_m_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Validate the Solver contract's inputs and bring them to (M, 3) mics, (B, M) TDOAs and (B,) speeds.
+
+def solver_inputs(inputs: SolverInputs, own_height_m: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Validate a solver's inputs and bring them to (M, 3) mics, (B, M) TDOAs, (B,) speeds and a height.
+
+    Parameters
+    ----------
+    inputs : SolverInputs
+        The batch (see :class:`acoustlab.core.contracts.SolverInputs`).
+    own_height_m : float, optional
+        The solver's own configured source height, m; it takes precedence over
+        ``inputs.source_height_m``; with neither, the mean mic height is assumed.
 
     Raises
     ------
     ValueError
-        Naming the argument and the expected shape.
+        Naming the field and the expected shape.
     """
-    mics = np.asarray(mic_positions_m, dtype=float)
+    mics = np.asarray(inputs.mic_positions_m, dtype=float)
     if mics.ndim != 2 or mics.shape[1] not in (2, 3) or mics.shape[0] < 3:
         raise ValueError(f"mic_positions_m must be (M>=3, 2|3); got shape {mics.shape}")
     if mics.shape[1] == 2:
         mics = np.column_stack([mics, np.zeros(len(mics))])
-    tdoa = np.atleast_2d(np.asarray(tdoa_s, dtype=float))
+    tdoa = np.atleast_2d(np.asarray(inputs.tdoa_s, dtype=float))
     if tdoa.shape[1] != mics.shape[0]:
         raise ValueError(f"tdoa_s must be (B, {mics.shape[0]}); got shape {tdoa.shape}")
-    speed = np.broadcast_to(np.asarray(speed_of_sound_m_s, dtype=float), (tdoa.shape[0],))
-    return mics, tdoa, speed
+    speed = np.broadcast_to(np.asarray(inputs.speed_of_sound_m_s, dtype=float), (tdoa.shape[0],))
+    if own_height_m is not None:
+        height = float(own_height_m)
+    elif inputs.source_height_m is not None:
+        height = float(inputs.source_height_m)
+    else:
+        height = mics[:, 2].mean()
+    return mics, tdoa, speed, height
 
 
 def range_residuals(p: np.ndarray, mics: np.ndarray, height: np.ndarray, rd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from acoustlab.errors import ConfigError
-from acoustlab.registry import ALL_GROUPS, CONF_DIR, group_options
+from acoustlab.core.errors import ConfigError
+from acoustlab.run.registry import ALL_GROUPS, CONF_DIR, group_options
 
 #: Flags that only inspect the app; they need no site.
 INSPECT_FLAGS = ("--help", "-h", "--hydra-help", "--info", "-i", "--cfg", "-c", "--shell-completion", "-sc", "--version")

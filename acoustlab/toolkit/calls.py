@@ -16,9 +16,9 @@ import numpy as np
 import pandas as pd
 import scipy.signal as ss
 
-from acoustlab.audio import load_mono
-from acoustlab.errors import ConfigError, DataError
-from acoustlab.sites import PACKAGE_DATA
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.resources import PACKAGE_DATA
+from acoustlab.toolkit.audio import load_mono
 
 CATALOG = PACKAGE_DATA / "calls" / "catalog.csv"
 SYNTHETIC = "synthetic"

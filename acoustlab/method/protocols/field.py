@@ -14,9 +14,10 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from acoustlab.dataset import Dataset
-from acoustlab.errors import ConfigError, DataError
-from acoustlab.pipeline import LocalizationPipeline
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
+from acoustlab.method.splits import cap_rows
+from acoustlab.stages.dataset import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -24,12 +25,12 @@ log = logging.getLogger(__name__)
 FIELD_POSITION_OFFSET = 10**9
 
 
-def combine(sim: Dataset, field: Dataset) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray, np.ndarray]:
+def combine(sim: Dataset, field_recordings: Dataset) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray, np.ndarray]:
     """Stack simulated and field tables; return features, events and the row indices of each part."""
-    missing = set(sim.features.columns) ^ set(field.features.columns)
+    missing = set(sim.features.columns) ^ set(field_recordings.features.columns)
     if missing:
         raise DataError(f"simulated and field feature tables differ in columns {sorted(missing)[:5]}")
-    fev = field.events.copy()
+    fev = field_recordings.events.copy()
     if fev[["x_m", "y_m"]].isna().any().any():
         raise DataError("field evaluation needs true positions for every field event (x_m, y_m)")
     fev["position_id"] = fev["position_id"].astype(np.int64) + FIELD_POSITION_OFFSET
@@ -37,23 +38,9 @@ def combine(sim: Dataset, field: Dataset) -> tuple[pd.DataFrame, pd.DataFrame, n
     sev = sim.events.copy()
     sev["is_field"] = False
     events = pd.concat([sev, fev], ignore_index=True)
-    features = pd.concat([sim.features, field.features[sim.features.columns]], ignore_index=True)
+    features = pd.concat([sim.features, field_recordings.features[sim.features.columns]], ignore_index=True)
     n_sim = len(sim.events)
     return features, events, np.arange(n_sim), np.arange(n_sim, len(events))
-
-
-def cap_rows(rows: np.ndarray, groups: np.ndarray, max_rows: int, rng: np.random.Generator) -> np.ndarray:
-    """At most ``max_rows`` of ``rows``, keeping whole groups, chosen at random."""
-    if rows.size <= max_rows:
-        return rows
-    keep, total = [], 0
-    sizes = pd.Series(groups[rows]).value_counts()
-    for g in rng.permutation(np.unique(groups[rows])):
-        if total + sizes[g] > max_rows:
-            continue
-        keep.append(g)
-        total += sizes[g]
-    return rows[np.isin(groups[rows], keep)]
 
 
 class FieldEvalProtocol:
@@ -78,14 +65,15 @@ class FieldEvalProtocol:
         self.exclude_failed_from_summary = bool(exclude_failed_from_summary)
         self.seed = int(seed)
 
-    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field: Dataset | None = None) -> pd.DataFrame:
-        if field is None:
+    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
+        """Predictions for every field event, from models trained on simulation only."""
+        if field_recordings is None:
             raise ConfigError("protocol=field_eval needs field data: choose a field source, e.g. field=playback_standin")
-        features, events, sim_rows, field_rows = combine(dataset, field)
+        features, events, sim_rows, field_rows = combine(dataset, field_recordings)
         groups = events["position_id"].to_numpy()
         train = cap_rows(sim_rows, groups, self.max_train_rows, np.random.default_rng([self.seed, 2]))
-        out = pipeline.fit_predict(features, events, train, field_rows)
-        return _annotate(out, events, field_rows, self.exclude_failed_from_summary)
+        result = pipeline.fit_predict(features, events, train, field_rows)
+        return MethodResult(_annotate(result.predictions, events, field_rows, self.exclude_failed_from_summary), result.split_diagnostics)
 
 
 class LopoProtocol:
@@ -126,18 +114,22 @@ class LopoProtocol:
             sim_part = cap_rows(sim_rows, groups, self.max_train_rows - field_part.size, rng)
             yield pos, np.sort(np.concatenate([sim_part, field_part])), test
 
-    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field: Dataset | None = None) -> pd.DataFrame:
-        if field is None:
+    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
+        """Pooled predictions of every withheld field position; one split diagnostics entry per position."""
+        if field_recordings is None:
             raise ConfigError("protocol=lopo needs field data: choose a field source, e.g. field=playback_standin")
-        features, events, sim_rows, field_rows = combine(dataset, field)
+        features, events, sim_rows, field_rows = combine(dataset, field_recordings)
         pooled = []
         n_positions = np.unique(events["position_id"].to_numpy()[field_rows]).size
         for pos, train, test in tqdm(self.splits(events, sim_rows, field_rows), total=n_positions, desc="LOPO", unit="position", disable=None):
             log.info("LOPO: withholding field position %d (%d test, %d training rows)", pos - FIELD_POSITION_OFFSET, test.size, train.size)
-            out = pipeline.fit_predict(features, events, train, test)
-            out["withheld_position"] = pos - FIELD_POSITION_OFFSET
-            pooled.append(_annotate(out, events, test, self.exclude_failed_from_summary))
-        return pd.concat(pooled, ignore_index=True)
+            result = pipeline.fit_predict(features, events, train, test)
+            withheld = int(pos - FIELD_POSITION_OFFSET)
+            out = result.predictions
+            out["withheld_position"] = withheld
+            diagnostics = [{"split": f"withheld_position={withheld}", **d} for d in result.split_diagnostics]
+            pooled.append(MethodResult(_annotate(out, events, test, self.exclude_failed_from_summary), diagnostics))
+        return MethodResult.concat(pooled)
 
 
 def _annotate(out: pd.DataFrame, events: pd.DataFrame, rows: np.ndarray, exclude_failed: bool) -> pd.DataFrame:

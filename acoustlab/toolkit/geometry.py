@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from acoustlab.errors import ConfigError
+from acoustlab.core.errors import ConfigError
 
 
 def collinearity_ratio(points_xy: np.ndarray) -> float:

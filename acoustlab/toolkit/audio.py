@@ -9,8 +9,8 @@ import numpy as np
 import scipy.signal as ss
 import soundfile as sf
 
-from acoustlab.errors import DataError
-from acoustlab.sites import resolve_path
+from acoustlab.core.errors import DataError
+from acoustlab.core.resources import resolve_path
 
 
 @lru_cache(maxsize=32)

@@ -1,4 +1,4 @@
-"""Build and validate :class:`~acoustlab.data.Site` objects from configs and CSV files.
+"""Build and validate :class:`~acoustlab.core.types.Site` objects from configs and CSV files.
 
 A site config holds either inline mic coordinates (``mics``) or a CSV (``mics_csv``) with
 columns ``x_m, y_m, z_m`` (``mic_id`` optional), and optionally a tree CSV (``trees_csv``) with
@@ -9,28 +9,19 @@ runs in, or ``acoustlab://…`` for data shipped inside the package.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from acoustlab.data import NoiseRegime, Site, require_range
-from acoustlab.errors import ConfigError, DataError
-from acoustlab.geometry import collinearity_ratio
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.resources import resolve_path
+from acoustlab.core.types import NoiseRegime, Site, require_range
+from acoustlab.toolkit.geometry import collinearity_ratio
 
-PACKAGE_DATA = Path(__file__).parent / "data"
-URI_PREFIX = "acoustlab://"
 NOISE_KINDS = ("recorded", "white", "pink", "band")
 #: Mics whose centred 2-D coordinates have a smaller/larger singular value below this are collinear.
 COLLINEAR_TOLERANCE = 1e-3
-
-
-def resolve_path(path: str) -> Path:
-    """Turn a config path (absolute, relative to the working directory, or ``acoustlab://``) into a Path."""
-    if path.startswith(URI_PREFIX):
-        return PACKAGE_DATA / path[len(URI_PREFIX) :]
-    return Path(path).expanduser().resolve()
 
 
 def _read_csv(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataFrame:

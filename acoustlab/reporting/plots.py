@@ -15,8 +15,8 @@ import pandas as pd  # noqa: E402
 from matplotlib.collections import PatchCollection  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
-from acoustlab.data import Site  # noqa: E402
-from acoustlab.metrics import METHODS  # noqa: E402
+from acoustlab.core import columns as col  # noqa: E402
+from acoustlab.core.types import Site  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -27,10 +27,10 @@ MAP_EVENTS = 40
 def radius_columns(predictions: pd.DataFrame) -> dict[tuple[str, float], str]:
     """Map (scorer, level) to the ``radius__<scorer>__<level>`` column of a predictions table."""
     out = {}
-    for col in predictions.columns:
-        if col.startswith("radius__"):
-            _, scorer, level = col.split("__")
-            out[(scorer, float(level))] = col
+    for name in predictions.columns:
+        parsed = col.parse_radius(name)
+        if parsed is not None:
+            out[(parsed[0], float(parsed[1]))] = name
     return out
 
 
@@ -104,18 +104,19 @@ def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column:
         trunks = [Circle((x, y), max(d / 2, 0.15)) for (x, y), d in zip(site.tree_positions_m, site.trunk_diameters_m)]
         ax.add_collection(PatchCollection(trunks, facecolor="tab:brown", edgecolor="none", alpha=0.5))
     shown = predictions.sort_values("event_id").head(MAP_EVENTS)
+    (true_x, true_y), (gate_x, gate_y) = col.estimate_xy("true"), col.estimate_xy("gate")
     if radius_column is not None:
-        circles = [Circle((x, y), r) for x, y, r in zip(shown["gate_x_m"], shown["gate_y_m"], shown[radius_column]) if np.isfinite(r)]
+        circles = [Circle((x, y), r) for x, y, r in zip(shown[gate_x], shown[gate_y], shown[radius_column]) if np.isfinite(r)]
         ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:orange", lw=0.6, alpha=0.6))
     for _, row in shown.iterrows():
-        ax.plot([row["true_x_m"], row["gate_x_m"]], [row["true_y_m"], row["gate_y_m"]], color="0.5", lw=0.5)
-    ax.scatter(shown["true_x_m"], shown["true_y_m"], marker="x", color="tab:green", s=25, label="true source", zorder=3)
-    ax.scatter(shown["gate_x_m"], shown["gate_y_m"], marker=".", color="tab:orange", s=30, label="estimate (gate)", zorder=3)
+        ax.plot([row[true_x], row[gate_x]], [row[true_y], row[gate_y]], color="0.5", lw=0.5)
+    ax.scatter(shown[true_x], shown[true_y], marker="x", color="tab:green", s=25, label="true source", zorder=3)
+    ax.scatter(shown[gate_x], shown[gate_y], marker=".", color="tab:orange", s=30, label="estimate (gate)", zorder=3)
     mics = site.mic_positions_m
     ax.scatter(mics[:, 0], mics[:, 1], marker="^", color="k", s=60, label="microphones", zorder=4)
     # Frame the array and the true sources; wild estimates would shrink everything else to a dot.
-    xs = np.concatenate([mics[:, 0], shown["true_x_m"]])
-    ys = np.concatenate([mics[:, 1], shown["true_y_m"]])
+    xs = np.concatenate([mics[:, 0], shown[true_x]])
+    ys = np.concatenate([mics[:, 1], shown[true_y]])
     pad = 0.25 * max(np.ptp(xs), np.ptp(ys), 1.0)
     ax.set_xlim(xs.min() - pad, xs.max() + pad)
     ax.set_ylim(ys.min() - pad, ys.max() + pad)
@@ -124,7 +125,7 @@ def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column:
     ax.set_ylabel("y (m)")
     title = f"{site.name}: first {len(shown)} test events"
     if radius_column is not None:
-        _, scorer, level = radius_column.split("__")
+        scorer, level = col.parse_radius(radius_column)
         title += f"; circles: {scorer} conformal, {float(level):.0%}"
     ax.set_title(title, fontsize=9)
     ax.legend(loc="upper right", fontsize=7)
@@ -164,7 +165,7 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     fig, ax = plt.subplots(figsize=(5.5, 4))
-    error_cdf(ax, {m: predictions[f"error_{m}_m"].to_numpy(float) for m in METHODS})
+    error_cdf(ax, {m: predictions[col.error_m(m)].to_numpy(float) for m in col.METHODS})
     ax.set_title(f"{metrics.get('site', '')}: error CDF per method", fontsize=9)
     paths.append(_save(fig, out_dir / "error_cdf.png"))
 
@@ -174,7 +175,7 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
     paths.append(_save(fig, out_dir / "coverage_calibration.png"))
 
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
-    predicted_vs_actual(ax, predictions["predicted_error_m"].to_numpy(float), predictions["error_gate_m"].to_numpy(float),
+    predicted_vs_actual(ax, predictions["predicted_error_m"].to_numpy(float), predictions[col.error_m("gate")].to_numpy(float),
                         metrics.get("spearman_rho", {}).get("error_model"))
     paths.append(_save(fig, out_dir / "predicted_vs_actual_error.png"))
 

@@ -14,14 +14,27 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from acoustlab import __version__
-from acoustlab.cache import StageCache
-from acoustlab.dataset import SimulationPlan, load_or_build_field, load_or_build_simulated
-from acoustlab.errors import ConfigError
-from acoustlab.metrics import summarise
-from acoustlab.pipeline import Components, LocalizationPipeline, add_solver_columns
-from acoustlab.registry import PLUGIN_GROUPS, build, build_feature_sets, build_scorers, group_options, to_plain
-from acoustlab.sites import site_from_config
-from acoustlab.tracking import log_run_dir
+from acoustlab.core.errors import ConfigError
+from acoustlab.method.pipeline import Components, LocalizationPipeline
+from acoustlab.reporting.experiment_log import log_run_dir
+from acoustlab.reporting.metrics import split_diagnostics_summary, summarise
+from acoustlab.run.registry import (
+    PLUGIN_GROUPS,
+    build,
+    build_feature_sets,
+    build_scorers,
+    group_options,
+    to_plain,
+)
+from acoustlab.run.schema import ModelTarget
+from acoustlab.stages.cache import StageCache
+from acoustlab.stages.dataset import (
+    SimulationPlan,
+    load_or_build_field,
+    load_or_build_simulated,
+)
+from acoustlab.stages.sites import site_from_config
+from acoustlab.stages.solver_columns import add_solver_columns
 
 log = logging.getLogger(__name__)
 
@@ -57,38 +70,54 @@ class BuiltRun:
     plan: SimulationPlan
 
 
+def check_feature_requirements(feature_sets: dict[str, Any], **plugins: Any) -> None:
+    """Every feature group a plugin declares in ``required_feature_groups`` must be configured.
+
+    Raises
+    ------
+    ConfigError
+        Naming the plugin, the missing groups and the configured ones.
+    """
+    configured = set(feature_sets) | {"solver"}  # the solver group is appended by the solver stage
+    for what, plugin in plugins.items():
+        missing = sorted(set(plugin.required_feature_groups) - configured)
+        if missing:
+            raise ConfigError(
+                f"{what} {type(plugin).__name__} needs the feature groups {missing}, which features= does not compute "
+                f"(configured: {', '.join(sorted(configured))}); choose a feature set that has them, e.g. features=physics"
+            )
+
+
 def build_run(cfg: DictConfig) -> BuiltRun:
     """Build and check every plugin of a config without running anything expensive (the preflight).
 
     Everything that can be wrong in a config fails here with a :class:`ConfigError` or
     :class:`DataError` naming the field: site files, simulator settings and call/noise pools,
-    plugin options, conformal levels, TabPFN weights, sharding settings.
+    plugin options, feature groups a solver or gate needs, conformal levels, TabPFN weights,
+    sharding settings. Types of the non-plugin nodes were checked when Hydra composed the config
+    (:mod:`acoustlab.run.schema`).
     """
     require_site(cfg)
     site = site_from_config(cfg.site)
     simulator = build(cfg.simulator, "simulator")
     simulator.validate(site)
     feature_sets = build_feature_sets(cfg.features)
-    height = float(np.mean(site.source_height_range_m))
-    solver_cfg = cfg.solver
-    solver = build(solver_cfg, "solver", **({"source_height_m": height} if solver_cfg.get("source_height_m") is None and "source_height_m" in solver_cfg else {}))
     components = Components(
         site=site,
         feature_sets=feature_sets,
-        solver=solver,
+        solver=build(cfg.solver, "solver"),
         point_model=build(cfg.model, "model"),
         gate=build(cfg.gate, "gate"),
         error_model=build(cfg.error_model, "error_model"),
         scorers=build_scorers(cfg.conformal),
-        levels=[float(v) for v in cfg.conformal.levels],
-        dropped_groups=[str(g) for g in cfg.features.get("drop", [])],
-        calibration_folds=int(cfg.conformal.get("calibration_folds", 5)),
-        model_target=str(cfg.pipeline.model_target),
-        dropped_from_model=[str(g) for g in cfg.pipeline.get("drop_from_model", [])],
-        dropped_from_error_model=[str(g) for g in cfg.pipeline.get("drop_from_error_model", [])],
+        levels=list(cfg.conformal.levels),
+        dropped_groups=list(cfg.features.drop),
+        calibration_folds=cfg.conformal.calibration_folds,
+        model_target=ModelTarget(cfg.pipeline.model_target).value,
+        dropped_from_model=list(cfg.pipeline.drop_from_model),
+        dropped_from_error_model=list(cfg.pipeline.drop_from_error_model),
     )
-    if components.model_target not in ("absolute", "correction"):
-        raise ConfigError(f"pipeline.model_target must be 'absolute' or 'correction'; got {components.model_target!r}")
+    check_feature_requirements(feature_sets, solver=components.solver, gate=components.gate)
     for level in components.levels:
         if not 0 < level < 1:
             raise ConfigError(f"conformal.levels must lie in (0, 1); got {level}")
@@ -98,18 +127,10 @@ def build_run(cfg: DictConfig) -> BuiltRun:
     protocol = build(cfg.protocol, "protocol")
     tracker = build(cfg.tracking, "tracking")
 
-    cache = StageCache(cfg.cache.dir, enabled=bool(cfg.cache.enabled))
-    if int(cfg.data.get("shard_count", 1)) > 1 and not cache.enabled:
+    cache = StageCache(cfg.cache.dir, enabled=cfg.cache.enabled)
+    if cfg.data.shard_count > 1 and not cache.enabled:
         raise ConfigError("data.shard_count > 1 fills the cache shard by shard; it needs cache.enabled=true")
-    plan = SimulationPlan(
-        n_events=int(cfg.data.n_events),
-        events_per_position=int(cfg.data.events_per_position),
-        seed=int(cfg.seed),
-        chunk_size=int(cfg.data.chunk_size),
-        n_jobs=int(cfg.data.get("n_jobs", 1)),
-        shard_index=int(cfg.data.get("shard_index", 0)),
-        shard_count=int(cfg.data.get("shard_count", 1)),
-    )
+    plan = SimulationPlan(seed=cfg.seed, **OmegaConf.to_container(cfg.data))
     return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan)
 
 
@@ -125,7 +146,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     choices : dict, optional
         The chosen option of each config group (Hydra's runtime choices).
     parent_run_id : str, optional
-        The sweep's parent run in the tracker (set by :class:`acoustlab.sweep.SweepTrackingCallback`).
+        The sweep's parent run in the tracker (set by :class:`acoustlab.run.sweep.SweepTrackingCallback`).
 
     Returns
     -------
@@ -158,7 +179,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         field_data.features = add_solver_columns(field_data.features, field_data.events, site, components.solver)
     timings["data_s"] = time.perf_counter() - stage_start
     stage_start = time.perf_counter()
-    predictions = protocol.run(dataset, LocalizationPipeline(components), field=field_data)
+    result = protocol.run(dataset, LocalizationPipeline(components), field_recordings=field_data)
+    predictions = result.predictions
     timings["models_s"] = time.perf_counter() - stage_start
 
     summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
@@ -168,11 +190,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         metrics["excluded_from_summary"] = int((~summary_rows).sum())
     if field_data is not None:
         metrics["field_dataset_hash"] = field_data.dataset_hash
-    tau_grid = getattr(components.gate, "tau_grid_", None)
-    if tau_grid is not None:
-        metrics["tau_star_db"] = float(components.gate.tau_)
-        metrics["tau_rule_met"] = bool(components.gate.tau_rule_met_)
-        metrics["tau_grid"] = tau_grid.to_dict(orient="records")
+    metrics.update(split_diagnostics_summary(result.split_diagnostics))
     metrics["dataset_hash"] = dataset.dataset_hash
     metrics["site"] = site.name
     metrics["choices"] = choices
@@ -184,7 +202,9 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     stage_start = time.perf_counter()
     if bool(cfg.get("plots", True)):
-        from acoustlab.plots import write_run_plots  # matplotlib only when plotting
+        from acoustlab.reporting.plots import (
+            write_run_plots,  # matplotlib only when plotting
+        )
 
         write_run_plots(predictions[summary_rows], metrics, site, run_dir / "plots")
     timings["plots_s"] = time.perf_counter() - stage_start

@@ -52,7 +52,7 @@ def sweep_jobs(config: DictConfig) -> list[list[str]]:
 
 
 def preflight_jobs(jobs: list[list[str]]) -> list[str]:
-    """Build and check every job's config (:func:`acoustlab.app.build_run`) without running it.
+    """Build and check every job's config (:func:`acoustlab.run.app.build_run`) without running it.
 
     Returns
     -------
@@ -60,9 +60,10 @@ def preflight_jobs(jobs: list[list[str]]) -> list[str]:
         One message per job that would fail (its overrides and the reason); empty when all pass.
     """
     from hydra import compose
+    from hydra.errors import ConfigCompositionException
 
-    from acoustlab.app import build_run
-    from acoustlab.errors import AcoustlabError
+    from acoustlab.core.errors import AcoustlabError
+    from acoustlab.run.app import build_run
 
     problems = []
     for number, job in enumerate(jobs):
@@ -70,6 +71,9 @@ def preflight_jobs(jobs: list[list[str]]) -> list[str]:
             build_run(compose(config_name="config", overrides=job))
         except AcoustlabError as exc:
             problems.append(f"job #{number} ({' '.join(job)}): {exc}")
+        except ConfigCompositionException as exc:  # a mistyped key or value, caught by the typed schema
+            reason = str(exc.__cause__).splitlines()[0] if exc.__cause__ else ""
+            problems.append(f"job #{number} ({' '.join(job)}): {exc}" + (f": {reason}" if reason else ""))
         except Exception as exc:  # noqa: BLE001 - a check we cannot run must not block the sweep
             log.warning("preflight could not check job #%d (%s): %s: %s", number, " ".join(job), type(exc).__name__, exc)
     return problems
@@ -95,13 +99,13 @@ class SweepTrackingCallback(Callback):
 
     @staticmethod
     def _tracker(config: DictConfig) -> Any:
-        from acoustlab.registry import build
+        from acoustlab.run.registry import build
 
         return build(config.tracking, "tracking")
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Preflight every job, then open the parent run (a tracker failure only costs the grouping)."""
-        from acoustlab.app import code_version
+        from acoustlab.run.app import code_version
 
         if self.preflight:
             jobs = sweep_jobs(config)
@@ -149,7 +153,7 @@ class SweepTrackingCallback(Callback):
         report_dir = None
         tables = {}
         try:
-            from acoustlab.report import collect_runs, error_rows, write_report
+            from acoustlab.reporting.report import collect_runs, error_rows, write_report
 
             runs = collect_runs([sweep_dir])
             if runs:

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from acoustlab.errors import ConfigError, DataError
+from acoustlab.core.errors import ConfigError, DataError
 
 #: Columns every event table carries (true position NaN where unknown).
 EVENT_COLUMNS = (
@@ -166,6 +167,8 @@ class RecordingBatch:
     audio: np.ndarray
     sample_rate_hz: float
     events: pd.DataFrame = field(default_factory=pd.DataFrame)
+    #: Results derived from this batch's audio that several stages share (see :meth:`derived`).
+    _derived: dict[Hashable, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.audio.ndim != 3:
@@ -185,17 +188,20 @@ class RecordingBatch:
         """Number of events."""
         return int(self.audio.shape[0])
 
+    def derived(self, key: Hashable, compute: Callable[[], Any]) -> Any:
+        """An explicit per-batch cache: ``compute()`` once per ``key``, then the stored result.
+
+        Feature groups that share an expensive intermediate (e.g. the GCC of every mic pair) key it
+        by the settings that determine it; the cache lives and dies with the batch.
+        """
+        if key not in self._derived:
+            self._derived[key] = compute()
+        return self._derived[key]
+
     @property
     def true_position_m(self) -> np.ndarray:
         """(E, 3) true source positions in m (NaN where unknown)."""
         return self.events[["x_m", "y_m", "z_m"]].to_numpy(dtype=float)
-
-
-def group_of(column: str) -> str:
-    """The feature group of a ``group__name`` column."""
-    if "__" not in column:
-        raise DataError(f"feature column {column!r} is not named 'group__name'")
-    return column.split("__", 1)[0]
 
 
 def stable_hash(obj: Any) -> str:

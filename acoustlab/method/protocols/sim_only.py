@@ -8,9 +8,10 @@ import numpy as np
 import pandas as pd
 from sklearn.model_selection import GroupShuffleSplit
 
-from acoustlab.dataset import Dataset
-from acoustlab.errors import ConfigError, DataError
-from acoustlab.pipeline import LocalizationPipeline
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
+from acoustlab.method.splits import cap_rows
+from acoustlab.stages.dataset import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -46,21 +47,11 @@ class SimOnlyProtocol:
             raise DataError(f"sim-only needs at least 3 source positions; got {np.unique(groups).size}")
         splitter = GroupShuffleSplit(n_splits=1, test_size=self.test_fraction, random_state=self.seed)
         train, test = next(splitter.split(np.zeros(len(events)), groups=groups))
-        if train.size > self.max_train_rows:
-            rng = np.random.default_rng([self.seed, 1])
-            positions = rng.permutation(np.unique(groups[train]))
-            sizes = pd.Series(groups[train]).value_counts()
-            keep, total = [], 0
-            for p in positions:
-                if total + sizes[p] > self.max_train_rows:
-                    break
-                keep.append(p)
-                total += sizes[p]
-            train = train[np.isin(groups[train], keep)]
+        train = cap_rows(train, groups, self.max_train_rows, np.random.default_rng([self.seed, 1]))
         log.info("sim-only split: %d training rows, %d test rows", train.size, test.size)
         return np.sort(train), np.sort(test)
 
-    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field: Dataset | None = None) -> pd.DataFrame:
-        """Per-event predictions on the withheld positions (``field`` is not used)."""
+    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
+        """Per-event predictions on the withheld positions (``field_recordings`` is not used)."""
         train, test = self.split(dataset.events)
         return pipeline.fit_predict(dataset.features, dataset.events, train, test)

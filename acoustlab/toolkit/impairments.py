@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.signal as ss
 
-from acoustlab.errors import ConfigError
+from acoustlab.core.errors import ConfigError
 
 FAILURE_MODES = ("dead", "clipping", "dc")
 INTERFERENCE_KINDS = ("clicks", "rubbing")

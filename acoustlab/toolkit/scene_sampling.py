@@ -10,10 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from acoustlab.audio import load_mono
-from acoustlab.data import Site
-from acoustlab.geometry import sample_in_expanded_hull
-from acoustlab.signal import coloured_noise
+from acoustlab.core.types import Site
+from acoustlab.toolkit.audio import load_mono
+from acoustlab.toolkit.dsp import coloured_noise
+from acoustlab.toolkit.geometry import sample_in_expanded_hull
 
 POSITION_STREAM = 0
 EVENT_STREAM = 1

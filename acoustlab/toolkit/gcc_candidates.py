@@ -3,19 +3,19 @@
 For each pair (i, j) the correlation is searched only within that pair's physical lag window
 ±(d_ij / c_max + margin); the K highest local maxima are kept (sub-sample lag by parabolic
 interpolation on an upsampled correlation), with their heights and the peak-to-sidelobe ratio.
-The last result is memoised so several feature groups on one batch compute the GCC once.
+Results are kept in the batch's own cache (:meth:`RecordingBatch.derived`), so several feature
+groups on one batch compute the GCC once.
 """
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 
-from acoustlab.data import RecordingBatch, Site
-from acoustlab.physics import speed_of_sound_m_s
-from acoustlab.signal import gcc, parabolic_peak
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.dsp import gcc, parabolic_peak
+from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 
 @dataclass
@@ -37,11 +37,6 @@ class PairCandidates:
     sidelobe: np.ndarray
 
 
-#: Results for the most recent batch (weakly referenced), keyed by parameters.
-_memo_batch: list = [None]
-_memo: dict[tuple, PairCandidates] = {}
-
-
 def lag_windows_s(site: Site, margin_s: float) -> np.ndarray:
     """(P,) maximum |lag| of each pair in s: distance over the fastest sound speed plus a margin."""
     c_max = speed_of_sound_m_s(site.temperature_range_c[1], site.relative_humidity_range_pct[1])
@@ -59,12 +54,13 @@ def pair_candidates(
     upsample: int = 4,
 ) -> PairCandidates:
     """The K best GCC peaks of every mic pair of every event (see the module docstring)."""
-    key = (n_candidates, margin_s, band_hz, weighting, upsample, site.mic_positions_m.tobytes())
-    if _memo_batch[0] is None or _memo_batch[0]() is not batch:
-        _memo.clear()
-        _memo_batch[0] = weakref.ref(batch)
-    if key in _memo:
-        return _memo[key]
+    key = ("pair_candidates", n_candidates, margin_s, band_hz, weighting, upsample, site.mic_positions_m.tobytes())
+    return batch.derived(key, lambda: _compute_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample))
+
+
+def _compute_pair_candidates(
+    batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz: tuple[float, float] | None, weighting: str, upsample: int
+) -> PairCandidates:
     cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample)
     step = lags[1] - lags[0]
     e, p = cc.shape[:2]
@@ -87,6 +83,4 @@ def pair_candidates(
         offset, height = parabolic_peak(seg[:, None, :].repeat(n_candidates, 1), order)
         out_lags[:, k] = np.where(valid, first_lag + (order + offset) * step, np.nan)
         out_heights[:, k] = np.where(valid, height, np.nan)
-    result = PairCandidates(out_lags, out_heights, sidelobe)
-    _memo[key] = result
-    return result
+    return PairCandidates(out_lags, out_heights, sidelobe)

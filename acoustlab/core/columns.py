@@ -1,0 +1,128 @@
+"""The one place that builds and parses column names and result keys shared between modules.
+
+Feature columns are ``<group>__<name>`` with the unit at the end of the name. Prediction tables
+(``predictions.parquet``) hold ``<method>_x_m`` / ``<method>_y_m`` / ``error_<method>_m`` per
+method and ``radius__<scorer>__<level>`` per conformal scorer and nominal level. Metrics key
+levels by :func:`level_key`. A module that needs one of these names calls a function here instead
+of repeating an f-string, so a rename happens in one place.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from acoustlab.core.errors import DataError
+
+#: Separator between a feature group and the column's name.
+GROUP_SEPARATOR = "__"
+#: The estimates every prediction table carries, in report order.
+METHODS = ("solver", "model", "gate")
+#: The solver's point estimate (withheld from the error model).
+SOLVER_X, SOLVER_Y = "solver__x_m", "solver__y_m"
+SOLVER_ESTIMATE_COLUMNS = (SOLVER_X, SOLVER_Y)
+SOLVER_GDOP = "solver__gdop"
+SOLVER_SOURCE_HEIGHT = "solver__source_height_m"
+#: The ``solver`` feature group appended to every feature table (name, unit, definition).
+SOLVER_CATALOG = (
+    (SOLVER_X, "m", "solver's estimate, x (east)"),
+    (SOLVER_Y, "m", "solver's estimate, y (north)"),
+    ("solver__residual_m", "m", "RMS range-difference residual at the estimate"),
+    ("solver__converged", "1", "1 where the iteration converged"),
+    (SOLVER_GDOP, "1", "TDOA geometric dilution of precision at the estimate"),
+    ("solver__n_roots", "1", "number of distinct positions that fit the TDOAs equally well"),
+    (SOLVER_SOURCE_HEIGHT, "m", "source height assumed by the solver"),
+    ("solver__residual_s", "s", "RMS residual expressed as time"),
+    ("solver__conditioning", "1", "condition number of the TDOA Jacobian at the estimate"),
+)
+RADIUS_PREFIX = "radius"
+
+
+def feature(group: str, name: str) -> str:
+    """The column ``<group>__<name>``."""
+    return f"{group}{GROUP_SEPARATOR}{name}"
+
+
+def group_of(column: str) -> str:
+    """The feature group of a ``group__name`` column.
+
+    Raises
+    ------
+    DataError
+        When the column is not named ``group__name``.
+    """
+    if GROUP_SEPARATOR not in column:
+        raise DataError(f"feature column {column!r} is not named 'group__name'")
+    return column.split(GROUP_SEPARATOR, 1)[0]
+
+
+def groups_in(columns: Iterable[str]) -> set[str]:
+    """The feature groups present among ``columns``."""
+    return {group_of(c) for c in columns}
+
+
+# --- feature columns read by more than one module -------------------------------------------
+
+def tdoa_lag(i: int, j: int, rank: int = 1) -> str:
+    """``tdoa__lag_i_j_s`` (rank 1, the highest GCC peak) or ``tdoa__lag_i_j_c<rank>_s``: t_j − t_i in s."""
+    suffix = "" if rank == 1 else f"_c{rank}"
+    return f"tdoa__lag_{i}_{j}{suffix}_s"
+
+
+def solver_column(name: str) -> str:
+    """A column of the ``solver`` group, e.g. ``solver_column("gdop")`` → ``solver__gdop``."""
+    return feature("solver", name)
+
+
+def level_db(mic: int) -> str:
+    """``environment__level_<mic>_db``: received level in the call band, dB."""
+    return f"environment__level_{mic}_db"
+
+
+def snr_db(mic: int) -> str:
+    """``environment__snr_<mic>_db``: received level minus noise level, dB."""
+    return f"environment__snr_{mic}_db"
+
+
+def spectral_centroid_hz(mic: int) -> str:
+    """``spectral__centroid_<mic>_hz``."""
+    return f"spectral__centroid_{mic}_hz"
+
+
+def spectral_bandwidth_hz(mic: int) -> str:
+    """``spectral__bandwidth_<mic>_hz``."""
+    return f"spectral__bandwidth_{mic}_hz"
+
+
+def ir_spread_s(mic: int) -> str:
+    """``ir__spread_<mic>_s``: time the envelope stays within 10 dB of its peak."""
+    return f"ir__spread_{mic}_s"
+
+
+# --- prediction tables and metrics ----------------------------------------------------------
+
+def estimate_xy(method: str) -> tuple[str, str]:
+    """``(<method>_x_m, <method>_y_m)``: a method's estimate (or ``"true"``: the truth) in a prediction table."""
+    return f"{method}_x_m", f"{method}_y_m"
+
+
+def error_m(method: str) -> str:
+    """``error_<method>_m``: a method's 2-D error in a prediction table."""
+    return f"error_{method}_m"
+
+
+def level_key(level: float) -> str:
+    """A nominal coverage level as used in column names and metrics keys (``0.95`` → ``"0.95"``)."""
+    return f"{float(level):g}"
+
+
+def radius(scorer: str, level: float) -> str:
+    """``radius__<scorer>__<level>``: a conformal radius in m."""
+    return f"{RADIUS_PREFIX}{GROUP_SEPARATOR}{scorer}{GROUP_SEPARATOR}{level_key(level)}"
+
+
+def parse_radius(column: str) -> tuple[str, str] | None:
+    """``(scorer, level key)`` of a ``radius__<scorer>__<level>`` column; None for any other column."""
+    parts = column.split(GROUP_SEPARATOR)
+    if len(parts) != 3 or parts[0] != RADIUS_PREFIX:
+        return None
+    return parts[1], parts[2]

@@ -1,0 +1,357 @@
+"""Turn the runs of a sweep (or any run directories) into a Markdown and an HTML report.
+
+``python -m acoustlab.report SWEEP_DIR [RUN_DIR ...] [--out DIR]`` (also ``acoustlab report``)
+reads each run's ``metrics.json`` (and ``predictions.parquet`` for gross-error rates), labels runs by
+the overrides that differ between them (from Hydra's ``.hydra/overrides.yaml``) and writes
+``report.md`` and a self-contained ``report.html`` with tables shaped like the paper's — localization
+error per method (mean, p50, p90, p95, p99), coverage and interval width per conformal scorer and
+level, Spearman ρ of the error model next to GDOP alone — plus comparison plots and each run's own
+plots. Sweeps write their report automatically into ``<sweep dir>/report/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import html
+import json
+import logging
+import shutil
+import sys
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from acoustlab.core import columns as col
+
+log = logging.getLogger(__name__)
+
+#: An error above this many metres counts as gross in the report's tables.
+GROSS_ERROR_M = 5.0
+
+
+@dataclass
+class RunResult:
+    """One run directory's results.
+
+    Attributes
+    ----------
+    run_dir : pathlib.Path
+        The run directory.
+    metrics : dict
+        Its ``metrics.json``.
+    overrides : dict
+        Its command-line overrides (``key -> value``), empty outside Hydra.
+    label : str
+        A short name: the overrides that differ between the reported runs.
+    """
+
+    run_dir: Path
+    metrics: dict
+    overrides: dict[str, str]
+    label: str = ""
+
+    @cached_property
+    def predictions(self) -> pd.DataFrame | None:
+        """The run's predictions table (read once), or None when absent."""
+        path = self.run_dir / "predictions.parquet"
+        return pd.read_parquet(path) if path.exists() else None
+
+
+def _job_order(path: Path) -> tuple:
+    return tuple(int(p) if p.isdigit() else p for p in path.parts)
+
+
+def _overrides(run_dir: Path) -> dict[str, str]:
+    path = run_dir / ".hydra" / "overrides.yaml"
+    if not path.exists():
+        return {}
+    out = {}
+    for item in yaml.safe_load(path.read_text()) or []:
+        key, _, value = str(item).partition("=")
+        key = key.lstrip("+~")
+        if key != "paths.outputs_dir":
+            out[key] = value
+    return out
+
+
+def collect_runs(paths: list[Path]) -> list[RunResult]:
+    """Find run directories (with a complete ``metrics.json``) in ``paths`` and label them.
+
+    Raises
+    ------
+    FileNotFoundError
+        When a path does not exist.
+    """
+    dirs: list[Path] = []
+    for path in map(Path, paths):
+        if not path.exists():
+            raise FileNotFoundError(f"{path} does not exist")
+        found = [path] if (path / "metrics.json").exists() else sorted((p.parent for p in path.rglob("metrics.json")), key=_job_order)
+        dirs += [d for d in found if d not in dirs]
+    runs = []
+    for d in dirs:
+        metrics = json.loads((d / "metrics.json").read_text())
+        if "errors" in metrics:  # shard-only jobs have no results
+            runs.append(RunResult(d, metrics, _overrides(d)))
+    keys = sorted({k for r in runs for k in r.overrides})
+    varying = [k for k in keys if len({r.overrides.get(k) for r in runs}) > 1]
+    for r in runs:
+        parts = [f"{k}={r.overrides.get(k, '—')}" for k in varying]
+        r.label = ", ".join(parts) if parts else f"{r.metrics.get('site', '')} {r.run_dir.name}".strip()
+    return runs
+
+
+def error_rows(runs: list[RunResult]) -> pd.DataFrame:
+    """Localization error per run and method (m): n, mean, p50, p90, p95, p99 and the gross-error rate."""
+    rows = []
+    for r in runs:
+        predictions = r.predictions
+        if predictions is not None and "in_summary" in predictions:
+            predictions = predictions[predictions["in_summary"].to_numpy(bool)]
+        for method in col.METHODS:
+            stats = r.metrics["errors"][method]
+            row = {"run": r.label, "method": method, **{k: stats[k] for k in ("n", "mean", "p50", "p90", "p95", "p99")}}
+            if predictions is not None:
+                e = predictions[col.error_m(method)].to_numpy(float)
+                row[f"> {GROSS_ERROR_M:g} m"] = float(np.mean(~(e <= GROSS_ERROR_M)))
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def paired_ratio_ci(first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: int = 1000, seed: int = 0) -> tuple[float, float] | None:
+    """95 % interval of the ratio of the gate's ``q``-th error percentile (other / first), by a
+    paired bootstrap over source positions (the exchangeable unit).
+
+    Returns None when the two runs were not evaluated on the same events.
+    """
+    a = first.set_index("event_id")
+    b = other.set_index("event_id")
+    if len(a) != len(b) or not a.index.sort_values().equals(b.index.sort_values()):
+        return None
+    b = b.loc[a.index]
+    ea, eb = a[col.error_m("gate")].to_numpy(float), b[col.error_m("gate")].to_numpy(float)
+    ok = np.isfinite(ea) & np.isfinite(eb)
+    positions = a["position_id"].to_numpy()[ok]
+    ea, eb = ea[ok], eb[ok]
+    members = [np.flatnonzero(positions == p) for p in np.unique(positions)]
+    rng = np.random.default_rng(seed)
+    ratios = np.empty(n_boot)
+    for k in range(n_boot):
+        rows = np.concatenate([members[i] for i in rng.integers(0, len(members), len(members))])
+        denominator = np.percentile(ea[rows], q)
+        ratios[k] = np.percentile(eb[rows], q) / denominator if denominator > 0 else np.nan
+    low, high = np.nanpercentile(ratios, [2.5, 97.5])
+    return float(low), float(high)
+
+
+def relative_rows(runs: list[RunResult]) -> pd.DataFrame:
+    """The gate's p50/p95/p99 error of every run and its ratio to the first run's (e.g. the full
+    feature set at the head of an ablation sweep), with a 95 % interval from a paired bootstrap over
+    source positions when the runs share their test events. Empty for a single run."""
+    if len(runs) < 2:
+        return pd.DataFrame()
+    first = runs[0].metrics["errors"]["gate"]
+    first_predictions = runs[0].predictions
+    rows = []
+    for r in runs:
+        gate = r.metrics["errors"]["gate"]
+        predictions = r.predictions
+        row = {"run": r.label}
+        for name, q in (("p50", 50), ("p95", 95), ("p99", 99)):
+            row[f"gate {name} (m)"] = gate[name]
+            row[f"{name} / first"] = gate[name] / first[name] if first[name] > 0 else float("nan")
+            ci = None
+            if r is not runs[0] and first_predictions is not None and predictions is not None:
+                ci = paired_ratio_ci(first_predictions, predictions, q)
+            row[f"{name} / first, 95 % CI"] = "—" if ci is None else f"[{ci[0]:.2f}, {ci[1]:.2f}]"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def coverage_rows(runs: list[RunResult]) -> pd.DataFrame:
+    """Empirical coverage and median interval radius (m) per run, scorer and nominal level."""
+    rows = []
+    for r in runs:
+        for scorer, by_level in r.metrics["coverage"].items():
+            row = {"run": r.label, "scorer": scorer}
+            for level, value in by_level.items():
+                row[f"coverage@{level}"] = value
+            for level in by_level:
+                row[f"median radius@{level} (m)"] = r.metrics["interval_width"][scorer][level]["median_m"]
+            for level, stats in r.metrics.get("coverage_by_position", {}).get(scorer, {}).items():
+                row[f"worst position@{level}"] = stats["min"]
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def uncertainty_rows(runs: list[RunResult]) -> pd.DataFrame:
+    """Spearman ρ of predicted vs actual error (error model and GDOP alone), substitution rate, τ*, timings."""
+    rows = []
+    for r in runs:
+        m = r.metrics
+        rho = m.get("spearman_rho", {})
+        rows.append({
+            "run": r.label,
+            "ρ error model": rho.get("error_model"),
+            "ρ GDOP": rho.get("gdop"),
+            "substitution rate": m.get("substitution_rate"),
+            "τ* (dB)": m.get("tau_star_db"),
+            "CRB p50 (m)": m.get("crb_m", {}).get("p50"),
+            "features": m.get("n_features"),
+            "models time (s)": m.get("timings_s", {}).get("models_s"),
+        })
+    return pd.DataFrame(rows)
+
+
+def provenance_rows(runs: list[RunResult]) -> pd.DataFrame:
+    """Where each run lives and what produced it: run dir, dataset hash, code version, choices."""
+    return pd.DataFrame([{
+        "run": r.label,
+        "run dir": str(r.run_dir),
+        "dataset hash": r.metrics.get("dataset_hash", "")[:12],
+        "code": r.metrics.get("code_version", ""),
+        "choices": ", ".join(f"{k}={v}" for k, v in sorted(r.metrics.get("choices", {}).items())),
+    } for r in runs])
+
+
+def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
+    from acoustlab.reporting.plots import coverage_calibration, error_cdf, plt
+
+    paths = []
+    curves: dict[str, np.ndarray] = {}
+    solver_seen = set()
+    for r in runs:
+        predictions = r.predictions
+        if predictions is None:
+            continue
+        curves[f"gate: {r.label}"] = predictions[col.error_m("gate")].to_numpy(float)
+        if r.metrics.get("dataset_hash") not in solver_seen:  # the solver is the same on the same data
+            solver_seen.add(r.metrics.get("dataset_hash"))
+            curves[f"solver: {r.label}"] = predictions[col.error_m("solver")].to_numpy(float)
+    if curves:
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        error_cdf(ax, curves)
+        ax.set_title("error CDF across runs", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(out_dir / "sweep_error_cdf.png", dpi=110)
+        plt.close(fig)
+        paths.append(out_dir / "sweep_error_cdf.png")
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    coverage_calibration(ax, {f"{s}: {r.label}": {float(lv): v for lv, v in by.items()} for r in runs for s, by in r.metrics["coverage"].items()})
+    ax.set_title("coverage calibration across runs", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out_dir / "sweep_coverage_calibration.png", dpi=110)
+    plt.close(fig)
+    paths.append(out_dir / "sweep_coverage_calibration.png")
+    return paths
+
+
+_SECTIONS = (
+    ("Localization error per detection (m)", error_rows),
+    ("Gated error relative to the first run", relative_rows),
+    ("Coverage and interval width of the conformal regions", coverage_rows),
+    ("Ranking of errors and gating", uncertainty_rows),
+    ("Provenance", provenance_rows),
+)
+
+
+def _img_tag(path: Path, alt: str) -> str:
+    data = base64.b64encode(path.read_bytes()).decode()
+    return f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(alt)}"><figcaption>{html.escape(alt)}</figcaption></figure>'
+
+
+def write_report(runs: list[RunResult], out_dir: Path, title: str = "acoustlab report") -> Path:
+    """Write ``report.md`` (with images beside it) and a self-contained ``report.html``.
+
+    Parameters
+    ----------
+    runs : list of RunResult
+        The runs (from :func:`collect_runs`); must not be empty.
+    out_dir : pathlib.Path
+        Output directory (created).
+    title : str
+        The report's heading.
+
+    Returns
+    -------
+    pathlib.Path
+        The path of ``report.md``.
+    """
+    if not runs:
+        raise ValueError("no runs to report")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tables = [(heading, build(runs)) for heading, build in _SECTIONS]
+    comparison = _comparison_plots(runs, out_dir)
+    per_run: list[tuple[str, list[Path]]] = []
+    for i, r in enumerate(runs):
+        plots = sorted((r.run_dir / "plots").glob("*.png")) if (r.run_dir / "plots").exists() else []
+        copied = []
+        for p in plots:
+            target = out_dir / "runs" / str(i) / p.name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(p, target)
+            copied.append(target)
+        per_run.append((r.label, copied))
+
+    md = [f"# {title}", "", f"{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
+          f"gross = error above {GROSS_ERROR_M:g} m.", ""]
+    page = [f"<h1>{html.escape(title)}</h1>", f"<p>{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
+            f"gross = error above {GROSS_ERROR_M:g} m.</p>"]
+    for heading, table in tables:
+        if table.empty:
+            continue
+        md += [f"## {heading}", "", table.to_markdown(index=False, floatfmt=".3g"), ""]
+        page += [f"<h2>{html.escape(heading)}</h2>", table.to_html(index=False, float_format=lambda v: f"{v:.3g}", na_rep="—")]
+    md += ["## Plots", ""]
+    page += ["<h2>Plots</h2>"]
+    for p in comparison:
+        md += [f"![{p.stem}]({p.name})", ""]
+        page.append(_img_tag(p, p.stem.replace("_", " ")))
+    for i, (label, plots) in enumerate(per_run):
+        if not plots:
+            continue
+        md += [f"### Run: {label}", ""] + [f"![{p.stem}](runs/{i}/{p.name})" for p in plots] + [""]
+        page.append(f"<h3>Run: {html.escape(label)}</h3>")
+        page += [_img_tag(p, f"{label}: {p.stem.replace('_', ' ')}") for p in plots]
+    (out_dir / "report.md").write_text("\n".join(md))
+    style = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em}"
+             "table{border-collapse:collapse;font-size:13px;margin-bottom:1em}td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}"
+             "figure{display:inline-block;margin:0.5em}img{max-width:520px}figcaption{font-size:12px;color:#555}")
+    (out_dir / "report.html").write_text(
+        f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{style}</style></head><body>"
+        + "\n".join(page) + "</body></html>"
+    )
+    log.info("report written to %s and %s", out_dir / "report.md", out_dir / "report.html")
+    return out_dir / "report.md"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m acoustlab.report PATH ... [--out DIR] [--title TEXT]``."""
+    parser = argparse.ArgumentParser(prog="python -m acoustlab.report", description="Summarise acoustlab runs (a sweep dir or run dirs) as Markdown and HTML.")
+    parser.add_argument("paths", nargs="+", type=Path, help="a sweep directory (searched for metrics.json) or run directories")
+    parser.add_argument("--out", type=Path, help="output directory (default: <first path>/report)")
+    parser.add_argument("--title", default=None, help="report heading")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        runs = collect_runs(args.paths)
+    except FileNotFoundError as exc:
+        print(f"acoustlab.report: error: {exc}", file=sys.stderr)
+        return 2
+    if not runs:
+        print(f"acoustlab.report: error: no finished runs (metrics.json with results) under {', '.join(map(str, args.paths))}", file=sys.stderr)
+        return 2
+    out = args.out or args.paths[0] / "report"
+    path = write_report(runs, out, title=args.title or f"acoustlab report: {', '.join(map(str, args.paths))}")
+    print(path)
+    print(path.with_suffix(".html"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,135 @@
+"""Typed schema of the config's non-plugin nodes (Hydra structured configs).
+
+The main config (``conf/config.yaml``) lists ``acoustlab_schema`` first in its defaults, so every
+composed config is checked against these dataclasses (types here; the default values, with
+comments, stay in ``conf/config.yaml``, their one home): a mistyped key (``data.n_event=5``) or a
+value of the wrong type (``data.n_events=abc``) fails when Hydra composes, before anything runs.
+Plugin nodes (simulator, solver, model, …) stay free-form: their keys are the plugin's
+constructor arguments, checked when the plugin is built.
+
+OmegaConf 2.3 has no ``typing.Literal``; closed choices are ``str`` enums instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, make_dataclass
+from dataclasses import field as dc_field
+from enum import Enum
+from typing import Any, Optional
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING
+
+SCHEMA_NAME = "acoustlab_schema"
+
+
+class ModelTarget(str, Enum):
+    """What the point model predicts: the position (as in the paper) or the solver's error."""
+
+    absolute = "absolute"
+    correction = "correction"
+
+
+@dataclass
+class DataConfig:
+    """How many events to simulate and how to split the work (the work split never changes the data)."""
+
+    n_events: int = MISSING
+    events_per_position: int = MISSING
+    chunk_size: int = MISSING
+    n_jobs: int = MISSING
+    shard_index: int = MISSING
+    shard_count: int = MISSING
+
+
+@dataclass
+class PipelineConfig:
+    """What the point model predicts and which feature groups each learned model is denied."""
+
+    model_target: ModelTarget = MISSING
+    drop_from_model: list[str] = dc_field(default_factory=list)
+    drop_from_error_model: list[str] = dc_field(default_factory=list)
+
+
+@dataclass
+class CacheConfig:
+    """The content-addressed cache of simulations and features."""
+
+    enabled: bool = MISSING
+    dir: str = MISSING
+
+
+@dataclass
+class PathsConfig:
+    """Where runs, caches and the MLflow store live."""
+
+    outputs_dir: str = MISSING
+
+
+@dataclass
+class FeaturesConfig:
+    """The feature groups (plugins), settings shared by several groups, and the ablation knob.
+
+    ``drop`` is the one home of the feature-group ablation: groups withheld from both learned
+    models (``pipeline.drop_from_model`` / ``drop_from_error_model`` withhold from one only).
+    """
+
+    groups: dict[str, Any] = dc_field(default_factory=dict)
+    gcc: dict[str, Any] = dc_field(default_factory=dict)
+    drop: list[str] = dc_field(default_factory=list)
+
+
+@dataclass
+class ConformalConfig:
+    """Conformal scorers (plugins) compared in one run, and the settings they share."""
+
+    levels: list[float] = MISSING
+    calibration_folds: int = MISSING
+    scorers: dict[str, Any] = dc_field(default_factory=dict)
+
+
+@dataclass
+class SiteConfig:
+    """A site: mics, trees, weather ranges, ground, noise, species (validated when the site is built)."""
+
+    name: str = "???"
+    mics: Optional[Any] = None
+    mics_csv: Optional[str] = None
+    trees_csv: Optional[str] = None
+    temperature_c: Any = None
+    relative_humidity_pct: Any = None
+    ground: dict[str, Any] = dc_field(default_factory=dict)
+    noise: dict[str, Any] = dc_field(default_factory=dict)
+    species_pool: list[str] = dc_field(default_factory=list)
+    source_height_m: Any = None
+    hull_expansion: float = 0.0
+    foliage_db_per_m: Optional[Any] = None
+
+
+#: Plugin groups whose nodes are free-form (their keys are the plugin's constructor arguments).
+FREE_FORM_GROUPS = ("simulator", "solver", "model", "gate", "error_model", "protocol", "field", "tracking")
+
+
+@dataclass
+class _TypedRoot:
+    seed: int = MISSING
+    plots: bool = MISSING
+    data: DataConfig = dc_field(default_factory=DataConfig)
+    pipeline: PipelineConfig = dc_field(default_factory=PipelineConfig)
+    cache: CacheConfig = dc_field(default_factory=CacheConfig)
+    paths: PathsConfig = dc_field(default_factory=PathsConfig)
+    features: FeaturesConfig = dc_field(default_factory=FeaturesConfig)
+    conformal: ConformalConfig = dc_field(default_factory=ConformalConfig)
+    site: Optional[SiteConfig] = None
+
+
+#: The root: the typed nodes above plus one free-form node per plugin group in :data:`FREE_FORM_GROUPS`.
+AcoustlabConfig = make_dataclass("AcoustlabConfig", [(g, Any, None) for g in FREE_FORM_GROUPS], bases=(_TypedRoot,))
+
+
+def register() -> None:
+    """Register the schema with Hydra's ConfigStore (idempotent); imported before any compose."""
+    ConfigStore.instance().store(name=SCHEMA_NAME, node=AcoustlabConfig)
+
+
+register()

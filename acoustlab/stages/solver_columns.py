@@ -1,0 +1,79 @@
+"""The solver stage: run the configured TDOA solver on a feature table and append the ``solver`` group."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.core import columns as col
+from acoustlab.core.contracts import Solver, SolverInputs
+from acoustlab.core.errors import DataError
+from acoustlab.core.types import Site
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+
+
+def tdoa_matrix(features: pd.DataFrame, n_mics: int) -> np.ndarray:
+    """(E, M) arrival-time differences to mic 0 from the ``tdoa__lag_0_j_s`` columns (column 0 is 0)."""
+    cols = [col.tdoa_lag(0, j) for j in range(1, n_mics)]
+    missing = [c for c in cols if c not in features.columns]
+    if missing:
+        raise DataError(f"the feature table lacks {missing}; the solver needs the 'tdoa' feature group")
+    return np.column_stack([np.zeros(len(features)), features[cols].to_numpy(dtype=float)])
+
+
+def pair_candidate_lags(features: pd.DataFrame, site: Site) -> np.ndarray | None:
+    """(E, P, K) candidate lags of every pair from the ``tdoa`` columns (None without candidates)."""
+    if not all(col.tdoa_lag(i, j) in features.columns for i, j in site.mic_pairs):
+        return None
+    k = 1
+    while all(col.tdoa_lag(i, j, k + 1) in features.columns for i, j in site.mic_pairs):
+        k += 1
+    ranked = [[col.tdoa_lag(i, j, r) for r in range(1, k + 1)] for i, j in site.mic_pairs]
+    return np.stack([features[c].to_numpy(dtype=float) for c in ranked], axis=1)
+
+
+def received_levels_db(features: pd.DataFrame, site: Site) -> np.ndarray | None:
+    """(E, M) received levels from the ``environment`` group; None when those columns are absent."""
+    cols = [col.level_db(m) for m in range(site.n_mics)]
+    if not all(c in features.columns for c in cols):
+        return None
+    return features[cols].to_numpy(dtype=float)
+
+
+def solver_inputs_for(features: pd.DataFrame, events: pd.DataFrame, site: Site) -> SolverInputs:
+    """Everything a solver may read for these events: TDOAs, speed of sound, levels, candidates, height.
+
+    The speed of sound is the events' ``speed_of_sound_m_s`` where known, else computed from their
+    temperature and humidity; the source height is the middle of the site's source-height range.
+    """
+    if "speed_of_sound_m_s" in events:
+        speed = events["speed_of_sound_m_s"].to_numpy(dtype=float)
+    else:
+        speed = speed_of_sound_m_s(events["temperature_c"].to_numpy(float), events["relative_humidity_pct"].to_numpy(float))
+    return SolverInputs(
+        mic_positions_m=site.mic_positions_m,
+        tdoa_s=tdoa_matrix(features, site.n_mics),
+        speed_of_sound_m_s=speed,
+        received_level_db=received_levels_db(features, site),
+        pair_lag_candidates_s=pair_candidate_lags(features, site),
+        source_height_m=float(np.mean(site.source_height_range_m)),
+    )
+
+
+def add_solver_columns(features: pd.DataFrame, events: pd.DataFrame, site: Site, solver: Solver) -> pd.DataFrame:
+    """Run the solver on every event and append its estimate and diagnostics as group ``solver``."""
+    result = solver.solve(solver_inputs_for(features, events, site))
+    out = features.copy()
+    out[col.SOLVER_X] = result.position_m[:, 0]
+    out[col.SOLVER_Y] = result.position_m[:, 1]
+    out[col.solver_column("residual_m")] = result.residual_m
+    out[col.solver_column("converged")] = result.converged.astype(float)
+    for name, values in result.diagnostics.items():
+        out[col.solver_column(name)] = np.asarray(values, dtype=float)
+    for name, _, _ in col.SOLVER_CATALOG:  # every solver fills the same columns (NaN where it has no such diagnostic)
+        if name not in out.columns:
+            out[name] = np.nan
+    # Learned models take NaN as "missing"; an infinite GDOP (degenerate geometry) becomes missing too.
+    solver_cols = [c for c in out.columns if col.group_of(c) == "solver"]
+    out[solver_cols] = out[solver_cols].replace([np.inf, -np.inf], np.nan)
+    return out

@@ -1,0 +1,68 @@
+"""The package's layers: no module imports from a layer above its own, and acoustlab never imports plugins."""
+
+from pathlib import Path
+
+import pytest
+
+from acoustlab.core.imports import internal_imports
+
+PACKAGE = Path(__file__).resolve().parent.parent / "acoustlab"
+#: Layers from the bottom up; a module may import only from its own layer or the ones before it.
+LAYERS = ("core", "toolkit", "stages", "method", "reporting", "run")
+#: Entry points at the top (``python -m acoustlab``, ``acoustlab.report``, ``acoustlab.upload``, ``acoustlab.catalog``).
+ENTRY = "entry"
+
+
+def layer_of(module: str) -> str:
+    parts = module.split(".")
+    if parts[0] != "acoustlab":
+        return parts[0]
+    return parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in LAYERS) else ENTRY
+
+
+def all_modules() -> list[str]:
+    modules = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(PACKAGE.parent).with_suffix("")
+        parts = list(rel.parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        modules.append(".".join(parts))
+    return modules
+
+
+MODULES = all_modules()
+
+
+def test_every_module_sits_in_a_known_layer():
+    unknown = [m for m in MODULES if layer_of(m) not in (*LAYERS, ENTRY) and m != "acoustlab"]
+    assert not unknown, f"modules outside the layers {LAYERS}: {unknown}"
+
+
+@pytest.mark.parametrize("module", MODULES)
+def test_no_upward_import(module):
+    own = layer_of(module)
+    if own == ENTRY or module == "acoustlab":
+        allowed = set(LAYERS)
+    else:
+        allowed = set(LAYERS[: LAYERS.index(own) + 1])
+    for imported in internal_imports(module):
+        target = layer_of(imported)
+        assert target != "plugins", f"{module} imports {imported}: acoustlab never imports plugins (Hydra builds them)"
+        if imported == "acoustlab":
+            continue  # the package root holds only metadata (__version__); see test_package_root_imports_nothing
+        if target == ENTRY:
+            assert own == ENTRY, f"{module} ({own}) imports the entry module {imported}"
+            continue
+        assert target in allowed, f"{module} (layer {own}) imports {imported} from the layer above, {target}"
+
+
+def test_the_layer_test_sees_imports():
+    """The walker finds real edges (a test that finds none would pass vacuously)."""
+    assert "acoustlab.core.contracts" in internal_imports("acoustlab.method.pipeline")
+    assert "acoustlab.stages.solver_columns" in internal_imports("acoustlab.run.app")
+    assert layer_of("acoustlab.run.app") == "run" and layer_of("acoustlab.report") == ENTRY
+
+
+def test_package_root_imports_nothing():
+    assert not internal_imports("acoustlab"), "acoustlab/__init__.py must stay metadata only (every layer may import it)"
