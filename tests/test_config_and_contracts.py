@@ -136,14 +136,17 @@ def test_cache_keys_cover_the_code_a_plugin_imports(tmp_path, monkeypatch):
     assert "acoustlab.toolkit.propagation" in closure and "acoustlab.toolkit.physics" in closure
     before = cache.code_digest("plugins.simulators.outdoor")
     edited = tmp_path / "propagation.py"
-    edited.write_text(imports.module_source_path("acoustlab.toolkit.propagation").read_text() + "\n# an edit\n")
+    source = imports.module_source_path("acoustlab.toolkit.propagation").read_text()
     real = imports.module_source_path
 
     def patched(module):
         return edited if module == "acoustlab.toolkit.propagation" else real(module)
 
     monkeypatch.setattr(cache, "module_source_path", patched)
-    assert cache.code_digest("plugins.simulators.outdoor") != before
+    edited.write_text(source + "\n# a comment only\n")
+    assert cache.code_digest("plugins.simulators.outdoor") == before  # comments and docstrings do not count
+    edited.write_text(source + "\nSPEED_FACTOR = 1.0\n")
+    assert cache.code_digest("plugins.simulators.outdoor") != before  # code does
 
 
 def test_a_foreign_plugins_package_is_refused(monkeypatch):

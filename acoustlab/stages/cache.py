@@ -12,6 +12,7 @@ and then read its entry.
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import fcntl
 import hashlib
@@ -42,13 +43,29 @@ def plugin_version(obj: Any) -> str:
     return f"{cls.__module__}.{cls.__qualname__}:{getattr(cls, 'cache_version', '0')}:{code_digest(cls.__module__)}"
 
 
-def code_digest(module: str) -> str:
-    """SHA-256 (16 hex digits) of the source of ``module`` and every own module it imports."""
+def code_digest(module: str, follow_imports: bool = True) -> str:
+    """SHA-256 (16 hex digits) of the code of ``module`` and, by default, of every own module it imports.
+
+    The code is hashed as its syntax tree without docstrings, so editing a comment or a docstring
+    keeps cache entries while any change to what the code does invalidates them.
+    """
     digest = hashlib.sha256()
-    for name in import_closure(module):
+    for name in import_closure(module) if follow_imports else [module]:
         path = module_source_path(name)
-        digest.update(name.encode() + b"\0" + (path.read_bytes() if path is not None else b"") + b"\0")
+        digest.update(name.encode() + b"\0" + (_code_text(path) if path is not None else b"") + b"\0")
     return digest.hexdigest()[:16]
+
+
+def _code_text(path: Path) -> bytes:
+    """The syntax tree of a module without docstrings or comments, as text."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body:
+            first = body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+                node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree, annotate_fields=False).encode()
 
 
 def atomic_save_npy(path: Path, array: np.ndarray) -> None:

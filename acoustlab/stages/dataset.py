@@ -124,7 +124,7 @@ def simulation_key(site: Site, simulator: Simulator, simulator_cfg: dict[str, An
     return StageCache.key(
         {
             "stage": "simulation",
-            "stage_code": code_digest(__name__),
+            "stage_code": code_digest(__name__, follow_imports=False),
             "site": site.fingerprint(),
             "simulator": simulator_cfg,
             "plugin": plugin_version(simulator),
@@ -266,7 +266,7 @@ def load_or_build_simulated(
     feat_key = StageCache.key(
         {
             "stage": "features",
-            "stage_code": code_digest(__name__),
+            "stage_code": code_digest(__name__, follow_imports=False),
             "simulation": sim_key,
             "features": features_cfg,
             "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},
@@ -291,7 +291,7 @@ def load_or_build_field(
     key = StageCache.key(
         {
             "stage": "field_features",
-            "stage_code": code_digest(__name__),
+            "stage_code": code_digest(__name__, follow_imports=False),
             "site": site.fingerprint(),
             "field": field_cfg,
             "field_plugin": plugin_version(field_source),
