@@ -22,6 +22,7 @@ SOLVER_X, SOLVER_Y = "solver__x_m", "solver__y_m"
 SOLVER_ESTIMATE_COLUMNS = (SOLVER_X, SOLVER_Y)
 SOLVER_GDOP = "solver__gdop"
 SOLVER_SOURCE_HEIGHT = "solver__source_height_m"
+SOLVER_FAILURE = "solver__failure"
 #: The ``solver`` feature group appended to every feature table (name, unit, definition).
 SOLVER_CATALOG = (
     (SOLVER_X, "m", "solver's estimate, x (east)"),
@@ -33,6 +34,12 @@ SOLVER_CATALOG = (
     (SOLVER_SOURCE_HEIGHT, "m", "source height assumed by the solver"),
     ("solver__residual_s", "s", "RMS residual expressed as time"),
     ("solver__conditioning", "1", "condition number of the TDOA Jacobian at the estimate"),
+    (SOLVER_FAILURE, "1", "why there is no fix: 0 a fix, 1 no solution, 2 a fix outside the plausible region (then x, y are NaN)"),
+    ("solver__consistent_pairs", "1", "mic pairs with a GCC peak consistent with the chosen arrival times (consistent-set solver)"),
+    ("solver__consistency", "1", "share of the pairs among trusted mics that are consistent (consistent-set solver)"),
+    ("solver__score_margin", "1", "GCC-height score of the chosen candidate set minus the runner-up's (consistent-set solver)"),
+    ("solver__n_mics_used", "1", "mics trusted for the fix (consistent-set solver)"),
+    ("solver__closure_rms_s", "s", "RMS misfit of the chosen pair lags to the fitted arrival times (consistent-set solver)"),
 )
 RADIUS_PREFIX = "radius"
 
@@ -66,6 +73,11 @@ def tdoa_lag(i: int, j: int, rank: int = 1) -> str:
     """``tdoa__lag_i_j_s`` (rank 1, the highest GCC peak) or ``tdoa__lag_i_j_c<rank>_s``: t_j − t_i in s."""
     suffix = "" if rank == 1 else f"_c{rank}"
     return f"tdoa__lag_{i}_{j}{suffix}_s"
+
+
+def xcorr_peak(i: int, j: int, rank: int) -> str:
+    """``xcorr__peak_i_j_c<rank>``: GCC height of pair (i, j)'s candidate of that rank."""
+    return f"xcorr__peak_{i}_{j}_c{rank}"
 
 
 def solver_column(name: str) -> str:

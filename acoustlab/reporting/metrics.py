@@ -11,18 +11,36 @@ from scipy.stats import spearmanr
 from acoustlab.core import columns as col
 
 ERROR_QUANTILES = {"p50": 50, "p90": 90, "p95": 95, "p99": 99}
+#: A failure's error while interpolating quantiles (any quantile it touches is reported as inf).
+_FAILURE_STAND_IN_M = 1e300
 
 
 def error_summary(errors_m: np.ndarray) -> dict[str, float]:
-    """n, mean and p50/p90/p95/p99 of 2-D errors in m (non-finite errors count as failures, ``n_failed``)."""
+    """n, mean and p50/p90/p95/p99 of 2-D errors in m; failures count.
+
+    A failure (no estimate: a non-finite error) is an infinite error in every percentile, so a
+    method cannot look better by returning nothing; ``n_failed`` stands beside the percentiles and
+    ``mean`` is the mean of the finite errors.
+
+    Raises
+    ------
+    ValueError
+        When there are no errors at all, or none is finite.
+    """
     errors_m = np.asarray(errors_m, dtype=float)
+    if errors_m.size == 0:
+        raise ValueError("no errors to summarise")
+    errors_m = np.where(np.isnan(errors_m), np.inf, errors_m)
     finite = errors_m[np.isfinite(errors_m)]
     out: dict[str, float] = {"n": int(errors_m.size), "n_failed": int(errors_m.size - finite.size)}
     if finite.size == 0:
         raise ValueError("no finite errors to summarise")
     out["mean"] = float(finite.mean())
+    # linear interpolation as usual; a quantile that reaches into the failures is infinite
+    stand_in = np.where(np.isfinite(errors_m), errors_m, _FAILURE_STAND_IN_M)
     for name, q in ERROR_QUANTILES.items():
-        out[name] = float(np.percentile(finite, q))
+        value = float(np.percentile(stand_in, q))
+        out[name] = value if value < _FAILURE_STAND_IN_M / 1e3 else float("inf")
     return out
 
 

@@ -169,14 +169,15 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         log.info("sharded simulation run: shard %d of %d is in the cache; run without data.shard_count to finish",
                  plan.shard_index + 1, plan.shard_count)
         return {"shard": {"index": plan.shard_index, "count": plan.shard_count}}
-    dataset.features = add_solver_columns(dataset.features, dataset.events, site, components.solver)
+    bound = cfg.pipeline.plausible_margin_fraction
+    dataset.features = add_solver_columns(dataset.features, dataset.events, site, components.solver, bound)
     field_data = None
     if getattr(protocol, "needs_field", False):
         field_source = build(cfg.field, "field")
         if field_source is None:
             raise ConfigError(f"protocol={choices.get('protocol', 'field')} needs field recordings: choose field=playback_standin or field=recordings")
         field_data = load_or_build_field(site, field_source, to_plain(cfg.field), feature_sets, to_plain(cfg.features.groups), cache)
-        field_data.features = add_solver_columns(field_data.features, field_data.events, site, components.solver)
+        field_data.features = add_solver_columns(field_data.features, field_data.events, site, components.solver, bound)
     timings["data_s"] = time.perf_counter() - stage_start
     stage_start = time.perf_counter()
     result = protocol.run(dataset, LocalizationPipeline(components), field_recordings=field_data)

@@ -44,9 +44,10 @@ class DataConfig:
 
 @dataclass
 class PipelineConfig:
-    """What the point model predicts and which feature groups each learned model is denied."""
+    """What the point model predicts, the solver's plausible region, and which feature groups each learned model is denied."""
 
     model_target: ModelTarget = MISSING
+    plausible_margin_fraction: Optional[float] = MISSING
     drop_from_model: list[str] = dc_field(default_factory=list)
     drop_from_error_model: list[str] = dc_field(default_factory=list)
 

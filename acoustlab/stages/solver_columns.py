@@ -9,6 +9,7 @@ from acoustlab.core import columns as col
 from acoustlab.core.contracts import Solver, SolverInputs
 from acoustlab.core.errors import DataError
 from acoustlab.core.types import Site
+from acoustlab.toolkit.geometry import bounding_box
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 
@@ -32,6 +33,14 @@ def pair_candidate_lags(features: pd.DataFrame, site: Site) -> np.ndarray | None
     return np.stack([features[c].to_numpy(dtype=float) for c in ranked], axis=1)
 
 
+def pair_candidate_weights(features: pd.DataFrame, site: Site, n_candidates: int) -> np.ndarray | None:
+    """(E, P, K) GCC heights of the candidates from the ``xcorr`` group; None when absent."""
+    ranked = [[col.xcorr_peak(i, j, r) for r in range(1, n_candidates + 1)] for i, j in site.mic_pairs]
+    if not all(c in features.columns for names in ranked for c in names):
+        return None
+    return np.stack([features[c].to_numpy(dtype=float) for c in ranked], axis=1)
+
+
 def received_levels_db(features: pd.DataFrame, site: Site) -> np.ndarray | None:
     """(E, M) received levels from the ``environment`` group; None when those columns are absent."""
     cols = [col.level_db(m) for m in range(site.n_mics)]
@@ -50,26 +59,71 @@ def solver_inputs_for(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
         speed = events["speed_of_sound_m_s"].to_numpy(dtype=float)
     else:
         speed = speed_of_sound_m_s(events["temperature_c"].to_numpy(float), events["relative_humidity_pct"].to_numpy(float))
+    candidates = pair_candidate_lags(features, site)
     return SolverInputs(
         mic_positions_m=site.mic_positions_m,
         tdoa_s=tdoa_matrix(features, site.n_mics),
         speed_of_sound_m_s=speed,
         received_level_db=received_levels_db(features, site),
-        pair_lag_candidates_s=pair_candidate_lags(features, site),
+        pair_lag_candidates_s=candidates,
         source_height_m=float(np.mean(site.source_height_range_m)),
+        pair_lag_weights=None if candidates is None else pair_candidate_weights(features, site, candidates.shape[-1]),
     )
 
 
-def add_solver_columns(features: pd.DataFrame, events: pd.DataFrame, site: Site, solver: Solver) -> pd.DataFrame:
-    """Run the solver on every event and append its estimate and diagnostics as group ``solver``."""
+#: ``solver__failure`` codes: why an event has no solver fix.
+FAILURE_NONE, FAILURE_NO_FIX, FAILURE_IMPLAUSIBLE = 0, 1, 2
+
+
+def bound_fixes(position_m: np.ndarray, site: Site, plausible_margin_fraction: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Replace fixes far outside the site by NaN and say why.
+
+    Parameters
+    ----------
+    position_m : numpy.ndarray
+        (E, 2) solver fixes in m.
+    site : Site
+        The site (its mics define the plausible region).
+    plausible_margin_fraction : float or None
+        The plausible region is the mics' bounding box grown on every side by this fraction of the
+        largest mic-to-mic distance; None keeps every finite fix (no bound).
+
+    Returns
+    -------
+    position_m : numpy.ndarray
+        (E, 2) fixes, NaN where there is none or it was implausible.
+    failure : numpy.ndarray
+        (E,) int codes: 0 a fix, 1 no fix (non-finite), 2 a fix outside the plausible region.
+    """
+    position_m = np.array(position_m, dtype=float)
+    finite = np.isfinite(position_m).all(axis=1)
+    failure = np.where(finite, FAILURE_NONE, FAILURE_NO_FIX)
+    if plausible_margin_fraction is not None:
+        low, high = bounding_box(site.mic_positions_m, float(plausible_margin_fraction))
+        outside = finite & ((position_m < low) | (position_m > high)).any(axis=1)
+        failure = np.where(outside, FAILURE_IMPLAUSIBLE, failure)
+    position_m[failure != FAILURE_NONE] = np.nan
+    return position_m, failure
+
+
+def add_solver_columns(
+    features: pd.DataFrame, events: pd.DataFrame, site: Site, solver: Solver, plausible_margin_fraction: float | None = None
+) -> pd.DataFrame:
+    """Run the solver on every event and append its estimate and diagnostics as group ``solver``.
+
+    With ``plausible_margin_fraction`` a fix outside the plausible region (see :func:`bound_fixes`)
+    is never emitted as a number: its position is NaN and ``solver__failure`` says why.
+    """
     result = solver.solve(solver_inputs_for(features, events, site))
+    position, failure = bound_fixes(result.position_m, site, plausible_margin_fraction)
     out = features.copy()
-    out[col.SOLVER_X] = result.position_m[:, 0]
-    out[col.SOLVER_Y] = result.position_m[:, 1]
+    out[col.SOLVER_X] = position[:, 0]
+    out[col.SOLVER_Y] = position[:, 1]
     out[col.solver_column("residual_m")] = result.residual_m
     out[col.solver_column("converged")] = result.converged.astype(float)
     for name, values in result.diagnostics.items():
         out[col.solver_column(name)] = np.asarray(values, dtype=float)
+    out[col.SOLVER_FAILURE] = failure.astype(float)
     for name, _, _ in col.SOLVER_CATALOG:  # every solver fills the same columns (NaN where it has no such diagnostic)
         if name not in out.columns:
             out[name] = np.nan

@@ -55,6 +55,7 @@ def gcc(
     weighting: str = "phat",
     band_hz: tuple[float, float] | None = None,
     upsample: int = 1,
+    beta: float = 0.8,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Generalised cross-correlation of every listed mic pair, for a batch of events.
 
@@ -68,13 +69,17 @@ def gcc(
         Mic pairs.
     sample_rate_hz : float
         Sampling rate in Hz.
-    weighting : {"phat", "none"}
-        PHAT whitening (unit magnitude cross-spectrum) or plain cross-correlation.
+    weighting : {"phat", "beta_phat", "none"}
+        PHAT whitening (unit magnitude cross-spectrum), β-PHAT (the cross-spectrum divided by its
+        magnitude to the power ``beta``: between plain and PHAT, so bins with little signal are not
+        whitened up to the level of the call's bins), or plain cross-correlation.
     band_hz : tuple of float, optional
         Keep only this (low, high) band of the cross-spectrum, in Hz.
     upsample : int
         Lag-resolution factor: the cross-spectrum is zero-padded so lags are spaced by
         1/(upsample × sample_rate_hz), which shrinks the bias of parabolic peak interpolation.
+    beta : float
+        The exponent of β-PHAT, in [0, 1] (0 is plain cross-correlation, 1 is PHAT).
 
     Returns
     -------
@@ -89,10 +94,11 @@ def gcc(
     i_idx = np.array([p[0] for p in pairs])
     j_idx = np.array([p[1] for p in pairs])
     cross = np.conj(spectra[:, i_idx, :]) * spectra[:, j_idx, :]
-    if weighting == "phat":
-        cross = cross / np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max(axis=-1, keepdims=True) + 1e-30)
+    if weighting in ("phat", "beta_phat"):
+        floor = np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max(axis=-1, keepdims=True) + 1e-30)
+        cross = cross / (floor if weighting == "phat" else floor ** float(beta))
     elif weighting != "none":
-        raise ValueError(f"gcc weighting must be 'phat' or 'none'; got {weighting!r}")
+        raise ValueError(f"gcc weighting must be 'phat', 'beta_phat' or 'none'; got {weighting!r}")
     if band_hz is not None:
         freqs = sfft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)
         cross = cross * ((freqs >= band_hz[0]) & (freqs <= band_hz[1]))

@@ -52,16 +52,18 @@ def pair_candidates(
     band_hz: tuple[float, float] | None = None,
     weighting: str = "phat",
     upsample: int = 4,
+    beta: float = 0.8,
 ) -> PairCandidates:
     """The K best GCC peaks of every mic pair of every event (see the module docstring)."""
-    key = ("pair_candidates", n_candidates, margin_s, band_hz, weighting, upsample, site.mic_positions_m.tobytes())
-    return batch.derived(key, lambda: _compute_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample))
+    key = ("pair_candidates", n_candidates, margin_s, band_hz, weighting, upsample, beta, site.mic_positions_m.tobytes())
+    return batch.derived(key, lambda: _compute_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta))
 
 
 def _compute_pair_candidates(
-    batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz: tuple[float, float] | None, weighting: str, upsample: int
+    batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz: tuple[float, float] | None, weighting: str,
+    upsample: int, beta: float,
 ) -> PairCandidates:
-    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample)
+    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample, beta)
     step = lags[1] - lags[0]
     e, p = cc.shape[:2]
     out_lags = np.full((e, p, n_candidates), np.nan)

@@ -29,8 +29,10 @@ class _GccGroup:
         GCC peaks kept per mic pair.
     max_lag_margin_s : float
         Lag window margin, s, beyond mic distance over the fastest sound speed.
-    weighting : {"phat", "none"}
-        Cross-spectrum weighting.
+    weighting : {"phat", "beta_phat", "none"}
+        Cross-spectrum weighting (see :func:`acoustlab.toolkit.dsp.gcc`).
+    beta : float
+        β-PHAT exponent in [0, 1] (used with ``weighting="beta_phat"``).
     upsample : int
         Correlation upsampling before parabolic peak refinement.
     band_hz : (float, float), optional
@@ -38,7 +40,7 @@ class _GccGroup:
     """
 
     cache_version = "1"
-    DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "phat", "upsample": 4, "band_hz": (300.0, 10000.0)}
+    DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "phat", "beta": 0.8, "upsample": 4, "band_hz": (300.0, 10000.0)}
 
     def __init__(self, gcc: Mapping[str, Any] | None = None, **settings: Any) -> None:
         unknown = sorted((set(gcc or {}) | set(settings)) - set(self.DEFAULTS))
@@ -48,11 +50,14 @@ class _GccGroup:
         n_candidates, weighting, band_hz = params["n_candidates"], params["weighting"], params["band_hz"]
         if n_candidates < 1:
             raise ConfigError(f"features: n_candidates must be >= 1; got {n_candidates}")
-        if weighting not in ("phat", "none"):
-            raise ConfigError(f"features: weighting must be 'phat' or 'none'; got {weighting!r}")
+        if weighting not in ("phat", "beta_phat", "none"):
+            raise ConfigError(f"features.gcc.weighting must be 'phat', 'beta_phat' or 'none'; got {weighting!r}")
+        if not 0.0 <= float(params["beta"]) <= 1.0:
+            raise ConfigError(f"features.gcc.beta must lie in [0, 1]; got {params['beta']}")
         self.n_candidates = int(n_candidates)
         self.max_lag_margin_s = float(params["max_lag_margin_s"])
         self.weighting = weighting
+        self.beta = float(params["beta"])
         self.upsample = int(params["upsample"])
         # PHAT whitens every bin it is given: bins without signal (e.g. above the 11 kHz content
         # of recordings made at 22 kHz) then produce spurious peaks, so restrict it to the calls' band.
@@ -60,7 +65,7 @@ class _GccGroup:
 
     def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
         band = self.band_hz if band_hz is None else band_hz
-        return pair_candidates(batch, site, self.n_candidates, self.max_lag_margin_s, band, self.weighting, self.upsample)
+        return pair_candidates(batch, site, self.n_candidates, self.max_lag_margin_s, band, self.weighting, self.upsample, self.beta)
 
 
 class TdoaCandidates(_GccGroup):
@@ -94,7 +99,7 @@ class XcorrConfidence(_GccGroup):
         rows = []
         for i, j in site.mic_pairs:
             for k in range(self.n_candidates):
-                rows.append((f"xcorr__peak_{i}_{j}_c{k + 1}", "1", f"GCC height of peak rank {k + 1}"))
+                rows.append((col.xcorr_peak(i, j, k + 1), "1", f"GCC height of peak rank {k + 1}"))
             for lo, hi in self.extra_bands_hz:
                 rows.append((f"xcorr__peak_{i}_{j}_{lo:.0f}_{hi:.0f}hz", "1", f"dominant GCC height with the cross-spectrum limited to {lo:.0f}–{hi:.0f} Hz"))
         return rows
@@ -102,10 +107,10 @@ class XcorrConfidence(_GccGroup):
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         cand = self._candidates(batch, site)
         cols = {}
-        banded = [pair_candidates(batch, site, 1, self.max_lag_margin_s, b, self.weighting, self.upsample) for b in self.extra_bands_hz]
+        banded = [pair_candidates(batch, site, 1, self.max_lag_margin_s, b, self.weighting, self.upsample, self.beta) for b in self.extra_bands_hz]
         for p, (i, j) in enumerate(site.mic_pairs):
             for k in range(self.n_candidates):
-                cols[f"xcorr__peak_{i}_{j}_c{k + 1}"] = cand.heights[:, p, k]
+                cols[col.xcorr_peak(i, j, k + 1)] = cand.heights[:, p, k]
             for (lo, hi), b in zip(self.extra_bands_hz, banded, strict=True):
                 cols[f"xcorr__peak_{i}_{j}_{lo:.0f}_{hi:.0f}hz"] = b.heights[:, p, 0]
         return pd.DataFrame(cols)

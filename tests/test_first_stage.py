@@ -1,0 +1,148 @@
+"""The robust first stage: consistent candidate sets, bounded output, failures counted, the peer heuristic."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from acoustlab.core import columns as col
+from acoustlab.core.contracts import SolverInputs
+from acoustlab.core.types import NoiseRegime, Site
+from acoustlab.reporting.metrics import error_summary
+from acoustlab.stages.solver_columns import FAILURE_IMPLAUSIBLE, FAILURE_NO_FIX, add_solver_columns, bound_fixes
+from plugins.solvers.consistent_set import ConsistentSetSolver
+from plugins.solvers.hyperbolic import HyperbolicSolver
+from plugins.solvers.per_reference_mic import PerReferenceMicSolver
+
+C = 340.0
+TRIANGLE = np.array([[0.0, 0.0, 1.2], [50.0, 0.0, 1.2], [24.0, 44.0, 1.2]])
+HEXAGON = np.array([[0, 0, 1.5], [55, -5, 1.5], [90, 25, 1.5], [75, 70, 1.5], [25, 75, 1.5], [-10, 35, 1.5]], float)
+
+
+def pairs(m):
+    return [(i, j) for i in range(m) for j in range(i + 1, m)]
+
+
+def scene(mics, xy, k=3, seed=0):
+    """Exact lags of every pair as rank 1, two spurious lower peaks per pair; TDOAs to mic 0 from rank 1."""
+    rng = np.random.default_rng(seed)
+    src = np.column_stack([xy, np.full(len(xy), mics[0, 2])])
+    t = np.sqrt(((src[:, None] - mics[None]) ** 2).sum(-1)) / C
+    lags = np.stack([t[:, j] - t[:, i] for i, j in pairs(len(mics))], axis=1)  # (E, P)
+    cands = np.concatenate([lags[..., None], lags[..., None] + rng.uniform(3e-3, 2e-2, size=(*lags.shape, k - 1))], axis=-1)
+    weights = np.concatenate([np.full((*lags.shape, 1), 0.5), np.full((*lags.shape, k - 1), 0.3)], axis=-1)
+    return t - t[:, :1], cands, weights
+
+
+def plant_reflection(cands, weights, pair_index, delay_s=1.5e-2):
+    """Make a delayed copy the highest peak of one pair and push the direct path to rank 2."""
+    cands, weights = cands.copy(), weights.copy()
+    cands[:, pair_index, 1] = cands[:, pair_index, 0]
+    cands[:, pair_index, 0] = cands[:, pair_index, 1] + delay_s
+    weights[:, pair_index, 0], weights[:, pair_index, 1] = 0.6, 0.5
+    return cands, weights
+
+
+def inputs_from(mics, cands, weights):
+    top = cands[:, :, 0]
+    m = len(mics)
+    tdoa = np.column_stack([np.zeros(len(top))] + [top[:, pairs(m).index((0, j))] for j in range(1, m)])
+    return SolverInputs(mics, tdoa, C, pair_lag_candidates_s=cands, pair_lag_weights=weights, source_height_m=float(mics[0, 2]))
+
+
+@pytest.mark.parametrize("mics,pair", [(HEXAGON, (0, 2)), (HEXAGON, (3, 4)), (TRIANGLE, (0, 1))])
+def test_a_planted_reflection_is_rejected_by_consistency(mics, pair):
+    xy = np.array([[30.0, 30.0], [20.0, 10.0], [40.0, 25.0]]) if len(mics) == 6 else np.array([[25.0, 15.0], [20.0, 20.0]])
+    _, cands, weights = scene(mics, xy)
+    cands, weights = plant_reflection(cands, weights, pairs(len(mics)).index(pair))
+    inputs = inputs_from(mics, cands, weights)
+    chosen = ConsistentSetSolver().solve(inputs)
+    assert np.linalg.norm(chosen.position_m - xy, axis=1).max() < 1e-3
+    assert (chosen.diagnostics["consistency"] == 1.0).all() and (chosen.diagnostics["n_mics_used"] == len(mics)).all()
+    assert (chosen.diagnostics["score_margin"] > 0).all()
+    if pair[0] == 0:  # the reflection sits in a pair with mic 0: the top-peak solver is fooled
+        assert np.linalg.norm(HyperbolicSolver().solve(inputs).position_m - xy, axis=1).min() > 1.0
+
+
+def test_a_mic_with_no_consistent_peak_is_left_out():
+    xy = np.array([[30.0, 30.0], [45.0, 40.0]])
+    _, cands, weights = scene(HEXAGON, xy)
+    for p, (i, j) in enumerate(pairs(6)):
+        if 5 in (i, j):  # mic 5 hears only noise: every one of its peaks is random
+            cands[:, p, :] = np.random.default_rng(p).uniform(-0.2, 0.2, size=(2, 3))
+    result = ConsistentSetSolver().solve(inputs_from(HEXAGON, cands, weights))
+    assert (result.diagnostics["n_mics_used"] == 5).all()
+    assert np.linalg.norm(result.position_m - xy, axis=1).max() < 1e-3
+
+
+@settings(max_examples=25, deadline=None)
+@given(order=st.permutations(range(6)), x=st.floats(0, 80), y=st.floats(0, 70), reflected=st.integers(0, 14))
+def test_selection_does_not_depend_on_mic_order(order, x, y, reflected):
+    xy = np.array([[x, y]])
+    _, cands, weights = scene(HEXAGON, xy, seed=reflected)
+    cands, weights = plant_reflection(cands, weights, reflected)
+    base = ConsistentSetSolver().solve(inputs_from(HEXAGON, cands, weights))
+    order = list(order)
+    mics = HEXAGON[order]
+    index = {p: n for n, p in enumerate(pairs(6))}
+    perm_c, perm_w = np.empty_like(cands), np.empty_like(weights)
+    for n, (a, b) in enumerate(pairs(6)):
+        i, j = order[a], order[b]
+        src = index[(min(i, j), max(i, j))]
+        perm_c[:, n] = cands[:, src] if i < j else -cands[:, src]
+        perm_w[:, n] = weights[:, src]
+    permuted = ConsistentSetSolver().solve(inputs_from(mics, perm_c, perm_w))
+    np.testing.assert_allclose(permuted.position_m, base.position_m, atol=1e-6)
+    assert permuted.diagnostics["consistent_pairs"] == pytest.approx(base.diagnostics["consistent_pairs"])
+
+
+def test_the_peer_heuristic_keeps_the_lowest_residual_reference():
+    xy = np.array([[30.0, 30.0], [50.0, 20.0]])
+    _, cands, weights = scene(HEXAGON, xy)
+    cands, weights = plant_reflection(cands, weights, pairs(6).index((0, 2)))  # spoils reference mics 0 and 2 only
+    result = PerReferenceMicSolver().solve(inputs_from(HEXAGON, cands, weights))
+    assert np.linalg.norm(result.position_m - xy, axis=1).max() < 1e-3
+    assert not set(result.diagnostics["reference_mic"]) & {0.0, 2.0}
+
+
+def site_of(mics):
+    return Site(name="t", mic_positions_m=mics, tree_positions_m=np.zeros((0, 2)), trunk_diameters_m=np.zeros(0),
+                temperature_range_c=(10.0, 10.0), relative_humidity_range_pct=(50.0, 50.0), ground_type="grass",
+                ground_flow_resistivity_kpa_s_m2=200.0, ground_impedance_model="miki", ground_layer_thickness_m=None,
+                noise_regimes=(NoiseRegime("white"),), snr_range_db=(10.0, 20.0), species_pool=("synthetic",),
+                source_height_range_m=(1.2, 1.2), hull_expansion=0.2)
+
+
+def test_bounded_output_on_a_degenerate_geometry():
+    """TDOAs no source can produce (larger than the mic spacing allows) never come out as a far-away number."""
+    site = site_of(TRIANGLE)
+    features = pd.DataFrame({col.tdoa_lag(0, 1): [0.5, 0.01, np.nan], col.tdoa_lag(0, 2): [-0.49, 0.02, 0.0]})
+    events = pd.DataFrame({"speed_of_sound_m_s": [C, C, C]})
+    unbounded = add_solver_columns(features, events, site, HyperbolicSolver())
+    bounded = add_solver_columns(features, events, site, HyperbolicSolver(), plausible_margin_fraction=1.0)
+    assert np.abs(unbounded.loc[0, [col.SOLVER_X, col.SOLVER_Y]].to_numpy(float)).max() > 200  # what it used to emit
+    assert bounded.loc[0, [col.SOLVER_X, col.SOLVER_Y]].isna().all() and bounded.loc[0, col.SOLVER_FAILURE] == FAILURE_IMPLAUSIBLE
+    assert bounded.loc[2, col.SOLVER_FAILURE] == FAILURE_NO_FIX
+    assert np.isfinite(bounded.loc[1, [col.SOLVER_X, col.SOLVER_Y]].to_numpy(float)).all() and bounded.loc[1, col.SOLVER_FAILURE] == 0
+
+
+def test_bound_keeps_fixes_inside_and_none_means_unbounded():
+    site = site_of(TRIANGLE)
+    fixes = np.array([[25.0, 20.0], [1e5, 0.0], [np.nan, 1.0]])
+    kept, failure = bound_fixes(fixes, site, None)
+    assert np.isfinite(kept[1]).all() and list(failure) == [0, 0, FAILURE_NO_FIX]
+    kept, failure = bound_fixes(fixes, site, 1.0)
+    assert np.isnan(kept[1]).all() and list(failure) == [0, FAILURE_IMPLAUSIBLE, FAILURE_NO_FIX]
+
+
+def test_failures_count_in_every_percentile():
+    errors = np.concatenate([np.linspace(0.1, 1.0, 90), np.full(10, np.inf)])
+    summary = error_summary(errors)
+    assert summary["n_failed"] == 10 and summary["n"] == 100
+    assert summary["p50"] == pytest.approx(np.percentile(errors[:90], 50 * 100 / 90), rel=0.02)  # the failures shift the median
+    assert summary["p95"] == np.inf and summary["p99"] == np.inf
+    assert np.isfinite(summary["p90"]) or summary["p90"] == np.inf
+    dropped = error_summary(errors[:90])
+    assert summary["p50"] > dropped["p50"]  # counting failures never flatters
+    assert error_summary(np.array([1.0, np.nan]))["n_failed"] == 1
