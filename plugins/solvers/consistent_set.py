@@ -27,6 +27,7 @@ They are the cues a gate and an error model can use.
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import numpy as np
@@ -44,6 +45,7 @@ def _pairs(n_mics: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(n_mics) for j in range(i + 1, n_mics)]
 
 
+@functools.lru_cache(maxsize=16)
 def _hypothesis_design(n_mics: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For every hypothesis: the reference mic, the pair index and sign giving each mic's time, and the candidate rank.
 
@@ -76,15 +78,15 @@ def _hypothesis_design(n_mics: int, k: int) -> tuple[np.ndarray, np.ndarray, np.
 
 
 class ConsistentSetSolver:
-    """See the module docstring.
+    """Jointly consistent GCC candidates over all mic pairs, the mics to trust, then the fix (module docstring).
 
     Parameters
     ----------
-    source_height_m : float, optional
-        Assumed source height in m (None: ``SolverInputs.source_height_m``, the site's mid height).
     tolerance_s : float
-        A pair is consistent when one of its candidate lags is this close to the hypothesis, s
-        (about the width of a GCC peak in the call band).
+        Closure tolerance, s: a pair agrees with a hypothesis when one of its candidate lags is
+        this close to the lag the hypothesis implies (about the width of a GCC peak).
+    source_height_m : float, optional
+        Height to assume, m; None takes ``SolverInputs.source_height_m`` (the site's mid height).
     max_hypotheses : int
         Upper bound on hypotheses per event; fewer candidates per pair are used above it.
     chunk_events : int
@@ -97,7 +99,7 @@ class ConsistentSetSolver:
     required_feature_groups = ("tdoa",)
 
     def __init__(self, source_height_m: float | None = None, tolerance_s: float = 2.5e-4, max_hypotheses: int = 2000,
-                 chunk_events: int = 64, n_iterations: int = 10) -> None:
+                 chunk_events: int = 16, n_iterations: int = 10) -> None:
         if tolerance_s <= 0:
             raise ConfigError(f"solver.tolerance_s must be > 0; got {tolerance_s}")
         if max_hypotheses < 1 or chunk_events < 1:
@@ -135,12 +137,15 @@ class ConsistentSetSolver:
         times = np.where(pair_of[None] < 0, 0.0, times)
         valid = np.isfinite(times).all(-1)
         predicted = times[..., j_idx] - times[..., i_idx]  # (B, H, P)
-        misfit = np.abs(cands[:, None, :, :] - predicted[..., None])  # (B, H, P, K)
-        close = misfit < self.tolerance_s
-        pair_weight = np.where(close, w[:, None], 0.0).max(-1)  # (B, H, P)
-        consistent = close.any(-1)
+        # one candidate rank at a time: (B, H, P) temporaries instead of (B, H, P, K)
+        pair_weight = np.zeros(predicted.shape)
+        consistent = np.zeros(predicted.shape, dtype=bool)
+        for r in range(k_all):
+            close = np.abs(predicted - cands[:, None, :, r]) < self.tolerance_s
+            consistent |= close
+            np.maximum(pair_weight, close * w[:, None, :, r], out=pair_weight)
         # earliest arrivals break ties: a reflection only ever delays a mic
-        lateness = np.nansum(times - np.nanmin(times, axis=-1, keepdims=True), axis=-1)
+        lateness = (times - times.min(axis=-1, keepdims=True)).sum(axis=-1)  # NaN for invalid hypotheses, excluded below
         score = pair_weight.sum(-1) - 1e-3 * np.nan_to_num(lateness, nan=1e3)
         score = np.where(valid, score, -np.inf)
         best = np.argmax(score, axis=1)
@@ -161,7 +166,8 @@ class ConsistentSetSolver:
         trusted[too_few] = True  # with fewer than three trusted mics keep them all (and say so via consistency)
         pair_trusted = trusted[:, i_idx] & trusted[:, j_idx]
         use = ok & pair_trusted
-        chosen_rank = np.argmin(misfit[rows, best], axis=-1)  # (B, P)
+        gap = np.abs(cands - predicted[rows, best][..., None])
+        chosen_rank = np.argmin(np.where(np.isnan(gap), np.inf, gap), axis=-1)  # (B, P), missing peaks never chosen
         chosen = np.take_along_axis(cands, chosen_rank[..., None], -1)[..., 0]
         fitted = self._fit_times(chosen, use, trusted, best_times, i_idx, j_idx)
         resid = (fitted[:, j_idx] - fitted[:, i_idx]) - chosen
