@@ -178,3 +178,14 @@ def test_batch_cache_computes_once_per_key():
     assert batch.derived("k", lambda: calls.append(1) or 42) == 42
     assert batch.derived("k", lambda: calls.append(1) or 43) == 42
     assert len(calls) == 1
+
+
+def test_a_mistyped_ablation_group_fails_in_preflight(compose_cfg):
+    from acoustlab.core.errors import ConfigError
+    from acoustlab.run.app import build_run
+
+    with pytest.raises(ConfigError, match=r"features.drop names feature groups \['solvr'\]"):
+        build_run(compose_cfg(["+site=frozen_lake", "features.drop=[solvr]", "tracking=none"]))
+    with pytest.raises(ConfigError, match=r"pipeline.drop_from_model names feature groups \['xcor'\]"):
+        build_run(compose_cfg(["+site=frozen_lake", "pipeline.drop_from_model=[xcor]", "tracking=none"]))
+    build_run(compose_cfg(["+site=frozen_lake", "features.drop=[solver,xcorr]", "tracking=none"]))

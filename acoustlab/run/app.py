@@ -88,6 +88,22 @@ def check_feature_requirements(feature_sets: dict[str, Any], **plugins: Any) -> 
             )
 
 
+def check_dropped_groups(feature_sets: dict[str, Any], **drops: list[str]) -> None:
+    """Every feature group named for ablation must exist (a typo fails now, not after the data stage).
+
+    Raises
+    ------
+    ConfigError
+        Naming the setting (e.g. ``features.drop``), the unknown groups and the available ones.
+    """
+    available = set(feature_sets) | {"solver"}
+    for setting, groups in drops.items():
+        unknown = sorted(set(groups) - available)
+        if unknown:
+            name = setting.replace("_", ".", 1)
+            raise ConfigError(f"{name} names feature groups {unknown} that the features= option does not have; available: {', '.join(sorted(available))}")
+
+
 def build_run(cfg: DictConfig) -> BuiltRun:
     """Build and check every plugin of a config without running anything expensive (the preflight).
 
@@ -118,6 +134,8 @@ def build_run(cfg: DictConfig) -> BuiltRun:
         dropped_from_error_model=list(cfg.pipeline.drop_from_error_model),
     )
     check_feature_requirements(feature_sets, solver=components.solver, gate=components.gate)
+    check_dropped_groups(feature_sets, features_drop=components.dropped_groups, pipeline_drop_from_model=components.dropped_from_model,
+                         pipeline_drop_from_error_model=components.dropped_from_error_model)
     for level in components.levels:
         if not 0 < level < 1:
             raise ConfigError(f"conformal.levels must lie in (0, 1); got {level}")
