@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 import logging
 import time
-from dataclasses import fields
+from dataclasses import replace
 
 import numpy as np
 from common import compose_cfg, machine, write_results
@@ -69,10 +69,14 @@ def load(site_name: str, n_events: int, weighting: str):
     return site, solver_inputs_for(data.features, data.events, site), truth, data.events["position_id"].to_numpy(), cfg
 
 
+#: The per-event fields of ``SolverInputs`` (the mics and the source height are shared by all events).
+PER_EVENT = ("tdoa_s", "speed_of_sound_m_s", "received_level_db", "pair_lag_candidates_s", "pair_lag_weights")
+
+
 def first_rows(inputs: SolverInputs, n: int) -> SolverInputs:
     """The first ``n`` events of a batch of solver inputs (for warming up)."""
-    head = lambda v: v[:n] if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] > n - 1 and v is not inputs.mic_positions_m else v  # noqa: E731
-    return SolverInputs(**{f.name: head(getattr(inputs, f.name)) for f in fields(SolverInputs)})
+    head = {name: getattr(inputs, name) for name in PER_EVENT}
+    return replace(inputs, **{name: v if v is None or np.ndim(v) == 0 else np.asarray(v)[:n] for name, v in head.items()})
 
 
 def evaluate(site_name: str, n_events: int) -> dict:

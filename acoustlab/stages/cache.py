@@ -15,6 +15,7 @@ from __future__ import annotations
 import ast
 import contextlib
 import fcntl
+import functools
 import hashlib
 import logging
 import os
@@ -57,8 +58,13 @@ def code_digest(module: str, follow_imports: bool = True) -> str:
 
 
 def _code_text(path: Path) -> bytes:
-    """The syntax tree of a module without docstrings or comments, as text."""
-    tree = ast.parse(path.read_text(), filename=str(path))
+    """The syntax tree of a module without docstrings or comments, as text (parsed once per content)."""
+    return _code_text_of(path.read_bytes())
+
+
+@functools.lru_cache(maxsize=512)
+def _code_text_of(source: bytes) -> bytes:
+    tree = ast.parse(source)
     for node in ast.walk(tree):
         body = getattr(node, "body", None)
         if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pandas as pd
 
@@ -22,23 +24,25 @@ def tdoa_matrix(features: pd.DataFrame, n_mics: int) -> np.ndarray:
     return np.column_stack([np.zeros(len(features)), features[cols].to_numpy(dtype=float)])
 
 
+def _ranked_per_pair(features: pd.DataFrame, site: Site, name: Callable[[int, int, int], str], k: int) -> np.ndarray | None:
+    """(E, P, K) values of the rank-1…k columns ``name(i, j, rank)`` of every pair; None when one is absent."""
+    ranked = [[name(i, j, r) for r in range(1, k + 1)] for i, j in site.mic_pairs]
+    if not all(c in features.columns for names in ranked for c in names):
+        return None
+    return np.stack([features[names].to_numpy(dtype=float) for names in ranked], axis=1)
+
+
 def pair_candidate_lags(features: pd.DataFrame, site: Site) -> np.ndarray | None:
     """(E, P, K) candidate lags of every pair from the ``tdoa`` columns (None without candidates)."""
-    if not all(col.tdoa_lag(i, j) in features.columns for i, j in site.mic_pairs):
-        return None
     k = 1
     while all(col.tdoa_lag(i, j, k + 1) in features.columns for i, j in site.mic_pairs):
         k += 1
-    ranked = [[col.tdoa_lag(i, j, r) for r in range(1, k + 1)] for i, j in site.mic_pairs]
-    return np.stack([features[c].to_numpy(dtype=float) for c in ranked], axis=1)
+    return _ranked_per_pair(features, site, col.tdoa_lag, k)
 
 
 def pair_candidate_weights(features: pd.DataFrame, site: Site, n_candidates: int) -> np.ndarray | None:
     """(E, P, K) GCC heights of the candidates from the ``xcorr`` group; None when absent."""
-    ranked = [[col.xcorr_peak(i, j, r) for r in range(1, n_candidates + 1)] for i, j in site.mic_pairs]
-    if not all(c in features.columns for names in ranked for c in names):
-        return None
-    return np.stack([features[c].to_numpy(dtype=float) for c in ranked], axis=1)
+    return _ranked_per_pair(features, site, col.xcorr_peak, n_candidates)
 
 
 def received_levels_db(features: pd.DataFrame, site: Site) -> np.ndarray | None:
