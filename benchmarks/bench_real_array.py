@@ -4,8 +4,9 @@ check that needs no ground truth — leave one receiver out, predict its TDOA fr
 Usage: python benchmarks/bench_real_array.py
 Writes benchmarks/results/real_array.{json,md}. The GCC band is limited to the call's
 6–10.5 kHz (the recording has a strong insect band near 4.5 kHz), as one would with any tool.
-The solver is 2-D with an assumed source height; here the height is scanned (0–20 m) and the
-best-fitting one kept (0–400 m: flight calls come from birds aloft), because the array's high and low recorders constrain it.
+The fix is 3-D (``solver.dimensions=3``: x, y and height in closed form with a polish; the array's
+recorders sit at different heights). As a cross-check the 2-D solver's assumed height is scanned
+over 0–400 m (flight calls come from birds aloft) and the best-fitting height kept.
 """
 
 from __future__ import annotations
@@ -47,14 +48,16 @@ def main() -> None:
     tdoa = tdoa_matrix(table, site.n_mics)
     c = float(speed_of_sound_m_s(15.0, 60.0))
     mics = site.mic_positions_m
-    height, res = solve_scan(mics, tdoa, c)
+    res = HyperbolicSolver(dimensions=3).solve(SolverInputs(mics, tdoa, c))
+    height = float(res.diagnostics["source_height_m"][0])
+    scan_height, scan = solve_scan(mics, tdoa, c)
     loo = []
     for r in range(site.n_mics):
         keep = [m for m in range(site.n_mics) if m != r]
         ref = keep[0]
         sub_tdoa = tdoa[:, keep] - tdoa[:, [ref]]
-        h_r, sub = solve_scan(mics[keep], sub_tdoa, c)
-        src = np.array([sub.position_m[0, 0], sub.position_m[0, 1], h_r])
+        sub = HyperbolicSolver(dimensions=3).solve(SolverInputs(mics[keep], sub_tdoa, c))
+        src = np.array([sub.position_m[0, 0], sub.position_m[0, 1], sub.diagnostics["source_height_m"][0]])
         dist = np.linalg.norm(mics - src, axis=1)
         predicted = (dist[r] - dist[ref]) / c
         measured = tdoa[0, r] - tdoa[0, ref]
@@ -65,6 +68,10 @@ def main() -> None:
         "upstream_reference_tdoa_s": UPSTREAM_TDOA_S,
         "max_abs_diff_to_upstream_ms": float(1e3 * np.max(np.abs(tdoa[0] - UPSTREAM_TDOA_S))),
         "position_m": [float(res.position_m[0, 0]), float(res.position_m[0, 1]), float(height)],
+        "height_gdop": float(res.diagnostics["height_gdop"][0]),
+        "height_ambiguous": bool(res.diagnostics["height_ambiguous"][0]),
+        "scanned_2d": {"position_m": [float(scan.position_m[0, 0]), float(scan.position_m[0, 1]), float(scan_height)],
+                       "residual_m": float(scan.residual_m[0])},
         "residual_m": float(res.residual_m[0]),
         "gdop": float(res.diagnostics["gdop"][0]),
         "leave_one_receiver_out": loo,
@@ -73,14 +80,20 @@ def main() -> None:
     lines = [
         "# Real array: LOCA 2021 (6 recorders, one call, no ground truth)",
         "",
-        "`python benchmarks/bench_real_array.py` (GCC-PHAT band 6–10.5 kHz, hyperbolic solver, source height scanned 0–400 m: a flight call may come from high above)",
+        "`python benchmarks/bench_real_array.py` (GCC-PHAT band 6–10.5 kHz, 3-D hyperbolic solver: x, y and height, no scan)",
         "",
         "TDOA to recorder 3 (ms): " + ", ".join(f"{1e3 * v:.1f}" for v in tdoa[0])
         + " — OpenSoundscape's reference: " + ", ".join(f"{1e3 * v:.1f}" for v in UPSTREAM_TDOA_S)
         + f" (largest difference {result['max_abs_diff_to_upstream_ms']:.2f} ms; its tests allow ±10 ms).",
         "",
-        f"Position: x = {result['position_m'][0]:.1f} m, y = {result['position_m'][1]:.1f} m, best-fitting height "
-        f"{height:.1f} m; RMS range-difference residual {result['residual_m']:.2f} m; GDOP {result['gdop']:.2f}.",
+        f"3-D fix: x = {result['position_m'][0]:.1f} m, y = {result['position_m'][1]:.1f} m, height "
+        f"{height:.1f} m (height GDOP {result['height_gdop']:.1f}: 1 m of range-difference error is "
+        f"{result['height_gdop']:.1f} m of height; mirror ambiguous: {result['height_ambiguous']}); "
+        f"RMS range-difference residual {result['residual_m']:.2f} m; GDOP {result['gdop']:.2f}.",
+        "",
+        f"Cross-check, 2-D solver with its assumed height scanned over 0–400 m: x = {result['scanned_2d']['position_m'][0]:.1f} m, "
+        f"y = {result['scanned_2d']['position_m'][1]:.1f} m, best-fitting height {scan_height:.1f} m, residual "
+        f"{result['scanned_2d']['residual_m']:.2f} m.",
         "",
         "Leave one receiver out (locate with the other five, predict the left-out receiver's TDOA):",
         "",

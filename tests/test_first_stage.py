@@ -146,3 +146,50 @@ def test_failures_count_in_every_percentile():
     dropped = error_summary(errors[:90])
     assert summary["p50"] > dropped["p50"]  # counting failures never flatters
     assert error_summary(np.array([1.0, np.nan]))["n_failed"] == 1
+
+
+# --- 3-D fixes ------------------------------------------------------------------------------
+
+OFF_PLANE = HEXAGON.copy()
+OFF_PLANE[:, 2] = [1.5, 3.0, 8.0, 1.2, 5.0, 2.5]  # mics strapped at different heights
+
+
+def exact_tdoa(mics, src):
+    t = np.sqrt(((src[:, None] - mics[None]) ** 2).sum(-1)) / C
+    return t - t[:, :1]
+
+
+@pytest.mark.parametrize("mics", [HEXAGON, OFF_PLANE, HEXAGON[:4]])
+def test_a_noise_free_3d_case_is_exact(mics):
+    rng = np.random.default_rng(3)
+    src = np.column_stack([rng.uniform(0, 80, 40), rng.uniform(0, 70, 40), rng.uniform(4.0, 40.0, 40)])  # above every mic
+    result = HyperbolicSolver(dimensions=3).solve(SolverInputs(mics, exact_tdoa(mics, src), C))
+    assert np.abs(result.position_m - src[:, :2]).max() < 1e-6
+    assert np.abs(result.diagnostics["source_height_m"] - src[:, 2]).max() < 1e-6
+    assert (result.diagnostics["height_ambiguous"] == 0).all()
+
+
+def test_coplanar_mics_flag_the_mirror_height_and_its_poor_precision():
+    src = np.array([[30.0, 30.0, 1.0], [30.0, 30.0, 20.0]])  # 0.5 m below the mics' plane (its mirror is above ground); far above it
+    result = HyperbolicSolver(dimensions=3).solve(SolverInputs(HEXAGON, exact_tdoa(HEXAGON, src), C))
+    np.testing.assert_allclose(result.position_m, src[:, :2], atol=1e-6)
+    assert result.diagnostics["height_ambiguous"].tolist() == [1.0, 0.0]
+    assert result.diagnostics["source_height_m"][0] == pytest.approx(2.0, abs=1e-6)  # the upper image is reported
+    assert result.diagnostics["height_gdop"][0] > 10 * result.diagnostics["height_gdop"][1]  # near the plane the height is poor
+
+
+def test_3d_needs_four_mics_and_says_so():
+    with pytest.raises(ValueError, match="at least 4 mics"):
+        HyperbolicSolver(dimensions=3).solve(SolverInputs(TRIANGLE, np.zeros((1, 3)), C))
+
+
+def test_consistent_set_solves_3d_through_a_planted_reflection():
+    src = np.array([[30.0, 30.0, 12.0], [20.0, 10.0, 25.0]])
+    t = np.sqrt(((src[:, None] - OFF_PLANE[None]) ** 2).sum(-1)) / C
+    lags = np.stack([t[:, j] - t[:, i] for i, j in pairs(6)], axis=1)
+    cands = np.concatenate([lags[..., None], lags[..., None] + np.array([4e-3, 9e-3])], axis=-1)
+    weights = np.concatenate([np.full((*lags.shape, 1), 0.5), np.full((*lags.shape, 2), 0.3)], axis=-1)
+    cands, weights = plant_reflection(cands, weights, pairs(6).index((0, 2)))
+    result = ConsistentSetSolver(dimensions=3).solve(inputs_from(OFF_PLANE, cands, weights))
+    np.testing.assert_allclose(result.position_m, src[:, :2], atol=1e-6)
+    np.testing.assert_allclose(result.diagnostics["source_height_m"], src[:, 2], atol=1e-6)

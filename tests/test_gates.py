@@ -59,3 +59,75 @@ def test_hybrid_gate_without_tau_or_levels_is_explained():
         HybridGate().decide(np.zeros((1, 2)), np.zeros((1, 2)), pd.DataFrame(index=[0]), site3())
     with pytest.raises(DataError, match="environment"):
         HybridGate(tau_db=3.0).decide(np.full((1, 2), 10.0), np.zeros((1, 2)), pd.DataFrame(index=[0]), site3())
+
+
+def gate_scene(n=400, seed=0):
+    """Events on site3 where the solver is exact except for gross fixes; diverged fixes lie far outside the box.
+
+    Returns solver, model, truth, features (levels, solver diagnostics), groups and the gross mask.
+    """
+    rng = np.random.default_rng(seed)
+    site = site3()
+    truth = np.column_stack([rng.uniform(0, 40, n), rng.uniform(0, 35, n)])
+    d = np.sqrt(((np.column_stack([truth, np.ones(n)])[:, None] - site.mic_positions_m[None]) ** 2).sum(-1))
+    levels = -20 * np.log10(d) + rng.normal(0, 1.0, (n, 3))
+    solver = truth + rng.normal(0, 0.2, (n, 2))
+    gross = rng.random(n) < 0.25
+    solver[gross] = truth[gross] + rng.uniform(8, 20, (gross.sum(), 2)) * rng.choice([-1, 1], (gross.sum(), 2))
+    diverged = rng.random(n) < 0.03
+    solver[diverged] = 1e5
+    model = truth + rng.normal(0, 2.0, (n, 2))
+    residual = np.where(gross, rng.uniform(0.5, 2.0, n), rng.uniform(0.0, 0.6, n))  # an informative solver diagnostic
+    features = pd.DataFrame({**{f"environment__level_{m}_db": levels[:, m] for m in range(3)}, "solver__residual_m": residual,
+                             "solver__x_m": solver[:, 0], "solver__y_m": solver[:, 1]})
+    return site, solver, model, truth, features, np.arange(n) // 5, gross
+
+
+def test_tau_is_chosen_against_the_box_gated_solver():
+    """The box alone removes the diverged fixes and so would meet the old rule ('3× lower p99 than the bare solver') at any τ;
+    against the box-gated solver the most permissive τ (no energy substitution at all) must not win."""
+    site, solver, model, truth, features, groups, _ = gate_scene()
+    bare = np.sqrt(((solver - truth) ** 2).sum(1))
+    gate = HybridGate().fit(solver, model, features, site, truth, groups=groups)
+    top = gate.tau_grid_["tau_db"].max()
+    box_only = gate.tau_grid_.loc[gate.tau_grid_["tau_db"] == top, "p99_m"].iloc[0]
+    assert box_only * 3 <= np.percentile(bare, 99)  # the old rule would pass on the box alone …
+    assert gate.tau_ < top  # … the fixed rule does not let it
+    assert len(gate.tau_grid_) > 5 and gate.tau_grid_["tau_db"].is_monotonic_increasing  # a grid from the data
+
+
+def test_learned_gate_reaches_the_oracle_on_an_informative_diagnostic():
+    from plugins.gates.learned import LearnedGate
+
+    site, solver, model, truth, features, groups, gross = gate_scene(600)
+    train, test = groups < 80, groups >= 80
+    gate = LearnedGate(seed=0).fit(solver[train], model[train], features[train], site, truth[train], groups=groups[train])
+    decision = gate.decide(solver[test], model[test], features[test], site)
+    err = np.sqrt(((decision.position_m - truth[test]) ** 2).sum(1))
+    oracle = np.minimum(np.sqrt(((solver[test] - truth[test]) ** 2).sum(1)), np.sqrt(((model[test] - truth[test]) ** 2).sum(1)))
+    assert gate.diagnostics()["oof_auc"] > 0.95
+    assert np.percentile(err, 95) <= 1.2 * np.percentile(oracle, 95)
+    assert decision.substituted[gross[test]].mean() > 0.9 and decision.substituted[~gross[test]].mean() < 0.2
+
+
+def test_learned_gate_never_trains_on_a_held_out_position(monkeypatch):
+    """Every out-of-fold probability comes from a classifier fitted without that position's events."""
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    from plugins.gates.learned import LearnedGate
+
+    site, solver, model, truth, features, groups, _ = gate_scene(300)
+    seen: list[pd.Index] = []
+    original = HistGradientBoostingClassifier.fit
+
+    def spy(self, x, y, **kw):
+        seen.append(x.index)
+        return original(self, x, y, **kw)
+
+    monkeypatch.setattr(HistGradientBoostingClassifier, "fit", spy)
+    LearnedGate(n_folds=4).fit(solver, model, features, site, truth, groups=groups)
+    assert len(seen) == 5  # 4 out-of-fold fits, then the final one
+    fold_positions = [set(groups[idx]) for idx in seen[:4]]
+    held = [set(np.unique(groups)) - s for s in fold_positions]
+    assert all(h and not (h & s) for h, s in zip(held, fold_positions, strict=True))
+    assert set().union(*held) >= set(np.unique(groups[np.isfinite(solver).all(1) & (np.abs(solver) < 1e4).all(1)]))

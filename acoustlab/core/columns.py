@@ -16,7 +16,9 @@ from acoustlab.core.errors import DataError
 #: Separator between a feature group and the column's name.
 GROUP_SEPARATOR = "__"
 #: The estimates every prediction table carries, in report order.
-METHODS = ("solver", "model", "gate")
+ESTIMATORS = ("solver", "model", "gate")
+#: …and the oracle: per event the better of solver and model (it needs the truth; a bound on what a gate can reach).
+METHODS = (*ESTIMATORS, "oracle")
 #: The solver's point estimate (withheld from the error model).
 SOLVER_X, SOLVER_Y = "solver__x_m", "solver__y_m"
 SOLVER_ESTIMATE_COLUMNS = (SOLVER_X, SOLVER_Y)
@@ -31,7 +33,9 @@ SOLVER_CATALOG = (
     ("solver__converged", "1", "1 where the iteration converged"),
     (SOLVER_GDOP, "1", "TDOA geometric dilution of precision at the estimate"),
     ("solver__n_roots", "1", "number of distinct positions that fit the TDOAs equally well"),
-    (SOLVER_SOURCE_HEIGHT, "m", "source height assumed by the solver"),
+    (SOLVER_SOURCE_HEIGHT, "m", "source height: assumed by a 2-D solver, estimated by a 3-D one (solver.dimensions=3)"),
+    ("solver__height_gdop", "1", "factor from range-difference error (m) to height error (m) of a 3-D fix; large near the mics' plane"),
+    ("solver__height_ambiguous", "1", "1 where a 3-D fix's mirror image about the mics' plane is above ground and fits as well"),
     ("solver__residual_s", "s", "RMS residual expressed as time"),
     ("solver__conditioning", "1", "condition number of the TDOA Jacobian at the estimate"),
     (SOLVER_FAILURE, "1", "why there is no fix: 0 a fix, 1 no solution, 2 a fix outside the plausible region (then x, y are NaN)"),

@@ -165,9 +165,14 @@ class Gate(Protocol):
     required_feature_groups: tuple[str, ...]
 
     def fit(
-        self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray
+        self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
+        groups: np.ndarray | None = None,
     ) -> Any:
-        """Learn what the gate needs from training events with known positions; return self."""
+        """Learn what the gate needs from simulated training events with known positions; return self.
+
+        ``model_position_m`` are out-of-fold predictions; ``groups`` are the events' source
+        positions (a gate that cross-validates itself keeps them apart).
+        """
 
     def decide(
         self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site
@@ -183,7 +188,8 @@ class StatelessGate:
 
     required_feature_groups: tuple[str, ...] = ()
 
-    def fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray) -> Any:
+    def fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
+            groups: np.ndarray | None = None) -> Any:
         """Nothing to learn."""
         return self
 

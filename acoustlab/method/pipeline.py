@@ -197,18 +197,25 @@ class LocalizationPipeline:
             models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]], solver_xy[train[fit_idx]])
             oof_model[held_idx] = self._predict_point(models, features.iloc[train[held_idx]][mcols], solver_xy[train[held_idx]])
         # the gate learns what it needs (e.g. τ* on simulation) from the out-of-fold predictions
-        gate = clone(self.c.gate, safe=False).fit(solver_xy[train], oof_model, features.iloc[train], site, truth[train])
+        # … on simulated rows only (the paper chooses τ* on simulation; field rows never teach the gate)
+        sim = ~events["is_field"].to_numpy(bool)[train] if "is_field" in events else np.ones(train.size, dtype=bool)
+        gate = clone(self.c.gate, safe=False).fit(solver_xy[train][sim], oof_model[sim], features.iloc[train[sim]], site, truth[train][sim],
+                                                   groups=groups[train][sim])
         oof_gate = gate.decide(solver_xy[train], oof_model, features.iloc[train], site)
         oof_err = error_2d_m(oof_gate.position_m, truth[train])
         gdop_train = self._gdop_at(oof_gate.position_m, features.iloc[train])
         finite = np.isfinite(oof_err)
         if not finite.all():
             log.warning("%d training events have no finite hybrid estimate; left out of calibration", (~finite).sum())
+        # the error model's predictions are floored at the 5th percentile of the calibration errors, so
+        # a fix it wrongly trusts still gets a meaningful radius (never 10⁻⁹ m times a quantile)
+        floor = float(np.percentile(oof_err[finite], 5)) if finite.any() else 1e-9
         oof_pred = np.empty(train.size)
         for fit_idx, held_idx in tqdm(folds, desc="error model, out-of-fold", unit="fold", disable=None, leave=False):
             fit_idx = fit_idx[finite[fit_idx]]
             em = clone(self.c.error_model).fit(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx])
             oof_pred[held_idx] = em.predict(features.iloc[train[held_idx]][ecols])
+        oof_pred = np.maximum(oof_pred, max(floor, 1e-9))
         scorers = {
             name: clone(s, safe=False).fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels)
             for name, s in self.c.scorers.items()
@@ -220,7 +227,7 @@ class LocalizationPipeline:
         decision = gate.decide(solver_xy[test], model_xy, features.iloc[test], site)
         gdop_test = self._gdop_at(decision.position_m, features.iloc[test])
         error_model = clone(self.c.error_model).fit(features.iloc[train[finite]][ecols], oof_err[finite])
-        predicted = np.maximum(error_model.predict(features.iloc[test][ecols]), 1e-9)
+        predicted = np.maximum(error_model.predict(features.iloc[test][ecols]), max(floor, 1e-9))
 
         out = pd.DataFrame(
             {
@@ -229,7 +236,7 @@ class LocalizationPipeline:
                 **dict(zip(col.estimate_xy("true"), (truth[test, 0], truth[test, 1]), strict=True)),
                 **{
                     name: xy[:, k]
-                    for method, xy in zip(col.METHODS, (solver_xy[test], model_xy, decision.position_m), strict=True)
+                    for method, xy in zip(col.ESTIMATORS, (solver_xy[test], model_xy, decision.position_m), strict=True)
                     for k, name in enumerate(col.estimate_xy(method))
                 },
                 "substituted": decision.substituted,
@@ -241,8 +248,13 @@ class LocalizationPipeline:
         crb = crb_from_features(features.iloc[test], events.iloc[test], site)
         if crb is not None:
             out["crb_m"] = crb
-        for method in col.METHODS:
+        for method in col.ESTIMATORS:
             out[col.error_m(method)] = error_2d_m(out[list(col.estimate_xy(method))].to_numpy(), truth[test])
+        # the oracle: the better of solver and model per event (what a perfect gate would reach)
+        solver_better = out[col.error_m("solver")].to_numpy() <= out[col.error_m("model")].to_numpy()
+        for k, name in enumerate(col.estimate_xy("oracle")):
+            out[name] = np.where(solver_better, solver_xy[test, k], model_xy[:, k])
+        out[col.error_m("oracle")] = np.minimum(out[col.error_m("solver")], out[col.error_m("model")])
         for name, scorer in scorers.items():
             radii = scorer.radius(predicted, gdop_test)
             for k, level in enumerate(self.c.levels):

@@ -11,6 +11,10 @@ from scipy.stats import spearmanr
 from acoustlab.core import columns as col
 
 ERROR_QUANTILES = {"p50": 50, "p90": 90, "p95": 95, "p99": 99}
+#: An error above this is a gross error (m); failures count as gross.
+GROSS_ERROR_M = 5.0
+#: Position-bootstrap resamples for the confidence intervals.
+N_BOOTSTRAP = 1000
 #: A failure's error while interpolating quantiles (any quantile it touches is reported as inf).
 _FAILURE_STAND_IN_M = 1e300
 
@@ -36,6 +40,7 @@ def error_summary(errors_m: np.ndarray) -> dict[str, float]:
     if finite.size == 0:
         raise ValueError("no finite errors to summarise")
     out["mean"] = float(finite.mean())
+    out["share_gt_5m"] = float(np.mean(~(errors_m <= GROSS_ERROR_M)))
     # linear interpolation as usual; a quantile that reaches into the failures is infinite
     stand_in = np.where(np.isfinite(errors_m), errors_m, _FAILURE_STAND_IN_M)
     for name, q in ERROR_QUANTILES.items():
@@ -103,6 +108,67 @@ def coverage_by_position(predictions: pd.DataFrame, levels: list[float], scorers
     return by_position
 
 
+def _quantile_with_failures(errors_m: np.ndarray, q: float) -> float:
+    stand_in = np.where(np.isfinite(errors_m), errors_m, _FAILURE_STAND_IN_M)
+    value = float(np.percentile(stand_in, q))
+    return value if value < _FAILURE_STAND_IN_M / 1e3 else float("inf")
+
+
+def position_bootstrap_ci(predictions: pd.DataFrame, levels: list[float], scorers: list[str], n_boot: int = N_BOOTSTRAP,
+                          seed: int = 0) -> dict[str, Any]:
+    """95 % confidence intervals by position bootstrap for every error quantile, gross share and coverage.
+
+    Source positions are the exchangeable units (events at one position share its geometry and
+    propagation), so whole positions are resampled with replacement, ``n_boot`` times.
+
+    Returns
+    -------
+    dict
+        ``errors``: {method: {p50|p90|p95|p99|share_gt_5m: [low, high]}}; ``coverage``:
+        {scorer: {level: [low, high]}}; ``n_bootstrap``; ``n_positions``.
+    """
+    groups = predictions["position_id"].to_numpy()
+    codes, inverse = np.unique(groups, return_inverse=True)
+    rows_of = [np.flatnonzero(inverse == k) for k in range(codes.size)]
+    rng = np.random.default_rng(seed)
+    errors = {m: np.where(np.isnan(e := predictions[col.error_m(m)].to_numpy(float)), np.inf, e) for m in col.METHODS if col.error_m(m) in predictions}
+    gate_err = errors.get("gate")
+    radii = {(s, lv): predictions[col.radius(s, lv)].to_numpy(float) for s in scorers for lv in levels}
+    samples: dict[tuple, list[float]] = {}
+    for _ in range(n_boot):
+        idx = np.concatenate([rows_of[k] for k in rng.integers(0, codes.size, codes.size)])
+        for m, e in errors.items():
+            sub = e[idx]
+            for name, q in ERROR_QUANTILES.items():
+                samples.setdefault(("errors", m, name), []).append(_quantile_with_failures(sub, q))
+            samples.setdefault(("errors", m, "share_gt_5m"), []).append(float(np.mean(~(sub <= GROSS_ERROR_M))))
+        if gate_err is not None:
+            for (s, lv), r in radii.items():
+                samples.setdefault(("coverage", s, col.level_key(lv)), []).append(float(np.mean(gate_err[idx] <= r[idx])))
+    out: dict[str, Any] = {"n_bootstrap": int(n_boot), "n_positions": int(codes.size), "errors": {}, "coverage": {}}
+    for (block, key, stat), values in samples.items():
+        v = np.asarray(values, dtype=float)
+        finite = np.isfinite(v)
+        # an interval end that reaches into the infinite values (failures) is reported as inf
+        low = float(np.percentile(np.where(finite, v, _FAILURE_STAND_IN_M), 2.5))
+        high = float(np.percentile(np.where(finite, v, _FAILURE_STAND_IN_M), 97.5))
+        out[block].setdefault(key, {})[stat] = [x if x < _FAILURE_STAND_IN_M / 1e3 else float("inf") for x in (low, high)]
+    return out
+
+
+def gate_gap(errors: dict[str, dict[str, float]]) -> dict[str, float]:
+    """The gate against the oracle (p95 and p99 ratios) and against the solver (p50 ratio)."""
+    out = {}
+    if "oracle" in errors and "gate" in errors:
+        for q in ("p95", "p99"):
+            o = errors["oracle"][q]
+            out[f"{q}_gate_over_oracle"] = float(errors["gate"][q] / o) if np.isfinite(o) and o > 0 else float("nan")
+    if "solver" in errors and "gate" in errors:
+        s = errors["solver"]["p50"]
+        out["p50_gate_over_solver"] = float(errors["gate"]["p50"] / s) if np.isfinite(s) and s > 0 else float("nan")
+    return out
+
+
 def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict:
     """The ``errors``, ``coverage``, ``interval_width`` … blocks of metrics.json."""
     extra = {}
@@ -112,9 +178,12 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
     extra["spearman_rho"] = spearman_rho(predictions)
     extra["coverage_by_position"] = coverage_by_position(predictions, levels, scorers)
     coverage, width = coverage_and_width(predictions, levels, scorers)
+    errors = errors_by_method(predictions)
+    extra["gate_gap"] = gate_gap(errors)
+    extra["ci95"] = position_bootstrap_ci(predictions, levels, scorers)
     return {
         **extra,
-        "errors": errors_by_method(predictions),
+        "errors": errors,
         "coverage": coverage,
         "interval_width": width,
         "substitution_rate": float(predictions["substituted"].mean()),
@@ -170,6 +239,14 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
             flat[f"coverage.{s}.{level}"] = v
             flat[f"width.{s}.{level}.median_m"] = metrics["interval_width"][s][level]["median_m"]
     flat["substitution_rate"] = metrics["substitution_rate"]
+    for m, stats in metrics.get("ci95", {}).get("errors", {}).items():
+        for k, (low, high) in stats.items():
+            flat[f"error.{m}.{k}.ci_low"], flat[f"error.{m}.{k}.ci_high"] = low, high
+    for s, by_level in metrics.get("ci95", {}).get("coverage", {}).items():
+        for level, (low, high) in by_level.items():
+            flat[f"coverage.{s}.{level}.ci_low"], flat[f"coverage.{s}.{level}.ci_high"] = low, high
+    for k, v in metrics.get("gate_gap", {}).items():
+        flat[f"gate_gap.{k}"] = v
     for k, v in metrics.get("crb_m", {}).items():
         flat[f"crb.{k}_m"] = v
     for k, v in metrics.get("spearman_rho", {}).items():

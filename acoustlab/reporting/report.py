@@ -114,8 +114,14 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
         if predictions is not None and "in_summary" in predictions:
             predictions = predictions[predictions["in_summary"].to_numpy(bool)]
         for method in col.METHODS:
+            if method not in r.metrics["errors"]:  # runs from before the oracle was reported
+                continue
             stats = r.metrics["errors"][method]
             row = {"run": r.label, "method": method, **{k: stats[k] for k in ("n", "mean", "p50", "p90", "p95", "p99")}}
+            ci = r.metrics.get("ci95", {}).get("errors", {}).get(method, {})
+            for q in ("p95", "p99"):
+                if q in ci:
+                    row[f"{q} 95 % CI"] = f"{ci[q][0]:.3g}–{ci[q][1]:.3g}"
             if predictions is not None:
                 e = predictions[col.error_m(method)].to_numpy(float)
                 row[f"> {GROSS_ERROR_M:g} m"] = float(np.mean(~(e <= GROSS_ERROR_M)))

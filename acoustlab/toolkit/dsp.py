@@ -56,10 +56,18 @@ def gcc(
     band_hz: tuple[float, float] | None = None,
     upsample: int = 1,
     beta: float = 0.8,
+    max_lag_s: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Generalised cross-correlation of every listed mic pair, for a batch of events.
 
     For pair (i, j) the peak lies at lag τ = t_j − t_i (arrival at j minus arrival at i).
+
+    Each mic's spectrum is computed once and weighted once: |X_i X_j|^β = |X_i|^β |X_j|^β, so the
+    PHAT / β-PHAT weighting of a pair is the product of per-mic weightings (a floor of 10⁻⁶ of
+    each mic's largest magnitude keeps empty bins finite). The pairs' cross-spectra are products
+    of those, and the inverse transforms run in single precision. With ``max_lag_s`` the
+    transform is only as long as the lags need (no circular wrap-around within ±max_lag_s) and only
+    those lags are returned.
 
     Parameters
     ----------
@@ -80,33 +88,43 @@ def gcc(
         1/(upsample × sample_rate_hz), which shrinks the bias of parabolic peak interpolation.
     beta : float
         The exponent of β-PHAT, in [0, 1] (0 is plain cross-correlation, 1 is PHAT).
+    max_lag_s : float, optional
+        Largest |lag| needed, s; None returns every lag of a transform twice the signal length.
 
     Returns
     -------
     cc : numpy.ndarray
-        (E, P, L) correlation over lags, lags centred (``fftshift``-ed).
+        (E, P, L) correlation over lags (float32), from the most negative lag to the most positive.
     lags_s : numpy.ndarray
         (L,) lag of each column in s.
     """
-    n_samples = audio.shape[-1]
-    n_fft = next_fast_len(2 * n_samples)
-    spectra = sfft.rfft(audio, n=n_fft, axis=-1)
-    i_idx = np.array([p[0] for p in pairs])
-    j_idx = np.array([p[1] for p in pairs])
-    cross = np.conj(spectra[:, i_idx, :]) * spectra[:, j_idx, :]
-    if weighting in ("phat", "beta_phat"):
-        floor = np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max(axis=-1, keepdims=True) + 1e-30)
-        cross = cross / (floor if weighting == "phat" else floor ** float(beta))
-    elif weighting != "none":
+    if weighting not in ("phat", "beta_phat", "none"):
         raise ValueError(f"gcc weighting must be 'phat', 'beta_phat' or 'none'; got {weighting!r}")
-    if band_hz is not None:
-        freqs = sfft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)
-        cross = cross * ((freqs >= band_hz[0]) & (freqs <= band_hz[1]))
     if upsample < 1:
         raise ValueError(f"gcc upsample must be >= 1; got {upsample}")
+    n_samples = audio.shape[-1]
+    max_lag_samples = n_samples if max_lag_s is None else min(n_samples, int(np.ceil(max_lag_s * sample_rate_hz)) + 2)
+    # twice the signal length, always: a (β-)PHAT weighting depends on the spectral resolution
+    n_fft = next_fast_len(2 * n_samples)
+    spectra = sfft.rfft(audio, n=n_fft, axis=-1)
+    if weighting != "none":
+        magnitude = np.abs(spectra)
+        magnitude = np.maximum(magnitude, 1e-6 * magnitude.max(axis=-1, keepdims=True) + 1e-30)
+        spectra = spectra / (magnitude if weighting == "phat" else magnitude ** float(beta))
+    if band_hz is not None:
+        freqs = sfft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)
+        spectra = spectra * ((freqs >= band_hz[0]) & (freqs <= band_hz[1]))
+    spectra = spectra.astype(np.complex64)
+    i_idx = np.array([p[0] for p in pairs])
+    j_idx = np.array([p[1] for p in pairs])
     n_out = n_fft * int(upsample)
-    cc = sfft.fftshift(sfft.irfft(cross, n=n_out, axis=-1), axes=-1)
-    lags_s = (np.arange(n_out) - n_out // 2) / (sample_rate_hz * upsample)
+    half = min(max_lag_samples * int(upsample), n_out // 2 - 1)
+    cc = np.empty((audio.shape[0], len(pairs), 2 * half + 1), dtype=np.float32)
+    for k, (i, j) in enumerate(zip(i_idx, j_idx, strict=True)):  # one pair at a time: memory of one (E, n_out) transform
+        full = sfft.irfft(np.conj(spectra[:, i]) * spectra[:, j], n=n_out, axis=-1)
+        cc[:, k, :half] = full[:, n_out - half:]
+        cc[:, k, half:] = full[:, : half + 1]
+    lags_s = np.arange(-half, half + 1) / (sample_rate_hz * upsample)
     return cc, lags_s
 
 

@@ -63,13 +63,14 @@ def _compute_pair_candidates(
     batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz: tuple[float, float] | None, weighting: str,
     upsample: int, beta: float,
 ) -> PairCandidates:
-    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample, beta)
+    windows = lag_windows_s(site, margin_s)
+    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample, beta, max_lag_s=float(windows.max()))
     step = lags[1] - lags[0]
     e, p = cc.shape[:2]
     out_lags = np.full((e, p, n_candidates), np.nan)
     out_heights = np.full((e, p, n_candidates), np.nan)
     sidelobe = np.empty((e, p))
-    for k, max_lag in enumerate(lag_windows_s(site, margin_s)):
+    for k, max_lag in enumerate(windows):
         window = np.abs(lags) <= max_lag
         seg = cc[:, k, window]
         first_lag = lags[window][0]

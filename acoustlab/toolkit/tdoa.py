@@ -79,6 +79,9 @@ def levenberg_marquardt(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Minimise the squared range-difference residuals from start points ``p0`` (..., 2), in batch.
 
+    Every problem iterates until its proposed step is below 1 nm, or its damping reaches 10⁸
+    without improvement, or ``n_iterations`` pass; only the problems still running are computed.
+
     Returns
     -------
     p : numpy.ndarray
@@ -88,35 +91,41 @@ def levenberg_marquardt(
     step : numpy.ndarray
         (...) size of the last accepted step in m (inf if none was accepted).
     """
-    p = np.array(p0, dtype=float, copy=True)
-    lam = np.full(p.shape[:-1], 1e-2)
-    r, jac = range_residuals(p, mics, height, rd)
+    batch = np.shape(p0)[:-1]
+    p = np.array(np.broadcast_to(p0, (*batch, 2)), dtype=float).reshape(-1, 2)
+    h = np.broadcast_to(np.asarray(height, dtype=float), batch).reshape(-1)
+    rd = np.broadcast_to(rd, (*batch, rd.shape[-1])).reshape(-1, rd.shape[-1])
+    lam = np.full(len(p), 1e-2)
+    r, jac = range_residuals(p, mics, h, rd)
     cost = (r**2).sum(-1)
-    step_norm = np.full(p.shape[:-1], np.inf)
+    step_norm = np.full(len(p), np.inf)
+    act = np.arange(len(p))
     for _ in range(n_iterations):
-        jtj = np.einsum("...ki,...kj->...ij", jac, jac)
-        jtr = np.einsum("...ki,...k->...i", jac, r)
-        scale = np.trace(jtj, axis1=-2, axis2=-1)[..., None, None] / 2 + 1e-9
-        a = jtj + lam[..., None, None] * np.eye(2) * scale
-        det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
-        det = np.where(np.abs(det) < 1e-18, 1e-18, det)
-        step = -np.stack(
-            [a[..., 1, 1] * jtr[..., 0] - a[..., 0, 1] * jtr[..., 1], a[..., 0, 0] * jtr[..., 1] - a[..., 1, 0] * jtr[..., 0]],
-            axis=-1,
-        ) / det[..., None]
-        p_new = p + step
-        r_new, jac_new = range_residuals(p_new, mics, height, rd)
-        cost_new = (r_new**2).sum(-1)
-        better = cost_new < cost
-        p = np.where(better[..., None], p_new, p)
-        r = np.where(better[..., None], r_new, r)
-        jac = np.where(better[..., None, None], jac_new, jac)
-        cost = np.where(better, cost_new, cost)
-        step_norm = np.where(better, np.sqrt((step**2).sum(-1)), step_norm)
-        lam = np.clip(np.where(better, lam * 0.3, lam * 10.0), 1e-12, 1e8)
-        if np.all((~better & (lam >= 1e8)) | (step_norm < 1e-9)):
+        if act.size == 0:
             break
-    return p, cost, step_norm
+        ja, ra, la = jac[act], r[act], lam[act]
+        jtj = np.einsum("bki,bkj->bij", ja, ja)
+        jtr = np.einsum("bki,bk->bi", ja, ra)
+        scale = (jtj[:, 0, 0] + jtj[:, 1, 1]) / 2 + 1e-9
+        a00 = jtj[:, 0, 0] + la * scale
+        a11 = jtj[:, 1, 1] + la * scale
+        a01 = jtj[:, 0, 1]
+        det = a00 * a11 - a01 * a01
+        det = np.where(np.abs(det) < 1e-18, 1e-18, det)
+        step = -np.stack([a11 * jtr[:, 0] - a01 * jtr[:, 1], a00 * jtr[:, 1] - a01 * jtr[:, 0]], axis=-1) / det[:, None]
+        p_new = p[act] + step
+        r_new, jac_new = range_residuals(p_new, mics, h[act], rd[act])
+        cost_new = (r_new**2).sum(-1)
+        better = cost_new < cost[act]
+        won = act[better]
+        p[won], r[won], jac[won], cost[won] = p_new[better], r_new[better], jac_new[better], cost_new[better]
+        proposed = np.sqrt((step**2).sum(-1))
+        step_norm[won] = proposed[better]
+        lam[act] = np.clip(np.where(better, la * 0.3, la * 10.0), 1e-12, 1e8)
+        # a problem stops when its proposed step is below 1 nm or it can no longer improve
+        done = (proposed < 1e-9) | (~better & (lam[act] >= 1e8))
+        act = act[~done]
+    return p.reshape(*batch, 2), cost.reshape(batch), step_norm.reshape(batch)
 
 
 def energy_residual_db(levels_db: np.ndarray, mics: np.ndarray, position_m: np.ndarray, height_m: float | np.ndarray) -> np.ndarray:

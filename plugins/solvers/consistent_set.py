@@ -29,8 +29,10 @@ from __future__ import annotations
 
 import functools
 import itertools
+from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 
 from acoustlab.core.contracts import SolverInputs, SolverResult
 from acoustlab.core.errors import ConfigError
@@ -45,36 +47,54 @@ def _pairs(n_mics: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(n_mics) for j in range(i + 1, n_mics)]
 
 
-@functools.lru_cache(maxsize=16)
-def _hypothesis_design(n_mics: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For every hypothesis: the reference mic, the pair index and sign giving each mic's time, and the candidate rank.
+@dataclass(frozen=True)
+class _Design:
+    """Index arrays describing every hypothesis for M mics and K candidates per pair.
 
-    Returns
-    -------
-    pair_of : (H, M) int
-        Pair index (i < j) that defines mic m's arrival time relative to the reference (−1 for the reference).
-    sign : (H, M) float
-        +1 where t_m − t_r = τ_pair, −1 where t_m − t_r = −τ_pair, 0 for the reference.
-    rank : (H, M) int
-        Candidate rank used for each mic (0 for the reference).
+    A hypothesis picks a reference mic r and, for every other mic n, one of the K candidate lags of
+    the pair (r, n); that fixes every mic's arrival time relative to r.
     """
+
+    i_idx: np.ndarray        # (P,) first mic of each pair (i < j)
+    j_idx: np.ndarray        # (P,) second mic of each pair
+    ref_pair: np.ndarray     # (R, M) pair index of (r, n) (−1 for n = r)
+    ref_sign: np.ndarray     # (R, M) +1 where t_n − t_r = τ_pair, −1 where it is −τ_pair, 0 for n = r
+    time_index: np.ndarray   # (H, M) flat index into the (R, M, K) arrival times
+    time_sum: sparse.csr_matrix  # (R·M·K, H): column h sums the M arrival-time entries of hypothesis h
+    table_sum: sparse.csr_matrix  # (R·P·K·K, H): column h sums the P pair-table entries of hypothesis h
+
+
+@functools.lru_cache(maxsize=16)
+def _hypothesis_design(n_mics: int, k: int) -> _Design:
+    """The index arrays of :class:`_Design` for ``n_mics`` mics and ``k`` candidates per pair (cached)."""
     pairs = _pairs(n_mics)
     index = {p: n for n, p in enumerate(pairs)}
-    rows_pair, rows_sign, rows_rank = [], [], []
+    i_idx = np.array([p[0] for p in pairs])
+    j_idx = np.array([p[1] for p in pairs])
+    ref_pair = np.full((n_mics, n_mics), -1)
+    ref_sign = np.zeros((n_mics, n_mics))
     for ref in range(n_mics):
-        others = [m for m in range(n_mics) if m != ref]
+        for n in range(n_mics):
+            if n != ref:
+                ref_pair[ref, n] = index[(min(ref, n), max(ref, n))]
+                ref_sign[ref, n] = 1.0 if ref < n else -1.0
+    time_rows, table_rows = [], []
+    n_pairs = len(pairs)
+    for ref in range(n_mics):
+        others = [n for n in range(n_mics) if n != ref]
         for combo in itertools.product(range(k), repeat=n_mics - 1):
-            pair_of = np.full(n_mics, -1)
-            sign = np.zeros(n_mics)
             rank = np.zeros(n_mics, dtype=int)
-            for m, c in zip(others, combo, strict=True):
-                pair_of[m] = index[(min(ref, m), max(ref, m))]
-                sign[m] = 1.0 if ref < m else -1.0
-                rank[m] = c
-            rows_pair.append(pair_of)
-            rows_sign.append(sign)
-            rows_rank.append(rank)
-    return np.array(rows_pair), np.array(rows_sign), np.array(rows_rank)
+            rank[others] = combo
+            time_rows.append((ref * n_mics + np.arange(n_mics)) * k + rank)
+            table_rows.append(((ref * n_pairs + np.arange(n_pairs)) * k + rank[i_idx]) * k + rank[j_idx])
+    table_index = np.array(table_rows)
+    n_hyp = len(table_index)
+    table_sum = sparse.csr_matrix((np.ones(table_index.size), (table_index.ravel(), np.repeat(np.arange(n_hyp), n_pairs))),
+                                  shape=(n_mics * n_pairs * k * k, n_hyp))
+    time_index = np.array(time_rows)
+    time_sum = sparse.csr_matrix((np.ones(time_index.size), (time_index.ravel(), np.repeat(np.arange(n_hyp), n_mics))),
+                                 shape=(n_mics * n_mics * k, n_hyp))
+    return _Design(i_idx, j_idx, ref_pair, ref_sign, time_index, time_sum, table_sum)
 
 
 class ConsistentSetSolver:
@@ -93,13 +113,16 @@ class ConsistentSetSolver:
         Events evaluated together (bounds memory: chunk × hypotheses × pairs × candidates).
     n_iterations : int
         Levenberg–Marquardt iterations of the position polish.
+    dimensions : int
+        2: x, y at the assumed height; 3: x, y and height where ≥ 4 mics are trusted (events
+        with 3 trusted mics fall back to the assumed height; their ``height_gdop`` is NaN).
     """
 
     cache_version = "1"
     required_feature_groups = ("tdoa",)
 
     def __init__(self, source_height_m: float | None = None, tolerance_s: float = 2.5e-4, max_hypotheses: int = 2000,
-                 chunk_events: int = 16, n_iterations: int = 10) -> None:
+                 chunk_events: int = 16, n_iterations: int = 30, dimensions: int = 2) -> None:
         if tolerance_s <= 0:
             raise ConfigError(f"solver.tolerance_s must be > 0; got {tolerance_s}")
         if max_hypotheses < 1 or chunk_events < 1:
@@ -109,11 +132,19 @@ class ConsistentSetSolver:
         self.max_hypotheses = int(max_hypotheses)
         self.chunk_events = int(chunk_events)
         self.n_iterations = int(n_iterations)
+        if dimensions not in (2, 3):
+            raise ConfigError(f"solver.dimensions must be 2 or 3; got {dimensions}")
+        self.dimensions = int(dimensions)
 
     # --- candidate selection ------------------------------------------------------------
 
     def select(self, candidates_s: np.ndarray, weights: np.ndarray) -> dict[str, np.ndarray]:
         """Choose the consistent set for events with (B, P, K) candidate lags and GCC heights.
+
+        The score of a hypothesis is a sum over pairs of a term that depends only on the candidate
+        ranks of the pair's two mics (for the hypothesis' reference). Each pair's (K × K) table of
+        those terms is built once per reference, so scoring all hypotheses is one gather and one
+        sum instead of comparing every hypothesis with every candidate.
 
         Returns a dict with ``times_s`` (B, M) fitted arrival times (NaN for untrusted mics),
         ``trusted`` (B, M) bool, and the per-event diagnostics of the module docstring.
@@ -126,38 +157,28 @@ class ConsistentSetSolver:
         k = k_all
         while k > 1 and m * k ** (m - 1) > self.max_hypotheses:
             k -= 1
-        pair_of, sign, rank = _hypothesis_design(m, k)
-        i_idx = np.array([p[0] for p in pairs])
-        j_idx = np.array([p[1] for p in pairs])
-        cands = candidates_s[:, :, :k_all]
+        design = _hypothesis_design(m, k)
+        i_idx, j_idx = design.i_idx, design.j_idx
+        cands = candidates_s
         w = np.where(np.isfinite(cands), np.nan_to_num(weights, nan=0.0), 0.0)
-        safe_pair = np.maximum(pair_of, 0)
-        # (B, H, M) arrival times relative to each hypothesis' reference mic
-        times = sign[None] * cands[:, safe_pair, rank]
-        times = np.where(pair_of[None] < 0, 0.0, times)
-        valid = np.isfinite(times).all(-1)
-        predicted = times[..., j_idx] - times[..., i_idx]  # (B, H, P)
-        # one candidate rank at a time: (B, H, P) temporaries instead of (B, H, P, K)
-        pair_weight = np.zeros(predicted.shape)
-        consistent = np.zeros(predicted.shape, dtype=bool)
+        # per reference r and mic n: the K candidate arrival times t_n − t_r (0 for n = r)
+        signed = design.ref_sign[None, :, :, None] * cands[:, design.ref_pair, :k]  # (B, R, M, K)
+        arrival = np.where(design.ref_pair[None, :, :, None] < 0, 0.0, signed)
+        # table[b, r, p, a, c]: weight of pair p=(i, j) when mic i takes rank a and mic j rank c
+        predicted = arrival[:, :, j_idx, None, :] - arrival[:, :, i_idx, :, None]  # (B, R, P, K, K)
+        table = np.zeros(predicted.shape)
         for r in range(k_all):
-            close = np.abs(predicted - cands[:, None, :, r]) < self.tolerance_s
-            consistent |= close
-            np.maximum(pair_weight, close * w[:, None, :, r], out=pair_weight)
-        # earliest arrivals break ties: a reflection only ever delays a mic
-        lateness = (times - times.min(axis=-1, keepdims=True)).sum(axis=-1)  # NaN for invalid hypotheses, excluded below
-        score = pair_weight.sum(-1) - 1e-3 * np.nan_to_num(lateness, nan=1e3)
-        score = np.where(valid, score, -np.inf)
-        best = np.argmax(score, axis=1)
-        rows = np.arange(bsz)
-        best_times = times[rows, best]  # (B, M)
-        # hypotheses from different reference mics differ by a constant: compare times relative to mic 0
-        relative = times - times[..., :1]
-        distinct = np.abs(relative - relative[rows, best][:, None]).max(-1) > self.tolerance_s
-        runner_up = np.where(distinct & valid, score, -np.inf).max(axis=1)
-        margin = np.where(np.isfinite(runner_up), score[rows, best] - runner_up, np.nan)
+            close = np.abs(predicted - cands[:, None, :, None, None, r]) < self.tolerance_s
+            np.maximum(table, close * w[:, None, :, None, None, r], out=table)
+        raw = table.reshape(bsz, -1) @ design.table_sum  # (B, H): the sum over pairs, as a sparse product
+        flat_arrival = arrival.reshape(bsz, -1)
+        missing = (~np.isfinite(flat_arrival)).astype(float) @ design.time_sum  # (B, H) missing arrival times
+        raw = np.where(missing > 0, -np.inf, raw)
+        best_times, margin = self._best_hypothesis(raw, flat_arrival, design)
 
-        ok = consistent[rows, best]  # (B, P)
+        best_predicted = best_times[:, j_idx] - best_times[:, i_idx]  # (B, P)
+        gap = np.abs(cands - best_predicted[..., None])
+        ok = (gap < self.tolerance_s).any(-1)  # (B, P); NaN gaps compare False
         per_mic = np.zeros((bsz, m))
         np.add.at(per_mic, (slice(None), i_idx), ok.astype(float))
         np.add.at(per_mic, (slice(None), j_idx), ok.astype(float))
@@ -166,7 +187,6 @@ class ConsistentSetSolver:
         trusted[too_few] = True  # with fewer than three trusted mics keep them all (and say so via consistency)
         pair_trusted = trusted[:, i_idx] & trusted[:, j_idx]
         use = ok & pair_trusted
-        gap = np.abs(cands - predicted[rows, best][..., None])
         chosen_rank = np.argmin(np.where(np.isnan(gap), np.inf, gap), axis=-1)  # (B, P), missing peaks never chosen
         chosen = np.take_along_axis(cands, chosen_rank[..., None], -1)[..., 0]
         fitted = self._fit_times(chosen, use, trusted, best_times, i_idx, j_idx)
@@ -182,6 +202,47 @@ class ConsistentSetSolver:
             "n_mics_used": trusted.sum(1).astype(float),
             "closure_rms_s": np.where(n_use > 0, closure, np.nan),
         }
+
+    def _best_hypothesis(self, raw: np.ndarray, flat_arrival: np.ndarray, design: _Design) -> tuple[np.ndarray, np.ndarray]:
+        """The winning hypothesis' arrival times (B, M) and its score margin (B,) over the runner-up.
+
+        The final score is the raw (pair-weight) score minus 10⁻³ × lateness, the summed delay of
+        every mic behind the earliest (a reflection only ever delays a mic). The penalty is bounded,
+        so only the highest raw scores can win: they are scored in full, and a row whose winner or
+        runner-up could lie outside them is searched over every hypothesis (same result, exactly).
+        The runner-up is the best hypothesis whose arrival times differ from the winner's by more
+        than the tolerance (hypotheses from different reference mics differ by a constant only).
+        """
+        bsz, n_hyp = raw.shape
+        m = design.time_index.shape[1]
+        n_top = min(n_hyp, 8 * m)
+        if n_top < n_hyp:
+            top = np.sort(np.argpartition(-raw, n_top - 1, axis=1)[:, :n_top], axis=1)  # index order: ties as argmax
+        else:
+            top = np.broadcast_to(np.arange(n_hyp), (bsz, n_hyp))
+        best_times, best_score, runner_up = self._score(raw, flat_arrival, design, top)
+        if n_top < n_hyp:
+            outside = np.take_along_axis(raw, top, axis=1).min(axis=1)  # no hypothesis outside scores above this
+            unsure = np.isfinite(outside) & ~((best_score > outside) & (runner_up > outside))
+            if unsure.any():
+                every = np.broadcast_to(np.arange(n_hyp), (int(unsure.sum()), n_hyp))
+                best_times[unsure], best_score[unsure], runner_up[unsure] = self._score(raw[unsure], flat_arrival[unsure], design, every)
+        margin = np.where(np.isfinite(runner_up), best_score - runner_up, np.nan)
+        return best_times, margin
+
+    def _score(self, raw: np.ndarray, flat_arrival: np.ndarray, design: _Design, hyp: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Final scores of the hypotheses ``hyp`` (B, L): the winner's times (B, M), its score and the runner-up's."""
+        rows = np.arange(raw.shape[0])[:, None]
+        times = flat_arrival[rows[..., None], design.time_index[hyp]]  # (B, L, M)
+        lateness = (times - times.min(axis=-1, keepdims=True)).sum(axis=-1)
+        score = np.take_along_axis(raw, hyp, axis=1) - 1e-3 * np.nan_to_num(lateness, nan=1e3)
+        best = np.argmax(score, axis=1)
+        best_times = times[rows[:, 0], best]
+        best_relative = best_times - best_times[:, :1]
+        deviation = np.abs(times - times[..., :1] - best_relative[:, None, :]).max(-1)
+        runner_up = np.where(deviation > self.tolerance_s, score, -np.inf).max(axis=1)
+        return best_times, score[rows[:, 0], best], runner_up
 
     @staticmethod
     def _fit_times(lags: np.ndarray, use: np.ndarray, trusted: np.ndarray, fallback: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray) -> np.ndarray:
@@ -205,7 +266,7 @@ class ConsistentSetSolver:
     def solve(self, inputs: SolverInputs) -> SolverResult:
         """See :class:`acoustlab.core.contracts.Solver`; uses ``pair_lag_candidates_s`` (and weights) when present."""
         mics, tdoa, c, height = solver_inputs(inputs, self.source_height_m)
-        base = HyperbolicSolver(source_height_m=height, n_iterations=self.n_iterations)
+        base = HyperbolicSolver(source_height_m=height, n_iterations=self.n_iterations, dimensions=self.dimensions)
         if inputs.pair_lag_candidates_s is None:
             result = base.solve(inputs)
             for name in EXTRA_DIAGNOSTICS:
@@ -234,7 +295,9 @@ class ConsistentSetSolver:
             times = chosen["times_s"][np.ix_(rows, sub)]
             sub_inputs = SolverInputs(mics[sub], times - times[:, :1], c[rows],
                                       received_level_db=None if levels is None else np.asarray(levels, dtype=float)[np.ix_(rows, sub)])
-            result = base.solve(sub_inputs)
+            solver = base if base.dimensions == 2 or len(sub) >= 4 else HyperbolicSolver(
+                source_height_m=base.source_height_m, n_iterations=base.n_iterations)  # 3 mics: height assumed
+            result = solver.solve(sub_inputs)
             position[rows] = result.position_m
             residual[rows] = result.residual_m
             converged[rows] = result.converged

@@ -17,6 +17,7 @@ import numpy as np
 from acoustlab.core.contracts import SolverInputs, SolverResult
 from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.geometry import bounding_box, gdop
+from acoustlab.toolkit.solve3d import solve_3d
 from acoustlab.toolkit.tdoa import (
     energy_residual_db,
     levenberg_marquardt,
@@ -39,14 +40,22 @@ class HyperbolicSolver:
         Roots whose RMS residuals differ by less than this (m) count as equally good fits.
     n_iterations : int
         Levenberg–Marquardt iterations after the closed form.
+    dimensions : int
+        2: solve x, y at the assumed source height. 3: solve x, y and the height as well
+        (≥ 4 mics; :mod:`acoustlab.toolkit.solve3d`); ``source_height_m`` then reports the
+        estimate, with ``height_gdop`` and ``height_ambiguous`` beside it.
     """
 
     cache_version = "1"
     required_feature_groups = ("tdoa",)
 
-    def __init__(self, source_height_m: float | None = None, box_margin_fraction: float = 0.25, residual_tie_m: float = 0.05, n_iterations: int = 30) -> None:
+    def __init__(self, source_height_m: float | None = None, box_margin_fraction: float = 0.25, residual_tie_m: float = 0.05, n_iterations: int = 30,
+                 dimensions: int = 2) -> None:
         if n_iterations < 0:
             raise ConfigError(f"solver.n_iterations must be >= 0; got {n_iterations}")
+        if dimensions not in (2, 3):
+            raise ConfigError(f"solver.dimensions must be 2 or 3; got {dimensions}")
+        self.dimensions = int(dimensions)
         self.source_height_m = source_height_m
         self.box_margin_fraction = float(box_margin_fraction)
         self.residual_tie_m = float(residual_tie_m)
@@ -91,13 +100,19 @@ class HyperbolicSolver:
         bsz = tdoa.shape[0]
         finite = np.isfinite(tdoa).all(axis=1) & np.isfinite(c)
         rd = np.where(finite[:, None], c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]), 0.0)
+        if self.dimensions == 3:
+            return self._solve_3d(mics, rd, c, finite)
         cand, valid = self.roots(mics, rd, height)
         n_roots = valid.sum(axis=1)
 
         # refine every valid root, then choose among the refined roots
-        start = np.where(valid[..., None], cand, mics[:, :2].mean(axis=0))
-        heights = np.full(start.shape[:-1], height)
-        refined, cost, step = levenberg_marquardt(start, mics, heights, rd[:, None, :], self.n_iterations)
+        heights = np.full(valid.shape, height)
+        refined = np.full(cand.shape, np.nan)
+        cost = np.full(valid.shape, np.inf)
+        step = np.full(valid.shape, np.inf)
+        b_idx, r_idx = np.nonzero(valid)  # only real roots are refined
+        refined[b_idx, r_idx], cost[b_idx, r_idx], step[b_idx, r_idx] = levenberg_marquardt(
+            cand[b_idx, r_idx], mics, heights[b_idx, r_idx], rd[b_idx], self.n_iterations)
         residual = np.sqrt(cost / (mics.shape[0] - 1))
         residual = np.where(valid, residual, np.inf)
         low, high = bounding_box(mics, self.box_margin_fraction)
@@ -125,8 +140,11 @@ class HyperbolicSolver:
             res[none_valid] = np.sqrt(cost_fb / (mics.shape[0] - 1))
         converged = (step[rows, choice] < 1e-3) | (res < 1e-6)
         r, jac = range_residuals(position, mics, np.full(bsz, height), rd)
-        sv = np.linalg.svd(jac, compute_uv=False)
-        conditioning = sv[:, 0] / np.maximum(sv[:, -1], 1e-12)
+        # singular values of the (M−1, 2) Jacobian from the eigenvalues of the 2 × 2 JᵀJ, in closed form
+        jtj = np.einsum("bki,bkj->bij", jac, jac)
+        half_trace = (jtj[:, 0, 0] + jtj[:, 1, 1]) / 2
+        spread = np.sqrt(((jtj[:, 0, 0] - jtj[:, 1, 1]) / 2) ** 2 + jtj[:, 0, 1] ** 2)
+        conditioning = np.sqrt(np.maximum(half_trace + spread, 0) / np.maximum(half_trace - spread, 1e-24))
         position[~finite] = np.nan
         res = np.where(finite, res, np.nan)
         converged &= finite
@@ -142,5 +160,30 @@ class HyperbolicSolver:
                 "gdop": geometry,
                 "n_roots": n_roots.astype(float),
                 "source_height_m": np.full(bsz, height),
+            },
+        )
+
+    def _solve_3d(self, mics: np.ndarray, rd: np.ndarray, c: np.ndarray, finite: np.ndarray) -> SolverResult:
+        """x, y and height from ≥ 4 mics (see :func:`acoustlab.toolkit.solve3d.solve_3d`)."""
+        if mics.shape[0] < 4:
+            raise ValueError(f"solver.dimensions=3 needs at least 4 mics; this array has {mics.shape[0]} (use dimensions=2)")
+        fix = solve_3d(mics, rd, max(self.n_iterations, 1), self.residual_tie_m)
+        position = fix["position_m"]
+        res = np.sqrt(fix["cost_m2"] / (mics.shape[0] - 1))
+        ok = finite & np.isfinite(position).all(axis=1)
+        position[~ok] = np.nan
+        geometry = np.full(len(rd), np.nan)
+        geometry[ok] = gdop(mics, position[ok])
+        return SolverResult(
+            position_m=position[:, :2],
+            residual_m=np.where(ok, res, np.nan),
+            converged=ok & (res < 1e3),
+            diagnostics={
+                "residual_s": np.where(ok, res, np.nan) / c,
+                "gdop": geometry,
+                "n_roots": fix["n_roots"],
+                "source_height_m": position[:, 2],
+                "height_gdop": np.where(ok, fix["height_gdop"], np.nan),
+                "height_ambiguous": np.where(ok, fix["height_ambiguous"], np.nan),
             },
         )

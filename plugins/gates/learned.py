@@ -1,0 +1,178 @@
+"""Learned gate: a classifier of "the solver's fix is worse than the model's", trained on simulation.
+
+The hybrid gate's energy residual separates gross solver fixes from good ones poorly (AUC ≈ 0.7
+on the forest); the solver's own diagnostics do much better: the RMS TDOA residual, the
+consistency of the chosen TDOA set and its margin over the runner-up, GDOP, conditioning, and the
+distance between the solver's and the point model's estimates. This gate feeds those cues to a
+gradient-boosted classifier (scikit-learn's ``HistGradientBoostingClassifier``, which takes NaN as
+missing) whose label is "the solver's error exceeds the model's".
+
+Training is on simulation only and out-of-fold by source position: the classifier's probabilities
+on the training events come from fits that never saw that position, and the substitution
+threshold is chosen on them: the one with the lowest p95 error whose median error stays within
+``p50_tolerance`` of the box-gated solver's. A solver failure (no fix, or one outside the box) is
+always substituted.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from sklearn.ensemble import HistGradientBoostingClassifier
+from sklearn.metrics import roc_auc_score
+from sklearn.model_selection import GroupKFold
+
+from acoustlab.core import columns as col
+from acoustlab.core.contracts import GateDecision
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.types import Site
+from acoustlab.toolkit.geometry import bounding_box
+from acoustlab.toolkit.tdoa import energy_residual_db
+
+log = logging.getLogger(__name__)
+
+
+def gate_cues(solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> pd.DataFrame:
+    """The classifier's inputs: the solver's diagnostics, solver–model distance, energy residuals, box and range cues.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per event; NaN where a cue is unavailable (e.g. no solver fix).
+    """
+    cues = {name: features[name].to_numpy(float) for name in features.columns
+            if col.group_of(name) == "solver" and name not in col.SOLVER_ESTIMATE_COLUMNS}
+    cues["solver_model_distance_m"] = np.sqrt(((solver_position_m - model_position_m) ** 2).sum(axis=1))
+    centre = site.mic_positions_m[:, :2].mean(axis=0)
+    cues["solver_range_from_centre_m"] = np.sqrt(((solver_position_m - centre) ** 2).sum(axis=1))
+    cues["model_range_from_centre_m"] = np.sqrt(((model_position_m - centre) ** 2).sum(axis=1))
+    levels = [col.level_db(m) for m in range(site.n_mics)]
+    if all(c in features.columns for c in levels):
+        height = features[col.SOLVER_SOURCE_HEIGHT].to_numpy(float) if col.SOLVER_SOURCE_HEIGHT in features else np.mean(site.source_height_range_m)
+        lv = features[levels].to_numpy(float)
+        solver_energy = energy_residual_db(lv, site.mic_positions_m, np.nan_to_num(solver_position_m), height)
+        cues["energy_residual_solver_db"] = np.where(np.isfinite(solver_position_m).all(1), solver_energy, np.nan)
+        cues["energy_residual_model_db"] = energy_residual_db(lv, site.mic_positions_m, np.nan_to_num(model_position_m), height)
+        cues["energy_residual_difference_db"] = cues["energy_residual_solver_db"] - cues["energy_residual_model_db"]
+    return pd.DataFrame(cues, index=features.index)
+
+
+class LearnedGate:
+    """Substitute the model's estimate where a classifier says the solver's is worse (module docstring).
+
+    Parameters
+    ----------
+    margin_fraction : float
+        Box of stage 1: a solver fix outside the mics' box grown by this fraction of the array
+        extent is always substituted.
+    p50_tolerance : float
+        The threshold keeps the gated median within (1 + this) × the box-gated solver's median.
+    n_folds : int
+        Position-grouped folds for the out-of-fold probabilities.
+    max_iter, learning_rate, max_leaf_nodes : int, float, int
+        Settings of the gradient-boosted classifier.
+    seed : int
+        Seed of the classifier.
+    """
+
+    required_feature_groups: tuple[str, ...] = ()
+
+    def __init__(self, margin_fraction: float = 0.25, p50_tolerance: float = 0.05, n_folds: int = 5, max_iter: int = 200,
+                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, seed: int = 0) -> None:
+        if n_folds < 2:
+            raise ConfigError(f"gate.n_folds must be >= 2; got {n_folds}")
+        if p50_tolerance < 0:
+            raise ConfigError(f"gate.p50_tolerance must be >= 0; got {p50_tolerance}")
+        self.margin_fraction = float(margin_fraction)
+        self.p50_tolerance = float(p50_tolerance)
+        self.n_folds = int(n_folds)
+        self.max_iter = int(max_iter)
+        self.learning_rate = float(learning_rate)
+        self.max_leaf_nodes = int(max_leaf_nodes)
+        self.seed = int(seed)
+
+    def _classifier(self) -> HistGradientBoostingClassifier:
+        return HistGradientBoostingClassifier(max_iter=self.max_iter, learning_rate=self.learning_rate, max_leaf_nodes=self.max_leaf_nodes,
+                                              random_state=self.seed)
+
+    def _failed(self, solver_position_m: np.ndarray, site: Site) -> np.ndarray:
+        low, high = bounding_box(site.mic_positions_m, self.margin_fraction)
+        finite = np.isfinite(solver_position_m).all(axis=1)
+        return ~finite | ~np.where(finite[:, None], (solver_position_m >= low) & (solver_position_m <= high), False).all(axis=1)
+
+    def fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
+            groups: np.ndarray | None = None) -> LearnedGate:
+        """Train the classifier and choose the threshold on simulated events (out-of-fold by position)."""
+        if groups is None:
+            raise DataError("the learned gate needs the events' source positions (groups) to train out-of-fold")
+        cues = gate_cues(solver_position_m, model_position_m, features, site)
+        failed = self._failed(solver_position_m, site)
+        err_solver = np.sqrt(((solver_position_m - truth_m[:, :2]) ** 2).sum(axis=1))
+        err_model = np.sqrt(((model_position_m - truth_m[:, :2]) ** 2).sum(axis=1))
+        err_solver = np.where(failed | ~np.isfinite(err_solver), np.inf, err_solver)
+        label = (err_solver > err_model).astype(int)
+        use = ~failed
+        # cues that are missing for every training event (e.g. a 3-D diagnostic of a 2-D solver) carry nothing
+        self.columns_ = [c for c in cues.columns if np.isfinite(cues[c].to_numpy(float)[use]).any()]
+        cues = cues[self.columns_]
+        if use.sum() < 20 or np.unique(label[use]).size < 2 or np.unique(groups[use]).size < self.n_folds:
+            log.warning("learned gate: too few usable training events or one class only; substituting failures only")
+            self.classifier_, self.threshold_, self.oof_auc_ = None, np.inf, None
+            return self
+        x, y, g = cues[use], label[use], groups[use]
+        oof = np.empty(use.sum())
+        for fit_idx, held_idx in GroupKFold(n_splits=self.n_folds).split(x, y, g):
+            clf = self._classifier().fit(x.iloc[fit_idx], y[fit_idx]) if np.unique(y[fit_idx]).size > 1 else None
+            oof[held_idx] = clf.predict_proba(x.iloc[held_idx])[:, 1] if clf is not None else float(y[fit_idx][0])
+        self.oof_auc_ = float(roc_auc_score(y, oof))
+        self.threshold_, self.threshold_grid_ = self._choose_threshold(oof, err_solver[use], err_model[use], err_model[~use])
+        self.classifier_ = self._classifier().fit(x, y)
+        log.info("learned gate: out-of-fold AUC %.3f, threshold %.3f", self.oof_auc_, self.threshold_)
+        return self
+
+    def _choose_threshold(self, prob: np.ndarray, err_solver: np.ndarray, err_model: np.ndarray, err_failed: np.ndarray
+                          ) -> tuple[float, pd.DataFrame]:
+        """Lowest gated p95 with the median within tolerance of the box-gated solver's (failures take the model)."""
+        thresholds = np.unique(np.concatenate([np.quantile(prob, np.linspace(0, 1, 101)), [np.inf]]))
+        reference_p50 = np.median(np.concatenate([err_solver, err_failed]))
+        rows = []
+        for t in thresholds:
+            gated = np.concatenate([np.where(prob > t, err_model, err_solver), err_failed])
+            rows.append({"threshold": float(t), "p50_m": float(np.median(gated)), "p95_m": float(np.percentile(gated, 95)),
+                         "substitution_rate": float(np.mean(np.concatenate([prob > t, np.ones(err_failed.size, bool)])))})
+        grid = pd.DataFrame(rows)
+        ok = grid["p50_m"] <= (1 + self.p50_tolerance) * reference_p50
+        best = grid[ok]["p95_m"].idxmin() if ok.any() else grid["p50_m"].idxmin()
+        return float(grid.loc[best, "threshold"]), grid
+
+    def probability(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> np.ndarray:
+        """(B,) the classifier's probability that the solver's fix is worse than the model's (1 for failures)."""
+        if not hasattr(self, "threshold_"):
+            raise DataError("the learned gate must be fitted on simulated events before it decides")
+        failed = self._failed(solver_position_m, site)
+        prob = np.ones(len(solver_position_m))
+        if self.classifier_ is not None and (~failed).any():
+            cues = gate_cues(solver_position_m, model_position_m, features, site)
+            missing = [c for c in self.columns_ if c not in cues.columns]
+            if missing:
+                raise DataError(f"the learned gate was trained with cues {missing[:3]} that these events lack")
+            prob[~failed] = self.classifier_.predict_proba(cues.loc[cues.index[~failed], self.columns_])[:, 1]
+        return prob
+
+    def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
+        """See :class:`acoustlab.core.contracts.Gate`."""
+        prob = self.probability(solver_position_m, model_position_m, features, site)
+        substitute = self._failed(solver_position_m, site) | (prob > self.threshold_)
+        return GateDecision(np.where(substitute[:, None], model_position_m, solver_position_m), substitute)
+
+    def diagnostics(self) -> dict[str, Any]:
+        """The threshold, the out-of-fold AUC and the threshold grid (records)."""
+        if not hasattr(self, "threshold_"):
+            return {}
+        out: dict[str, Any] = {"threshold": float(self.threshold_), "oof_auc": self.oof_auc_}
+        if getattr(self, "threshold_grid_", None) is not None:
+            out["threshold_grid"] = self.threshold_grid_.to_dict(orient="records")
+        return out
