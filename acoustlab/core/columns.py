@@ -9,6 +9,8 @@ of repeating an f-string, so a rename happens in one place.
 
 from __future__ import annotations
 
+import re
+
 from collections.abc import Iterable
 
 from acoustlab.core.errors import DataError
@@ -44,6 +46,7 @@ SOLVER_CATALOG = (
     ("solver__score_margin", "1", "GCC-height score of the chosen candidate set minus the runner-up's (consistent-set solver)"),
     ("solver__n_mics_used", "1", "mics trusted for the fix (consistent-set solver)"),
     ("solver__closure_rms_s", "s", "RMS misfit of the chosen pair lags to the fitted arrival times (consistent-set solver)"),
+    ("solver__srp_disagreement_m", "m", "distance from the solver's fix to the SRP-PHAT estimate (features=physics_srp)"),
 )
 RADIUS_PREFIX = "radius"
 
@@ -124,6 +127,27 @@ def estimate_xy(method: str) -> tuple[str, str]:
 def error_m(method: str) -> str:
     """``error_<method>_m``: a method's 2-D error in a prediction table."""
     return f"error_{method}_m"
+
+
+def ellipse(level: float, part: str) -> str:
+    """``ellipse__<level>__<part>``: an error ellipse's ``a_m`` (semi-major), ``b_m`` (semi-minor) or ``angle_deg`` (major axis from east)."""
+    return f"ellipse__{level_key(level)}__{part}"
+
+
+#: Prefix of the methods of gates compared beside the configured one (``pipeline.extra_gates``).
+EXTRA_GATE_PREFIX = "gate_"
+
+
+def extra_gate_method(name: str) -> str:
+    """``gate_<name>``: the method name of an extra gate (its columns are ``gate_<name>_x_m``, ``error_gate_<name>_m``)."""
+    return f"{EXTRA_GATE_PREFIX}{name}"
+
+
+def methods_in(columns: Iterable[str]) -> list[str]:
+    """Every method with an error column: :data:`METHODS` present, then the extra gates in column order."""
+    present = set(columns)
+    extras = [m.group(1) for c in columns if (m := re.fullmatch(rf"error_({EXTRA_GATE_PREFIX}\w+)_m", c))]
+    return [m for m in METHODS if error_m(m) in present] + extras
 
 
 def level_key(level: float) -> str:

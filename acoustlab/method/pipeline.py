@@ -28,7 +28,9 @@ from acoustlab.core.contracts import (
 )
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
+from acoustlab.toolkit.conformal import conformal_quantile, selective_threshold
 from acoustlab.toolkit.geometry import gdop, position_crb_m
+from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +53,12 @@ class Components:
     model_target: str = "absolute"
     dropped_from_model: list[str] = field(default_factory=list)
     dropped_from_error_model: list[str] = field(default_factory=list)
+    #: ``{"gross_m", "delta", "epsilon"}`` for selective localization (None: every event is placed)
+    selective: dict[str, Any] | None = None
+    #: gates evaluated beside ``gate`` on the same predictions (reported as methods ``gate_<name>``)
+    extra_gates: dict[str, Gate] = field(default_factory=dict)
+    #: also calibrate a 2-D error ellipse per detection and level (:mod:`acoustlab.toolkit.regions`)
+    ellipse: bool = False
 
 
 @dataclass
@@ -193,7 +201,8 @@ class LocalizationPipeline:
         # Out-of-fold hybrid errors on the training positions, for the error model and calibration.
         folds = self._folds(groups[train])
         oof_model = np.empty((train.size, 2))
-        for fit_idx, held_idx in tqdm(folds, desc="point model, out-of-fold", unit="fold", disable=None, leave=False):
+        for k, (fit_idx, held_idx) in enumerate(tqdm(folds, desc="point model, out-of-fold", unit="fold", disable=None, leave=False)):
+            log.info("point model, out-of-fold %d/%d (%d rows)", k + 1, len(folds), fit_idx.size)  # progress also in logs and batch jobs
             models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]], solver_xy[train[fit_idx]])
             oof_model[held_idx] = self._predict_point(models, features.iloc[train[held_idx]][mcols], solver_xy[train[held_idx]])
         # the gate learns what it needs (e.g. τ* on simulation) from the out-of-fold predictions
@@ -211,6 +220,7 @@ class LocalizationPipeline:
         # a fix it wrongly trusts still gets a meaningful radius (never 10⁻⁹ m times a quantile)
         floor = float(np.percentile(oof_err[finite], 5)) if finite.any() else 1e-9
         oof_pred = np.empty(train.size)
+        log.info("error model, out-of-fold (%d folds)", len(folds))
         for fit_idx, held_idx in tqdm(folds, desc="error model, out-of-fold", unit="fold", disable=None, leave=False):
             fit_idx = fit_idx[finite[fit_idx]]
             em = clone(self.c.error_model).fit(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx])
@@ -222,6 +232,7 @@ class LocalizationPipeline:
         }
 
         # Final models on all training rows.
+        log.info("final point and error models on %d training rows", train.size)
         models = self._fit_point(features.iloc[train][mcols], truth[train], solver_xy[train])
         model_xy = self._predict_point(models, features.iloc[test][mcols], solver_xy[test])
         decision = gate.decide(solver_xy[test], model_xy, features.iloc[test], site)
@@ -255,8 +266,65 @@ class LocalizationPipeline:
         for k, name in enumerate(col.estimate_xy("oracle")):
             out[name] = np.where(solver_better, solver_xy[test, k], model_xy[:, k])
         out[col.error_m("oracle")] = np.minimum(out[col.error_m("solver")], out[col.error_m("model")])
+        if self.c.ellipse:
+            self._add_ellipses(out, oof_gate.position_m - truth[train], oof_gate.position_m, oof_pred, features.iloc[train],
+                               decision.position_m, predicted, features.iloc[test])
+        split_info: dict[str, Any] = {"gate": gate.diagnostics()}
+        for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
+            extra = clone(configured, safe=False).fit(solver_xy[train][sim], oof_model[sim], features.iloc[train[sim]], site, truth[train][sim],
+                                                       groups=groups[train][sim])
+            method = col.extra_gate_method(name)
+            position = extra.decide(solver_xy[test], model_xy, features.iloc[test], site).position_m
+            for k, column in enumerate(col.estimate_xy(method)):
+                out[column] = position[:, k]
+            out[col.error_m(method)] = error_2d_m(position, truth[test])
+            split_info.setdefault("extra_gates", {})[name] = extra.diagnostics()
+        if self.c.selective is not None:
+            threshold, info = self._selective_threshold(oof_err, oof_pred)
+            split_info["selective"] = info
+            has_fix = np.isfinite(decision.position_m).all(axis=1)
+            out["placed"] = has_fix & (predicted <= threshold)
+            out["abstain_reason"] = np.where(~has_fix, "no estimate", np.where(out["placed"], "", "predicted error above the certified threshold"))
         for name, scorer in scorers.items():
             radii = scorer.radius(predicted, gdop_test)
             for k, level in enumerate(self.c.levels):
                 out[col.radius(name, level)] = radii[:, k]
-        return MethodResult(out, [{"gate": gate.diagnostics()}])
+        return MethodResult(out, [split_info])
+
+    def _height(self, features: pd.DataFrame) -> np.ndarray | float:
+        if col.SOLVER_SOURCE_HEIGHT in features:
+            h = features[col.SOLVER_SOURCE_HEIGHT].to_numpy(float)
+            return np.where(np.isfinite(h), h, np.mean(self.c.site.source_height_range_m))
+        return float(np.mean(self.c.site.source_height_range_m))
+
+    def _add_ellipses(self, out: pd.DataFrame, cal_error_xy: np.ndarray, cal_position: np.ndarray, cal_pred: np.ndarray,
+                      cal_features: pd.DataFrame, test_position: np.ndarray, test_pred: np.ndarray, test_features: pd.DataFrame) -> None:
+        """Ellipse columns ``ellipse__<level>__a_m|b_m|angle_deg``: shape from the TDOA geometry, size from conformal on the calibration events."""
+        mics = self.c.site.mic_positions_m
+        ok = np.isfinite(cal_error_xy).all(axis=1)
+        height = self._height(cal_features)
+        shape = shape_matrices(mics, cal_position[ok], height[ok] if np.ndim(height) else height)
+        scores = mahalanobis(cal_error_xy[ok], shape) / cal_pred[ok]
+        test_shape = shape_matrices(mics, test_position, self._height(test_features))
+        for level in self.c.levels:
+            q = conformal_quantile(scores, level)
+            a, b, angle = ellipse_axes(test_shape, q * test_pred)
+            for name, values in (("a_m", a), ("b_m", b), ("angle_deg", angle)):
+                out[col.ellipse(level, name)] = values
+
+    def _selective_threshold(self, oof_err: np.ndarray, oof_pred: np.ndarray) -> tuple[float, dict[str, Any]]:
+        """The certified threshold on the predicted error (Learn then Test on the out-of-fold calibration events).
+
+        Calibration events without a finite estimate count as gross errors.
+        """
+        sel = self.c.selective
+        gross = ~(oof_err <= float(sel["gross_m"]))
+        threshold, path = selective_threshold(oof_pred, gross, float(sel["delta"]), float(sel["epsilon"]))
+        placed = oof_pred <= threshold
+        info = {"threshold_m": threshold, "delta": float(sel["delta"]), "epsilon": float(sel["epsilon"]), "gross_m": float(sel["gross_m"]),
+                "calibration_share_placed": float(placed.mean()),
+                "calibration_share_gross_placed": float(gross[placed].mean()) if placed.any() else float("nan")}
+        if not np.isfinite(threshold):
+            log.warning("selective localization: no threshold certifies share(error > %g m | placed) <= %g; nothing is placed",
+                        sel["gross_m"], sel["delta"])
+        return threshold, info

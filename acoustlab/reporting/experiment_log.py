@@ -81,12 +81,18 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
     try:
         tracker.check_reachable()
         tracker.start(run_name, run_params(run_dir, metrics), tags, parent_run_id=parent_run_id)
-        tracker.log_metrics(flat_metrics(metrics))
-        tracker.log_table(error_table(metrics), "tables/errors.json")
-        tracker.log_table(coverage_table(metrics), "tables/coverage.json")
+        if "errors" in metrics:  # an evaluation; a localization run (no truth) has positions instead
+            tracker.log_metrics(flat_metrics(metrics))
+            tracker.log_table(error_table(metrics), "tables/errors.json")
+            tracker.log_table(coverage_table(metrics), "tables/coverage.json")
+        else:
+            summary = metrics.get("localization", {})
+            tracker.log_metrics({f"localization.{k}": float(v) for k, v in summary.items() if isinstance(v, (int, float))})
         if "tau_grid" in metrics:
             tracker.log_table(pd.DataFrame(metrics["tau_grid"]), "tables/tau_grid.json")
-        for name in (*RUN_ARTIFACTS, "plots"):
+        if "risk_coverage" in metrics:
+            tracker.log_table(pd.DataFrame(metrics["risk_coverage"]), "tables/risk_coverage.json")
+        for name in (*RUN_ARTIFACTS, "positions.csv", "plots"):
             if (run_dir / name).exists():
                 tracker.log_artifact(str(run_dir / name))
         tracker.finish("FINISHED")

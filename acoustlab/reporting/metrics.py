@@ -9,6 +9,7 @@ import pandas as pd
 from scipy.stats import spearmanr
 
 from acoustlab.core import columns as col
+from acoustlab.toolkit.regions import inside_ellipse
 
 ERROR_QUANTILES = {"p50": 50, "p90": 90, "p95": 95, "p99": 99}
 #: An error above this is a gross error (m); failures count as gross.
@@ -51,7 +52,7 @@ def error_summary(errors_m: np.ndarray) -> dict[str, float]:
 
 def errors_by_method(predictions: pd.DataFrame) -> dict[str, dict[str, float]]:
     """:func:`error_summary` of every method's error column."""
-    return {m: error_summary(predictions[col.error_m(m)].to_numpy()) for m in col.METHODS}
+    return {m: error_summary(predictions[col.error_m(m)].to_numpy()) for m in col.methods_in(predictions.columns)}
 
 
 def coverage_and_width(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> tuple[dict, dict]:
@@ -131,7 +132,7 @@ def position_bootstrap_ci(predictions: pd.DataFrame, levels: list[float], scorer
     codes, inverse = np.unique(groups, return_inverse=True)
     rows_of = [np.flatnonzero(inverse == k) for k in range(codes.size)]
     rng = np.random.default_rng(seed)
-    errors = {m: np.where(np.isnan(e := predictions[col.error_m(m)].to_numpy(float)), np.inf, e) for m in col.METHODS if col.error_m(m) in predictions}
+    errors = {m: np.where(np.isnan(e := predictions[col.error_m(m)].to_numpy(float)), np.inf, e) for m in col.methods_in(predictions.columns)}
     gate_err = errors.get("gate")
     radii = {(s, lv): predictions[col.radius(s, lv)].to_numpy(float) for s in scorers for lv in levels}
     samples: dict[tuple, list[float]] = {}
@@ -157,15 +158,76 @@ def position_bootstrap_ci(predictions: pd.DataFrame, levels: list[float], scorer
 
 
 def gate_gap(errors: dict[str, dict[str, float]]) -> dict[str, float]:
-    """The gate against the oracle (p95 and p99 ratios) and against the solver (p50 ratio)."""
+    """Every gate against the oracle (p95 and p99 ratios) and against the solver (p50 ratio).
+
+    Keys ``<q>_<gate>_over_oracle`` and ``p50_<gate>_over_solver`` for the configured gate
+    (``gate``) and every extra gate (``gate_<name>``).
+    """
+    def ratio(a: float, b: float) -> float:
+        return float(a / b) if np.isfinite(b) and b > 0 else float("nan")
+
     out = {}
-    if "oracle" in errors and "gate" in errors:
-        for q in ("p95", "p99"):
-            o = errors["oracle"][q]
-            out[f"{q}_gate_over_oracle"] = float(errors["gate"][q] / o) if np.isfinite(o) and o > 0 else float("nan")
-    if "solver" in errors and "gate" in errors:
-        s = errors["solver"]["p50"]
-        out["p50_gate_over_solver"] = float(errors["gate"]["p50"] / s) if np.isfinite(s) and s > 0 else float("nan")
+    for gate in [m for m in errors if m == "gate" or m.startswith(col.EXTRA_GATE_PREFIX)]:
+        if "oracle" in errors:
+            for q in ("p95", "p99"):
+                out[f"{q}_{gate}_over_oracle"] = ratio(errors[gate][q], errors["oracle"][q])
+        if "solver" in errors:
+            out[f"p50_{gate}_over_solver"] = ratio(errors[gate]["p50"], errors["solver"]["p50"])
+    return out
+
+
+#: Shares of events placed at which the risk–coverage curve is reported.
+PLACED_SHARES = (1.0, 0.99, 0.95, 0.91, 0.9, 0.8, 0.7, 0.6, 0.5)
+
+
+def risk_coverage(predictions: pd.DataFrame) -> list[dict[str, float]]:
+    """Error of the gate's estimate among the events placed when only the lowest predicted errors are kept.
+
+    For each share in :data:`PLACED_SHARES`, events are placed in order of the error model's
+    prediction (lowest first); reported: the predicted-error threshold (m), the share placed, and
+    p50 / p95 / p99 and the share > 5 m among the placed (failures count as infinite errors).
+    """
+    err = predictions[col.error_m("gate")].to_numpy(float)
+    err = np.where(np.isnan(err), np.inf, err)
+    pred = predictions["predicted_error_m"].to_numpy(float)
+    order = np.argsort(pred, kind="stable")
+    rows = []
+    for share in PLACED_SHARES:
+        k = max(1, int(round(share * err.size)))
+        kept = err[order[:k]]
+        rows.append({"share_placed": k / err.size, "threshold_m": float(pred[order[k - 1]]),
+                     **{name: _quantile_with_failures(kept, q) for name, q in (("p50", 50), ("p95", 95), ("p99", 99))},
+                     "share_gt_5m": float(np.mean(~(kept <= GROSS_ERROR_M)))})
+    return rows
+
+
+def selective_summary(predictions: pd.DataFrame) -> dict[str, Any] | None:
+    """With selective localization: the share placed and the gate's errors among the placed (None without it)."""
+    if "placed" not in predictions:
+        return None
+    placed = predictions["placed"].to_numpy(bool)
+    out: dict[str, Any] = {"share_placed": float(placed.mean()), "n_placed": int(placed.sum())}
+    if placed.any():
+        err = predictions[col.error_m("gate")].to_numpy(float)[placed]
+        out.update({k: v for k, v in error_summary(err).items() if k in ("p50", "p90", "p95", "p99", "share_gt_5m")})
+        by_position = pd.Series(~(err <= GROSS_ERROR_M)).groupby(predictions["position_id"].to_numpy()[placed]).mean()
+        out["worst_position_share_gt_5m"] = float(by_position.max())
+    return out
+
+
+def ellipse_coverage(predictions: pd.DataFrame, levels: list[float]) -> dict[str, dict[str, float]] | None:
+    """Per level: how often the truth lies inside the gate estimate's error ellipse, the worst position, and the
+    median ellipse area against the median area of the circle of the ``fixed``-style radius (None without ellipses)."""
+    if col.ellipse(levels[0], "a_m") not in predictions:
+        return None
+    d = predictions[list(col.estimate_xy("gate"))].to_numpy(float) - predictions[list(col.estimate_xy("true"))].to_numpy(float)
+    out = {}
+    for level in levels:
+        a, b, angle = (predictions[col.ellipse(level, p)].to_numpy(float) for p in ("a_m", "b_m", "angle_deg"))
+        hit = inside_ellipse(np.nan_to_num(d, nan=np.inf), a, b, angle) & np.isfinite(d).all(axis=1)
+        by_position = pd.Series(hit).groupby(predictions["position_id"].to_numpy()).mean()
+        out[col.level_key(level)] = {"coverage": float(hit.mean()), "worst_position": float(by_position.min()),
+                                     "median_area_m2": float(np.median(np.pi * a * b))}
     return out
 
 
@@ -181,6 +243,13 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
     errors = errors_by_method(predictions)
     extra["gate_gap"] = gate_gap(errors)
     extra["ci95"] = position_bootstrap_ci(predictions, levels, scorers)
+    extra["risk_coverage"] = risk_coverage(predictions)
+    ellipses = ellipse_coverage(predictions, levels)
+    if ellipses is not None:
+        extra["ellipse"] = ellipses
+    selective = selective_summary(predictions)
+    if selective is not None:
+        extra["selective"] = selective
     return {
         **extra,
         "errors": errors,
@@ -199,11 +268,13 @@ def split_diagnostics_summary(split_diagnostics: list[dict[str, Any]]) -> dict[s
     and, for flags, whether every split had it.
     """
     gates = [d.get("gate", {}) for d in split_diagnostics]
+    selective = [d["selective"] for d in split_diagnostics if "selective" in d]
+    extra: dict[str, Any] = {"selective_by_split": selective} if selective else {}
     if len(gates) == 1:
-        return dict(gates[0])
+        return {**dict(gates[0]), **extra}
     if not any(gates):
-        return {}
-    out: dict[str, Any] = {"gate_by_split": [{"split": d.get("split", str(k)), **g} for k, (d, g) in enumerate(zip(split_diagnostics, gates, strict=True))]}
+        return extra
+    out: dict[str, Any] = {**extra, "gate_by_split": [{"split": d.get("split", str(k)), **g} for k, (d, g) in enumerate(zip(split_diagnostics, gates, strict=True))]}
     for key in gates[0]:
         values = [g.get(key) for g in gates]
         if all(isinstance(v, bool) for v in values):
@@ -247,6 +318,13 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
             flat[f"coverage.{s}.{level}.ci_low"], flat[f"coverage.{s}.{level}.ci_high"] = low, high
     for k, v in metrics.get("gate_gap", {}).items():
         flat[f"gate_gap.{k}"] = v
+    for row in metrics.get("risk_coverage", []):
+        for k in ("p95", "share_gt_5m"):
+            flat[f"risk_coverage.{row['share_placed']:.2f}.{k}"] = row[k]
+    for level, v in (metrics.get("ellipse") or {}).items():
+        flat[f"ellipse.{level}.coverage"] = v["coverage"]
+    for k, v in (metrics.get("selective") or {}).items():
+        flat[f"selective.{k}"] = v
     for k, v in metrics.get("crb_m", {}).items():
         flat[f"crb.{k}_m"] = v
     for k, v in metrics.get("spearman_rho", {}).items():
@@ -257,3 +335,21 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
     for k, v in metrics.get("timings_s", {}).items():
         flat[f"time.{k}"] = v
     return {k: float(v) for k, v in flat.items() if np.isfinite(v)}
+
+
+def summary_text(metrics: dict) -> str:
+    """A compact, human-readable end-of-run summary: errors by method, coverage and median radius by scorer and level."""
+    def num(v: float) -> str:
+        return "inf" if v == float("inf") else "-" if v != v else f"{v:.2f}" if abs(v) < 10 else f"{v:.0f}"
+
+    lines = [f"{'method':<14}{'p50 m':>8}{'p95 m':>8}{'p99 m':>8}{'> 5 m':>8}{'failed':>8}"]
+    for method, e in metrics["errors"].items():
+        lines.append(f"{method:<14}{num(e['p50']):>8}{num(e['p95']):>8}{num(e['p99']):>8}{100 * e.get('share_gt_5m', float('nan')):>7.1f}%"
+                     f"{e['n_failed']:>8}")
+    levels = sorted({lv for by in metrics["coverage"].values() for lv in by}, key=float)
+    lines.append("")
+    lines.append(f"{'coverage':<14}" + "".join(f"{'@' + lv:>10}" for lv in levels) + f"{'radius@' + levels[-1]:>14}" if levels else "")
+    for scorer, by in metrics["coverage"].items():
+        width = metrics["interval_width"][scorer][levels[-1]]["median_m"]
+        lines.append(f"{scorer:<14}" + "".join(f"{by[lv]:>10.3f}" for lv in levels) + f"{num(width) + ' m':>14}")
+    return "\n".join(lines)

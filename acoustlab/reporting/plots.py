@@ -165,7 +165,7 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     fig, ax = plt.subplots(figsize=(5.5, 4))
-    error_cdf(ax, {m: predictions[col.error_m(m)].to_numpy(float) for m in col.METHODS})
+    error_cdf(ax, {m: predictions[col.error_m(m)].to_numpy(float) for m in col.methods_in(predictions.columns)})
     ax.set_title(f"{metrics.get('site', '')}: error CDF per method", fontsize=9)
     paths.append(_save(fig, out_dir / "error_cdf.png"))
 
@@ -185,3 +185,40 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
         paths.append(_save(fig, out_dir / "site_map.png"))
     log.info("plots written to %s", out_dir)
     return paths
+
+
+def write_positions_map(table: pd.DataFrame, site: Site, levels: list[float], scorers: list[str], out_dir: Path) -> Path:
+    """``positions_map.png``: mics, trunks and every placed detection with its radius at the level nearest 0.8.
+
+    Circles smaller than 1.5 % of the plot's extent are drawn at that size (dashed), so they stay visible.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    if len(site.tree_positions_m):
+        trunks = [Circle((x, y), max(d / 2, 0.15)) for (x, y), d in zip(site.tree_positions_m, site.trunk_diameters_m)]
+        ax.add_collection(PatchCollection(trunks, facecolor="tab:brown", edgecolor="none", alpha=0.5))
+    mics = site.mic_positions_m
+    placed = table[table["placed"]]
+    xs = np.concatenate([mics[:, 0], placed["x_m"].to_numpy(float)])
+    ys = np.concatenate([mics[:, 1], placed["y_m"].to_numpy(float)])
+    extent = max(np.ptp(xs), np.ptp(ys), 1.0)
+    scorer = "gdop_scaled" if "gdop_scaled" in scorers else (scorers[0] if scorers else None)
+    title = f"{site.name}: {len(placed)} of {len(table)} detections placed"
+    if scorer is not None and levels:
+        level = min(levels, key=lambda lv: abs(lv - 0.8))
+        radius = placed[f"radius_{scorer}_{col.level_key(level)}_m"].to_numpy(float)
+        shown = np.maximum(radius, 0.015 * extent)
+        circles = [Circle((x, y), r) for x, y, r in zip(placed["x_m"], placed["y_m"], shown) if np.isfinite(r)]
+        ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:orange", lw=0.8, alpha=0.7))
+        title += f"; circles: {scorer} conformal, {level:.0%}"
+    ax.scatter(placed["x_m"], placed["y_m"], marker=".", color="tab:orange", s=30, label="estimate", zorder=3)
+    ax.scatter(mics[:, 0], mics[:, 1], marker="^", color="k", s=60, label="microphones", zorder=4)
+    pad = 0.2 * extent
+    ax.set_xlim(xs.min() - pad, xs.max() + pad)
+    ax.set_ylim(ys.min() - pad, ys.max() + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+    return _save(fig, out_dir / "positions_map.png")

@@ -113,9 +113,7 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
         predictions = r.predictions
         if predictions is not None and "in_summary" in predictions:
             predictions = predictions[predictions["in_summary"].to_numpy(bool)]
-        for method in col.METHODS:
-            if method not in r.metrics["errors"]:  # runs from before the oracle was reported
-                continue
+        for method in r.metrics["errors"]:  # solver, model, gate, oracle (newer runs) and any extra gates
             stats = r.metrics["errors"][method]
             row = {"run": r.label, "method": method, **{k: stats[k] for k in ("n", "mean", "p50", "p90", "p95", "p99")}}
             ci = r.metrics.get("ci95", {}).get("errors", {}).get(method, {})

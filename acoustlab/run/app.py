@@ -11,13 +11,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from acoustlab import __version__
 from acoustlab.core.errors import ConfigError
 from acoustlab.method.pipeline import Components, LocalizationPipeline
 from acoustlab.reporting.experiment_log import log_run_dir
-from acoustlab.reporting.metrics import split_diagnostics_summary, summarise
+from acoustlab.reporting.metrics import split_diagnostics_summary, summarise, summary_text
+from acoustlab.reporting.paper import paper_comparison
+from acoustlab.reporting.positions import localization_summary, positions_table
 from acoustlab.run.registry import (
     PLUGIN_GROUPS,
     build,
@@ -129,11 +132,15 @@ def build_run(cfg: DictConfig) -> BuiltRun:
         levels=list(cfg.conformal.levels),
         dropped_groups=list(cfg.features.drop),
         calibration_folds=cfg.conformal.calibration_folds,
+        ellipse=bool(cfg.conformal.ellipse),
         model_target=ModelTarget(cfg.pipeline.model_target).value,
         dropped_from_model=list(cfg.pipeline.drop_from_model),
         dropped_from_error_model=list(cfg.pipeline.drop_from_error_model),
+        selective=dict(cfg.pipeline.selective) if cfg.pipeline.selective.enabled else None,
+        extra_gates={name: build(node, "gate") for name, node in cfg.pipeline.extra_gates.items()},
     )
-    check_feature_requirements(feature_sets, solver=components.solver, gate=components.gate)
+    check_feature_requirements(feature_sets, solver=components.solver, gate=components.gate,
+                               **{f"pipeline.extra_gates.{name}": g for name, g in components.extra_gates.items()})
     check_dropped_groups(feature_sets, features_drop=components.dropped_groups, pipeline_drop_from_model=components.dropped_from_model,
                          pipeline_drop_from_error_model=components.dropped_from_error_model)
     for level in components.levels:
@@ -148,7 +155,7 @@ def build_run(cfg: DictConfig) -> BuiltRun:
     cache = StageCache(cfg.cache.dir, enabled=cfg.cache.enabled)
     if cfg.data.shard_count > 1 and not cache.enabled:
         raise ConfigError("data.shard_count > 1 fills the cache shard by shard; it needs cache.enabled=true")
-    plan = SimulationPlan(seed=cfg.seed, **OmegaConf.to_container(cfg.data))
+    plan = SimulationPlan(seed=cfg.seed, **OmegaConf.to_container(cfg.data, resolve=True))
     return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan)
 
 
@@ -202,6 +209,9 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     predictions = result.predictions
     timings["models_s"] = time.perf_counter() - stage_start
 
+    if not getattr(protocol, "evaluates", True):
+        return _write_localization(cfg, run_dir, predictions, result, components, site, dataset, field_data, choices, timings, started,
+                                   tracker, parent_run_id)
     summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
     metrics = summarise(predictions[summary_rows], components.levels, list(components.scorers))
     if not summary_rows.all():
@@ -229,9 +239,43 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     timings["plots_s"] = time.perf_counter() - stage_start
     timings["total_before_tracking_s"] = time.perf_counter() - started
     metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    if cfg.get("paper_reference"):
+        rows, lines = paper_comparison(OmegaConf.to_container(cfg.paper_reference, resolve=True), metrics)
+        metrics["paper_comparison"] = rows
+        (run_dir / "paper_comparison.md").write_text("\n".join(lines) + "\n")
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    log.info("errors (m): %s", {m: {k: round(v, 3) for k, v in s.items()} for m, s in metrics["errors"].items()})
-    log.info("coverage: %s", metrics["coverage"])
-    log.info("timings (s): %s", metrics["timings_s"])
+    log.info("%s test detections; errors (m) and conformal coverage:\n%s", metrics["errors"]["gate"]["n"], summary_text(metrics))
+    log.info("timings (s): %s", ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in metrics["timings_s"].items()))
+    log.info("run directory: %s", run_dir)
+    log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
+    return metrics
+
+
+def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFrame, result: Any, components: Components, site: Any,
+                        dataset: Any, field_data: Any, choices: dict[str, str], timings: dict[str, float], started: float,
+                        tracker: Any, parent_run_id: str | None) -> dict:
+    """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
+    table = positions_table(predictions, components.levels, list(components.scorers))
+    table.to_csv(run_dir / "positions.csv", index=False)
+    table.to_parquet(run_dir / "positions.parquet", index=False)
+    predictions.to_parquet(run_dir / "predictions.parquet", index=False)
+    (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    metrics: dict[str, Any] = {"localization": localization_summary(table, components.levels, list(components.scorers))}
+    metrics.update(split_diagnostics_summary(result.split_diagnostics))
+    metrics.update({"dataset_hash": dataset.dataset_hash, "field_dataset_hash": field_data.dataset_hash, "site": site.name,
+                    "choices": choices, "n_features": int(len(dataset.features.columns)), "code_version": code_version()})
+    stage_start = time.perf_counter()
+    if bool(cfg.get("plots", True)):
+        from acoustlab.reporting.plots import write_positions_map
+
+        write_positions_map(table, site, components.levels, list(components.scorers), run_dir / "plots")
+    timings["plots_s"] = time.perf_counter() - stage_start
+    timings["total_before_tracking_s"] = time.perf_counter() - started
+    metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    shown = table[["x_m", "y_m", *(["z_m"] if "z_m" in table else []), "source", "placed"]].head(20)
+    log.info("positions (first %d of %d detections; all in %s):\n%s", len(shown), len(table), run_dir / "positions.csv",
+             shown.to_string(float_format=lambda v: f"{v:.2f}"))
+    log.info("run directory: %s", run_dir)
     log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
     return metrics

@@ -12,13 +12,14 @@ OmegaConf 2.3 has no ``typing.Literal``; closed choices are ``str`` enums instea
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, make_dataclass
 from dataclasses import field as dc_field
 from enum import Enum
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import MISSING, OmegaConf
 
 SCHEMA_NAME = "acoustlab_schema"
 
@@ -43,6 +44,16 @@ class DataConfig:
 
 
 @dataclass
+class SelectiveConfig:
+    """Selective localization: return no position where the predicted error says it cannot be trusted."""
+
+    enabled: bool = False
+    gross_m: float = 5.0
+    delta: float = 0.01
+    epsilon: float = 0.1
+
+
+@dataclass
 class PipelineConfig:
     """What the point model predicts, the solver's plausible region, and which feature groups each learned model is denied."""
 
@@ -50,6 +61,8 @@ class PipelineConfig:
     plausible_margin_fraction: Optional[float] = MISSING
     drop_from_model: list[str] = dc_field(default_factory=list)
     drop_from_error_model: list[str] = dc_field(default_factory=list)
+    selective: SelectiveConfig = dc_field(default_factory=lambda: SelectiveConfig())
+    extra_gates: dict[str, Any] = dc_field(default_factory=dict)
 
 
 @dataclass
@@ -87,6 +100,7 @@ class ConformalConfig:
     levels: list[float] = MISSING
     calibration_folds: int = MISSING
     scorers: dict[str, Any] = dc_field(default_factory=dict)
+    ellipse: bool = False
 
 
 @dataclass
@@ -122,15 +136,33 @@ class _TypedRoot:
     features: FeaturesConfig = dc_field(default_factory=FeaturesConfig)
     conformal: ConformalConfig = dc_field(default_factory=ConformalConfig)
     site: Optional[SiteConfig] = None
+    #: the paper's published figures for this experiment (``paper_forest``, ``paper_frozen_lake``): written beside ours
+    paper_reference: Optional[dict[str, Any]] = None
 
 
 #: The root: the typed nodes above plus one free-form node per plugin group in :data:`FREE_FORM_GROUPS`.
 AcoustlabConfig = make_dataclass("AcoustlabConfig", [(g, Any, None) for g in FREE_FORM_GROUPS], bases=(_TypedRoot,))
 
 
+def free_cores() -> int:
+    """Cores this process may use that other work is not already using: the CPU affinity minus the 1-minute load, ≥ 1.
+
+    Oversubscribed OpenMP threads spin-wait (a minute of work can take twenty), so model threads
+    are sized from what is free, not from what the machine has: the config's ``${threads:}``.
+    """
+    available = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        busy = int(round(os.getloadavg()[0]))
+    except OSError:  # not available on this platform
+        busy = 0
+    return max(1, min(available, available - busy))
+
+
 def register() -> None:
-    """Register the schema with Hydra's ConfigStore (idempotent); imported before any compose."""
+    """Register the schema with Hydra's ConfigStore and the ``${threads:}`` resolver (idempotent); imported before any compose."""
     ConfigStore.instance().store(name=SCHEMA_NAME, node=AcoustlabConfig)
+    if not OmegaConf.has_resolver("threads"):
+        OmegaConf.register_new_resolver("threads", free_cores, use_cache=True)
 
 
 register()

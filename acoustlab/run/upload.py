@@ -1,17 +1,25 @@
 """``python -m acoustlab.upload RUN_DIR ...``: send run directories to the experiment tracker after the fact.
 
-The tracker is rebuilt from each run's ``config_resolved.yaml``; a run that was not tracked
-(``tracking=none``) is sent with the registered MLflow option (``conf/tracking/mlflow.yaml``).
+A received run folder supplies data only. The tracker is always the uploader's own
+(``conf/tracking/mlflow.yaml`` of this installation); nothing named in the folder's
+``config_resolved.yaml`` is instantiated (a ``_target_`` there could name any callable) and none of
+its interpolations (``${oc.env:…}``) is resolved. From the folder only plain strings are taken: the
+MLflow experiment name, and the tracking URI it was meant for, which is used only where it is a
+local SQLite store or matches ``--tracking-uri``; otherwise ``--tracking-uri`` must say where to
+send it (default: the local store ``outputs/mlflow.db``). A folder that was uploaded remembers its
+MLflow run id (``TRACKED.json``) and is skipped the next time.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from pathlib import Path
 from typing import Any
 
+import yaml
 from omegaconf import OmegaConf
 
 from acoustlab.core.errors import AcoustlabError, ConfigError
@@ -19,24 +27,36 @@ from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
 from acoustlab.run.registry import CONF_DIR, build
 
 log = logging.getLogger(__name__)
-#: The tracking option used for runs whose own config tracked nothing.
+#: The tracking option of this installation that uploads use.
 DEFAULT_TRACKING_OPTION = "mlflow"
+#: Written into a run directory once it is uploaded (its MLflow run id); a later upload skips it.
+TRACKED_FILE = "TRACKED.json"
+
+
+def _plain_string(value: Any) -> str | None:
+    """``value`` when it is a plain string without interpolation, else None."""
+    return value if isinstance(value, str) and "${" not in value else None
 
 
 def tracker_for(run_dir: Path, tracking_uri: str | None, experiment: str | None) -> Any:
-    """The tracker a run directory's config names (MLflow when it named none), with overrides applied."""
+    """The uploader's MLflow tracker for ``run_dir``, with only plain strings taken from the folder (module docstring)."""
     config_file = run_dir / "config_resolved.yaml"
     if not config_file.exists():
         raise ConfigError(f"{config_file} is missing: {run_dir} is not an acoustlab run directory")
-    run_cfg = OmegaConf.load(config_file)
-    node = run_cfg.get("tracking")
-    if node is None or "_target_" not in node or getattr(build(node, "tracking"), "destination", None) is None:
-        node = OmegaConf.load(CONF_DIR / "tracking" / f"{DEFAULT_TRACKING_OPTION}.yaml")
-        node.store_dir = str(run_cfg.get("paths", {}).get("outputs_dir", "outputs"))
-    if tracking_uri:
-        node.tracking_uri = tracking_uri
-    if experiment:
-        node.experiment_name = experiment
+    try:
+        received = yaml.safe_load(config_file.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{config_file} is not readable YAML: {exc}") from exc
+    tracking = received.get("tracking") if isinstance(received.get("tracking"), dict) else {}
+    node = OmegaConf.load(CONF_DIR / "tracking" / f"{DEFAULT_TRACKING_OPTION}.yaml")
+    paths = received.get("paths") if isinstance(received.get("paths"), dict) else {}
+    node.store_dir = _plain_string(paths.get("outputs_dir")) or "outputs"
+    node.tracking_uri = tracking_uri
+    if tracking_uri is None:
+        meant_for = _plain_string(tracking.get("tracking_uri"))
+        if meant_for and not meant_for.startswith("sqlite:"):
+            log.warning("%s was meant for %s; uploading to the local store instead (pass --tracking-uri to send it there)", run_dir, meant_for)
+    node.experiment_name = experiment or _plain_string(tracking.get("experiment_name")) or node.experiment_name
     return build(node, "tracking")
 
 
@@ -44,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m acoustlab.upload RUN_DIR ... [--tracking-uri URI] [--experiment NAME]``."""
     parser = argparse.ArgumentParser(prog="python -m acoustlab.upload", description="Upload run directories to MLflow (e.g. after the server was unreachable).")
     parser.add_argument("run_dirs", nargs="+", type=Path, help="run directories (holding metrics.json), or folders searched for them")
-    parser.add_argument("--tracking-uri", help="MLflow tracking URI; default: the one in each run's config_resolved.yaml")
+    parser.add_argument("--tracking-uri", help="MLflow tracking URI; default: the local store <outputs_dir>/mlflow.db")
     parser.add_argument("--experiment", help="MLflow experiment name; default: the run's own")
     parser.add_argument("--only-pending", action="store_true", help=f"upload only runs marked with {PENDING_FILE}")
     args = parser.parse_args(argv)
@@ -66,6 +86,13 @@ def main(argv: list[str] | None = None) -> int:
         except AcoustlabError as exc:
             print(f"acoustlab.upload: error: {exc}", file=sys.stderr)
             return 2
-        failed += not log_run_dir(tracker, run_dir)
+        marker = run_dir / TRACKED_FILE
+        if marker.exists() and not (run_dir / PENDING_FILE).exists():
+            log.info("%s was uploaded before (MLflow run %s); skipped", run_dir, json.loads(marker.read_text()).get("run_id"))
+            continue
+        ok = log_run_dir(tracker, run_dir)
+        failed += not ok
+        if ok and getattr(tracker, "last_run_id", None):
+            marker.write_text(json.dumps({"run_id": tracker.last_run_id, "tracking_uri": str(getattr(tracker, "tracking_uri", ""))}))
     log.info("uploaded %d of %d run directories", len(run_dirs) - failed, len(run_dirs))
     return 1 if failed else 0

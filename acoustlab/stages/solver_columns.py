@@ -128,6 +128,9 @@ def add_solver_columns(
     for name, values in result.diagnostics.items():
         out[col.solver_column(name)] = np.asarray(values, dtype=float)
     out[col.SOLVER_FAILURE] = failure.astype(float)
+    if {"srp__x_m", "srp__y_m"} <= set(features.columns):  # score-based agreement: how far the SRP-PHAT map's peak lies
+        srp = features[["srp__x_m", "srp__y_m"]].to_numpy(float)
+        out[col.solver_column("srp_disagreement_m")] = np.sqrt(((position - srp) ** 2).sum(axis=1))
     for name, _, _ in col.SOLVER_CATALOG:  # every solver fills the same columns (NaN where it has no such diagnostic)
         if name not in out.columns:
             out[name] = np.nan

@@ -30,3 +30,57 @@ def conformal_quantile(scores: np.ndarray, level: float) -> float:
     if rank > n:
         return math.inf
     return float(np.sort(scores)[rank - 1])
+
+
+def selective_threshold(score: np.ndarray, gross: np.ndarray, delta: float, epsilon: float) -> tuple[float, list[dict[str, float]]]:
+    """The most permissive threshold on ``score`` whose share of gross errors among placed events is ≤ δ, with confidence 1 − ε.
+
+    Learn then Test (Angelopoulos et al. 2021) with fixed-sequence testing: candidate thresholds
+    (the distinct calibration scores) are visited from the strictest (fewest events placed) to the
+    most permissive. For each, the null "share(gross | score ≤ t) > δ" is tested with the exact
+    binomial tail P(Bin(n_placed, δ) ≤ k_gross); the sequence stops at the first threshold whose
+    p-value exceeds ε, and the last rejected one is returned. Because the tests are visited in a
+    fixed order, the family-wise error is ε without a multiplicity correction. The sequence starts
+    at the first threshold placing enough events for a certificate to be possible
+    (n ≥ log ε / log(1 − δ): 230 events for δ = 1 %, ε = 0.1).
+
+    Parameters
+    ----------
+    score : numpy.ndarray
+        (n,) calibration scores (e.g. the error model's predicted error, m): place where score ≤ t.
+    gross : numpy.ndarray
+        (n,) bool, True where the calibration event's error is gross.
+    delta : float
+        Tolerated share of gross errors among placed events, in (0, 1).
+    epsilon : float
+        Tolerated probability that the guarantee fails, in (0, 1).
+
+    Returns
+    -------
+    threshold : float
+        −inf when not even the strictest threshold can be certified (nothing is placed).
+    path : list of dict
+        ``threshold, n_placed, n_gross, p_value`` of every visited threshold.
+    """
+    from scipy.stats import binom
+
+    if not 0 < delta < 1 or not 0 < epsilon < 1:
+        raise ValueError(f"selective delta and epsilon must lie in (0, 1); got {delta}, {epsilon}")
+    score = np.asarray(score, dtype=float)
+    gross = np.asarray(gross, dtype=bool)
+    order = np.argsort(score, kind="stable")
+    sorted_score, sorted_gross = score[order], gross[order]
+    n_placed = np.arange(1, score.size + 1)
+    n_gross = np.cumsum(sorted_gross)
+    last = np.r_[sorted_score[1:] != sorted_score[:-1], True]  # the last event of each distinct score
+    # the sequence starts where a certificate is possible at all: n placed events without a gross
+    # error give p = (1 − δ)^n, which is ≤ ε only from n ≥ log ε / log(1 − δ) on
+    n_min = math.ceil(math.log(epsilon) / math.log1p(-delta))
+    threshold, path = -math.inf, []
+    for k in np.flatnonzero(last & (n_placed >= n_min)):
+        p_value = float(binom.cdf(n_gross[k], n_placed[k], delta))
+        path.append({"threshold": float(sorted_score[k]), "n_placed": int(n_placed[k]), "n_gross": int(n_gross[k]), "p_value": p_value})
+        if p_value > epsilon:
+            break
+        threshold = float(sorted_score[k])
+    return threshold, path

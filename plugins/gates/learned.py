@@ -24,6 +24,7 @@ import pandas as pd
 from sklearn.ensemble import HistGradientBoostingClassifier
 from sklearn.metrics import roc_auc_score
 from sklearn.model_selection import GroupKFold
+from threadpoolctl import threadpool_limits
 
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import GateDecision
@@ -76,12 +77,14 @@ class LearnedGate:
         Settings of the gradient-boosted classifier.
     seed : int
         Seed of the classifier.
+    n_threads : int
+        OpenMP threads of the classifier (``${threads:}`` in the config: the free cores).
     """
 
     required_feature_groups: tuple[str, ...] = ()
 
     def __init__(self, margin_fraction: float = 0.25, p50_tolerance: float = 0.05, n_folds: int = 5, max_iter: int = 200,
-                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, seed: int = 0) -> None:
+                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, seed: int = 0, n_threads: int = 1) -> None:
         if n_folds < 2:
             raise ConfigError(f"gate.n_folds must be >= 2; got {n_folds}")
         if p50_tolerance < 0:
@@ -93,6 +96,7 @@ class LearnedGate:
         self.learning_rate = float(learning_rate)
         self.max_leaf_nodes = int(max_leaf_nodes)
         self.seed = int(seed)
+        self.n_threads = max(1, int(n_threads))
 
     def _classifier(self) -> HistGradientBoostingClassifier:
         return HistGradientBoostingClassifier(max_iter=self.max_iter, learning_rate=self.learning_rate, max_leaf_nodes=self.max_leaf_nodes,
@@ -106,6 +110,11 @@ class LearnedGate:
     def fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
             groups: np.ndarray | None = None) -> LearnedGate:
         """Train the classifier and choose the threshold on simulated events (out-of-fold by position)."""
+        with threadpool_limits(limits=self.n_threads, user_api="openmp"):
+            return self._fit(solver_position_m, model_position_m, features, site, truth_m, groups)
+
+    def _fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
+             groups: np.ndarray | None) -> LearnedGate:
         if groups is None:
             raise DataError("the learned gate needs the events' source positions (groups) to train out-of-fold")
         cues = gate_cues(solver_position_m, model_position_m, features, site)
@@ -159,7 +168,8 @@ class LearnedGate:
             missing = [c for c in self.columns_ if c not in cues.columns]
             if missing:
                 raise DataError(f"the learned gate was trained with cues {missing[:3]} that these events lack")
-            prob[~failed] = self.classifier_.predict_proba(cues.loc[cues.index[~failed], self.columns_])[:, 1]
+            with threadpool_limits(limits=self.n_threads, user_api="openmp"):
+                prob[~failed] = self.classifier_.predict_proba(cues.loc[cues.index[~failed], self.columns_])[:, 1]
         return prob
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:

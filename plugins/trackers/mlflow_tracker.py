@@ -117,6 +117,7 @@ class MlflowTracker:
 
         if self._run is not None:
             mlflow.end_run(status=status)
+            self.last_run_id = self._run.info.run_id
             self._run = None
 
     def open_sweep(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> str:

@@ -25,14 +25,24 @@ log = logging.getLogger(__name__)
 FIELD_POSITION_OFFSET = 10**9
 
 
-def combine(sim: Dataset, field_recordings: Dataset) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray, np.ndarray]:
-    """Stack simulated and field tables; return features, events and the row indices of each part."""
+def combine(sim: Dataset, field_recordings: Dataset, need_truth: bool = True) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray, np.ndarray]:
+    """Stack simulated and field tables; return features, events and the row indices of each part.
+
+    With ``need_truth`` every field event must have a true position (x_m, y_m); without, unknown
+    positions are NaN (localizing recordings).
+    """
     missing = set(sim.features.columns) ^ set(field_recordings.features.columns)
     if missing:
         raise DataError(f"simulated and field feature tables differ in columns {sorted(missing)[:5]}")
     fev = field_recordings.events.copy()
-    if fev[["x_m", "y_m"]].isna().any().any():
-        raise DataError("field evaluation needs true positions for every field event (x_m, y_m)")
+    for name in ("x_m", "y_m", "z_m"):
+        if name not in fev:
+            fev[name] = np.nan
+    if need_truth and fev[["x_m", "y_m"]].isna().any().any():
+        raise DataError("field evaluation needs true positions for every field event (x_m, y_m); to localize recordings "
+                        "without them use protocol=localize (python -m acoustlab localize +site=NAME field=recordings)")
+    if "position_id" not in fev or fev["position_id"].isna().any():
+        fev["position_id"] = np.arange(len(fev))  # unknown positions: every detection its own group
     fev["position_id"] = fev["position_id"].astype(np.int64) + FIELD_POSITION_OFFSET
     fev["is_field"] = True
     sev = sim.events.copy()

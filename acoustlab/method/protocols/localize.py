@@ -1,0 +1,72 @@
+"""Localize recordings without ground truth: train on the site's simulation, place every detection.
+
+The field researcher's question, "where were my birds, and how sure are you?": the method is fitted
+on simulated events of the site exactly as in the evaluation protocols (point model, gate, error
+model and conformal calibrated over simulated positions), then applied to every detection of the
+field recordings. Nothing here needs a true position; the run writes ``positions.csv`` (and
+``predictions.parquet``) instead of error metrics.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from acoustlab.core import columns as col
+from acoustlab.core.errors import ConfigError
+from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
+from acoustlab.method.protocols.field import combine
+from acoustlab.method.splits import cap_rows
+from acoustlab.stages.dataset import Dataset
+
+log = logging.getLogger(__name__)
+
+#: Solver-stage columns copied into the positions table as quality flags.
+QUALITY_COLUMNS = (col.SOLVER_FAILURE, col.SOLVER_SOURCE_HEIGHT, "solver__height_gdop", "solver__height_ambiguous", "solver__residual_m",
+                   "solver__consistency", "solver__n_mics_used", col.SOLVER_GDOP)
+
+
+class LocalizeProtocol:
+    """Fit on the site's simulation (capped at ``max_train_rows``); predict every field detection.
+
+    Parameters
+    ----------
+    max_train_rows : int
+        Training cap (whole simulated positions kept together).
+    seed : int
+        Seed of the training subsample.
+    """
+
+    needs_simulation = True
+    needs_field = True
+    #: no ground truth: the app writes positions, not error metrics
+    evaluates = False
+
+    def __init__(self, max_train_rows: int = 1000, seed: int = 0) -> None:
+        if max_train_rows < 2:
+            raise ConfigError(f"protocol.max_train_rows must be >= 2; got {max_train_rows}")
+        self.max_train_rows = int(max_train_rows)
+        self.seed = int(seed)
+
+    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
+        """Positions of every field detection (error columns are NaN: there is no truth)."""
+        if field_recordings is None:
+            raise ConfigError("protocol=localize needs recordings: choose field=recordings (see the README, 'Localize your recordings')")
+        features, events, sim_rows, field_rows = combine(dataset, field_recordings, need_truth=False)
+        groups = events["position_id"].to_numpy()
+        train = cap_rows(sim_rows, groups, self.max_train_rows, np.random.default_rng([self.seed, 1]))
+        log.info("localize: training on %d simulated events, placing %d detections", train.size, field_rows.size)
+        result = pipeline.fit_predict(features, events, np.sort(train), field_rows)
+        predictions = result.predictions
+        for method in col.methods_in(predictions.columns):  # no truth, no errors
+            predictions[col.error_m(method)] = np.nan
+        for name in col.estimate_xy("oracle"):
+            predictions[name] = np.nan
+        for name in QUALITY_COLUMNS:  # why a fix may be weak, from the solver stage
+            if name in features:
+                predictions[name] = features[name].to_numpy()[field_rows]
+        keep = [c for c in field_recordings.events.columns if c not in predictions.columns and c not in ("x_m", "y_m", "z_m")]
+        for name in keep:  # the detection's own fields (file, start time, …)
+            predictions[name] = field_recordings.events[name].to_numpy()
+        return MethodResult(predictions, result.split_diagnostics)
