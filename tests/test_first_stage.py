@@ -241,3 +241,17 @@ def test_pruned_search_equals_the_exhaustive_definition(seed, n_mics):
     weights = rng.choice([0.3, 0.5, 0.5, 0.6], size=cands.shape)
     chosen = ConsistentSetSolver(tolerance_s=tol).select(cands, weights)
     np.testing.assert_allclose(chosen["score_margin"], brute_force_selection(cands, weights, tol), rtol=1e-9, atol=1e-12, equal_nan=True)
+
+
+def test_srp_disagreement_is_reported_beside_the_fix():
+    """With an SRP-PHAT estimate among the features the solver stage reports how far apart the two fixes are."""
+    site = site_of(TRIANGLE)
+    src = np.array([[25.0, 15.0], [20.0, 20.0]])
+    tdoa = exact_tdoa(TRIANGLE, np.column_stack([src, np.full(2, TRIANGLE[0, 2])]))
+    features = pd.DataFrame({col.tdoa_lag(0, 1): tdoa[:, 1], col.tdoa_lag(0, 2): tdoa[:, 2],
+                             "srp__x_m": [25.0, 23.0], "srp__y_m": [15.0, 24.0]})
+    events = pd.DataFrame({"speed_of_sound_m_s": [C, C]})
+    out = add_solver_columns(features, events, site, HyperbolicSolver(source_height_m=float(TRIANGLE[0, 2])), 1.0)
+    np.testing.assert_allclose(out["solver__srp_disagreement_m"], [0.0, 5.0], atol=1e-6)
+    without = add_solver_columns(features.drop(columns=["srp__x_m", "srp__y_m"]), events, site, HyperbolicSolver(), 1.0)
+    assert without["solver__srp_disagreement_m"].isna().all()

@@ -133,12 +133,12 @@ def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     assert report.main([str(tmp_path / "runs"), "--out", str(tmp_path / "rep")]) == 0
     runs = report.collect_runs([tmp_path / "runs"])
     errors = report.error_rows(runs)
-    assert len(errors) == 6
+    assert len(errors) == 8 and set(errors["method"]) == {"solver", "model", "gate", "oracle"}
     gate = errors[errors["method"] == "gate"]["p95"].tolist()
     assert gate == pytest.approx([m1["errors"]["gate"]["p95"], m2["errors"]["gate"]["p95"]])
     coverage = report.coverage_rows(runs)
-    assert set(coverage["scorer"]) == {"fixed", "gdop_scaled", "mondrian_gdop"}
-    row = coverage[coverage["scorer"] == "gdop_scaled"].iloc[0]
+    assert set(coverage["scorer"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop"}
+    row = coverage[coverage["scorer"] == "gdop_scaled"].iloc[-1]  # run b (runs in directory order: a, then b)
     assert row["coverage@0.8"] == pytest.approx(m2["coverage"]["gdop_scaled"]["0.8"])
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "Localization error per detection" in md and "Coverage and interval width" in md and "ρ GDOP" in md
