@@ -38,6 +38,7 @@ SOLVER_CATALOG = (
     (SOLVER_SOURCE_HEIGHT, "m", "source height: assumed by a 2-D solver, estimated by a 3-D one (solver.dimensions=3)"),
     ("solver__height_gdop", "1", "factor from range-difference error (m) to height error (m) of a 3-D fix; large near the mics' plane"),
     ("solver__height_ambiguous", "1", "1 where a 3-D fix's mirror image about the mics' plane is above ground and fits as well"),
+    ("solver__dimensions_used", "1", "3 where the 3-D fix was kept, 2 where it failed or was implausible and the 2-D fix replaced it"),
     ("solver__residual_s", "s", "RMS residual expressed as time"),
     ("solver__conditioning", "1", "condition number of the TDOA Jacobian at the estimate"),
     (SOLVER_FAILURE, "1", "why there is no fix: 0 a fix, 1 no solution, 2 a fix outside the plausible region (then x, y are NaN)"),

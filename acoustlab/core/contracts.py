@@ -94,6 +94,9 @@ class SolverInputs:
     source_height_m : float, optional
         The source height to assume, m (the middle of the site's source-height range); a solver's
         own ``source_height_m`` setting takes precedence; None: the mean mic height.
+    prior_position_m : numpy.ndarray, optional
+        (B, 2) an independent estimate per event (SRP-PHAT's peak, with ``features=physics_srp``)
+        a solver may use to break ties between candidate sets; None when absent.
     """
 
     mic_positions_m: np.ndarray
@@ -103,6 +106,7 @@ class SolverInputs:
     pair_lag_candidates_s: np.ndarray | None = None
     source_height_m: float | None = None
     pair_lag_weights: np.ndarray | None = None
+    prior_position_m: np.ndarray | None = None
 
 
 @runtime_checkable

@@ -57,7 +57,8 @@ def solver_inputs_for(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
     """Everything a solver may read for these events: TDOAs, speed of sound, levels, candidates, height.
 
     The speed of sound is the events' ``speed_of_sound_m_s`` where known, else computed from their
-    temperature and humidity; the source height is the middle of the site's source-height range.
+    temperature and humidity; the source height is the middle of the site's source-height range;
+    the SRP-PHAT estimate (when the ``srp`` group exists) is the prior position.
     """
     if "speed_of_sound_m_s" in events:
         speed = events["speed_of_sound_m_s"].to_numpy(dtype=float)
@@ -72,6 +73,7 @@ def solver_inputs_for(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
         pair_lag_candidates_s=candidates,
         source_height_m=float(np.mean(site.source_height_range_m)),
         pair_lag_weights=None if candidates is None else pair_candidate_weights(features, site, candidates.shape[-1]),
+        prior_position_m=features[["srp__x_m", "srp__y_m"]].to_numpy(float) if {"srp__x_m", "srp__y_m"} <= set(features.columns) else None,
     )
 
 

@@ -113,16 +113,25 @@ class ConsistentSetSolver:
         Events evaluated together (bounds memory: chunk × hypotheses × pairs × candidates).
     n_iterations : int
         Levenberg–Marquardt iterations of the position polish.
-    dimensions : int
+    dimensions : {2, 3, "auto"}
         2: x, y at the assumed height; 3: x, y and height where ≥ 4 mics are trusted (events
-        with 3 trusted mics fall back to the assumed height; their ``height_gdop`` is NaN).
+        with 3 trusted mics, or whose 3-D fix fails, fall back to the assumed height; their
+        ``height_gdop`` is NaN); "auto": 3 for arrays of ≥ 4 mics, else 2.
+    prior_weight : float
+        Score-based agreement: with a prior position (SRP-PHAT's peak, ``features=physics_srp``)
+        every pair whose hypothesised lag lies within ``prior_tolerance_s`` of the lag the prior
+        implies adds this much to the hypothesis' score (GCC-height units, so 0.05 breaks near-ties
+        only); 0 ignores the prior.
+    prior_tolerance_s : float
+        Tolerance of that agreement, s (the SRP grid's resolution in lag).
     """
 
     cache_version = "1"
     required_feature_groups = ("tdoa",)
 
     def __init__(self, source_height_m: float | None = None, tolerance_s: float = 2.5e-4, max_hypotheses: int = 2000,
-                 chunk_events: int = 16, n_iterations: int = 30, dimensions: int = 2) -> None:
+                 chunk_events: int = 16, n_iterations: int = 30, dimensions: int | str = "auto", prior_weight: float = 0.0,
+                 prior_tolerance_s: float = 2e-3) -> None:
         if tolerance_s <= 0:
             raise ConfigError(f"solver.tolerance_s must be > 0; got {tolerance_s}")
         if max_hypotheses < 1 or chunk_events < 1:
@@ -132,19 +141,26 @@ class ConsistentSetSolver:
         self.max_hypotheses = int(max_hypotheses)
         self.chunk_events = int(chunk_events)
         self.n_iterations = int(n_iterations)
-        if dimensions not in (2, 3):
-            raise ConfigError(f"solver.dimensions must be 2 or 3; got {dimensions}")
-        self.dimensions = int(dimensions)
+        if dimensions not in (2, 3, "auto"):
+            raise ConfigError(f"solver.dimensions must be 2, 3 or auto; got {dimensions!r}")
+        self.dimensions = dimensions if dimensions == "auto" else int(dimensions)
+        if prior_weight < 0 or prior_tolerance_s <= 0:
+            raise ConfigError(f"solver.prior_weight must be >= 0 and solver.prior_tolerance_s > 0; got {prior_weight}, {prior_tolerance_s}")
+        self.prior_weight = float(prior_weight)
+        self.prior_tolerance_s = float(prior_tolerance_s)
 
     # --- candidate selection ------------------------------------------------------------
 
-    def select(self, candidates_s: np.ndarray, weights: np.ndarray) -> dict[str, np.ndarray]:
+    def select(self, candidates_s: np.ndarray, weights: np.ndarray, prior_lags_s: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Choose the consistent set for events with (B, P, K) candidate lags and GCC heights.
 
         The score of a hypothesis is a sum over pairs of a term that depends only on the candidate
         ranks of the pair's two mics (for the hypothesis' reference). Each pair's (K × K) table of
         those terms is built once per reference, so scoring all hypotheses is one gather and one
         sum instead of comparing every hypothesis with every candidate.
+
+        ``prior_lags_s`` (B, P): the pair lags an independent estimate implies; hypotheses agreeing
+        with them gain ``prior_weight`` per pair.
 
         Returns a dict with ``times_s`` (B, M) fitted arrival times (NaN for untrusted mics),
         ``trusted`` (B, M) bool, and the per-event diagnostics of the module docstring.
@@ -170,6 +186,9 @@ class ConsistentSetSolver:
         for r in range(k_all):
             close = np.abs(predicted - cands[:, None, :, None, None, r]) < self.tolerance_s
             np.maximum(table, close * w[:, None, :, None, None, r], out=table)
+        if prior_lags_s is not None and self.prior_weight > 0:
+            agrees = np.abs(predicted - prior_lags_s[:, None, :, None, None]) < self.prior_tolerance_s  # NaN priors never agree
+            table = table + self.prior_weight * agrees
         raw = table.reshape(bsz, -1) @ design.table_sum  # (B, H): the sum over pairs, as a sparse product
         flat_arrival = arrival.reshape(bsz, -1)
         missing = (~np.isfinite(flat_arrival)).astype(float) @ design.time_sum  # (B, H) missing arrival times
@@ -266,7 +285,8 @@ class ConsistentSetSolver:
     def solve(self, inputs: SolverInputs) -> SolverResult:
         """See :class:`acoustlab.core.contracts.Solver`; uses ``pair_lag_candidates_s`` (and weights) when present."""
         mics, tdoa, c, height = solver_inputs(inputs, self.source_height_m)
-        base = HyperbolicSolver(source_height_m=height, n_iterations=self.n_iterations, dimensions=self.dimensions)
+        dimensions = (3 if len(mics) >= 4 else 2) if self.dimensions == "auto" else self.dimensions
+        base = HyperbolicSolver(source_height_m=height, n_iterations=self.n_iterations, dimensions=dimensions)
         if inputs.pair_lag_candidates_s is None:
             result = base.solve(inputs)
             for name in EXTRA_DIAGNOSTICS:
@@ -274,10 +294,21 @@ class ConsistentSetSolver:
             return result
         cands = np.asarray(inputs.pair_lag_candidates_s, dtype=float)
         weights = np.ones_like(cands) if inputs.pair_lag_weights is None else np.asarray(inputs.pair_lag_weights, dtype=float)
-        parts = [self.select(cands[s : s + self.chunk_events], weights[s : s + self.chunk_events])
+        prior = self._prior_lags(inputs, mics, c, height)
+        parts = [self.select(cands[s : s + self.chunk_events], weights[s : s + self.chunk_events],
+                             None if prior is None else prior[s : s + self.chunk_events])
                  for s in range(0, cands.shape[0], self.chunk_events)]
         chosen = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
         return self._solve_subsets(base, mics, chosen, c, inputs.received_level_db)
+
+    def _prior_lags(self, inputs: SolverInputs, mics: np.ndarray, c: np.ndarray, height: float) -> np.ndarray | None:
+        """(B, P) pair lags t_j − t_i implied by ``inputs.prior_position_m`` at the assumed height (None without a prior)."""
+        if inputs.prior_position_m is None or self.prior_weight == 0:
+            return None
+        prior = np.asarray(inputs.prior_position_m, dtype=float)
+        src = np.column_stack([prior, np.full(len(prior), height)])
+        t = np.sqrt(((src[:, None, :] - mics[None]) ** 2).sum(-1)) / c[:, None]
+        return np.stack([t[:, j] - t[:, i] for i, j in _pairs(len(mics))], axis=1)
 
     def _solve_subsets(self, base: HyperbolicSolver, mics: np.ndarray, chosen: dict[str, np.ndarray], c: np.ndarray,
                        levels: np.ndarray | None) -> SolverResult:
@@ -303,6 +334,8 @@ class ConsistentSetSolver:
             converged[rows] = result.converged
             for name, values in result.diagnostics.items():
                 diagnostics.setdefault(name, np.full(bsz, np.nan))[rows] = values
+        if "dimensions_used" in diagnostics:  # groups solved in 2-D (3 trusted mics) have no 3-D diagnostics
+            diagnostics["dimensions_used"] = np.where(np.isnan(diagnostics["dimensions_used"]), 2.0, diagnostics["dimensions_used"])
         for name in EXTRA_DIAGNOSTICS:
             diagnostics[name] = chosen[name]
         return SolverResult(position_m=position, residual_m=residual, converged=converged, diagnostics=diagnostics)

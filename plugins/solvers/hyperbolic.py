@@ -43,7 +43,8 @@ class HyperbolicSolver:
     dimensions : int
         2: solve x, y at the assumed source height. 3: solve x, y and the height as well
         (≥ 4 mics; :mod:`acoustlab.toolkit.solve3d`); ``source_height_m`` then reports the
-        estimate, with ``height_gdop`` and ``height_ambiguous`` beside it.
+        estimate, with ``height_gdop`` and ``height_ambiguous`` beside it. Where the 3-D fix fails
+        or is implausible the 2-D fix replaces it (``dimensions_used``).
     """
 
     cache_version = "1"
@@ -101,7 +102,7 @@ class HyperbolicSolver:
         finite = np.isfinite(tdoa).all(axis=1) & np.isfinite(c)
         rd = np.where(finite[:, None], c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]), 0.0)
         if self.dimensions == 3:
-            return self._solve_3d(mics, rd, c, finite)
+            return self._with_2d_fallback(self._solve_3d(mics, rd, c, finite), inputs, mics)
         cand, valid = self.roots(mics, rd, height)
         n_roots = valid.sum(axis=1)
 
@@ -162,6 +163,26 @@ class HyperbolicSolver:
                 "source_height_m": np.full(bsz, height),
             },
         )
+
+    def _with_2d_fallback(self, fix3: SolverResult, inputs: SolverInputs, mics: np.ndarray) -> SolverResult:
+        """Where the 3-D fix failed, or lies below ground or outside the mics' box grown by the array extent, the 2-D fix
+        at the assumed height replaces it (``solver__dimensions_used`` says which; the height is then the assumed one)."""
+        low, high = bounding_box(mics, 1.0)
+        xy, z = fix3.position_m, fix3.diagnostics["source_height_m"]
+        usable = np.isfinite(xy).all(axis=1) & ((xy >= low) & (xy <= high)).all(axis=1) & (z >= 0)
+        out = SolverResult(fix3.position_m.copy(), fix3.residual_m.copy(), fix3.converged.copy(),
+                           {**{k: np.array(v, dtype=float) for k, v in fix3.diagnostics.items()}, "dimensions_used": np.where(usable, 3.0, 2.0)})
+        if usable.all():
+            return out
+        fix2 = HyperbolicSolver(self.source_height_m, self.box_margin_fraction, self.residual_tie_m, self.n_iterations, dimensions=2).solve(inputs)
+        bad = ~usable
+        out.position_m[bad], out.residual_m[bad], out.converged[bad] = fix2.position_m[bad], fix2.residual_m[bad], fix2.converged[bad]
+        for name in out.diagnostics:
+            if name in fix2.diagnostics:
+                out.diagnostics[name][bad] = fix2.diagnostics[name][bad]
+            elif name in ("height_gdop", "height_ambiguous"):
+                out.diagnostics[name][bad] = np.nan
+        return out
 
     def _solve_3d(self, mics: np.ndarray, rd: np.ndarray, c: np.ndarray, finite: np.ndarray) -> SolverResult:
         """x, y and height from ≥ 4 mics (see :func:`acoustlab.toolkit.solve3d.solve_3d`)."""
