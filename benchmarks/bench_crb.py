@@ -37,9 +37,10 @@ from acoustlab.stages.solver_columns import bound_fixes
 log = logging.getLogger("bench_crb")
 #: (data overrides, solver overrides) per condition
 CONDITIONS = {
-    "free field, white noise": (("simulator=free_field", "site.noise.regimes=[{kind: white}]"), ()),
+    "free field, white noise, 2-D solver": (("simulator=free_field", "site.noise.regimes=[{kind: white}]"), ("solver.dimensions=2",)),
     "free field, white noise, 3-D solver": (("simulator=free_field", "site.noise.regimes=[{kind: white}]"), ("solver.dimensions=3",)),
-    "outdoor (default)": ((), ()),
+    "outdoor, 2-D solver": ((), ("solver.dimensions=2",)),
+    "outdoor, 3-D solver (default with ≥ 4 mics)": ((), ("solver.dimensions=3",)),
 }
 
 
@@ -63,7 +64,8 @@ def main() -> None:
     parser.add_argument("--sites", nargs="+", default=["frozen_lake", "forest"])
     opts = parser.parse_args()
     results = {s: {name: evaluate(s, opts.n_events, data_ov, solver_ov) for name, (data_ov, solver_ov) in CONDITIONS.items()
-                   if site_from_config(compose_cfg([f"+site={s}"]).site).n_mics >= 4 or not solver_ov} for s in opts.sites}
+                   if site_from_config(compose_cfg([f"+site={s}"]).site).n_mics >= 4 or "solver.dimensions=3" not in solver_ov}
+               for s in opts.sites}
     lines = ["# Solver error against the Cramér–Rao bound", "",
              f"`python benchmarks/bench_crb.py --n-events {opts.n_events}`: consistent-set solver on β-PHAT candidates; "
              "ratios over events with error ≤ 5 m (gross errors counted separately).", "",

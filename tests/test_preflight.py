@@ -138,3 +138,15 @@ def test_unreadable_noise_recording_names_the_file(tmp_path, compose_cfg):
     cfg = compose_cfg(["+site=frozen_lake", f"site.noise.regimes=[{{kind: recorded, files: [{tmp_path / 'absent.flac'}]}}]"])
     with pytest.raises(DataError, match="absent.flac does not exist"):
         site_from_config(cfg.site)
+
+
+def test_sweep_jobs_follow_hydra_a_command_line_key_replaces_the_sweep_params():
+    from omegaconf import OmegaConf
+
+    from acoustlab.run.sweep import sweep_jobs
+
+    cfg = OmegaConf.create({"hydra": {"sweeper": {"params": {"gate": "solver_only,model_only,hybrid", "features.drop": "[],[tdoa]"}},
+                                      "overrides": {"task": ["+site=forest", "gate=learned", "model=xgboost,knn"]}}})
+    jobs = sweep_jobs(cfg)
+    assert len(jobs) == 4  # 2 drops × 1 gate (the command line's) × 2 models, not 2 × 3 × 2
+    assert all("gate=learned" in job for job in jobs)

@@ -262,3 +262,15 @@ def test_upload_never_runs_code_named_in_a_received_folder(tmp_path, monkeypatch
     assert not called.exists()
     assert type(tracker).__name__ == "MlflowTracker" and "evil" not in str(tracker.tracking_uri)
     assert tracker.experiment_name == "acoustlab"  # the interpolated name was not resolved
+
+
+def test_mlflow_artifacts_live_beside_the_store_not_in_the_working_directory(compose_cfg, tmp_path, monkeypatch):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    out = tmp_path / "outputs"
+    run_experiment(compose_cfg([*SMALL, f"paths.outputs_dir={out}", "plots=false"]), tmp_path / "run")
+    assert not (elsewhere / "mlruns").exists()
+    assert any((out / "mlartifacts").rglob("metrics.json"))
+    (run,) = runs_in(out / "mlflow.db")
+    assert run.info.artifact_uri.startswith((out / "mlartifacts").resolve().as_uri())

@@ -41,14 +41,15 @@ def sweep_jobs(config: DictConfig) -> list[list[str]]:
 
     params = config.hydra.sweeper.get("params") or {}
     texts = [f"{k}={v}" for k, v in params.items()] + [str(o) for o in config.hydra.overrides.task]
-    choices = []
+    choices: dict[str, list[str]] = {}
     for override in OverridesParser.create().parse_overrides(texts):
         key = override.get_key_element()
+        # a key set on the command line replaces the same key of hydra.sweeper.params (as Hydra's sweeper does)
         if override.is_sweep_override():
-            choices.append([f"{key}={value}" for value in override.sweep_string_iterator()])
+            choices[key] = [f"{key}={value}" for value in override.sweep_string_iterator()]
         else:
-            choices.append([f"{key}={override.get_value_element_as_str()}"])
-    return [list(job) for job in itertools.product(*choices)]
+            choices[key] = [f"{key}={override.get_value_element_as_str()}"]
+    return [list(job) for job in itertools.product(*choices.values())]
 
 
 def preflight_jobs(jobs: list[list[str]]) -> list[str]:

@@ -65,9 +65,13 @@ class MlflowTracker:
     def _connect(self) -> None:
         import mlflow
 
-        if self.tracking_uri.startswith("sqlite:///"):
-            Path(self.tracking_uri[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
         mlflow.set_tracking_uri(self.tracking_uri)
+        if self.tracking_uri.startswith("sqlite:///"):
+            store = Path(self.tracking_uri[len("sqlite:///") :])
+            store.parent.mkdir(parents=True, exist_ok=True)
+            # artifacts beside the store (outputs/mlartifacts), not in ./mlruns of whatever directory the run started in
+            if mlflow.get_experiment_by_name(self.experiment_name) is None:
+                mlflow.create_experiment(self.experiment_name, artifact_location=(store.parent / "mlartifacts").resolve().as_uri())
         mlflow.set_experiment(self.experiment_name)
 
     def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None) -> None:
