@@ -131,3 +131,15 @@ def test_learned_gate_never_trains_on_a_held_out_position(monkeypatch):
     held = [set(np.unique(groups)) - s for s in fold_positions]
     assert all(h and not (h & s) for h, s in zip(held, fold_positions, strict=True))
     assert set().union(*held) >= set(np.unique(groups[np.isfinite(solver).all(1) & (np.abs(solver) < 1e4).all(1)]))
+
+
+def test_learned_gate_survives_a_cue_missing_in_a_whole_fold():
+    """A diagnostic present for only a few positions (e.g. a 3-D height GDOP) must not break the out-of-fold fits."""
+    from plugins.gates.learned import LearnedGate
+
+    site, solver, model, truth, features, groups, _ = gate_scene(400)
+    rare = np.full(len(features), np.nan)
+    rare[groups == 3] = 1.0  # one position only: every fold but one trains without it
+    features = features.assign(solver__height_gdop=rare)
+    gate = LearnedGate(n_folds=5).fit(solver, model, features, site, truth, groups=groups)
+    assert gate.decide(solver, model, features, site).position_m.shape == solver.shape

@@ -134,8 +134,10 @@ class LearnedGate:
         x, y, g = cues[use], label[use], groups[use]
         oof = np.empty(use.sum())
         for fit_idx, held_idx in GroupKFold(n_splits=self.n_folds).split(x, y, g):
-            clf = self._classifier().fit(x.iloc[fit_idx], y[fit_idx]) if np.unique(y[fit_idx]).size > 1 else None
-            oof[held_idx] = clf.predict_proba(x.iloc[held_idx])[:, 1] if clf is not None else float(y[fit_idx][0])
+            # a cue missing for every event of this fold's training part is left out of this fold's classifier
+            cols = [c for c in x.columns if np.isfinite(x[c].to_numpy(float)[fit_idx]).any()]
+            clf = self._classifier().fit(x.iloc[fit_idx][cols], y[fit_idx]) if np.unique(y[fit_idx]).size > 1 else None
+            oof[held_idx] = clf.predict_proba(x.iloc[held_idx][cols])[:, 1] if clf is not None else float(y[fit_idx][0])
         self.oof_auc_ = float(roc_auc_score(y, oof))
         self.threshold_, self.threshold_grid_ = self._choose_threshold(oof, err_solver[use], err_model[use], err_model[~use])
         self.classifier_ = self._classifier().fit(x, y)
