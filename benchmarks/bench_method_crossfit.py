@@ -44,7 +44,7 @@ def run(overrides: list[str]) -> dict:
 
 
 def fmt(v: float) -> str:
-    if v != v:
+    if np.isnan(v):
         return "—"
     if v == float("inf"):
         return "∞"

@@ -35,7 +35,10 @@ def paper_comparison(reference: dict[str, Any], metrics: dict[str, Any]) -> tupl
         ours = _ours(metrics, path)
         rows.append({"quantity": path, "paper": float(value), "ours": ours,
                      "ratio": ours / float(value) if np.isfinite(ours) and float(value) else float("nan")})
-    fmt = lambda v: "∞" if v == float("inf") else "—" if v != v else f"{v:.3g}"  # noqa: E731
+
+    def fmt(v: float) -> str:
+        return "∞" if v == float("inf") else "—" if np.isnan(v) else f"{v:.3g}"
+
     lines = ["# This run beside the paper", "", f"Paper: {reference.get('source', '')}", "", f"Here: {reference.get('note', '')}", "",
              "| quantity (metrics.json) | paper | this run | this ÷ paper |", "|---|---|---|---|"]
     lines += [f"| `{r['quantity']}` | {fmt(r['paper'])} | {fmt(r['ours'])} | {fmt(r['ratio'])} |" for r in rows]

@@ -53,6 +53,6 @@ def localization_summary(table: pd.DataFrame, levels: list[float], scorers: list
     """For metrics.json of a localization run: counts, share placed, and the median radius per scorer and level (m)."""
     radii = {s: {col.level_key(lv): float(np.nanmedian(table[f"radius_{s}_{col.level_key(lv)}_m"])) if table["placed"].any() else float("nan")
                  for lv in levels} for s in scorers}
-    return {"n_detections": int(len(table)), "n_placed": int(table["placed"].sum()),
+    return {"n_detections": len(table), "n_placed": int(table["placed"].sum()),
             "share_from_model": float((table["source"] == "model").mean()) if len(table) else float("nan"),
             "median_radius_m": radii}
