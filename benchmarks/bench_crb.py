@@ -30,6 +30,7 @@ from bench_first_stage import load
 from common import compose_cfg, machine, write_results
 
 from acoustlab.method.pipeline import crb_from_features, error_2d_m
+from acoustlab.reporting.metrics import GROSS_ERROR_M, share_gross
 from acoustlab.run.registry import build
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import bound_fixes
@@ -50,9 +51,9 @@ def evaluate(site_name: str, n_events: int, overrides: tuple[str, ...], solver_o
     position, _ = bound_fixes(solver.solve(inputs).position_m, site, float(cfg.pipeline.plausible_margin_fraction))
     err = error_2d_m(position, truth)
     crb = crb_from_features(data.features, data.events, site)
-    fine = (err <= 5.0) & np.isfinite(crb) & (crb > 0)
+    fine = (err <= GROSS_ERROR_M) & np.isfinite(crb) & (crb > 0)
     ratio = err[fine] / crb[fine]
-    return {"n_events": int(err.size), "share_gross": float(np.mean(~(err <= 5.0))), "median_error_m": float(np.median(err[fine])),
+    return {"n_events": int(err.size), "share_gross": share_gross(err), "median_error_m": float(np.median(err[fine])),
             "median_crb_m": float(np.median(crb[fine])), "median_error_over_median_crb": float(np.median(err[fine]) / np.median(crb[fine])),
             "median_ratio": float(np.median(ratio)), "share_within_3x": float(np.mean(ratio <= 3.0))}
 

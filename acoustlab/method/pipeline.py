@@ -218,14 +218,14 @@ class LocalizationPipeline:
             log.warning("%d training events have no finite hybrid estimate; left out of calibration", (~finite).sum())
         # the error model's predictions are floored at the 5th percentile of the calibration errors, so
         # a fix it wrongly trusts still gets a meaningful radius (never 10⁻⁹ m times a quantile)
-        floor = float(np.percentile(oof_err[finite], 5)) if finite.any() else 1e-9
+        floor = max(float(np.percentile(oof_err[finite], 5)) if finite.any() else 0.0, 1e-9)
         oof_pred = np.empty(train.size)
         log.info("error model, out-of-fold (%d folds)", len(folds))
         for fit_idx, held_idx in tqdm(folds, desc="error model, out-of-fold", unit="fold", disable=None, leave=False):
             fit_idx = fit_idx[finite[fit_idx]]
             em = clone(self.c.error_model).fit(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx])
             oof_pred[held_idx] = em.predict(features.iloc[train[held_idx]][ecols])
-        oof_pred = np.maximum(oof_pred, max(floor, 1e-9))
+        oof_pred = np.maximum(oof_pred, floor)
         scorers = {
             name: clone(s, safe=False).fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels)
             for name, s in self.c.scorers.items()
@@ -238,7 +238,7 @@ class LocalizationPipeline:
         decision = gate.decide(solver_xy[test], model_xy, features.iloc[test], site)
         gdop_test = self._gdop_at(decision.position_m, features.iloc[test])
         error_model = clone(self.c.error_model).fit(features.iloc[train[finite]][ecols], oof_err[finite])
-        predicted = np.maximum(error_model.predict(features.iloc[test][ecols]), max(floor, 1e-9))
+        predicted = np.maximum(error_model.predict(features.iloc[test][ecols]), floor)
 
         out = pd.DataFrame(
             {

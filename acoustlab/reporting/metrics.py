@@ -20,6 +20,18 @@ N_BOOTSTRAP = 1000
 _FAILURE_STAND_IN_M = 1e300
 
 
+def _quantile_with_failures(values: np.ndarray, q: float) -> float:
+    """The ``q``-th percentile (linear interpolation) with non-finite values as infinitely large; inf where it reaches them."""
+    stand_in = np.where(np.isfinite(values), values, _FAILURE_STAND_IN_M)
+    value = float(np.percentile(stand_in, q))
+    return value if value < _FAILURE_STAND_IN_M / 1e3 else float("inf")
+
+
+def share_gross(errors_m: np.ndarray) -> float:
+    """Share of errors above :data:`GROSS_ERROR_M`; a failure (NaN or inf) counts as gross."""
+    return float(np.mean(~(np.asarray(errors_m, dtype=float) <= GROSS_ERROR_M)))
+
+
 def error_summary(errors_m: np.ndarray) -> dict[str, float]:
     """n, mean and p50/p90/p95/p99 of 2-D errors in m; failures count.
 
@@ -41,12 +53,10 @@ def error_summary(errors_m: np.ndarray) -> dict[str, float]:
     if finite.size == 0:
         raise ValueError("no finite errors to summarise")
     out["mean"] = float(finite.mean())
-    out["share_gt_5m"] = float(np.mean(~(errors_m <= GROSS_ERROR_M)))
+    out["share_gt_5m"] = share_gross(errors_m)
     # linear interpolation as usual; a quantile that reaches into the failures is infinite
-    stand_in = np.where(np.isfinite(errors_m), errors_m, _FAILURE_STAND_IN_M)
     for name, q in ERROR_QUANTILES.items():
-        value = float(np.percentile(stand_in, q))
-        out[name] = value if value < _FAILURE_STAND_IN_M / 1e3 else float("inf")
+        out[name] = _quantile_with_failures(errors_m, q)
     return out
 
 
@@ -109,12 +119,6 @@ def coverage_by_position(predictions: pd.DataFrame, levels: list[float], scorers
     return by_position
 
 
-def _quantile_with_failures(errors_m: np.ndarray, q: float) -> float:
-    stand_in = np.where(np.isfinite(errors_m), errors_m, _FAILURE_STAND_IN_M)
-    value = float(np.percentile(stand_in, q))
-    return value if value < _FAILURE_STAND_IN_M / 1e3 else float("inf")
-
-
 def position_bootstrap_ci(predictions: pd.DataFrame, levels: list[float], scorers: list[str], n_boot: int = N_BOOTSTRAP,
                           seed: int = 0) -> dict[str, Any]:
     """95 % confidence intervals by position bootstrap for every error quantile, gross share and coverage.
@@ -142,18 +146,15 @@ def position_bootstrap_ci(predictions: pd.DataFrame, levels: list[float], scorer
             sub = e[idx]
             for name, q in ERROR_QUANTILES.items():
                 samples.setdefault(("errors", m, name), []).append(_quantile_with_failures(sub, q))
-            samples.setdefault(("errors", m, "share_gt_5m"), []).append(float(np.mean(~(sub <= GROSS_ERROR_M))))
+            samples.setdefault(("errors", m, "share_gt_5m"), []).append(share_gross(sub))
         if gate_err is not None:
             for (s, lv), r in radii.items():
                 samples.setdefault(("coverage", s, col.level_key(lv)), []).append(float(np.mean(gate_err[idx] <= r[idx])))
     out: dict[str, Any] = {"n_bootstrap": int(n_boot), "n_positions": int(codes.size), "errors": {}, "coverage": {}}
     for (block, key, stat), values in samples.items():
-        v = np.asarray(values, dtype=float)
-        finite = np.isfinite(v)
         # an interval end that reaches into the infinite values (failures) is reported as inf
-        low = float(np.percentile(np.where(finite, v, _FAILURE_STAND_IN_M), 2.5))
-        high = float(np.percentile(np.where(finite, v, _FAILURE_STAND_IN_M), 97.5))
-        out[block].setdefault(key, {})[stat] = [x if x < _FAILURE_STAND_IN_M / 1e3 else float("inf") for x in (low, high)]
+        v = np.asarray(values, dtype=float)
+        out[block].setdefault(key, {})[stat] = [_quantile_with_failures(v, 2.5), _quantile_with_failures(v, 97.5)]
     return out
 
 
@@ -197,7 +198,7 @@ def risk_coverage(predictions: pd.DataFrame) -> list[dict[str, float]]:
         kept = err[order[:k]]
         rows.append({"share_placed": k / err.size, "threshold_m": float(pred[order[k - 1]]),
                      **{name: _quantile_with_failures(kept, q) for name, q in (("p50", 50), ("p95", 95), ("p99", 99))},
-                     "share_gt_5m": float(np.mean(~(kept <= GROSS_ERROR_M)))})
+                     "share_gt_5m": share_gross(kept)})
     return rows
 
 
@@ -340,7 +341,7 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
 def summary_text(metrics: dict) -> str:
     """A compact, human-readable end-of-run summary: errors by method, coverage and median radius by scorer and level."""
     def num(v: float) -> str:
-        return "inf" if v == float("inf") else "-" if v != v else f"{v:.2f}" if abs(v) < 10 else f"{v:.0f}"
+        return "inf" if v == float("inf") else "-" if np.isnan(v) else f"{v:.2f}" if abs(v) < 10 else f"{v:.0f}"
 
     lines = [f"{'method':<14}{'p50 m':>8}{'p95 m':>8}{'p99 m':>8}{'> 5 m':>8}{'failed':>8}"]
     for method, e in metrics["errors"].items():

@@ -27,11 +27,10 @@ import pandas as pd
 import yaml
 
 from acoustlab.core import columns as col
+from acoustlab.reporting.metrics import GROSS_ERROR_M, share_gross
 
 log = logging.getLogger(__name__)
 
-#: An error above this many metres counts as gross in the report's tables.
-GROSS_ERROR_M = 5.0
 
 
 @dataclass
@@ -122,7 +121,7 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
                     row[f"{q} 95 % CI"] = f"{ci[q][0]:.3g}–{ci[q][1]:.3g}"
             if predictions is not None:
                 e = predictions[col.error_m(method)].to_numpy(float)
-                row[f"> {GROSS_ERROR_M:g} m"] = float(np.mean(~(e <= GROSS_ERROR_M)))
+                row[f"> {GROSS_ERROR_M:g} m"] = share_gross(e)
             rows.append(row)
     return pd.DataFrame(rows)
 
