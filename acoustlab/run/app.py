@@ -17,8 +17,12 @@ from omegaconf import DictConfig, OmegaConf
 from acoustlab import __version__
 from acoustlab.core.errors import ConfigError
 from acoustlab.method.pipeline import Components, LocalizationPipeline
-from acoustlab.reporting.experiment_log import log_run_dir
-from acoustlab.reporting.metrics import split_diagnostics_summary, summarise, summary_text
+from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
+from acoustlab.reporting.metrics import (
+    split_diagnostics_summary,
+    summarise,
+    summary_text,
+)
 from acoustlab.reporting.paper import paper_comparison
 from acoustlab.reporting.positions import localization_summary, positions_table
 from acoustlab.run.registry import (
@@ -30,7 +34,7 @@ from acoustlab.run.registry import (
     to_plain,
 )
 from acoustlab.run.schema import ModelTarget
-from acoustlab.stages.cache import StageCache
+from acoustlab.stages.cache import StageCache, atomic_write_bytes
 from acoustlab.stages.dataset import (
     SimulationPlan,
     load_or_build_field,
@@ -38,6 +42,7 @@ from acoustlab.stages.dataset import (
 )
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import add_solver_columns
+from acoustlab.toolkit.quality import QUALITY_REASONS
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +55,15 @@ def code_version() -> str:
     except (OSError, subprocess.SubprocessError):
         sha = ""
     return f"{__version__}+{sha}" if sha else __version__
+
+
+def quality_flag_counts(predictions: pd.DataFrame) -> dict[str, int]:
+    """How many detections were flagged, in all and per reason (``dead``, ``truncated``, …), for metrics.json."""
+    flags = predictions["quality_flags"].fillna("").astype(str)
+    counts = {"flagged": int((flags != "").sum())}
+    for reason in QUALITY_REASONS:
+        counts[reason] = int(flags.str.contains(rf"\b{reason}\b").sum())
+    return counts
 
 
 def require_site(cfg: DictConfig) -> None:
@@ -71,6 +85,7 @@ class BuiltRun:
     tracker: Any
     cache: StageCache
     plan: SimulationPlan
+    field_source: Any = None
 
 
 def check_feature_requirements(feature_sets: dict[str, Any], **plugins: Any) -> None:
@@ -150,13 +165,21 @@ def build_run(cfg: DictConfig) -> BuiltRun:
         if hasattr(learned, "preflight"):  # e.g. TabPFN: weights must exist before anything is simulated
             learned.preflight()
     protocol = build(cfg.protocol, "protocol")
+    field_source = None
+    if getattr(protocol, "needs_field", False):  # recordings are checked now, not after the training simulation
+        field_source = build(cfg.field, "field")
+        if field_source is None:
+            protocol_name = OmegaConf.select(cfg, "hydra.runtime.choices.protocol", default=None) or type(protocol).__name__
+            raise ConfigError(f"protocol={protocol_name} needs field recordings: choose field=playback_standin or field=recordings")
+        if hasattr(field_source, "validate"):
+            field_source.validate(site)
     tracker = build(cfg.tracking, "tracking")
 
-    cache = StageCache(cfg.cache.dir, enabled=cfg.cache.enabled)
+    cache = StageCache(cfg.cache.dir, enabled=cfg.cache.enabled, file_mode=cfg.cache.file_mode)
     if cfg.data.shard_count > 1 and not cache.enabled:
         raise ConfigError("data.shard_count > 1 fills the cache shard by shard; it needs cache.enabled=true")
     plan = SimulationPlan(seed=cfg.seed, **OmegaConf.to_container(cfg.data, resolve=True))
-    return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan)
+    return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source)
 
 
 def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None) -> dict:
@@ -197,10 +220,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     bound = cfg.pipeline.plausible_margin_fraction
     dataset.features = add_solver_columns(dataset.features, dataset.events, site, components.solver, bound)
     field_data = None
-    if getattr(protocol, "needs_field", False):
-        field_source = build(cfg.field, "field")
-        if field_source is None:
-            raise ConfigError(f"protocol={choices.get('protocol', 'field')} needs field recordings: choose field=playback_standin or field=recordings")
+    if built.field_source is not None:
+        field_source = built.field_source
         field_data = load_or_build_field(site, field_source, to_plain(cfg.field), feature_sets, to_plain(cfg.features.groups), cache)
         field_data.features = add_solver_columns(field_data.features, field_data.events, site, components.solver, bound)
     timings["data_s"] = time.perf_counter() - stage_start
@@ -217,33 +238,38 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     if not summary_rows.all():
         metrics["all_detections"] = summarise(predictions, components.levels, list(components.scorers))
         metrics["excluded_from_summary"] = int((~summary_rows).sum())
+    if "quality_flags" in predictions:
+        metrics["quality_flags"] = quality_flag_counts(predictions)
     if field_data is not None:
         metrics["field_dataset_hash"] = field_data.dataset_hash
     metrics.update(split_diagnostics_summary(result.split_diagnostics))
     metrics["dataset_hash"] = dataset.dataset_hash
+    metrics["features_sha256"] = dataset.features_sha256
     metrics["site"] = site.name
     metrics["choices"] = choices
     metrics["n_features"] = int(len(dataset.features.columns))
     metrics["code_version"] = code_version()
 
-    # Results land in the run dir first, so a tracker failure loses nothing.
-    predictions.to_parquet(run_dir / "predictions.parquet", index=False)
-    (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
-    stage_start = time.perf_counter()
-    if bool(cfg.get("plots", True)):
-        from acoustlab.reporting.plots import (
-            write_run_plots,  # matplotlib only when plotting
-        )
-
-        write_run_plots(predictions[summary_rows], metrics, site, run_dir / "plots")
-    timings["plots_s"] = time.perf_counter() - stage_start
-    timings["total_before_tracking_s"] = time.perf_counter() - started
-    metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    # Results land in the run dir first (metrics before any optional artefact), so neither a tracker
+    # nor a plotting failure loses them; the pending marker stays until the tracker has them.
+    write_results(run_dir, cfg, predictions, metrics)
     if cfg.get("paper_reference"):
         rows, lines = paper_comparison(OmegaConf.to_container(cfg.paper_reference, resolve=True), metrics)
         metrics["paper_comparison"] = rows
-        (run_dir / "paper_comparison.md").write_text("\n".join(lines) + "\n")
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        atomic_write_bytes(run_dir / "paper_comparison.md", ("\n".join(lines) + "\n").encode())
+    stage_start = time.perf_counter()
+    if bool(cfg.get("plots", True)):
+        def plot() -> None:
+            from acoustlab.reporting.plots import (
+                write_run_plots,  # matplotlib only when plotting
+            )
+
+            write_run_plots(predictions[summary_rows], metrics, site, run_dir / "plots")
+        optional_artefact("plots", plot)
+    timings["plots_s"] = time.perf_counter() - stage_start
+    timings["total_before_tracking_s"] = time.perf_counter() - started
+    metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    optional_artefact("timings in metrics.json", lambda: atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode()))
     log.info("%s test detections; errors (m) and conformal coverage:\n%s", metrics["errors"]["gate"]["n"], summary_text(metrics))
     log.info("timings (s): %s", ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in metrics["timings_s"].items()))
     log.info("run directory: %s", run_dir)
@@ -251,28 +277,53 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     return metrics
 
 
+def write_results(run_dir: Path, cfg: DictConfig, predictions: pd.DataFrame, metrics: dict) -> None:
+    """The results a run must never lose, each written atomically: predictions, resolved config, metrics, and the pending marker.
+
+    Raises
+    ------
+    StorageError
+        Naming the file and the free space, when the run directory cannot be written.
+    """
+    atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
+    atomic_write_bytes(run_dir / "config_resolved.yaml", OmegaConf.to_yaml(cfg, resolve=True).encode())
+    atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode())
+    atomic_write_bytes(run_dir / PENDING_FILE, json.dumps({"destination": None, "error": "not yet sent to the tracker"}).encode())
+
+
+def optional_artefact(what: str, write: Any) -> None:
+    """Write an artefact the results do not depend on (plots, …); a failure is a warning, never a lost run."""
+    try:
+        write()
+    except Exception as exc:
+        log.warning("%s not written (%s: %s); the metrics and predictions are saved", what, type(exc).__name__, exc)
+
+
 def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFrame, result: Any, components: Components, site: Any,
                         dataset: Any, field_data: Any, choices: dict[str, str], timings: dict[str, float], started: float,
                         tracker: Any, parent_run_id: str | None) -> dict:
     """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
     table = positions_table(predictions, components.levels, list(components.scorers))
-    table.to_csv(run_dir / "positions.csv", index=False)
-    table.to_parquet(run_dir / "positions.parquet", index=False)
-    predictions.to_parquet(run_dir / "predictions.parquet", index=False)
-    (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
+    atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
     metrics: dict[str, Any] = {"localization": localization_summary(table, components.levels, list(components.scorers))}
+    if "quality_flags" in predictions:
+        metrics["quality_flags"] = quality_flag_counts(predictions)
     metrics.update(split_diagnostics_summary(result.split_diagnostics))
     metrics.update({"dataset_hash": dataset.dataset_hash, "field_dataset_hash": field_data.dataset_hash, "site": site.name,
                     "choices": choices, "n_features": int(len(dataset.features.columns)), "code_version": code_version()})
+    write_results(run_dir, cfg, predictions, metrics)
     stage_start = time.perf_counter()
     if bool(cfg.get("plots", True)):
-        from acoustlab.reporting.plots import write_positions_map
+        def plot() -> None:
+            from acoustlab.reporting.plots import write_positions_map
 
-        write_positions_map(table, site, components.levels, list(components.scorers), run_dir / "plots")
+            write_positions_map(table, site, components.levels, list(components.scorers), run_dir / "plots")
+        optional_artefact("the positions map", plot)
     timings["plots_s"] = time.perf_counter() - stage_start
     timings["total_before_tracking_s"] = time.perf_counter() - started
     metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    optional_artefact("timings in metrics.json", lambda: atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode()))
     shown = table[["x_m", "y_m", *(["z_m"] if "z_m" in table else []), "source", "placed"]].head(20)
     log.info("positions (first %d of %d detections; all in %s):\n%s", len(shown), len(table), run_dir / "positions.csv",
              shown.to_string(float_format=lambda v: f"{v:.2f}"))

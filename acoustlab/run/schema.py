@@ -71,6 +71,7 @@ class CacheConfig:
 
     enabled: bool = MISSING
     dir: str = MISSING
+    file_mode: str = "0644"
 
 
 @dataclass

@@ -8,15 +8,23 @@ never sees half an entry; chunk files inside ``.partial`` survive an interruptio
 when the stage is run again. Jobs that need the same missing entry at the same time (a parallel
 sweep on a cold cache) take turns through a lock file ``<key>.lock``: one builds, the others wait
 and then read its entry.
+
+Every entry's ``manifest.json`` lists the SHA-256 of each of its files; a lookup verifies them, so a
+truncated, bit-flipped or half-deleted entry is logged, discarded and rebuilt, never read. Files
+are made ``cache.file_mode`` (group-readable ``0644`` by default) when an entry is committed, so a
+cluster group can share one cache. A write that fails (disk full, quota, permissions) raises
+:class:`StorageError` naming the path and the free space.
 """
 
 from __future__ import annotations
 
 import ast
 import contextlib
+import errno
 import fcntl
 import functools
 import hashlib
+import json
 import logging
 import os
 import shutil
@@ -27,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from acoustlab.core.errors import AcoustlabError, ConfigError
 from acoustlab.core.imports import import_closure, module_source_path
 from acoustlab.core.types import stable_hash
 
@@ -74,30 +83,96 @@ def _code_text_of(source: bytes) -> bytes:
     return ast.dump(tree, annotate_fields=False).encode()
 
 
-def atomic_save_npy(path: Path, array: np.ndarray) -> None:
-    """Write an .npy file so that ``path`` either does not exist or is complete."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+#: Manifest of a cache entry (and the list of its files' SHA-256 under ``"files"``).
+MANIFEST = "manifest.json"
+
+
+class StorageError(AcoustlabError):
+    """A file could not be written (disk full, quota, permissions); the message names the path and the free space."""
+
+
+def storage_error(path: Path, exc: BaseException) -> StorageError:
+    """A one-line :class:`StorageError` for a failed write of ``path``: what failed, where, and how much space is free."""
     try:
+        free = f"{shutil.disk_usage(_existing_parent(path)).free / 2**20:,.0f} MiB free"
+    except OSError:
+        free = "free space unknown"
+    full = getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT) or "requested and" in str(exc)  # numpy's short write
+    what = "no space left on the device (or quota exceeded)" if full else f"{type(exc).__name__}: {exc}"
+    return StorageError(f"cannot write {path}: {what}; {free} on {_existing_parent(path)}. Free some space or point "
+                        "cache.dir / paths.outputs_dir at a disk with room")
+
+
+def _existing_parent(path: Path) -> Path:
+    path = Path(path)
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def _atomic_write(path: Path, write: Callable[[Any], None]) -> None:
+    """Run ``write(handle)`` into a temporary file beside ``path`` and rename it into place; a failed write leaves no file."""
+    path = Path(path)
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
         with os.fdopen(fd, "wb") as fh:
-            np.save(fh, array)
+            write(fh)
         os.replace(tmp, path)
+    except OSError as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        raise storage_error(path, exc) from None
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def atomic_save_npy(path: Path, array: np.ndarray) -> None:
+    """Write an .npy file so that ``path`` either does not exist or is complete (:class:`StorageError` when it cannot)."""
+    _atomic_write(path, lambda fh: np.save(fh, array))
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write bytes so that ``path`` either does not exist or is complete."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    """Write bytes so that ``path`` either does not exist or is complete (:class:`StorageError` when it cannot)."""
+    _atomic_write(path, lambda fh: fh.write(data))
+
+
+def file_digest(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's contents, read in 1 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(2**20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def write_manifest(entry: Path, manifest: dict[str, Any]) -> None:
+    """Write ``manifest.json`` with the SHA-256 of every other file of the entry (what a lookup verifies)."""
+    files = sorted(p for p in Path(entry).iterdir() if p.is_file() and p.name != MANIFEST and not p.name.endswith(".tmp"))
+    manifest = {**manifest, "files": {p.name: file_digest(p) for p in files}}
+    atomic_write_bytes(Path(entry) / MANIFEST, json.dumps(manifest, indent=2).encode())
+
+
+def verify_entry(entry: Path) -> str | None:
+    """Why a cache entry cannot be trusted (missing or unreadable manifest, missing, truncated or altered file), or None."""
     try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        manifest = json.loads((entry / MANIFEST).read_text())
+        files = manifest["files"]
+    except FileNotFoundError:
+        return "its manifest is missing"
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return f"its manifest is unreadable ({type(exc).__name__})"
+    for name, expected in files.items():
+        try:
+            actual = file_digest(entry / name)
+        except OSError:
+            return f"{name} is missing"
+        if actual != expected:
+            return f"{name} does not match its checksum"
+    return None
 
 
 class StageCache:
@@ -111,9 +186,15 @@ class StageCache:
         When False every lookup misses and finished entries are not kept (``cache.enabled=false``).
     """
 
-    def __init__(self, root: str | Path, enabled: bool = True) -> None:
+    def __init__(self, root: str | Path, enabled: bool = True, file_mode: int | str = 0o644) -> None:
         self.root = Path(root)
         self.enabled = enabled
+        try:
+            self.file_mode = int(file_mode, 8) if isinstance(file_mode, str) else int(file_mode)
+        except ValueError:
+            raise ConfigError(f"cache.file_mode must be an octal permission such as '0644'; got {file_mode!r}") from None
+        if not 0 <= self.file_mode <= 0o777 or not self.file_mode & 0o600 == 0o600:
+            raise ConfigError(f"cache.file_mode must be a permission in 0600..0777 that the owner can read and write; got {oct(self.file_mode)}")
         self._scratch: list[Path] = []
 
     @staticmethod
@@ -129,8 +210,11 @@ class StageCache:
         """The finished entry's directory, or None on a miss; logs the hit (and the miss unless ``log_miss`` is False)."""
         path = self.final_dir(stage, key)
         if self.enabled and path.is_dir():
-            log.info("cache hit: %s %s", stage, key[:12])
-            return path
+            problem = verify_entry(path)
+            if problem is None:
+                log.info("cache hit: %s %s", stage, key[:12])
+                return path
+            self.discard(stage, key, problem)
         if log_miss:
             log.info("cache %s: %s %s", "miss" if self.enabled else "bypassed", stage, key[:12])
         return None
@@ -172,6 +256,17 @@ class StageCache:
         with self.building(stage, key):
             return self.lookup(stage, key, log_miss=False) or build()
 
+    def discard(self, stage: str, key: str, problem: str) -> None:
+        """Remove a finished entry that cannot be trusted (logged with why); the next lookup misses and rebuilds it."""
+        path = self.final_dir(stage, key)
+        log.warning("cache entry %s %s is corrupt or incomplete (%s): discarded, rebuilding it", stage, key[:12], problem)
+        doomed = path.with_name(f"{key}.corrupt-{os.getpid()}")
+        try:
+            os.replace(path, doomed)  # atomic: no reader sees half a deletion
+        except OSError:
+            doomed = path
+        shutil.rmtree(doomed, ignore_errors=True)
+
     def partial_dir(self, stage: str, key: str) -> Path:
         """A work directory for building an entry; reused after an interruption when caching is on."""
         if not self.enabled:
@@ -187,6 +282,9 @@ class StageCache:
         if not self.enabled:
             return partial
         final = self.final_dir(stage, key)
+        for path in partial.iterdir():
+            path.chmod(self.file_mode)
+        partial.chmod(self.file_mode | (self.file_mode & 0o444) >> 2)  # a readable directory can also be listed
         if final.exists():  # another job finished the same entry first; keep theirs
             shutil.rmtree(partial, ignore_errors=True)
         else:

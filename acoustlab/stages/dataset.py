@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -25,11 +26,14 @@ from acoustlab.core.contracts import FeatureSet, Simulator
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.stages.cache import (
+    MANIFEST,
     StageCache,
     atomic_save_npy,
     atomic_write_bytes,
     code_digest,
+    file_digest,
     plugin_version,
+    write_manifest,
 )
 
 log = logging.getLogger(__name__)
@@ -47,11 +51,14 @@ class Dataset:
         One row per event, columns ``group__name``.
     dataset_hash : str
         SHA-256 of the recordings and the event table (identical data ⇔ identical hash).
+    features_sha256 : str
+        SHA-256 of the feature table's file as read (verified against the cache manifest).
     """
 
     events: pd.DataFrame
     features: pd.DataFrame
     dataset_hash: str
+    features_sha256: str = ""
 
 
 @dataclass(frozen=True)
@@ -187,7 +194,7 @@ def _render_simulation(site: Site, simulator: Simulator, plan: SimulationPlan, c
         return None
     digest = _DataHasher()
     for start, stop in chunks:
-        digest.update(np.load(work / f"{_chunk_name(start, stop)}.npy"), pd.read_parquet(work / f"{_chunk_name(start, stop)}.parquet"))
+        digest.update(*_read_chunk_or_render(site, simulator, plan, start, stop, work))
     manifest = {
         "chunks": [_chunk_name(s, e) for s, e in chunks],
         "sample_rate_hz": simulator.sample_rate_hz,
@@ -195,8 +202,22 @@ def _render_simulation(site: Site, simulator: Simulator, plan: SimulationPlan, c
         "site": site.name,
         "n_events": plan.n_events,
     }
-    atomic_write_bytes(work / "manifest.json", json.dumps(manifest, indent=2).encode())
+    write_manifest(work, manifest)
     return cache.commit("simulation", key, work)
+
+
+def _read_chunk_or_render(site: Site, simulator: Simulator, plan: SimulationPlan, start: int, stop: int,
+                          work: Path) -> tuple[np.ndarray, pd.DataFrame]:
+    """A rendered chunk of the work directory; one that cannot be read (damaged after an interruption) is rendered again."""
+    name = _chunk_name(start, stop)
+    try:
+        return np.load(work / f"{name}.npy"), pd.read_parquet(work / f"{name}.parquet")
+    except Exception as exc:
+        log.warning("simulation chunk %s in %s is unreadable (%s: %s); rendering it again", name, work, type(exc).__name__, exc)
+        for suffix in (".npy", ".parquet"):
+            (work / f"{name}{suffix}").unlink(missing_ok=True)
+        _render_chunk(site, simulator, plan, start, stop, work)
+        return np.load(work / f"{name}.npy"), pd.read_parquet(work / f"{name}.parquet")
 
 
 def _chunk_features(sim_dir: Path, name: str, sample_rate_hz: float, site: Site, feature_sets: dict[str, FeatureSet]):
@@ -224,17 +245,34 @@ def _store_tables(cache: StageCache, stage: str, key: str, features: pd.DataFram
     work = cache.partial_dir(stage, key)
     atomic_write_bytes(work / "features.parquet", features.to_parquet(index=False))
     atomic_write_bytes(work / "events.parquet", events.to_parquet(index=False))
-    atomic_write_bytes(work / "manifest.json", json.dumps({"dataset_hash": dataset_hash}).encode())
+    write_manifest(work, {"dataset_hash": dataset_hash})
     return cache.commit(stage, key, work)
 
 
 def _read_tables(entry: Path) -> Dataset:
-    """The Dataset stored in a feature-stage entry."""
+    """The Dataset stored in a feature-stage entry (its files were verified against the manifest by the lookup)."""
+    manifest = json.loads((entry / MANIFEST).read_text())
     return Dataset(
         events=pd.read_parquet(entry / "events.parquet"),
         features=pd.read_parquet(entry / "features.parquet"),
-        dataset_hash=json.loads((entry / "manifest.json").read_text())["dataset_hash"],
+        dataset_hash=manifest["dataset_hash"],
+        features_sha256=manifest["files"]["features.parquet"],
     )
+
+
+def _get_verified_tables(cache: StageCache, stage: str, key: str, build: Callable[[], Path | None]) -> Dataset | None:
+    """A feature-stage entry read back, rebuilding it once where it is unreadable despite matching its checksums."""
+    found = cache.get_or_build(stage, key, build)
+    if found is None:
+        return None
+    try:
+        return _read_tables(found)
+    except Exception as exc:
+        if not cache.enabled:
+            raise
+        cache.discard(stage, key, f"{type(exc).__name__}: {exc}")
+        found = cache.get_or_build(stage, key, build)
+        return None if found is None else _read_tables(found)
 
 
 def _features_to_cache(sim_dir: Path, site: Site, feature_sets: dict[str, FeatureSet], n_jobs: int, cache: StageCache, key: str) -> Path:
@@ -276,10 +314,7 @@ def load_or_build_simulated(
         sim_dir = simulate_to_cache(site, simulator, simulator_cfg, plan, cache)
         return None if sim_dir is None else _features_to_cache(sim_dir, site, feature_sets, plan.n_jobs, cache, feat_key)
 
-    found = cache.get_or_build("features", feat_key, build)
-    if found is None:
-        return None
-    dataset = _read_tables(found)
+    dataset = _get_verified_tables(cache, "features", feat_key, build)
     cache.cleanup()
     return dataset
 
@@ -288,12 +323,14 @@ def load_or_build_field(
     site: Site, field_source: Any, field_cfg: dict[str, Any], feature_sets: dict[str, FeatureSet], features_cfg: dict[str, Any], cache: StageCache
 ) -> Dataset:
     """Feature and event tables of a field source's recordings, cached like the simulated ones."""
+    inputs = field_source.input_files() if hasattr(field_source, "input_files") else []
     key = StageCache.key(
         {
             "stage": "field_features",
             "stage_code": code_digest(__name__, follow_imports=False),
             "site": site.fingerprint(),
             "field": field_cfg,
+            "inputs": {str(path): file_digest(path) for path in inputs},  # an edited table or replaced WAV is a new entry
             "field_plugin": plugin_version(field_source),
             "features": features_cfg,
             "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},
@@ -305,7 +342,6 @@ def load_or_build_field(
         digest.update(batch.audio, batch.events)
         return _store_tables(cache, "field_features", key, extract_features(batch, site, feature_sets), batch.events, digest.hexdigest())
 
-    found = cache.get_or_build("field_features", key, build)
-    dataset = _read_tables(found)
+    dataset = _get_verified_tables(cache, "field_features", key, build)
     cache.cleanup()
     return dataset

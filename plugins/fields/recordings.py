@@ -7,7 +7,7 @@ acoustlab layout
     mic) or none (then ``events_csv`` has a ``file`` column naming one multichannel file per
     event, channels in the mics table's order). ``events_csv`` has ``event_id, start_s, end_s``
     and optionally ``file``, ``position_id``, ``x_m, y_m`` (true position when known),
-    ``temperature_c``, ``relative_humidity_pct``.
+    ``temperature_c``, ``relative_humidity_pct``, ``hardware_failure``.
 
 OpenSoundscape layout (so its users can switch)
     ``coords_csv`` with ``file, x, y[, z]`` (one receiver per file) and ``detections_csv`` with
@@ -16,9 +16,23 @@ OpenSoundscape layout (so its users can switch)
     event (receivers that did not detect it are still used; their clip is cut at the same times).
 
 Unknown true positions are NaN; events without a ``position_id`` each get their own.
+
+Checks. :meth:`RecordingFolder.validate` (run by the preflight, before any simulation) reads the
+tables and the audio files' headers only: numbers where numbers belong, unique event ids, files
+that exist inside ``audio_dir``, readable headers, enough channels, events no longer than
+``max_event_s``. Problems of the samples themselves are per clip and do not stop a run:
+:meth:`RecordingFolder.load` flags each event (``quality_flags``, e.g. ``"mic 2: dead"``) whose
+clip on some mic is out of the file, truncated, non-finite, dead or clipped
+(:mod:`acoustlab.toolkit.quality`); flagged events stay in the predictions and are left out of
+summaries, and a mic dead in every event of a position sets that position's ``hardware_failure``.
 """
 
 from __future__ import annotations
+
+import logging
+from fractions import Fraction
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -27,18 +41,79 @@ from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_mono
+from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_quality
+
+log = logging.getLogger(__name__)
+
+#: Largest audio array (events × mics × samples, float32) a load may allocate, bytes.
+MAX_AUDIO_BYTES = 4 * 2**30
 
 
 def _read(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataFrame:
+    """A CSV table with its required columns and at least one row (errors name the file)."""
     path = resolve_path(path_text)
     if not path.is_file():
         raise DataError(f"field.{field}: file {path} does not exist")
-    table = pd.read_csv(path, skipinitialspace=True)
-    table.columns = [c.strip() for c in table.columns]
+    try:
+        table = pd.read_csv(path, skipinitialspace=True)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, OSError) as exc:
+        raise DataError(f"field.{field}: cannot read {path} as a CSV table: {str(exc).splitlines()[0]}") from None
+    table.columns = [str(c).strip() for c in table.columns]
     missing = [c for c in required if c not in table.columns]
     if missing:
         raise DataError(f"field.{field}: {path} lacks columns {missing}; found {list(table.columns)}")
+    if table.empty:
+        raise DataError(f"field.{field}: {path} has a header but no rows")
+    table.attrs["path"] = str(path)
     return table
+
+
+def _numeric(table: pd.DataFrame, field: str, columns: tuple[str, ...], finite: bool = True,
+             lower: float | None = None, upper: float | None = None) -> None:
+    """Convert ``columns`` to float in place; a cell that is not a number (or not finite, or out of range) names its line."""
+    for name in columns:
+        if name not in table:
+            continue
+        raw = table[name]
+        values = pd.to_numeric(raw, errors="coerce").astype(float)
+        bad = (raw.notna() & values.isna()) | (~np.isfinite(values) if finite else np.isinf(values))
+        if lower is not None:
+            bad |= values < lower
+        if upper is not None:
+            bad |= values > upper
+        if bad.any():
+            i = int(np.flatnonzero(bad.to_numpy())[0])
+            expected = "a finite number" if finite else "a number or empty"
+            if lower is not None or upper is not None:
+                expected += f" in [{lower}, {upper}]"
+            raise DataError(f"field.{field}: {table.attrs.get('path', field)}, line {i + 2}, column {name!r}: "
+                            f"{raw.iloc[i]!r} is not {expected}")
+        table[name] = values
+
+
+def _unique(table: pd.DataFrame, field: str, column: str) -> None:
+    duplicated = table[column][table[column].duplicated()]
+    if not duplicated.empty:
+        raise DataError(f"field.{field}: {table.attrs.get('path', field)}, column {column!r}: "
+                        f"{duplicated.iloc[0]!r} appears more than once; every row needs its own {column}")
+
+
+@lru_cache(maxsize=2)
+def _read_channels(path_text: str, sample_rate_hz: float) -> np.ndarray:
+    """(C, S) float32 channels of a multichannel file at ``sample_rate_hz`` (read once per file)."""
+    import soundfile as sf
+    from scipy.signal import resample_poly
+
+    try:
+        data, rate = sf.read(path_text, dtype="float32", always_2d=True)
+    except Exception as exc:  # noqa: BLE001 - soundfile raises several types
+        raise DataError(f"field: cannot read audio file {path_text}: {exc}") from None
+    if rate != sample_rate_hz:
+        ratio = Fraction(sample_rate_hz / rate).limit_denominator(1000)
+        data = resample_poly(data, ratio.numerator, ratio.denominator, axis=0)
+    channels = np.ascontiguousarray(data.T, dtype=np.float32)
+    channels.setflags(write=False)
+    return channels
 
 
 class RecordingFolder:
@@ -60,6 +135,14 @@ class RecordingFolder:
         OpenSoundscape layout: minimum receivers that detected a window.
     pad_s : float
         Extra audio kept before the start and after the end of each event, s.
+    max_event_s : float
+        Longest event accepted, s (a typo such as ``end_s=3600`` stops in the preflight instead
+        of allocating gigabytes).
+    allow_outside_audio_dir : bool
+        Accept file names that resolve outside ``audio_dir`` (``../``, absolute paths, links).
+    quality : dict, optional
+        :class:`acoustlab.toolkit.quality.QualityThresholds` fields (``dead_peak_to_peak``,
+        ``clip_level``, ``clip_share``).
     """
 
     def __init__(
@@ -74,9 +157,21 @@ class RecordingFolder:
         relative_humidity_pct: float = 60.0,
         min_receivers: int = 3,
         pad_s: float = 0.05,
+        max_event_s: float = 60.0,
+        allow_outside_audio_dir: bool = False,
+        quality: dict | None = None,
     ) -> None:
         if not ((mics_csv and events_csv) or (coords_csv and detections_csv)):
             raise ConfigError("field: give mics_csv and events_csv, or coords_csv and detections_csv (OpenSoundscape layout)")
+        for name, value, low in (("sample_rate_hz", sample_rate_hz, 1.0), ("max_event_s", max_event_s, 1e-3), ("pad_s", pad_s, 0.0)):
+            if not isinstance(value, (int, float)) or not np.isfinite(value) or value < low:
+                raise ConfigError(f"field.{name} must be a number >= {low}; got {value!r}")
+        if not -60.0 <= float(temperature_c) <= 60.0:
+            raise ConfigError(f"field.temperature_c must lie in [-60, 60] °C; got {temperature_c}")
+        if not 0.0 <= float(relative_humidity_pct) <= 100.0:
+            raise ConfigError(f"field.relative_humidity_pct must lie in [0, 100] %; got {relative_humidity_pct}")
+        if int(min_receivers) < 2:
+            raise ConfigError(f"field.min_receivers must be >= 2; got {min_receivers}")
         self.audio_dir = audio_dir
         self.mics_csv, self.events_csv = mics_csv, events_csv
         self.coords_csv, self.detections_csv = coords_csv, detections_csv
@@ -85,95 +180,208 @@ class RecordingFolder:
         self.relative_humidity_pct = float(relative_humidity_pct)
         self.min_receivers = int(min_receivers)
         self.pad_s = float(pad_s)
+        self.max_event_s = float(max_event_s)
+        self.allow_outside_audio_dir = bool(allow_outside_audio_dir)
+        try:
+            self.thresholds = QualityThresholds(**(quality or {}))
+        except TypeError as exc:
+            raise ConfigError(f"field.quality: {exc}; known keys: dead_peak_to_peak, clip_level, clip_share") from None
 
-    def _audio(self, file: str) -> np.ndarray:
-        path = resolve_path(self.audio_dir) / str(file).strip()
-        if not path.is_file():
-            raise DataError(f"field: audio file {path} does not exist")
-        return load_mono(str(path), self.sample_rate_hz)
-
+    # ----------------------------------------------------------------------------------- tables
     def tables(self) -> tuple[pd.DataFrame, pd.DataFrame]:
-        """(mics, events) in the acoustlab layout, converting the OpenSoundscape layout if needed."""
+        """(mics, events) in the acoustlab layout, checked, converting the OpenSoundscape layout if needed."""
         if self.mics_csv and self.events_csv:
             mics = _read(self.mics_csv, "mics_csv", ("x_m", "y_m", "z_m"))
             events = _read(self.events_csv, "events_csv", ("event_id", "start_s", "end_s"))
-            return mics, events
-        coords = _read(self.coords_csv, "coords_csv", ("file", "x", "y"))
-        det = _read(self.detections_csv, "detections_csv", ("file", "start_time", "end_time"))
-        mics = pd.DataFrame({"file": coords["file"].str.strip(), "x_m": coords["x"], "y_m": coords["y"],
-                             "z_m": coords["z"] if "z" in coords else 0.0})
-        classes = [c for c in det.columns if c not in ("file", "start_time", "end_time")]
-        hit = det[classes].astype(float).max(axis=1) > 0 if classes else pd.Series(True, index=det.index)
-        det = det[hit & det["file"].str.strip().isin(set(mics["file"]))]
-        windows = det.groupby(["start_time", "end_time"])["file"].nunique().reset_index()
-        windows = windows[windows["file"] >= self.min_receivers]
-        events = pd.DataFrame({"event_id": np.arange(len(windows)), "start_s": windows["start_time"].to_numpy(float),
-                               "end_s": windows["end_time"].to_numpy(float)})
+        else:
+            mics, events = self._opensoundscape_tables()
+        _numeric(mics, "mics_csv", ("x_m", "y_m", "z_m"))
+        if "mic_id" in mics:
+            _unique(mics, "mics_csv", "mic_id")
+        if "file" in mics:
+            mics["file"] = mics["file"].astype(str).str.strip()
+        _numeric(events, "events_csv", ("event_id", "start_s", "end_s", "position_id"))
+        _numeric(events, "events_csv", ("x_m", "y_m", "z_m"), finite=False)
+        _numeric(events, "events_csv", ("temperature_c",), lower=-60.0, upper=60.0)
+        _numeric(events, "events_csv", ("relative_humidity_pct",), lower=0.0, upper=100.0)
+        for name in ("event_id", "position_id"):
+            if name in events and (events[name] != np.round(events[name])).any():
+                i = int(np.flatnonzero((events[name] != np.round(events[name])).to_numpy())[0])
+                raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}, column {name!r}: "
+                                f"{events[name].iloc[i]!r} is not a whole number")
+        _unique(events, "events_csv", "event_id")
+        events["event_id"] = events["event_id"].astype(np.int64)
+        too_short = events["end_s"] <= events["start_s"]
+        if too_short.any():
+            i = int(np.flatnonzero(too_short.to_numpy())[0])
+            raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: end_s {events['end_s'].iloc[i]} "
+                            f"is not after start_s {events['start_s'].iloc[i]}")
+        too_long = (events["end_s"] - events["start_s"]) > self.max_event_s
+        if too_long.any():
+            i = int(np.flatnonzero(too_long.to_numpy())[0])
+            raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: the event lasts "
+                            f"{events['end_s'].iloc[i] - events['start_s'].iloc[i]:g} s, more than field.max_event_s={self.max_event_s:g} s "
+                            f"(raise it if the event really is that long)")
+        if "file" not in mics and "file" not in events:
+            raise DataError("field: the mics table has no 'file' column, so events_csv needs one (multichannel files)")
+        if "file" in events:
+            events["file"] = events["file"].astype(str).str.strip()
         return mics, events
 
-    def site_mics_m(self) -> np.ndarray:
-        """(M, 3) mic positions from the tables (to build or check a site)."""
-        return self.tables()[0][["x_m", "y_m", "z_m"]].to_numpy(float)
+    def _opensoundscape_tables(self) -> tuple[pd.DataFrame, pd.DataFrame]:
+        coords = _read(self.coords_csv, "coords_csv", ("file", "x", "y"))
+        det = _read(self.detections_csv, "detections_csv", ("file", "start_time", "end_time"))
+        _numeric(coords, "coords_csv", ("x", "y", "z"))
+        _numeric(det, "detections_csv", ("start_time", "end_time"))
+        classes = [c for c in det.columns if c not in ("file", "start_time", "end_time")]
+        _numeric(det, "detections_csv", tuple(classes))
+        coords["file"] = coords["file"].astype(str).str.strip()
+        det["file"] = det["file"].astype(str).str.strip()
+        mics = pd.DataFrame({"file": coords["file"], "x_m": coords["x"], "y_m": coords["y"],
+                             "z_m": coords["z"] if "z" in coords else 0.0})
+        mics.attrs["path"] = coords.attrs["path"]
+        known = det["file"].isin(set(mics["file"]))
+        if not known.any():
+            raise DataError(f"field.detections_csv: none of its files ({det['file'].iloc[0]!r}, …) is in the coords table "
+                            f"{coords.attrs['path']} ({mics['file'].iloc[0]!r}, …); the file names must match")
+        if not known.all():
+            log.warning("field.detections_csv: %d detections name files not in the coords table and are ignored (first: %r)",
+                        int((~known).sum()), det.loc[~known, "file"].iloc[0])
+        hit = det[classes].max(axis=1) > 0 if classes else pd.Series(True, index=det.index)
+        det = det[hit & known]
+        windows = det.groupby(["start_time", "end_time"])["file"].nunique().reset_index()
+        windows = windows[windows["file"] >= self.min_receivers]
+        if windows.empty:
+            raise DataError(f"field.detections_csv: no time window was detected by at least field.min_receivers={self.min_receivers} "
+                            f"receivers, so there is nothing to localize")
+        events = pd.DataFrame({"event_id": np.arange(len(windows)), "start_s": windows["start_time"].to_numpy(float),
+                               "end_s": windows["end_time"].to_numpy(float)})
+        events.attrs["path"] = det.attrs.get("path", self.detections_csv)
+        return mics, events
+
+    # ------------------------------------------------------------------------------------ audio
+    def audio_path(self, file: str) -> Path:
+        """Where a file named in a table lies; outside ``audio_dir`` only with ``allow_outside_audio_dir``."""
+        root = resolve_path(self.audio_dir)
+        path = (root / str(file)).resolve()
+        if not self.allow_outside_audio_dir and not path.is_relative_to(root.resolve()):
+            raise DataError(f"field: the file {file!r} resolves to {path}, outside field.audio_dir={root}; "
+                            "set field.allow_outside_audio_dir=true to read it anyway")
+        if not path.is_file():
+            raise DataError(f"field: audio file {path} does not exist")
+        return path
+
+    def _header(self, file: str, headers: dict) -> object:
+        """soundfile's header of a file (cached in ``headers``); a clear error where it cannot be read."""
+        if file not in headers:
+            import soundfile as sf
+
+            path = self.audio_path(file)
+            try:
+                info = sf.info(str(path))
+            except Exception as exc:  # noqa: BLE001 - soundfile raises RuntimeError/LibsndfileError/OSError
+                raise DataError(f"field: cannot read the audio header of {path}: {exc}") from None
+            if info.samplerate <= 0 or info.channels < 1:
+                raise DataError(f"field: {path} declares {info.samplerate} Hz and {info.channels} channels")
+            if info.frames == 0:
+                log.warning("field: %s holds no samples; every event on it is flagged out_of_range", path)
+            headers[file] = info
+        return headers[file]
+
+    def validate(self, site: Site | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+        """Check the tables and the audio headers without reading samples (the preflight); return the tables.
+
+        Raises
+        ------
+        DataError
+            Naming the file, line, column or value and what was expected.
+        """
+        mics, events = self.tables()
+        if site is not None:
+            positions = mics[["x_m", "y_m", "z_m"]].to_numpy(float)
+            if positions.shape != site.mic_positions_m.shape or not np.allclose(positions, site.mic_positions_m, atol=1e-3):
+                raise DataError(f"field: the recordings' {len(positions)} mic positions do not match site {site.name!r} "
+                                f"({site.n_mics} mics); build the site from the same mics table")
+        headers: dict = {}
+        files = list(mics["file"]) if "file" in mics else list(dict.fromkeys(events["file"]))
+        for file in files:
+            info = self._header(file, headers)
+            if "file" not in mics and info.channels < len(mics):
+                raise DataError(f"field: {self.audio_path(file)} has {info.channels} channels but the mics table lists {len(mics)} mics")
+        n = int(((events["end_s"] - events["start_s"]).max() + 2 * self.pad_s) * self.sample_rate_hz) + 1
+        size = len(events) * len(mics) * n * 4
+        if size > MAX_AUDIO_BYTES:
+            raise DataError(f"field: {len(events)} events × {len(mics)} mics × {n} samples need {size / 2**30:.1f} GiB; "
+                            f"split the events table (at most {MAX_AUDIO_BYTES / 2**30:.0f} GiB at once)")
+        return mics, events
+
+    def input_files(self) -> list[Path]:
+        """Every table and audio file these recordings are read from (the cache key hashes their contents)."""
+        mics, events = self.tables()
+        tables = [resolve_path(t) for t in (self.mics_csv, self.events_csv, self.coords_csv, self.detections_csv) if t]
+        names = list(mics["file"]) if "file" in mics else list(dict.fromkeys(events["file"]))
+        return tables + [self.audio_path(f) for f in names]
 
     def load(self, site: Site) -> RecordingBatch:
-        """Cut every event from the recordings; see :class:`acoustlab.core.contracts.FieldSource`."""
-        mics, events = self.tables()
-        positions = mics[["x_m", "y_m", "z_m"]].to_numpy(float)
-        if positions.shape != site.mic_positions_m.shape or not np.allclose(positions, site.mic_positions_m, atol=1e-3):
-            raise DataError(
-                f"field: the recordings' {len(positions)} mic positions do not match site {site.name!r} "
-                f"({site.n_mics} mics); build the site from the same mics table"
-            )
+        """Cut every event from the recordings, flagging bad clips; see :class:`acoustlab.core.contracts.FieldSource`."""
+        mics, events = self.validate(site)
         fs = self.sample_rate_hz
         pad = int(self.pad_s * fs)
         lengths = ((events["end_s"] - events["start_s"]).to_numpy(float) * fs).astype(int) + 2 * pad
-        if (lengths <= 2 * pad).any():
-            bad = events.loc[lengths <= 2 * pad, "event_id"].tolist()
-            raise DataError(f"field.events: events {bad[:5]} have end_s <= start_s")
-        n = int(lengths.max())
-        audio = np.zeros((len(events), len(mics), n), dtype=np.float32)
+        audio = np.zeros((len(events), len(mics), int(lengths.max())), dtype=np.float32)
         per_mic = "file" in mics.columns
+        reasons = np.empty((len(events), len(mics)), dtype=object)
         for k, ev in enumerate(events.itertuples()):
             start = int(round(ev.start_s * fs)) - pad
             for m in range(len(mics)):
                 if per_mic:
-                    signal = self._audio(mics["file"].iloc[m])
+                    signal = load_mono(str(self.audio_path(mics["file"].iloc[m])), fs)
                 else:
-                    if "file" not in events.columns:
-                        raise DataError("field: the mics table has no 'file' column, so events_csv needs one (multichannel files)")
-                    signal = self._multichannel(ev.file, m)
-                seg = signal[max(start, 0) : max(start, 0) + lengths[k]]
-                audio[k, m, : seg.size] = seg
+                    signal = _read_channels(str(self.audio_path(ev.file)), fs)[m]
+                audio[k, m, : lengths[k]], reasons[k, m] = clip_quality(signal, start, int(lengths[k]), self.thresholds, margin=pad)
+        flags = [_describe(row, mics) for row in reasons]
+        position = events["position_id"].to_numpy(int) if "position_id" in events else events["event_id"].to_numpy(int)
+        failed = (events["hardware_failure"].astype(str).str.strip().str.lower().isin(["1", "1.0", "true", "yes"]).to_numpy()
+                  if "hardware_failure" in events else np.zeros(len(events), bool))
+        failed = failed | _dead_at_position(reasons, position)
+        n_flagged = sum(bool(f) for f in flags)
+        if n_flagged:
+            log.warning("field: %d of %d events flagged (%s); they are kept in the predictions and left out of summaries",
+                        n_flagged, len(events), "; ".join(f"event {e}: {f}" for e, f in zip(events["event_id"], flags) if f)[:300])
         rows = pd.DataFrame(
             {
                 "event_id": events["event_id"].to_numpy(int),
-                "position_id": events["position_id"].to_numpy(int) if "position_id" in events else events["event_id"].to_numpy(int),
+                "position_id": position,
                 "x_m": events["x_m"].to_numpy(float) if "x_m" in events else np.nan,
                 "y_m": events["y_m"].to_numpy(float) if "y_m" in events else np.nan,
                 "z_m": events["z_m"].to_numpy(float) if "z_m" in events else np.nan,
-                "temperature_c": events["temperature_c"].to_numpy(float) if "temperature_c" in events else self.temperature_c,
-                "relative_humidity_pct": events["relative_humidity_pct"].to_numpy(float) if "relative_humidity_pct" in events else self.relative_humidity_pct,
+                "temperature_c": events["temperature_c"].fillna(self.temperature_c).to_numpy(float) if "temperature_c" in events else self.temperature_c,
+                "relative_humidity_pct": events["relative_humidity_pct"].fillna(self.relative_humidity_pct).to_numpy(float)
+                if "relative_humidity_pct" in events else self.relative_humidity_pct,
                 "start_s": events["start_s"].to_numpy(float),
                 "end_s": events["end_s"].to_numpy(float),
+                "quality_flags": flags,
+                "quality_ok": [not f for f in flags],
+                "hardware_failure": failed,
             }
         )
         return RecordingBatch(audio=audio, sample_rate_hz=fs, events=rows)
 
-    def _multichannel(self, file: str, channel: int) -> np.ndarray:
-        from fractions import Fraction
 
-        import soundfile as sf
-        from scipy.signal import resample_poly
+def _describe(reasons_per_mic: np.ndarray, mics: pd.DataFrame) -> str:
+    """One event's flags as text, e.g. ``"mic 2: dead; mic 4: truncated, clipped"`` (empty when every clip is fine)."""
+    names = mics["mic_id"].astype(str).tolist() if "mic_id" in mics else [str(m) for m in range(len(mics))]
+    parts = [f"mic {names[m]}: {', '.join(r for r in QUALITY_REASONS if r in reasons)}"
+             for m, reasons in enumerate(reasons_per_mic) if reasons]
+    return "; ".join(parts)
 
-        path = resolve_path(self.audio_dir) / str(file)
-        try:
-            data, rate = sf.read(str(path), dtype="float32", always_2d=True)
-        except Exception as exc:  # soundfile raises several types
-            raise DataError(f"field: cannot read audio file {path}: {exc}") from None
-        if channel >= data.shape[1]:
-            raise DataError(f"field: {path} has {data.shape[1]} channels but the mics table lists more mics")
-        x = data[:, channel]
-        if rate != self.sample_rate_hz:
-            ratio = Fraction(self.sample_rate_hz / rate).limit_denominator(1000)
-            x = resample_poly(x, ratio.numerator, ratio.denominator)
-        return x.astype(np.float32)
+
+def _dead_at_position(reasons: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """True for every event of a position where some mic is dead in all of the position's events."""
+    dead = np.vectorize(lambda r: "dead" in r, otypes=[bool])(reasons)
+    out = np.zeros(len(position), bool)
+    for pos in np.unique(position):
+        rows = position == pos
+        if dead[rows].all(axis=0).any():
+            out[rows] = True
+    return out

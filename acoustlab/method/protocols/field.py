@@ -147,5 +147,8 @@ def _annotate(out: pd.DataFrame, events: pd.DataFrame, rows: np.ndarray, exclude
     out["position_id"] = out["position_id"] - FIELD_POSITION_OFFSET
     failed = events["hardware_failure"].to_numpy(bool)[rows] if "hardware_failure" in events else np.zeros(rows.size, bool)
     out["hardware_failure"] = failed
-    out["in_summary"] = ~failed if exclude_failed else True
+    flagged = ~events["quality_ok"].fillna(True).to_numpy(bool)[rows] if "quality_ok" in events else np.zeros(rows.size, bool)
+    if "quality_flags" in events:
+        out["quality_flags"] = events["quality_flags"].fillna("").to_numpy(object)[rows]
+    out["in_summary"] = ~(failed | flagged) if exclude_failed else ~flagged
     return out

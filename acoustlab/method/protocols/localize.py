@@ -69,4 +69,11 @@ class LocalizeProtocol:
         keep = [c for c in field_recordings.events.columns if c not in predictions.columns and c not in ("x_m", "y_m", "z_m")]
         for name in keep:  # the detection's own fields (file, start time, …)
             predictions[name] = field_recordings.events[name].to_numpy()
+        if "quality_ok" in predictions:  # a clip out of its file, dead, truncated, …: no position, and why
+            has_fix = predictions["placed"].to_numpy(bool) if "placed" in predictions else np.isfinite(
+                predictions[list(col.estimate_xy("gate"))].to_numpy(float)).all(1)
+            good = predictions["quality_ok"].to_numpy(bool)
+            reason = predictions["abstain_reason"].to_numpy(object) if "abstain_reason" in predictions else np.where(has_fix, "", "no estimate")
+            predictions["placed"] = has_fix & good
+            predictions["abstain_reason"] = np.where(good, reason, "quality: " + predictions["quality_flags"].astype(str))
         return MethodResult(predictions, result.split_diagnostics)

@@ -1,0 +1,83 @@
+"""Quality checks of recorded channels: what makes a clip unfit to localize from.
+
+A field recorder fails in a handful of ways that all produce numbers a TDOA solver happily
+turns into a position hundreds of metres away: a dead channel (digital zeros or a constant), a
+file cut short (the event lies partly or wholly past its end, or before its start), non-finite
+samples from a damaged file, and clipping. :func:`clip_quality` names each of these per clip so
+the caller can flag the event instead of localizing it from zeros.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Every reason a clip can be flagged for, in the order they are reported.
+QUALITY_REASONS = ("out_of_range", "truncated", "nonfinite", "dead", "clipped")
+
+
+@dataclass(frozen=True)
+class QualityThresholds:
+    """When a clip counts as dead or clipped.
+
+    Attributes
+    ----------
+    dead_peak_to_peak : float
+        A clip whose peak-to-peak amplitude is at most this (full scale = 1) is dead: digital
+        zeros or a constant (1e-6 ≈ −120 dBFS, below any real microphone's self-noise).
+    clip_level : float
+        Absolute sample value (full scale = 1) at or above which a sample counts as clipped.
+    clip_share : float
+        A clip with more than this share of clipped samples is flagged as clipped.
+    """
+
+    dead_peak_to_peak: float = 1e-6
+    clip_level: float = 0.99
+    clip_share: float = 0.001
+
+
+def clip_quality(signal: np.ndarray, start: int, length: int, thresholds: QualityThresholds,
+                 margin: int = 0) -> tuple[np.ndarray, list[str]]:
+    """Cut ``length`` samples from ``start`` (may be negative or past the end) and say what is wrong with them.
+
+    Parameters
+    ----------
+    signal : numpy.ndarray
+        (S,) the whole channel, full scale = 1.
+    start : int
+        First sample of the clip (negative: the clip begins before the recording).
+    length : int
+        Samples in the clip.
+    thresholds : QualityThresholds
+        When a clip is dead or clipped.
+    margin : int
+        Samples at either end that are context, not the event (padding): they may lie outside
+        the recording without the clip counting as truncated.
+
+    Returns
+    -------
+    clip : numpy.ndarray
+        (length,) float32; samples outside the recording and non-finite samples are 0, the rest
+        at their true offset (never shifted).
+    reasons : list of str
+        Members of :data:`QUALITY_REASONS` that apply; empty for a good clip.
+    """
+    clip = np.zeros(length, dtype=np.float32)
+    lo, hi = max(start, 0), min(start + length, signal.size)
+    reasons: list[str] = []
+    if min(hi, start + length - margin) <= max(lo, start + margin):
+        return clip, ["out_of_range"]
+    if lo > start + margin or hi < start + length - margin:
+        reasons.append("truncated")
+    part = np.asarray(signal[lo:hi], dtype=np.float32)
+    finite = np.isfinite(part)
+    if not finite.all():
+        reasons.append("nonfinite")
+        part = np.where(finite, part, np.float32(0.0))
+    clip[lo - start : hi - start] = part
+    if float(np.ptp(part)) <= thresholds.dead_peak_to_peak:
+        reasons.append("dead")
+    elif float(np.mean(np.abs(part) >= thresholds.clip_level)) > thresholds.clip_share:
+        reasons.append("clipped")
+    return clip, reasons
