@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import shutil
 import sys
 from pathlib import Path
 
@@ -22,6 +24,15 @@ def _fail(exc: AcoustlabError) -> None:
     sys.exit(2)
 
 
+def _remove_if_empty(run_dir: Path) -> None:
+    """Remove a run directory that holds only Hydra's own files (a run stopped by its preflight leaves no empty folder)."""
+    own = {".hydra", f"{HydraConfig.get().job.name}.log"}
+    if run_dir.is_dir() and all(p.name in own for p in run_dir.iterdir()):
+        shutil.rmtree(run_dir, ignore_errors=True)
+        with contextlib.suppress(OSError):  # the day folder too, when this was its only run
+            run_dir.parent.rmdir()
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> None:
     from acoustlab.run.app import run_experiment
@@ -35,6 +46,7 @@ def _hydra_main(cfg: DictConfig) -> None:
         if hc.mode == RunMode.MULTIRUN:  # let Hydra record the failed job and run the others
             log.error("job %s failed: %s", hc.job.num, exc)
             raise
+        _remove_if_empty(Path(hc.runtime.output_dir))
         _fail(exc)
     except Exception:
         if hc.mode == RunMode.MULTIRUN:  # Hydra re-raises only the first failed job's exception: log every one

@@ -122,7 +122,7 @@ def check_dropped_groups(feature_sets: dict[str, Any], **drops: list[str]) -> No
             raise ConfigError(f"{name} names feature groups {unknown} that the features= option does not have; available: {', '.join(sorted(available))}")
 
 
-def build_run(cfg: DictConfig) -> BuiltRun:
+def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRun:
     """Build and check every plugin of a config without running anything expensive (the preflight).
 
     Everything that can be wrong in a config fails here with a :class:`ConfigError` or
@@ -169,7 +169,7 @@ def build_run(cfg: DictConfig) -> BuiltRun:
     if getattr(protocol, "needs_field", False):  # recordings are checked now, not after the training simulation
         field_source = build(cfg.field, "field")
         if field_source is None:
-            protocol_name = OmegaConf.select(cfg, "hydra.runtime.choices.protocol", default=None) or type(protocol).__name__
+            protocol_name = (choices or {}).get("protocol") or type(protocol).__name__
             raise ConfigError(f"protocol={protocol_name} needs field recordings: choose field=playback_standin or field=recordings")
         if hasattr(field_source, "validate"):
             field_source.validate(site)
@@ -205,7 +205,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     run_dir.mkdir(parents=True, exist_ok=True)
     choices = {g: str(v) for g, v in (choices or {}).items() if g in (*PLUGIN_GROUPS, "site", "experiment") and v is not None}
 
-    built = build_run(cfg)
+    built = build_run(cfg, choices)
     site, simulator, feature_sets, components, protocol, tracker, cache, plan = (
         built.site, built.simulator, built.feature_sets, built.components, built.protocol, built.tracker, built.cache, built.plan)
     timings: dict[str, float] = {"preflight_s": time.perf_counter() - started}

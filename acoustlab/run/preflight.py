@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from pathlib import Path
+from typing import Any
 
 from acoustlab.core.errors import ConfigError
 from acoustlab.run.registry import ALL_GROUPS, CONF_DIR, group_options
+from acoustlab.run.schema import AcoustlabConfig
 
 #: Flags that only inspect the app; they need no site.
 INSPECT_FLAGS = ("--help", "-h", "--hydra-help", "--info", "-i", "--cfg", "-c", "--shell-completion", "-sc", "--version")
@@ -16,6 +20,35 @@ def _values(value: str) -> list[str] | None:
     if any(ch in value for ch in "()[]{}$*"):
         return None
     return [v.strip() for v in value.split(",") if v.strip()]
+
+
+def _typed_field(key: str) -> type | None:
+    """The schema's type of a dotted key (``data.n_events`` → int), or None where the key is free-form or unknown."""
+    node: Any = AcoustlabConfig
+    for part in key.split("."):
+        if not dataclasses.is_dataclass(node):
+            return None
+        hints = typing.get_type_hints(node)
+        if part not in hints:
+            return None
+        node = hints[part]
+        args = [a for a in typing.get_args(node) if a is not type(None)]
+        if typing.get_origin(node) is typing.Union and len(args) == 1:  # Optional[X]
+            node = args[0]
+    return node if node in (int, float) else None
+
+
+def _check_typed_value(key: str, value: str) -> None:
+    """A number-typed key given a value that is not one: the one-line error Hydra would give as several lines."""
+    kind = _typed_field(key)
+    for option in (_values(value) or []) if kind is not None else []:
+        if option == "null":
+            continue
+        try:
+            float(option) if kind is float else int(option)
+        except ValueError:
+            expected = "an integer" if kind is int else "a number"
+            raise ConfigError(f"{key} must be {expected}; got {option!r}") from None
 
 
 def check_argv(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
@@ -37,6 +70,7 @@ def check_argv(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
         prefix = key[: len(key) - len(key.lstrip("+~"))]
         name = key.lstrip("+~")
         if name not in ALL_GROUPS:
+            _check_typed_value(name, value)
             continue
         if name == "site":
             if prefix != "+":

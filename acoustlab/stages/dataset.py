@@ -95,6 +95,10 @@ class SimulationPlan:
             raise ConfigError(f"data.n_events must be >= 1; got {self.n_events}")
         if self.events_per_position < 1:
             raise ConfigError(f"data.events_per_position must be >= 1; got {self.events_per_position}")
+        if self.n_jobs < 1:
+            raise ConfigError(f"data.n_jobs must be >= 1 worker process; got {self.n_jobs}")
+        if self.seed < 0:
+            raise ConfigError(f"seed must be a non-negative integer; got {self.seed}")
         if self.chunk_size < 1:
             raise ConfigError(f"data.chunk_size must be >= 1; got {self.chunk_size}")
         if self.shard_count < 1 or not 0 <= self.shard_index < self.shard_count:

@@ -66,16 +66,18 @@ def clip_quality(signal: np.ndarray, start: int, length: int, thresholds: Qualit
     clip = np.zeros(length, dtype=np.float32)
     lo, hi = max(start, 0), min(start + length, signal.size)
     reasons: list[str] = []
+    part = np.asarray(signal[lo:hi], dtype=np.float32)
+    finite = np.isfinite(part)
+    if not finite.all():
+        part = np.where(finite, part, np.float32(0.0))
+    if hi > lo:
+        clip[lo - start : hi - start] = part
     if min(hi, start + length - margin) <= max(lo, start + margin):
         return clip, ["out_of_range"]
     if lo > start + margin or hi < start + length - margin:
         reasons.append("truncated")
-    part = np.asarray(signal[lo:hi], dtype=np.float32)
-    finite = np.isfinite(part)
     if not finite.all():
         reasons.append("nonfinite")
-        part = np.where(finite, part, np.float32(0.0))
-    clip[lo - start : hi - start] = part
     if float(np.ptp(part)) <= thresholds.dead_peak_to_peak:
         reasons.append("dead")
     elif float(np.mean(np.abs(part) >= thresholds.clip_level)) > thresholds.clip_share:

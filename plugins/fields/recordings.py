@@ -209,8 +209,8 @@ class RecordingFolder:
                 i = int(np.flatnonzero((events[name] != np.round(events[name])).to_numpy())[0])
                 raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}, column {name!r}: "
                                 f"{events[name].iloc[i]!r} is not a whole number")
-        _unique(events, "events_csv", "event_id")
         events["event_id"] = events["event_id"].astype(np.int64)
+        _unique(events, "events_csv", "event_id")
         too_short = events["end_s"] <= events["start_s"]
         if too_short.any():
             i = int(np.flatnonzero(too_short.to_numpy())[0])
