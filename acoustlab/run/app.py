@@ -15,7 +15,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from acoustlab import __version__
-from acoustlab.core.errors import ConfigError
+from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.method.pipeline import Components, LocalizationPipeline
 from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
 from acoustlab.reporting.metrics import (
@@ -234,6 +234,11 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         return _write_localization(cfg, run_dir, predictions, result, components, site, dataset, field_data, choices, timings, started,
                                    tracker, parent_run_id)
     summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
+    if not summary_rows.any():  # e.g. every field event flagged: nothing to summarise, but the predictions say why
+        atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
+        counts = quality_flag_counts(predictions) if "quality_flags" in predictions else {}
+        raise DataError(f"all {len(predictions)} test detections are flagged or from failed hardware ({counts or 'hardware_failure'}), "
+                        f"so there are no errors to summarise; {run_dir / 'predictions.parquet'} has every detection with its flags")
     metrics = summarise(predictions[summary_rows], components.levels, list(components.scorers))
     if not summary_rows.all():
         metrics["all_detections"] = summarise(predictions, components.levels, list(components.scorers))
