@@ -24,6 +24,20 @@ def _fail(exc: AcoustlabError) -> None:
     sys.exit(2)
 
 
+#: Override keys that never distinguish one run from another in a run's name.
+_UNNAMED_KEYS = ("paths.", "tracking", "hydra.", "plots", "data.n_jobs", "cache.")
+
+
+def run_name_of(overrides: list[str]) -> str:
+    """A tracker run name from what the job's command line varies: ``forest model=knn features.drop=[solver]``.
+
+    The site comes first, without its key; output paths, tracking and worker settings are left out.
+    """
+    site = next((o.split("=", 1)[1] for o in overrides if o.lstrip("+~").startswith("site=")), "")
+    rest = [o.lstrip("+") for o in overrides if not o.lstrip("+~").startswith(("site=", *_UNNAMED_KEYS))]
+    return " ".join([site, *rest]).strip() or "acoustlab"
+
+
 def _remove_if_empty(run_dir: Path) -> None:
     """Remove a run directory that holds only Hydra's own files (a run stopped by its preflight leaves no empty folder)."""
     own = {".hydra", f"{HydraConfig.get().job.name}.log"}
@@ -41,7 +55,8 @@ def _hydra_main(cfg: DictConfig) -> None:
     hc = HydraConfig.get()
     parent = parent_run_id_for(Path(hc.sweep.dir)) if hc.mode == RunMode.MULTIRUN else None
     try:
-        run_experiment(cfg, Path(hc.runtime.output_dir), dict(hc.runtime.choices), parent_run_id=parent)
+        run_experiment(cfg, Path(hc.runtime.output_dir), dict(hc.runtime.choices), parent_run_id=parent,
+                       run_name=run_name_of(list(hc.overrides.task)))
     except AcoustlabError as exc:
         if hc.mode == RunMode.MULTIRUN:  # let Hydra record the failed job and run the others
             log.error("job %s failed: %s", hc.job.num, exc)

@@ -33,7 +33,7 @@ def compose_cfg():
 def run_cli(tmp_path):
     """Run ``python -m acoustlab`` in a subprocess with outputs under a temp folder."""
 
-    def _run(*args: str, outputs: Path | None = None, timeout: float = 1800) -> subprocess.CompletedProcess:
+    def _run(*args: str, outputs: Path | None = None, timeout: float | None = None) -> subprocess.CompletedProcess:
         out = outputs or tmp_path / "outputs"
         env = {**os.environ, "PYTHONWARNINGS": "ignore"}
         return subprocess.run(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -134,19 +135,24 @@ def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     runs = report.collect_runs([tmp_path / "runs"])
     errors = report.error_rows(runs)
     assert len(errors) == 8 and set(errors["method"]) == {"solver", "model", "gate", "oracle"}
-    gate = errors[errors["method"] == "gate"]["p95"].tolist()
+    gate = errors[errors["method"] == "gate"]["p95 (m)"].tolist()
     assert gate == pytest.approx([m1["errors"]["gate"]["p95"], m2["errors"]["gate"]["p95"]])
     coverage = report.coverage_rows(runs)
     assert set(coverage["scorer"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop"}
     row = coverage[coverage["scorer"] == "gdop_scaled"].iloc[-1]  # run b (runs in directory order: a, then b)
-    assert row["coverage@0.8"] == pytest.approx(m2["coverage"]["gdop_scaled"]["0.8"])
+    assert row["coverage@0.8 (share)"] == pytest.approx(m2["coverage"]["gdop_scaled"]["0.8"])
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "Localization error per detection" in md and "Coverage and interval width" in md and "ρ GDOP" in md
+    assert md.startswith("# acoustlab: frozen_lake — 2 run(s)")  # run outside Hydra: no overrides to name them by
+    runs[0].overrides, runs[1].overrides = {"site": "frozen_lake", "model": "xgboost"}, {"site": "frozen_lake", "model": "knn"}
+    assert report.default_title(runs) == "acoustlab: frozen_lake — model = xgboost, knn"
+    assert "Smallest gated p95 error: " in md and not re.search(r"\bnan\b", md.split("## Plots")[0])  # a conclusion, no bare nan
+    assert "> 5 m (%)" in md and "p95 (m)" in md
     for png in ("sweep_error_cdf.png", "sweep_coverage_calibration.png", "runs/0/site_map.png", "runs/1/error_cdf.png"):
         assert (tmp_path / "rep" / png).stat().st_size > 1000, png
     # the same through the console entry point: acoustlab report ...
     proc = subprocess.run([sys.executable, "-m", "acoustlab", "report", str(tmp_path / "runs"), "--out", str(tmp_path / "cli")],
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "cli" / "report.html").exists() and str(tmp_path / "cli" / "report.md") in proc.stdout
 
@@ -159,8 +165,8 @@ def test_report_of_a_missing_path_is_a_clear_error(tmp_path, capsys):
 def test_submitit_local_launcher_runs_the_sweep(run_cli, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     out = tmp_path / "outputs"
-    proc = run_cli("-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10", *SMALL, "model=xgboost,random_forest",
-                   "data.n_jobs=1", outputs=out, timeout=600)
+    proc = run_cli("-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=120", *SMALL, "model=xgboost,random_forest",
+                   "data.n_jobs=1", outputs=out)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert len(list(out.glob("multirun/*/*/*/metrics.json"))) == 2
     runs = runs_in(out / "mlflow.db")

@@ -15,7 +15,6 @@ import numpy as np
 import pandas as pd
 from sklearn.base import clone
 from sklearn.model_selection import GroupKFold
-from tqdm.auto import tqdm
 
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import (
@@ -27,6 +26,7 @@ from acoustlab.core.contracts import (
     Solver,
 )
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.progress import progress
 from acoustlab.core.types import Site
 from acoustlab.toolkit.conformal import conformal_quantile, selective_threshold
 from acoustlab.toolkit.geometry import gdop, position_crb_m
@@ -201,7 +201,7 @@ class LocalizationPipeline:
         # Out-of-fold hybrid errors on the training positions, for the error model and calibration.
         folds = self._folds(groups[train])
         oof_model = np.empty((train.size, 2))
-        for k, (fit_idx, held_idx) in enumerate(tqdm(folds, desc="point model, out-of-fold", unit="fold", disable=None, leave=False)):
+        for k, (fit_idx, held_idx) in enumerate(progress(folds, desc="point model, out-of-fold", unit="fold", leave=False)):
             log.info("point model, out-of-fold %d/%d (%d rows)", k + 1, len(folds), fit_idx.size)  # progress also in logs and batch jobs
             models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]], solver_xy[train[fit_idx]])
             oof_model[held_idx] = self._predict_point(models, features.iloc[train[held_idx]][mcols], solver_xy[train[held_idx]])
@@ -221,7 +221,7 @@ class LocalizationPipeline:
         floor = max(float(np.percentile(oof_err[finite], 5)) if finite.any() else 0.0, 1e-9)
         oof_pred = np.empty(train.size)
         log.info("error model, out-of-fold (%d folds)", len(folds))
-        for fit_idx, held_idx in tqdm(folds, desc="error model, out-of-fold", unit="fold", disable=None, leave=False):
+        for fit_idx, held_idx in progress(folds, desc="error model, out-of-fold", unit="fold", leave=False):
             fit_idx = fit_idx[finite[fit_idx]]
             em = clone(self.c.error_model).fit(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx])
             oof_pred[held_idx] = em.predict(features.iloc[train[held_idx]][ecols])

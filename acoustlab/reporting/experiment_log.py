@@ -72,7 +72,7 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
     run_dir = Path(run_dir)
     metrics = json.loads((run_dir / "metrics.json").read_text())
     choices = metrics.get("choices", {})
-    run_name = f"{metrics['site']}-{choices.get('model', 'model')}"
+    run_name = metrics.get("run_name") or f"{metrics['site']}-{choices.get('model', 'model')}"
     tags = {"dataset_hash": metrics["dataset_hash"], "code_version": metrics["code_version"], "site": metrics["site"],
             "run_dir": str(run_dir.resolve())}
     if "field_dataset_hash" in metrics:

@@ -98,21 +98,35 @@ def predicted_vs_actual(ax: plt.Axes, predicted_m: np.ndarray, actual_m: np.ndar
     ax.grid(True, which="both", alpha=0.3)
 
 
+#: Circles smaller than this fraction of a map's extent are drawn at that size, dashed (a true-scale inset shows one).
+MIN_CIRCLE_FRACTION = 0.015
+
+
 def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column: str | None) -> None:
-    """Mics, trunks, true and gated positions of the first :data:`MAP_EVENTS` events, with conformal circles."""
+    """Mics, trunks, true and gated positions of the first :data:`MAP_EVENTS` events, with conformal circles.
+
+    Circles below :data:`MIN_CIRCLE_FRACTION` of the map are drawn at that size (dashed), and an
+    inset shows the event with the median radius at true scale, so 0.3 m circles on a 70 m map are seen.
+    """
     if len(site.tree_positions_m):
         trunks = [Circle((x, y), max(d / 2, 0.15)) for (x, y), d in zip(site.tree_positions_m, site.trunk_diameters_m)]
         ax.add_collection(PatchCollection(trunks, facecolor="tab:brown", edgecolor="none", alpha=0.5))
     shown = predictions.sort_values("event_id").head(MAP_EVENTS)
     (true_x, true_y), (gate_x, gate_y) = col.estimate_xy("true"), col.estimate_xy("gate")
+    mics = site.mic_positions_m
+    extent = max(np.ptp(np.concatenate([mics[:, 0], shown[true_x]])), np.ptp(np.concatenate([mics[:, 1], shown[true_y]])), 1.0)
     if radius_column is not None:
-        circles = [Circle((x, y), r) for x, y, r in zip(shown[gate_x], shown[gate_y], shown[radius_column]) if np.isfinite(r)]
-        ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:orange", lw=0.6, alpha=0.6))
+        radius = shown[radius_column].to_numpy(float)
+        floor = MIN_CIRCLE_FRACTION * extent
+        for enlarged, style in ((False, "solid"), (True, "dashed")):
+            keep = np.isfinite(radius) & ((radius < floor) == enlarged)
+            circles = [Circle((x, y), max(r, floor)) for x, y, r in zip(shown[gate_x][keep], shown[gate_y][keep], radius[keep])]
+            ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:orange", lw=0.6, alpha=0.6, linestyle=style))
+        _zoom_inset(ax, shown, radius, floor)
     for _, row in shown.iterrows():
         ax.plot([row[true_x], row[gate_x]], [row[true_y], row[gate_y]], color="0.5", lw=0.5)
     ax.scatter(shown[true_x], shown[true_y], marker="x", color="tab:green", s=25, label="true source", zorder=3)
     ax.scatter(shown[gate_x], shown[gate_y], marker=".", color="tab:orange", s=30, label="estimate (gate)", zorder=3)
-    mics = site.mic_positions_m
     ax.scatter(mics[:, 0], mics[:, 1], marker="^", color="k", s=60, label="microphones", zorder=4)
     # Frame the array and the true sources; wild estimates would shrink everything else to a dot.
     xs = np.concatenate([mics[:, 0], shown[true_x]])
@@ -129,6 +143,27 @@ def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column:
         title += f"; circles: {scorer} conformal, {float(level):.0%}"
     ax.set_title(title, fontsize=9)
     ax.legend(loc="upper right", fontsize=7)
+
+
+def _zoom_inset(ax: plt.Axes, shown: pd.DataFrame, radius: np.ndarray, floor: float) -> None:
+    """Where the circles are smaller than ``floor`` (drawn enlarged, dashed), an inset at true scale around a typical one."""
+    finite = np.flatnonzero(np.isfinite(radius))
+    if finite.size == 0 or np.median(radius[finite]) >= floor:
+        return
+    k = finite[np.argsort(radius[finite])[finite.size // 2]]  # the event with the median radius
+    (true_x, true_y), (gate_x, gate_y) = col.estimate_xy("true"), col.estimate_xy("gate")
+    row = shown.iloc[k]
+    half = 2.5 * max(radius[k], abs(row[true_x] - row[gate_x]), abs(row[true_y] - row[gate_y]), 1e-3)
+    inset = ax.inset_axes([0.02, 0.02, 0.32, 0.32])
+    inset.add_patch(Circle((row[gate_x], row[gate_y]), radius[k], facecolor="none", edgecolor="tab:orange", lw=1.0))
+    inset.scatter([row[true_x]], [row[true_y]], marker="x", color="tab:green", s=25, zorder=3)
+    inset.scatter([row[gate_x]], [row[gate_y]], marker=".", color="tab:orange", s=30, zorder=3)
+    inset.set_xlim(row[gate_x] - half, row[gate_x] + half)
+    inset.set_ylim(row[gate_y] - half, row[gate_y] + half)
+    inset.set_aspect("equal")
+    inset.set_xticks([])
+    inset.set_yticks([])
+    inset.set_title(f"true scale: event {int(row['event_id'])}, r = {radius[k]:.2g} m, box {2 * half:.2g} m", fontsize=6)
 
 
 def _save(fig: plt.Figure, path: Path) -> Path:
@@ -207,7 +242,7 @@ def write_positions_map(table: pd.DataFrame, site: Site, levels: list[float], sc
     if scorer is not None and levels:
         level = min(levels, key=lambda lv: abs(lv - 0.8))
         radius = placed[f"radius_{scorer}_{col.level_key(level)}_m"].to_numpy(float)
-        shown = np.maximum(radius, 0.015 * extent)
+        shown = np.maximum(radius, MIN_CIRCLE_FRACTION * extent)
         circles = [Circle((x, y), r) for x, y, r in zip(placed["x_m"], placed["y_m"], shown) if np.isfinite(r)]
         ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:orange", lw=0.8, alpha=0.7))
         title += f"; circles: {scorer} conformal, {level:.0%}"

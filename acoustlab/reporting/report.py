@@ -114,16 +114,40 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
             predictions = predictions[predictions["in_summary"].to_numpy(bool)]
         for method in r.metrics["errors"]:  # solver, model, gate, oracle (newer runs) and any extra gates
             stats = r.metrics["errors"][method]
-            row = {"run": r.label, "method": method, **{k: stats[k] for k in ("n", "mean", "p50", "p90", "p95", "p99")}}
+            row = {"run": r.label, "method": method, "n (detections)": stats["n"],
+                   **{f"{k} (m)": stats[k] for k in ("mean", "p50", "p90", "p95", "p99")}}
             ci = r.metrics.get("ci95", {}).get("errors", {}).get(method, {})
             for q in ("p95", "p99"):
                 if q in ci:
-                    row[f"{q} 95 % CI"] = f"{ci[q][0]:.3g}–{ci[q][1]:.3g}"
+                    row[f"{q} 95 % CI (m)"] = f"{ci[q][0]:.3g}–{ci[q][1]:.3g}"
             if predictions is not None:
                 e = predictions[col.error_m(method)].to_numpy(float)
-                row[f"> {GROSS_ERROR_M:g} m"] = share_gross(e)
+                row[f"> {GROSS_ERROR_M:g} m (%)"] = 100 * share_gross(e)
             rows.append(row)
     return pd.DataFrame(rows)
+
+
+def default_title(runs: list[RunResult]) -> str:
+    """A heading saying what was compared: the site(s) and the options that vary, e.g. ``forest: model = xgboost, knn``."""
+    sites = ", ".join(dict.fromkeys(str(r.metrics.get("site", "")) for r in runs))
+    keys = [k for k in dict.fromkeys(k for r in runs for k in r.overrides) if k != "site" and len({r.overrides.get(k) for r in runs}) > 1]
+    varying = "; ".join(f"{k} = {', '.join(dict.fromkeys(str(r.overrides.get(k, '—')) for r in runs))}" for k in keys)
+    return f"acoustlab: {sites}" + (f" — {varying}" if varying else f" — {len(runs)} run(s)")
+
+
+def conclusion(runs: list[RunResult]) -> str:
+    """One line: which run's gated estimate has the smallest p95 error, its gross-error share, and the spread across runs."""
+    p95 = [(r.metrics["errors"]["gate"]["p95"], r) for r in runs if "gate" in r.metrics.get("errors", {})]
+    if not p95:
+        return "No run has gated errors to compare."
+    best_value, best = min(p95, key=lambda t: t[0])
+    gross = best.metrics["errors"]["gate"].get("share_gt_5m")
+    gross_text = f", {100 * gross:.1f} % of detections > {GROSS_ERROR_M:g} m" if gross is not None else ""
+    if len(p95) == 1:
+        return f"The gated estimate's 95th-percentile error is {best_value:.3g} m{gross_text} ({best.label})."
+    worst_value, worst = max(p95, key=lambda t: t[0])
+    return (f"Smallest gated p95 error: {best.label} ({best_value:.3g} m{gross_text}); largest: {worst.label} ({worst_value:.3g} m); "
+            f"see the relative table for paired 95 % intervals before calling a difference real.")
 
 
 def paired_ratio_ci(first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: int = 1000, seed: int = 0) -> tuple[float, float] | None:
@@ -183,11 +207,11 @@ def coverage_rows(runs: list[RunResult]) -> pd.DataFrame:
         for scorer, by_level in r.metrics["coverage"].items():
             row = {"run": r.label, "scorer": scorer}
             for level, value in by_level.items():
-                row[f"coverage@{level}"] = value
+                row[f"coverage@{level} (share)"] = value
             for level in by_level:
                 row[f"median radius@{level} (m)"] = r.metrics["interval_width"][scorer][level]["median_m"]
             for level, stats in r.metrics.get("coverage_by_position", {}).get(scorer, {}).items():
-                row[f"worst position@{level}"] = stats["min"]
+                row[f"worst position@{level} (share)"] = stats["min"]
             rows.append(row)
     return pd.DataFrame(rows)
 
@@ -200,12 +224,12 @@ def uncertainty_rows(runs: list[RunResult]) -> pd.DataFrame:
         rho = m.get("spearman_rho", {})
         rows.append({
             "run": r.label,
-            "ρ error model": rho.get("error_model"),
-            "ρ GDOP": rho.get("gdop"),
-            "substitution rate": m.get("substitution_rate"),
+            "ρ error model (Spearman)": rho.get("error_model"),
+            "ρ GDOP (Spearman)": rho.get("gdop"),
+            "substitution rate (%)": None if m.get("substitution_rate") is None else 100 * m["substitution_rate"],
             "τ* (dB)": m.get("tau_star_db"),
             "CRB p50 (m)": m.get("crb_m", {}).get("p50"),
-            "features": m.get("n_features"),
+            "features (columns)": m.get("n_features"),
             "models time (s)": m.get("timings_s", {}).get("models_s"),
         })
     return pd.DataFrame(rows)
@@ -268,7 +292,7 @@ def _img_tag(path: Path, alt: str) -> str:
     return f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(alt)}"><figcaption>{html.escape(alt)}</figcaption></figure>'
 
 
-def write_report(runs: list[RunResult], out_dir: Path, title: str = "acoustlab report") -> Path:
+def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None) -> Path:
     """Write ``report.md`` (with images beside it) and a self-contained ``report.html``.
 
     Parameters
@@ -277,8 +301,8 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str = "acoustlab r
         The runs (from :func:`collect_runs`); must not be empty.
     out_dir : pathlib.Path
         Output directory (created).
-    title : str
-        The report's heading.
+    title : str, optional
+        The report's heading (default: the site(s) and the options that vary, :func:`default_title`).
 
     Returns
     -------
@@ -301,15 +325,19 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str = "acoustlab r
             copied.append(target)
         per_run.append((r.label, copied))
 
-    md = [f"# {title}", "", f"{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
-          f"gross = error above {GROSS_ERROR_M:g} m.", ""]
-    page = [f"<h1>{html.escape(title)}</h1>", f"<p>{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
-            f"gross = error above {GROSS_ERROR_M:g} m.</p>"]
+    title = title or default_title(runs)
+    summary = conclusion(runs)
+    md = [f"# {title}", "", f"**{summary}**", "", f"{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
+          f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.", ""]
+    page = [f"<h1>{html.escape(title)}</h1>", f"<p><strong>{html.escape(summary)}</strong></p>",
+            f"<p>{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
+            f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.</p>"]
     for heading, table in tables:
         if table.empty:
             continue
+        table = table.astype(object).where(table.notna(), "—")  # τ* of a run without the hybrid gate is not "nan"
         md += [f"## {heading}", "", table.to_markdown(index=False, floatfmt=".3g"), ""]
-        page += [f"<h2>{html.escape(heading)}</h2>", table.to_html(index=False, float_format=lambda v: f"{v:.3g}", na_rep="—")]
+        page += [f"<h2>{html.escape(heading)}</h2>", table.to_html(index=False, float_format=lambda v: f"{v:.3g}")]
     md += ["## Plots", ""]
     page += ["<h2>Plots</h2>"]
     for p in comparison:
@@ -350,7 +378,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"acoustlab.report: error: no finished runs (metrics.json with results) under {', '.join(map(str, args.paths))}", file=sys.stderr)
         return 2
     out = args.out or args.paths[0] / "report"
-    path = write_report(runs, out, title=args.title or f"acoustlab report: {', '.join(map(str, args.paths))}")
+    path = write_report(runs, out, title=args.title)
     print(path)
     print(path.with_suffix(".html"))
     return 0

@@ -182,7 +182,8 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
     return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source)
 
 
-def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None) -> dict:
+def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None,
+                   run_name: str | None = None) -> dict:
     """Run one job: build plugins, get the (cached) dataset, run the protocol, write and log results.
 
     Parameters
@@ -195,6 +196,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         The chosen option of each config group (Hydra's runtime choices).
     parent_run_id : str, optional
         The sweep's parent run in the tracker (set by :class:`acoustlab.run.sweep.SweepTrackingCallback`).
+    run_name : str, optional
+        The run's name in the tracker (the CLI names it by the overrides that vary; default ``<site>-<model>``).
 
     Returns
     -------
@@ -232,7 +235,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
 
     if not getattr(protocol, "evaluates", True):
         return _write_localization(cfg, run_dir, predictions, result, components, site, dataset, field_data, choices, timings, started,
-                                   tracker, parent_run_id)
+                                   tracker, parent_run_id, run_name)
     summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
     if not summary_rows.any():  # e.g. every field event flagged: nothing to summarise, but the predictions say why
         atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
@@ -254,6 +257,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     metrics["choices"] = choices
     metrics["n_features"] = int(len(dataset.features.columns))
     metrics["code_version"] = code_version()
+    if run_name:
+        metrics["run_name"] = run_name
 
     # Results land in the run dir first (metrics before any optional artefact), so neither a tracker
     # nor a plotting failure loses them; the pending marker stays until the tracker has them.
@@ -306,7 +311,7 @@ def optional_artefact(what: str, write: Any) -> None:
 
 def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFrame, result: Any, components: Components, site: Any,
                         dataset: Any, field_data: Any, choices: dict[str, str], timings: dict[str, float], started: float,
-                        tracker: Any, parent_run_id: str | None) -> dict:
+                        tracker: Any, parent_run_id: str | None, run_name: str | None = None) -> dict:
     """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
     table = positions_table(predictions, components.levels, list(components.scorers))
     atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
@@ -317,6 +322,8 @@ def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFram
     metrics.update(split_diagnostics_summary(result.split_diagnostics))
     metrics.update({"dataset_hash": dataset.dataset_hash, "field_dataset_hash": field_data.dataset_hash, "site": site.name,
                     "choices": choices, "n_features": int(len(dataset.features.columns)), "code_version": code_version()})
+    if run_name:
+        metrics["run_name"] = run_name
     write_results(run_dir, cfg, predictions, metrics)
     stage_start = time.perf_counter()
     if bool(cfg.get("plots", True)):

@@ -160,7 +160,7 @@ class SweepTrackingCallback(Callback):
             if runs:
                 tables["tables/sweep_errors.json"] = error_rows(runs)
                 if self.report:
-                    report_dir = write_report(runs, sweep_dir / "report", title=f"Sweep {sweep_dir}").parent
+                    report_dir = write_report(runs, sweep_dir / "report").parent
         except Exception as exc:  # noqa: BLE001 - the runs themselves are already written
             log.warning("could not write the sweep report (%s: %s); run python -m acoustlab.report %s", type(exc).__name__, exc, sweep_dir)
         if run_id is None:

@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from joblib import Parallel, delayed
-from tqdm.auto import tqdm
 
 from acoustlab.core.contracts import FeatureSet, Simulator
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.progress import progress
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.stages.cache import (
     MANIFEST,
@@ -185,13 +185,13 @@ def _render_simulation(site: Site, simulator: Simulator, plan: SimulationPlan, c
         log.info("resuming simulation: %d of %d chunks already rendered", len(mine) - len(todo), len(mine))
     desc = f"simulate {site.name}" + (f" shard {plan.shard_index + 1}/{plan.shard_count}" if plan.shard_count > 1 else "")
     if plan.n_jobs == 1 or len(todo) <= 1:
-        for start, stop in tqdm(todo, desc=desc, unit="chunk", disable=None):
+        for start, stop in progress(todo, desc=desc, unit="chunk"):
             _render_chunk(site, simulator, plan, start, stop, work)
     else:
         jobs = Parallel(n_jobs=plan.n_jobs, return_as="generator_unordered")(
             delayed(_render_chunk)(site, simulator, plan, start, stop, work) for start, stop in todo
         )
-        for _ in tqdm(jobs, total=len(todo), desc=desc, unit="chunk", disable=None):
+        for _ in progress(jobs, total=len(todo), desc=desc, unit="chunk"):
             pass
     if plan.shard_count > 1:
         log.info("shard %d of %d rendered into %s", plan.shard_index + 1, plan.shard_count, work)
@@ -286,7 +286,7 @@ def _features_to_cache(sim_dir: Path, site: Site, feature_sets: dict[str, Featur
     jobs = Parallel(n_jobs=n_jobs, return_as="generator")(
         delayed(_chunk_features)(sim_dir, name, float(manifest["sample_rate_hz"]), site, feature_sets) for name in names
     )
-    results = list(tqdm(jobs, total=len(names), desc="features", unit="chunk", disable=None))
+    results = list(progress(jobs, total=len(names), desc="features", unit="chunk"))
     return _store_tables(cache, "features", key, pd.concat([r[0] for r in results], ignore_index=True),
                          pd.concat([r[1] for r in results], ignore_index=True), manifest["dataset_hash"])
 

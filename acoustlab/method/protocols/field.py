@@ -12,9 +12,9 @@ import logging
 
 import numpy as np
 import pandas as pd
-from tqdm.auto import tqdm
 
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.progress import progress
 from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
 from acoustlab.method.splits import cap_rows
 from acoustlab.stages.dataset import Dataset
@@ -131,7 +131,7 @@ class LopoProtocol:
         features, events, sim_rows, field_rows = combine(dataset, field_recordings)
         pooled = []
         n_positions = np.unique(events["position_id"].to_numpy()[field_rows]).size
-        for pos, train, test in tqdm(self.splits(events, sim_rows, field_rows), total=n_positions, desc="LOPO", unit="position", disable=None):
+        for pos, train, test in progress(self.splits(events, sim_rows, field_rows), total=n_positions, desc="LOPO", unit="position"):
             log.info("LOPO: withholding field position %d (%d test, %d training rows)", pos - FIELD_POSITION_OFFSET, test.size, train.size)
             result = pipeline.fit_predict(features, events, train, test)
             withheld = int(pos - FIELD_POSITION_OFFSET)
