@@ -381,3 +381,16 @@ def test_a_plotting_failure_never_loses_the_metrics(compose_cfg, tmp_path, monke
     assert on_disk["errors"] == metrics["errors"] and (tmp_path / "run" / "predictions.parquet").exists()
     assert any("plots not written" in r.message for r in caplog.records)
     assert not (tmp_path / "run" / "TRACKING_PENDING.json").exists()  # logged (to the null tracker): marker removed
+
+
+def test_projected_mic_coordinates_that_disagree_with_the_local_ones_are_named(tmp_path):
+    mics, _ = lake_folder(tmp_path)
+    mics.assign(easting_m=mics["x_m"] + 500000.0, northing_m=mics["y_m"] + [0.0, 0.0, 3.0], crs="EPSG:32617").to_csv(
+        tmp_path / "mics.csv", index=False)
+    with pytest.raises(DataError, match=r"mics.csv, line \d: x_m, y_m and easting_m, northing_m disagree by"):
+        folder(tmp_path).projection()
+    mics.assign(easting_m=mics["x_m"] + 500000.0, northing_m=mics["y_m"] + 4100000.0).to_csv(tmp_path / "mics.csv", index=False)
+    rotation, translation, crs = folder(tmp_path).projection()
+    np.testing.assert_allclose(rotation, np.eye(2), atol=1e-9)
+    np.testing.assert_allclose(translation, [500000.0, 4100000.0], atol=1e-6)
+    assert crs == ""

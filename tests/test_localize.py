@@ -39,32 +39,63 @@ def test_localize_the_shipped_loca_example(compose_cfg, tmp_path):
     assert json.loads((run_dir / "metrics.json").read_text())["localization"]["n_detections"] == 1
 
 
-def test_localize_a_folder_of_recordings_without_truth(compose_cfg, tmp_path):
-    """Simulated frozen-lake events written as files with a mics and an events table but no positions: every detection
-    gets a row, and (the truth being known here) the positions are where the sources were."""
+def simulated_folder(compose_cfg, folder, n_events, known=0, rotation_deg=None):
+    """Simulated frozen-lake events written as one WAV per event with a mics and an events table; the first ``known``
+    events carry their true position (calibration playbacks). With ``rotation_deg`` the mics table also has projected
+    coordinates (the local frame rotated and shifted into UTM-like numbers)."""
     from acoustlab.run.registry import build
     from acoustlab.stages.sites import site_from_config
 
     cfg = compose_cfg(["+site=frozen_lake", "simulator=free_field"])
     site = site_from_config(cfg.site)
-    sim = build(cfg.simulator, "simulator")
-    ids = np.arange(1000, 1008)
-    batch = sim.simulate(site, ids, ids, 7)
-    folder = tmp_path / "recordings"
+    ids = np.arange(1000, 1000 + n_events)
+    batch = build(cfg.simulator, "simulator").simulate(site, ids, ids, 7)
     folder.mkdir()
     rows = []
     for k, audio in enumerate(batch.audio):
         sf.write(folder / f"event_{k}.wav", audio.T, int(batch.sample_rate_hz))
-        rows.append({"event_id": k, "start_s": 0.0, "end_s": audio.shape[-1] / batch.sample_rate_hz, "file": f"event_{k}.wav",
-                     "temperature_c": batch.events["temperature_c"].iloc[k], "relative_humidity_pct": batch.events["relative_humidity_pct"].iloc[k]})
+        row = {"event_id": k, "start_s": 0.0, "end_s": audio.shape[-1] / batch.sample_rate_hz, "file": f"event_{k}.wav",
+               "temperature_c": batch.events["temperature_c"].iloc[k], "relative_humidity_pct": batch.events["relative_humidity_pct"].iloc[k],
+               "position_id": k}
+        if k < known:
+            row.update(x_m=batch.events["x_m"].iloc[k], y_m=batch.events["y_m"].iloc[k])
+        rows.append(row)
     pd.DataFrame(rows).to_csv(folder / "events.csv", index=False)
-    pd.DataFrame({"mic_id": range(site.n_mics), "x_m": site.mic_positions_m[:, 0], "y_m": site.mic_positions_m[:, 1],
-                  "z_m": site.mic_positions_m[:, 2]}).to_csv(folder / "mics.csv", index=False)
-    table, _, _ = localize(compose_cfg, tmp_path, "+site=frozen_lake", "simulator=free_field", f"field.audio_dir={folder}",
-                           f"field.mics_csv={folder / 'mics.csv'}", f"field.events_csv={folder / 'events.csv'}",
-                           f"field.sample_rate_hz={batch.sample_rate_hz}")
+    mics = pd.DataFrame({"mic_id": range(site.n_mics), "x_m": site.mic_positions_m[:, 0], "y_m": site.mic_positions_m[:, 1],
+                         "z_m": site.mic_positions_m[:, 2]})
+    if rotation_deg is not None:
+        a = np.deg2rad(rotation_deg)
+        rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        projected = site.mic_positions_m[:, :2] @ rotation.T + [500000.0, 4100000.0]
+        mics = mics.assign(easting_m=projected[:, 0], northing_m=projected[:, 1], crs="EPSG:32617")
+    mics.to_csv(folder / "mics.csv", index=False)
+    overrides = ["+site=frozen_lake", "simulator=free_field", f"field.audio_dir={folder}", f"field.mics_csv={folder / 'mics.csv'}",
+                 f"field.events_csv={folder / 'events.csv'}", f"field.sample_rate_hz={batch.sample_rate_hz}"]
+    return batch, overrides
+
+
+def test_localize_a_folder_of_recordings_without_truth(compose_cfg, tmp_path):
+    """Simulated frozen-lake events written as files with a mics and an events table but no positions: every detection
+    gets a row, and (the truth being known here) the positions are where the sources were."""
+    batch, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 8)
+    table, _, _ = localize(compose_cfg, tmp_path, *overrides)
     assert len(table) == 8 and table["event_id"].tolist() == list(range(8))
     check_radii(table)
     placed = table["placed"].to_numpy(bool)
     err = np.hypot(table["x_m"] - batch.events["x_m"].to_numpy(), table["y_m"] - batch.events["y_m"].to_numpy())[placed]
     assert placed.mean() >= 0.75 and np.median(err) < 2.0
+
+
+def test_calibration_playbacks_join_training_and_positions_are_projected(compose_cfg, tmp_path):
+    """Events with known positions (calibration playbacks) are added to the training rows, not localized; the others are
+    placed and also written in the mics table's projected coordinates."""
+    batch, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 10, known=4, rotation_deg=30.0)
+    table, metrics, _ = localize(compose_cfg, tmp_path, *overrides)
+    assert table["event_id"].tolist() == [4, 5, 6, 7, 8, 9]
+    assert metrics["training"]["n_calibration_playbacks"] == 4 and metrics["training"]["n_simulated"] > 0
+    a = np.deg2rad(30.0)
+    expected_e = table["x_m"] * np.cos(a) - table["y_m"] * np.sin(a) + 500000.0
+    expected_n = table["x_m"] * np.sin(a) + table["y_m"] * np.cos(a) + 4100000.0
+    np.testing.assert_allclose(table["easting_m"], expected_e, atol=1e-6)
+    np.testing.assert_allclose(table["northing_m"], expected_n, atol=1e-6)
+    assert (table["crs"] == "EPSG:32617").all()

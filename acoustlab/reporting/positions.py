@@ -10,7 +10,7 @@ import pandas as pd
 from acoustlab.core import columns as col
 
 #: Columns of a detection's own record carried into the table when present.
-DETECTION_FIELDS = ("event_id", "file", "start_s", "end_s", "label")
+DETECTION_FIELDS = ("event_id", "file", "start_s", "end_s", "label", "quality_flags", "hardware_failure")
 
 
 def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> pd.DataFrame:

@@ -235,7 +235,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
 
     if not getattr(protocol, "evaluates", True):
         return _write_localization(cfg, run_dir, predictions, result, components, site, dataset, field_data, choices, timings, started,
-                                   tracker, parent_run_id, run_name)
+                                   tracker, parent_run_id, run_name, built.field_source)
     summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
     if not summary_rows.any():  # e.g. every field event flagged: nothing to summarise, but the predictions say why
         atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
@@ -311,12 +311,23 @@ def optional_artefact(what: str, write: Any) -> None:
 
 def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFrame, result: Any, components: Components, site: Any,
                         dataset: Any, field_data: Any, choices: dict[str, str], timings: dict[str, float], started: float,
-                        tracker: Any, parent_run_id: str | None, run_name: str | None = None) -> dict:
+                        tracker: Any, parent_run_id: str | None, run_name: str | None = None, field_source: Any = None) -> dict:
     """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
     table = positions_table(predictions, components.levels, list(components.scorers))
+    projection = field_source.projection() if hasattr(field_source, "projection") else None
+    if projection is not None:  # also in the mics table's projected coordinates
+        rotation, translation, crs = projection
+        projected = table[["x_m", "y_m"]].to_numpy(float) @ rotation.T + translation
+        at = table.columns.get_loc("y_m") + 1
+        table.insert(at, "easting_m", projected[:, 0])
+        table.insert(at + 1, "northing_m", projected[:, 1])
+        table.insert(at + 2, "crs", crs)
     atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
     atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
     metrics: dict[str, Any] = {"localization": localization_summary(table, components.levels, list(components.scorers))}
+    for split in result.split_diagnostics:
+        if "training" in split:  # simulated events and calibration playbacks the method was fitted on
+            metrics["training"] = split["training"]
     if "quality_flags" in predictions:
         metrics["quality_flags"] = quality_flag_counts(predictions)
     metrics.update(split_diagnostics_summary(result.split_diagnostics))

@@ -315,6 +315,42 @@ class RecordingFolder:
                             f"split the events table (at most {MAX_AUDIO_BYTES / 2**30:.0f} GiB at once)")
         return mics, events
 
+    def projection(self) -> tuple[np.ndarray, np.ndarray, str] | None:
+        """The rigid map from the site's local frame to the mics table's projected coordinates, or None without them.
+
+        A mics table may carry ``easting_m, northing_m`` (and a ``crs`` such as ``EPSG:32617``)
+        beside the local ``x_m, y_m``; positions are then also written in those coordinates. The
+        map is the least-squares rotation and translation (no scaling, no reflection: both frames
+        are in metres) from local to projected.
+
+        Returns
+        -------
+        (rotation, translation, crs) or None
+            ``projected = local @ rotation.T + translation`` (2×2, 2 values), and the CRS text.
+
+        Raises
+        ------
+        DataError
+            When the two sets of mic coordinates do not agree within 0.5 m after the best fit.
+        """
+        mics, _ = self.tables()
+        if not {"easting_m", "northing_m"} <= set(mics.columns):
+            return None
+        _numeric(mics, "mics_csv", ("easting_m", "northing_m"))
+        local = mics[["x_m", "y_m"]].to_numpy(float)
+        projected = mics[["easting_m", "northing_m"]].to_numpy(float)
+        lc, pc = local.mean(axis=0), projected.mean(axis=0)
+        u, _, vt = np.linalg.svd((projected - pc).T @ (local - lc))
+        rotation = u @ np.diag([1.0, np.sign(np.linalg.det(u @ vt))]) @ vt  # Kabsch, a proper rotation
+        translation = pc - lc @ rotation.T
+        residual = np.linalg.norm(local @ rotation.T + translation - projected, axis=1)
+        if residual.max() > 0.5:
+            worst = int(residual.argmax())
+            raise DataError(f"field.mics_csv: {mics.attrs.get('path')}, line {worst + 2}: x_m, y_m and easting_m, northing_m disagree "
+                            f"by {residual[worst]:.2f} m after the best rotation and shift; both must describe the same mic positions in metres")
+        crs = str(mics["crs"].dropna().iloc[0]) if "crs" in mics and mics["crs"].notna().any() else ""
+        return rotation, translation, crs
+
     def input_files(self) -> list[Path]:
         """Every table and audio file these recordings are read from (the cache key hashes their contents)."""
         mics, events = self.tables()

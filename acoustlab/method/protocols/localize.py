@@ -43,21 +43,35 @@ class LocalizeProtocol:
     #: no ground truth: the app writes positions, not error metrics
     evaluates = False
 
-    def __init__(self, max_train_rows: int = 1000, seed: int = 0) -> None:
+    def __init__(self, max_train_rows: int = 1000, seed: int = 0, calibration_fraction: float = 0.2) -> None:
         if max_train_rows < 2:
             raise ConfigError(f"protocol.max_train_rows must be >= 2; got {max_train_rows}")
+        if not 0 <= calibration_fraction < 1:
+            raise ConfigError(f"protocol.calibration_fraction must be in [0, 1); got {calibration_fraction}")
         self.max_train_rows = int(max_train_rows)
         self.seed = int(seed)
+        self.calibration_fraction = float(calibration_fraction)
 
     def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
         """Positions of every field detection (error columns are NaN: there is no truth)."""
         if field_recordings is None:
             raise ConfigError("protocol=localize needs recordings: choose field=recordings (see the README, 'Localize your recordings')")
-        features, events, sim_rows, field_rows = combine(dataset, field_recordings, need_truth=False)
+        features, events, sim_rows, all_field_rows = combine(dataset, field_recordings, need_truth=False)
         groups = events["position_id"].to_numpy()
-        train = cap_rows(sim_rows, groups, self.max_train_rows, np.random.default_rng([self.seed, 1]))
-        log.info("localize: training on %d simulated events, placing %d detections", train.size, field_rows.size)
+        known = np.isfinite(events[["x_m", "y_m"]].to_numpy(float)[all_field_rows]).all(axis=1)
+        usable = known & events["quality_ok"].fillna(True).to_numpy(bool)[all_field_rows] if "quality_ok" in events else known
+        calibration_rows, field_rows = all_field_rows[usable], all_field_rows[~known]
+        if field_rows.size == 0:
+            raise ConfigError("protocol=localize: every detection has a known position (x_m, y_m), so there is nothing to localize; "
+                              "to evaluate on them use protocol=field_eval or protocol=lopo")
+        rng = np.random.default_rng([self.seed, 1])
+        n_calibration = min(calibration_rows.size, int(round(self.calibration_fraction * self.max_train_rows)))
+        calibration = cap_rows(calibration_rows, groups, n_calibration, rng) if n_calibration else np.array([], int)
+        train = np.concatenate([cap_rows(sim_rows, groups, self.max_train_rows - calibration.size, rng), calibration])
+        log.info("localize: training on %d simulated events%s, placing %d detections", train.size - calibration.size,
+                 f" and {calibration.size} calibration playbacks with known positions" if calibration.size else "", field_rows.size)
         result = pipeline.fit_predict(features, events, np.sort(train), field_rows)
+        result.split_diagnostics[0]["training"] = {"n_simulated": int(train.size - calibration.size), "n_calibration_playbacks": int(calibration.size)}
         predictions = result.predictions
         for method in col.methods_in(predictions.columns):  # no truth, no errors
             predictions[col.error_m(method)] = np.nan
@@ -67,8 +81,9 @@ class LocalizeProtocol:
             if name in features:
                 predictions[name] = features[name].to_numpy()[field_rows]
         keep = [c for c in field_recordings.events.columns if c not in predictions.columns and c not in ("x_m", "y_m", "z_m")]
+        placed_events = field_recordings.events.iloc[field_rows - sim_rows.size]
         for name in keep:  # the detection's own fields (file, start time, …)
-            predictions[name] = field_recordings.events[name].to_numpy()
+            predictions[name] = placed_events[name].to_numpy()
         if "quality_ok" in predictions:  # a clip out of its file, dead, truncated, …: no position, and why
             has_fix = predictions["placed"].to_numpy(bool) if "placed" in predictions else np.isfinite(
                 predictions[list(col.estimate_xy("gate"))].to_numpy(float)).all(1)
