@@ -22,8 +22,9 @@ WEIGHTS_HELP = (
     "TabPFN weights not found at {path}. Download them once on a machine with internet: "
     "python -c 'from tabpfn.model_loading import download_all_models; download_all_models()' "
     "(v2.5 and later need a Hugging Face licence acceptance and TABPFN_TOKEN), then point "
-    "TABPFN_MODEL_CACHE_DIR at the folder or set model.model_path=/path/to/file.ckpt. Licences: "
-    "v2 weights are Apache-2.0 with attribution; v2.5, v2.6, v3 and v3.5 are non-commercial."
+    "TABPFN_MODEL_CACHE_DIR at the folder or set model.model_path=/path/to/the/weights (.ckpt or .safetensors). Licences: "
+    "v2 weights are Apache-2.0 with attribution (choose them with model.model_version=v2 or TABPFN_MODEL_VERSION=v2); "
+    "v2.5, v2.6, v3 and v3.5 (tabpfn's default) are non-commercial."
 )
 
 
@@ -31,7 +32,7 @@ def _tabpfn():
     try:
         import tabpfn
     except ImportError:
-        raise ConfigError('model=tabpfn needs the optional dependencies: pip install -e ".[tabpfn]" (install a CPU torch first on CPU-only machines)') from None
+        raise ConfigError('model=tabpfn needs the optional dependencies: pip install -e ".[tabpfn]" (on a CPU-only machine install the CPU torch first, e.g. pip install torch --index-url https://download.pytorch.org/whl/cpu, or pip pulls a multi-GB CUDA build)') from None
     return tabpfn
 
 
