@@ -3,10 +3,12 @@
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.conformal import conformal_quantile
 from plugins.conformal.split import SplitConformal
 
@@ -148,3 +150,63 @@ def test_selective_threshold_refuses_when_nothing_can_be_certified():
     assert t == -np.inf and len(path) <= 1
     with pytest.raises(ValueError, match="delta"):
         selective_threshold(np.zeros(3), np.zeros(3, bool), 1.5, 0.1)
+
+
+def _heteroscedastic(rng, n):
+    """Errors whose spread grows with a feature the quantile model can see (GDOP alone cannot)."""
+    x = rng.uniform(0.0, 1.0, size=(n, 2))
+    error = (0.2 + 3.0 * x[:, 0]) * rng.exponential(1.0, size=n)
+    return pd.DataFrame(x, columns=["a", "b"]), error
+
+
+def test_cqr_covers_and_adapts_where_fixed_cannot():
+    from sklearn.ensemble import HistGradientBoostingRegressor
+    from xgboost import XGBRegressor
+
+    from plugins.conformal.cqr import ConformalizedQuantile
+
+    rng = np.random.default_rng(11)
+    levels = [0.5, 0.8, 0.95]
+    x_fit, e_fit = _heteroscedastic(rng, 3000)
+    x_cal, e_cal = _heteroscedastic(rng, 3000)
+    x_test, e_test = _heteroscedastic(rng, 6000)
+    predicted_cal, predicted_test = np.full(len(e_cal), np.median(e_fit)), np.full(len(e_test), np.median(e_fit))
+    gdop_cal, gdop_test = np.ones(len(e_cal)), np.ones(len(e_test))
+    fixed = SplitConformal().fit(e_cal, predicted_cal, gdop_cal, levels)
+    for model in (XGBRegressor(objective="reg:quantileerror", n_estimators=100, max_depth=3, n_jobs=1),
+                  HistGradientBoostingRegressor(loss="quantile", max_iter=100)):
+        cqr = ConformalizedQuantile(model)
+        q_all = cqr.fit_predict_quantiles(x_fit, e_fit, pd.concat([x_cal, x_test]), levels)
+        cqr.fit(e_cal, predicted_cal, gdop_cal, levels, quantiles=q_all[: len(e_cal)])
+        radii = cqr.radius(predicted_test, gdop_test, quantiles=q_all[len(e_cal):])
+        assert (np.diff(radii, axis=1) >= 0).all()
+        for k, level in enumerate(levels):
+            assert abs(np.mean(e_test <= radii[:, k]) - level) < 0.03, (type(model).__name__, level)
+        # where the spread is small, CQR's radius is smaller than the fixed one; where it is large, larger
+        quiet, loud = x_test["a"].to_numpy() < 0.2, x_test["a"].to_numpy() > 0.8
+        fixed_radius = fixed.radius(predicted_test, gdop_test)[:, 2]
+        assert np.median(radii[quiet, 2]) < 0.6 * np.median(fixed_radius[quiet])
+        assert np.median(radii[loud, 2]) > np.median(fixed_radius[loud])
+        # and the coverage within the loud region, which fixed misses, holds much better
+        assert np.mean(e_test[loud] <= radii[loud, 2]) > np.mean(e_test[loud] <= fixed_radius[loud]) + 0.05
+
+
+def test_cqr_without_quantiles_is_fixed():
+    from xgboost import XGBRegressor
+
+    from plugins.conformal.cqr import ConformalizedQuantile
+
+    rng = np.random.default_rng(2)
+    error, predicted, gdop = rng.exponential(1.0, 500), rng.uniform(0.5, 2.0, 500), rng.uniform(1, 3, 500)
+    cqr = ConformalizedQuantile(XGBRegressor(objective="reg:quantileerror")).fit(error, predicted, gdop, [0.5, 0.9])
+    fixed = SplitConformal().fit(error, predicted, gdop, [0.5, 0.9])
+    np.testing.assert_allclose(cqr.radius(predicted, gdop), fixed.radius(predicted, gdop))
+
+
+def test_cqr_rejects_a_model_without_quantiles():
+    from sklearn.linear_model import LinearRegression
+
+    from plugins.conformal.cqr import ConformalizedQuantile
+
+    with pytest.raises(ConfigError, match="not a quantile regressor"):
+        ConformalizedQuantile(LinearRegression())

@@ -226,10 +226,21 @@ class LocalizationPipeline:
             em = clone(self.c.error_model).fit(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx])
             oof_pred[held_idx] = em.predict(features.iloc[train[held_idx]][ecols])
         oof_pred = np.maximum(oof_pred, floor)
-        scorers = {
-            name: clone(s, safe=False).fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels)
-            for name, s in self.c.scorers.items()
-        }
+        scorers, test_quantiles = {}, {}
+        for name, configured in self.c.scorers.items():
+            scorer = clone(configured, safe=False)
+            if getattr(scorer, "needs_quantiles", False):  # CQR: its own quantile model, out-of-fold like the error model
+                oof_q = np.empty((train.size, len(self.c.levels)))
+                for fit_idx, held_idx in folds:
+                    fit_idx = fit_idx[finite[fit_idx]]
+                    oof_q[held_idx] = scorer.fit_predict_quantiles(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx],
+                                                                   features.iloc[train[held_idx]][ecols], self.c.levels)
+                scorers[name] = scorer.fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels,
+                                           quantiles=np.maximum(oof_q[finite], floor))
+                test_quantiles[name] = np.maximum(scorer.fit_predict_quantiles(
+                    features.iloc[train[finite]][ecols], oof_err[finite], features.iloc[test][ecols], self.c.levels), floor)
+            else:
+                scorers[name] = scorer.fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels)
 
         # Final models on all training rows.
         log.info("final point and error models on %d training rows", train.size)
@@ -286,7 +297,7 @@ class LocalizationPipeline:
             out["placed"] = has_fix & (predicted <= threshold)
             out["abstain_reason"] = np.where(~has_fix, "no estimate", np.where(out["placed"], "", "predicted error above the certified threshold"))
         for name, scorer in scorers.items():
-            radii = scorer.radius(predicted, gdop_test)
+            radii = scorer.radius(predicted, gdop_test, quantiles=test_quantiles[name]) if name in test_quantiles else scorer.radius(predicted, gdop_test)
             for k, level in enumerate(self.c.levels):
                 out[col.radius(name, level)] = radii[:, k]
         return MethodResult(out, [split_info])
