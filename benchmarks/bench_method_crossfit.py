@@ -10,7 +10,7 @@ Runs (XGBoost point model, XGBoost-quantile error model, ``tracking=none``, the 
   hybrid gate (τ* against the box-gated solver, data grid) beside it, and the oracle (the better of
   solver and model per event, which needs the truth: the bound a gate can reach);
   ``pipeline.selective.enabled=true`` (δ = 1 %, ε = 0.1) and ``conformal.ellipse=true``;
-* the frozen-lake SYNTHETIC field stand-in, leave-one-position-out (``+experiment=paper_frozen_lake``:
+* the frozen-lake SYNTHETIC field stand-in, leave-one-position-out (``+experiment=paper_frozen_lake conformal=cqr``:
   the hybrid gate as in the paper, the learned gate beside it).
 
 Failures count as infinite errors in every percentile. Writes
@@ -123,7 +123,7 @@ def main() -> None:
     runs = {
         "forest": run(["+site=forest", "+experiment=cross_fit_gates", f"protocol.n_folds={opts.n_folds}", *common, *SELECTIVE]),
         "frozen_lake": run(["+site=frozen_lake", "+experiment=cross_fit_gates", f"protocol.n_folds={opts.n_folds}", *common, *SELECTIVE]),
-        "frozen_lake_standin_lopo": run(["+site=frozen_lake", "+experiment=paper_frozen_lake", *common]),
+        "frozen_lake_standin_lopo": run(["+site=frozen_lake", "+experiment=paper_frozen_lake", "conformal=cqr", *common]),
     }
     lines = ["# The method, cross-fitted", "", f"`python benchmarks/bench_method_crossfit.py --n-events {opts.n_events} --n-folds {opts.n_folds}`. "
              "Methods: solver (consistent set), model (XGBoost), gate (the configured gate: learned on the simulations, hybrid on the "
