@@ -31,7 +31,7 @@ def check_radii(table):
 def test_localize_the_shipped_loca_example(compose_cfg, tmp_path):
     table, metrics, run_dir = localize(compose_cfg, tmp_path, "+site=loca2021", "features.gcc.band_hz=[6000,10500]", "solver.dimensions=3")
     assert len(table) == 1 and {"x_m", "y_m", "z_m", "solver_x_m", "model_x_m", "source", "predicted_error_m", "placed",
-                                "abstain_reason", "solver__failure", "solver__height_gdop"} <= set(table.columns)
+                                "abstain_reason", "gate_reason", "solver__failure", "solver__height_gdop"} <= set(table.columns)
     check_radii(table)
     assert metrics["localization"]["n_detections"] == 1
     assert "errors" not in metrics  # no truth, no error metrics

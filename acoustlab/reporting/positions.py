@@ -19,7 +19,7 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     Columns: the detection's own fields; ``x_m, y_m`` (the method's estimate; NaN where it abstains),
     ``z_m`` (the solver's height: estimated with ``solver.dimensions=3``, else assumed);
     ``solver_x_m, solver_y_m, model_x_m, model_y_m``; ``source`` (``solver`` or ``model``: which
-    estimate the gate kept); ``predicted_error_m``; ``radius_<scorer>_<level>_m`` per scorer and level;
+    estimate the gate kept) and ``gate_reason`` (why); ``predicted_error_m``; ``radius_<scorer>_<level>_m`` per scorer and level;
     ellipse columns when computed; ``placed`` and ``abstain_reason``; quality flags from the solver
     stage (``solver__failure``, ``solver__consistency``, ``solver__n_mics_used``, GDOPs, …).
     """
@@ -33,7 +33,11 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     for method in ("solver", "model"):
         for axis, name in zip(("x", "y"), col.estimate_xy(method), strict=True):
             out[f"{method}_{axis}_m"] = predictions[name]
-    out["source"] = np.where(predictions["substituted"].to_numpy(bool), "model", "solver")
+    substituted = predictions["substituted"].to_numpy(bool)
+    out["source"] = np.where(substituted, "model", "solver")
+    solver_fix = np.isfinite(predictions[list(col.estimate_xy("solver"))].to_numpy(float)).all(axis=1)
+    out["gate_reason"] = np.where(~substituted, "solver fix kept", np.where(
+        solver_fix, "the gate judged the solver's fix worse than the model's", "the solver found no fix (or one outside the plausible region)"))
     out["predicted_error_m"] = predictions["predicted_error_m"]
     for scorer in scorers:
         for level in levels:
