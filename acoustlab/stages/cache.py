@@ -206,14 +206,22 @@ class StageCache:
         """Where a finished entry lives."""
         return self.root / stage / key
 
-    def lookup(self, stage: str, key: str, log_miss: bool = True) -> Path | None:
-        """The finished entry's directory, or None on a miss; logs the hit (and the miss unless ``log_miss`` is False)."""
+    def lookup(self, stage: str, key: str, log_miss: bool = True, repair: bool = False) -> Path | None:
+        """The finished, verified entry's directory, or None on a miss; logs the hit (and the miss unless ``log_miss`` is False).
+
+        An entry that fails verification is a miss; with ``repair`` (only while holding the entry's
+        build lock, or for a shard that owns its chunks) it is also discarded, so that a job never
+        deletes an entry another job has just rebuilt.
+        """
         path = self.final_dir(stage, key)
         if self.enabled and path.is_dir():
             problem = verify_entry(path)
             if problem is None:
                 log.info("cache hit: %s %s", stage, key[:12])
                 return path
+            if not repair:
+                log.info("cache entry %s %s failed verification (%s); it is rebuilt under the build lock", stage, key[:12], problem)
+                return None
             self.discard(stage, key, problem)
         if log_miss:
             log.info("cache %s: %s %s", "miss" if self.enabled else "bypassed", stage, key[:12])
@@ -254,7 +262,7 @@ class StageCache:
         if found is not None:
             return found
         with self.building(stage, key):
-            return self.lookup(stage, key, log_miss=False) or build()
+            return self.lookup(stage, key, log_miss=False, repair=True) or build()
 
     def discard(self, stage: str, key: str, problem: str) -> None:
         """Remove a finished entry that cannot be trusted (logged with why); the next lookup misses and rebuilds it."""

@@ -170,7 +170,7 @@ def simulate_to_cache(
     key = simulation_key(site, simulator, simulator_cfg, plan)
     render = partial(_render_simulation, site, simulator, plan, cache, key)
     if plan.shard_count > 1:  # shards of a job array write disjoint chunks of one work directory: no lock
-        return cache.lookup("simulation", key) or render()
+        return cache.lookup("simulation", key, repair=True) or render()
     return cache.get_or_build("simulation", key, render)
 
 
@@ -274,7 +274,8 @@ def _get_verified_tables(cache: StageCache, stage: str, key: str, build: Callabl
     except Exception as exc:
         if not cache.enabled:
             raise
-        cache.discard(stage, key, f"{type(exc).__name__}: {exc}")
+        with cache.building(stage, key):
+            cache.discard(stage, key, f"{type(exc).__name__}: {exc}")
         found = cache.get_or_build(stage, key, build)
         return None if found is None else _read_tables(found)
 
