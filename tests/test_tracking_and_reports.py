@@ -138,7 +138,7 @@ def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     gate = errors[errors["method"] == "gate"]["p95 (m)"].tolist()
     assert gate == pytest.approx([m1["errors"]["gate"]["p95"], m2["errors"]["gate"]["p95"]])
     coverage = report.coverage_rows(runs)
-    assert set(coverage["scorer"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop"}
+    assert set(coverage["scorer"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "cqr"}
     row = coverage[coverage["scorer"] == "gdop_scaled"].iloc[-1]  # run b (runs in directory order: a, then b)
     assert row["coverage@0.8 (share)"] == pytest.approx(m2["coverage"]["gdop_scaled"]["0.8"])
     md = (tmp_path / "rep" / "report.md").read_text()
