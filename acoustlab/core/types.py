@@ -222,8 +222,8 @@ def stable_hash(obj: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def require_range(name: str, value: Any, *, lower: float | None = None) -> tuple[float, float]:
-    """Validate a (low, high) range from a config and return it as floats."""
+def require_range(name: str, value: Any, *, lower: float | None = None, upper: float | None = None) -> tuple[float, float]:
+    """Validate a (low, high) range from a config, optionally within [lower, upper], and return it as floats."""
     try:
         low, high = (float(v) for v in value)
     except (TypeError, ValueError):
@@ -232,4 +232,6 @@ def require_range(name: str, value: Any, *, lower: float | None = None) -> tuple
         raise ConfigError(f"{name} must be a finite [low, high] pair with low <= high; got {value!r}")
     if lower is not None and low < lower:
         raise ConfigError(f"{name} must not go below {lower}; got {value!r}")
+    if upper is not None and high > upper:
+        raise ConfigError(f"{name} must not go above {upper:g}; got {value!r}")
     return low, high
