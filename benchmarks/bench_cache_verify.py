@@ -10,16 +10,13 @@ off, interleaved, median of ``repeats``. The goal: verification adds ≤ 5 % to 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
-import platform
 import statistics
 import tempfile
 import time
 from unittest import mock
 
-from common import REPO, compose_cfg, time_cli
+from common import compose_cfg, machine, time_cli, write_results
 
 from acoustlab.run.registry import build, build_feature_sets, to_plain
 from acoustlab.stages import cache as cache_module
@@ -61,8 +58,7 @@ def main() -> None:
     verify_s = statistics.median(on) - statistics.median(off)
     result = {
         "site": opts.site,
-        "python": platform.python_version(),
-        "cpus": os.cpu_count(),
+        **machine(),
         "cold_run_s": round(cold, 2),
         "warm_run_s": round(warm, 2),
         "warm_data_stage_verified_s": round(statistics.median(on), 4),
@@ -71,9 +67,6 @@ def main() -> None:
         "verification_share_of_warm_run": round(verify_s / warm, 4),
         "goal_share": 0.05,
     }
-    out = REPO / "benchmarks" / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"cache_verify_{opts.site}.json").write_text(json.dumps(result, indent=2))
     lines = [
         f"# Cost of cache verification on a warm run, site {opts.site}",
         "",
@@ -88,7 +81,7 @@ def main() -> None:
         f"| warm data stage, verification off | {result['warm_data_stage_unverified_s']:.3f} |",
         f"| verification | {verify_s:.3f} ({100 * verify_s / warm:.1f} % of the warm run; goal ≤ 5 %) |",
     ]
-    (out / f"cache_verify_{opts.site}.md").write_text("\n".join(lines) + "\n")
+    write_results(f"cache_verify_{opts.site}", result, lines)
     log.info("\n".join(lines))
 
 

@@ -9,7 +9,6 @@ report the ``quality_flags`` of its events. Not a speed benchmark: a record of b
 
 from __future__ import annotations
 
-import json
 import logging
 import subprocess
 import sys
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import soundfile as sf
-from common import REPO
+from common import REPO, machine, write_results
 
 from acoustlab.stages.sites import site_from_config
 
@@ -82,8 +81,9 @@ def main() -> None:
             (root / table).write_text(original)
             rows.append({"case": name, "kind": "table", "exit": code, "user_sees": line.replace(str(tmp), "<tmp>")})
 
-        from plugins.fields.recordings import RecordingFolder
         from common import compose_cfg
+
+        from plugins.fields.recordings import RecordingFolder
 
         site_obj = site_from_config(compose_cfg(site).site)
         damaged = {
@@ -108,12 +108,9 @@ def main() -> None:
         batch = RecordingFolder(str(root), str(root / "mics.csv"), str(root / "events.csv"), sample_rate_hz=RATE).load(site_obj)
         for k, name in ((1, "event past the end of its file"), (2, "event entirely before its file")):
             rows.append({"case": name, "kind": "samples", "exit": 0, "user_sees": f"quality_flags = {batch.events['quality_flags'].iloc[k]!r}"})
-    out = REPO / "benchmarks" / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "hardening_cases.json").write_text(json.dumps(rows, indent=2))
     lines = ["# Bad inputs: what a user sees", "", "`python benchmarks/hardening_cases.py`", "", "| case | exit | what the user sees |", "|---|---|---|"]
     lines += [f"| {r['case']} | {r['exit']} | {r['user_sees'].replace('|', '/')} |" for r in rows]
-    (out / "hardening_cases.md").write_text("\n".join(lines) + "\n")
+    write_results("hardening_cases", {"machine": machine(), "cases": rows}, lines)
     log.info("\n".join(lines))
 
 

@@ -93,14 +93,20 @@ def test_a_wrong_type_is_one_line_before_hydra_and_still_fails_when_composing(co
 BAD_CELLS = st.sampled_from(["abc", "", "nan", "inf", "-inf", "1e400", "1,5", "--3", "None", "é"])
 
 
+def folder_with_bad_cell(root, table: str, column: str, row: int, value: str):
+    """A generated recordings folder whose ``table`` (``mics`` or ``events``) holds ``value`` at (row, column)."""
+    mics, events = lake_folder(root)
+    frame = {"mics": mics, "events": events}[table]
+    frame[column] = frame[column].astype(object)
+    frame.loc[row, column] = value
+    frame.to_csv(root / f"{table}.csv", index=False)
+
+
 @FUZZ
 @given(column=st.sampled_from(["event_id", "start_s", "end_s"]), value=BAD_CELLS, row=st.integers(0, 2))
 def test_events_table_cells_that_are_not_finite_numbers_are_named(tmp_path_factory, column, value, row):
     root = tmp_path_factory.mktemp("fuzz")
-    _, events = lake_folder(root)
-    events[column] = events[column].astype(object)
-    events.loc[row, column] = value
-    events.to_csv(root / "events.csv", index=False)
+    folder_with_bad_cell(root, "events", column, row, value)
     with pytest.raises(DataError) as info:
         folder(root).validate()
     message = str(info.value)
@@ -112,10 +118,7 @@ def test_events_table_cells_that_are_not_finite_numbers_are_named(tmp_path_facto
 @given(column=st.sampled_from(["x_m", "y_m", "z_m"]), value=BAD_CELLS, row=st.integers(0, 2))
 def test_mics_table_coordinates_that_are_not_numbers_are_named(tmp_path_factory, column, value, row):
     root = tmp_path_factory.mktemp("fuzz")
-    mics, _ = lake_folder(root)
-    mics[column] = mics[column].astype(object)
-    mics.loc[row, column] = value
-    mics.to_csv(root / "mics.csv", index=False)
+    folder_with_bad_cell(root, "mics", column, row, value)
     with pytest.raises(DataError, match=rf"mics.csv, line {row + 2}, column '{column}'"):
         folder(root).validate()
 

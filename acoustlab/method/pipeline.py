@@ -219,22 +219,25 @@ class LocalizationPipeline:
         # the error model's predictions are floored at the 5th percentile of the calibration errors, so
         # a fix it wrongly trusts still gets a meaningful radius (never 10⁻⁹ m times a quantile)
         floor = max(float(np.percentile(oof_err[finite], 5)) if finite.any() else 0.0, 1e-9)
-        oof_pred = np.empty(train.size)
+        x_error = features.iloc[train][ecols]
+
+        def out_of_fold(fit_predict: Any, shape: tuple[int, ...] = (), desc: str | None = None) -> np.ndarray:
+            """(train, *shape) predictions of ``fit_predict(x_fit, error_fit, x_held)`` over the calibration folds (finite errors only)."""
+            out = np.empty((train.size, *shape))
+            for fit_idx, held_idx in (progress(folds, desc=desc, unit="fold", leave=False) if desc else folds):
+                fit_idx = fit_idx[finite[fit_idx]]
+                out[held_idx] = fit_predict(x_error.iloc[fit_idx], oof_err[fit_idx], x_error.iloc[held_idx])
+            return out
+
         log.info("error model, out-of-fold (%d folds)", len(folds))
-        for fit_idx, held_idx in progress(folds, desc="error model, out-of-fold", unit="fold", leave=False):
-            fit_idx = fit_idx[finite[fit_idx]]
-            em = clone(self.c.error_model).fit(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx])
-            oof_pred[held_idx] = em.predict(features.iloc[train[held_idx]][ecols])
-        oof_pred = np.maximum(oof_pred, floor)
+        oof_pred = np.maximum(out_of_fold(lambda x, y, held: clone(self.c.error_model).fit(x, y).predict(held),
+                                          desc="error model, out-of-fold"), floor)
         scorers, test_quantiles = {}, {}
         for name, configured in self.c.scorers.items():
             scorer = clone(configured, safe=False)
             if getattr(scorer, "needs_quantiles", False):  # CQR: its own quantile model, out-of-fold like the error model
-                oof_q = np.empty((train.size, len(self.c.levels)))
-                for fit_idx, held_idx in folds:
-                    fit_idx = fit_idx[finite[fit_idx]]
-                    oof_q[held_idx] = scorer.fit_predict_quantiles(features.iloc[train[fit_idx]][ecols], oof_err[fit_idx],
-                                                                   features.iloc[train[held_idx]][ecols], self.c.levels)
+                oof_q = out_of_fold(lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, self.c.levels),
+                                    shape=(len(self.c.levels),))
                 scorers[name] = scorer.fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels,
                                            quantiles=np.maximum(oof_q[finite], floor))
                 test_quantiles[name] = np.maximum(scorer.fit_predict_quantiles(

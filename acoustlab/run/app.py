@@ -6,6 +6,7 @@ import json
 import logging
 import subprocess
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -267,19 +268,13 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         rows, lines = paper_comparison(OmegaConf.to_container(cfg.paper_reference, resolve=True), metrics)
         metrics["paper_comparison"] = rows
         atomic_write_bytes(run_dir / "paper_comparison.md", ("\n".join(lines) + "\n").encode())
-    stage_start = time.perf_counter()
-    if bool(cfg.get("plots", True)):
-        def plot() -> None:
-            from acoustlab.reporting.plots import (
-                write_run_plots,  # matplotlib only when plotting
-            )
+    def plot() -> None:
+        from acoustlab.reporting.plots import (
+            write_run_plots,  # matplotlib only when plotting
+        )
 
-            write_run_plots(predictions[summary_rows], metrics, site, run_dir / "plots")
-        optional_artefact("plots", plot)
-    timings["plots_s"] = time.perf_counter() - stage_start
-    timings["total_before_tracking_s"] = time.perf_counter() - started
-    metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    optional_artefact("timings in metrics.json", lambda: atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode()))
+        write_run_plots(predictions[summary_rows], metrics, site, run_dir / "plots")
+    plot_and_time(cfg, run_dir, metrics, timings, started, "plots", plot)
     log.info("%s test detections; errors (m) and conformal coverage:\n%s", metrics["errors"]["gate"]["n"], summary_text(metrics))
     log.info("timings (s): %s", ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in metrics["timings_s"].items()))
     log.info("run directory: %s", run_dir)
@@ -301,12 +296,24 @@ def write_results(run_dir: Path, cfg: DictConfig, predictions: pd.DataFrame, met
     atomic_write_bytes(run_dir / PENDING_FILE, json.dumps({"destination": None, "error": "not yet sent to the tracker"}).encode())
 
 
-def optional_artefact(what: str, write: Any) -> None:
+def optional_artefact(what: str, write: Callable[[], Any]) -> None:
     """Write an artefact the results do not depend on (plots, …); a failure is a warning, never a lost run."""
     try:
         write()
     except Exception as exc:
         log.warning("%s not written (%s: %s); the metrics and predictions are saved", what, type(exc).__name__, exc)
+
+
+def plot_and_time(cfg: DictConfig, run_dir: Path, metrics: dict, timings: dict[str, float], started: float, what: str,
+                  plot: Callable[[], None]) -> None:
+    """After the results are safe: the optional plots (``plots=true``), then the run's timings added to metrics.json."""
+    stage_start = time.perf_counter()
+    if bool(cfg.get("plots", True)):
+        optional_artefact(what, plot)
+    timings["plots_s"] = time.perf_counter() - stage_start
+    timings["total_before_tracking_s"] = time.perf_counter() - started
+    metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    optional_artefact("timings in metrics.json", lambda: atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode()))
 
 
 def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFrame, result: Any, components: Components, site: Any,
@@ -336,17 +343,13 @@ def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFram
     if run_name:
         metrics["run_name"] = run_name
     write_results(run_dir, cfg, predictions, metrics)
-    stage_start = time.perf_counter()
-    if bool(cfg.get("plots", True)):
-        def plot() -> None:
-            from acoustlab.reporting.plots import write_positions_map
+    def plot() -> None:
+        from acoustlab.reporting.plots import (
+            write_positions_map,  # matplotlib only when plotting
+        )
 
-            write_positions_map(table, site, components.levels, list(components.scorers), run_dir / "plots")
-        optional_artefact("the positions map", plot)
-    timings["plots_s"] = time.perf_counter() - stage_start
-    timings["total_before_tracking_s"] = time.perf_counter() - started
-    metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    optional_artefact("timings in metrics.json", lambda: atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode()))
+        write_positions_map(table, site, components.levels, list(components.scorers), run_dir / "plots")
+    plot_and_time(cfg, run_dir, metrics, timings, started, "the positions map", plot)
     shown = table[["x_m", "y_m", *(["z_m"] if "z_m" in table else []), "source", "placed"]].head(20)
     log.info("positions (first %d of %d detections; all in %s):\n%s", len(shown), len(table), run_dir / "positions.csv",
              shown.to_string(float_format=lambda v: f"{v:.2f}"))

@@ -215,18 +215,24 @@ def _read_chunk_or_render(site: Site, simulator: Simulator, plan: SimulationPlan
     """A rendered chunk of the work directory; one that cannot be read (damaged after an interruption) is rendered again."""
     name = _chunk_name(start, stop)
     try:
-        return np.load(work / f"{name}.npy"), pd.read_parquet(work / f"{name}.parquet")
+        return _load_chunk(work, name)
     except Exception as exc:
         log.warning("simulation chunk %s in %s is unreadable (%s: %s); rendering it again", name, work, type(exc).__name__, exc)
         for suffix in (".npy", ".parquet"):
             (work / f"{name}{suffix}").unlink(missing_ok=True)
         _render_chunk(site, simulator, plan, start, stop, work)
-        return np.load(work / f"{name}.npy"), pd.read_parquet(work / f"{name}.parquet")
+        return _load_chunk(work, name)
+
+
+def _load_chunk(directory: Path, name: str) -> tuple[np.ndarray, pd.DataFrame]:
+    """A stored chunk: (E, M, S) audio and its event rows."""
+    return np.load(directory / f"{name}.npy"), pd.read_parquet(directory / f"{name}.parquet")
 
 
 def _chunk_features(sim_dir: Path, name: str, sample_rate_hz: float, site: Site, feature_sets: dict[str, FeatureSet]):
     """Features and events of one stored chunk (a worker's unit of work)."""
-    batch = RecordingBatch(audio=np.load(sim_dir / f"{name}.npy"), sample_rate_hz=sample_rate_hz, events=pd.read_parquet(sim_dir / f"{name}.parquet"))
+    audio, events = _load_chunk(sim_dir, name)
+    batch = RecordingBatch(audio=audio, sample_rate_hz=sample_rate_hz, events=events)
     return extract_features(batch, site, feature_sets), batch.events
 
 
@@ -282,7 +288,7 @@ def _get_verified_tables(cache: StageCache, stage: str, key: str, build: Callabl
 
 def _features_to_cache(sim_dir: Path, site: Site, feature_sets: dict[str, FeatureSet], n_jobs: int, cache: StageCache, key: str) -> Path:
     """Extract features from every stored simulation chunk (in ``n_jobs`` processes) and commit them."""
-    manifest = json.loads((sim_dir / "manifest.json").read_text())
+    manifest = json.loads((sim_dir / MANIFEST).read_text())
     names = manifest["chunks"]
     jobs = Parallel(n_jobs=n_jobs, return_as="generator")(
         delayed(_chunk_features)(sim_dir, name, float(manifest["sample_rate_hz"]), site, feature_sets) for name in names

@@ -30,8 +30,6 @@ summaries, and a mic dead in every event of a position sets that position's ``ha
 from __future__ import annotations
 
 import logging
-from fractions import Fraction
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +38,7 @@ import pandas as pd
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import RecordingBatch, Site
-from acoustlab.toolkit.audio import load_mono
+from acoustlab.toolkit.audio import load_channels, load_mono
 from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_quality
 
 log = logging.getLogger(__name__)
@@ -96,24 +94,6 @@ def _unique(table: pd.DataFrame, field: str, column: str) -> None:
     if not duplicated.empty:
         raise DataError(f"field.{field}: {table.attrs.get('path', field)}, column {column!r}: "
                         f"{duplicated.iloc[0]!r} appears more than once; every row needs its own {column}")
-
-
-@lru_cache(maxsize=2)
-def _read_channels(path_text: str, sample_rate_hz: float) -> np.ndarray:
-    """(C, S) float32 channels of a multichannel file at ``sample_rate_hz`` (read once per file)."""
-    import soundfile as sf
-    from scipy.signal import resample_poly
-
-    try:
-        data, rate = sf.read(path_text, dtype="float32", always_2d=True)
-    except Exception as exc:  # noqa: BLE001 - soundfile raises several types
-        raise DataError(f"field: cannot read audio file {path_text}: {exc}") from None
-    if rate != sample_rate_hz:
-        ratio = Fraction(sample_rate_hz / rate).limit_denominator(1000)
-        data = resample_poly(data, ratio.numerator, ratio.denominator, axis=0)
-    channels = np.ascontiguousarray(data.T, dtype=np.float32)
-    channels.setflags(write=False)
-    return channels
 
 
 class RecordingFolder:
@@ -271,22 +251,24 @@ class RecordingFolder:
             raise DataError(f"field: audio file {path} does not exist")
         return path
 
-    def _header(self, file: str, headers: dict) -> object:
-        """soundfile's header of a file (cached in ``headers``); a clear error where it cannot be read."""
-        if file not in headers:
-            import soundfile as sf
+    @staticmethod
+    def _audio_files(mics: pd.DataFrame, events: pd.DataFrame) -> list[str]:
+        """The audio files the tables name, each once: one per mic, or one multichannel file per event."""
+        return list(dict.fromkeys(mics["file"] if "file" in mics else events["file"]))
 
-            path = self.audio_path(file)
-            try:
-                info = sf.info(str(path))
-            except Exception as exc:  # noqa: BLE001 - soundfile raises RuntimeError/LibsndfileError/OSError
-                raise DataError(f"field: cannot read the audio header of {path}: {exc}") from None
-            if info.samplerate <= 0 or info.channels < 1:
-                raise DataError(f"field: {path} declares {info.samplerate} Hz and {info.channels} channels")
-            if info.frames == 0:
-                log.warning("field: %s holds no samples; every event on it is flagged out_of_range", path)
-            headers[file] = info
-        return headers[file]
+    def _header(self, path: Path) -> object:
+        """soundfile's header of a file; a clear error where it cannot be read."""
+        import soundfile as sf
+
+        try:
+            info = sf.info(str(path))
+        except Exception as exc:  # noqa: BLE001 - soundfile raises RuntimeError/LibsndfileError/OSError
+            raise DataError(f"field: cannot read the audio header of {path}: {exc}") from None
+        if info.samplerate <= 0 or info.channels < 1:
+            raise DataError(f"field: {path} declares {info.samplerate} Hz and {info.channels} channels")
+        if info.frames == 0:
+            log.warning("field: %s holds no samples; every event on it is flagged out_of_range", path)
+        return info
 
     def validate(self, site: Site | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
         """Check the tables and the audio headers without reading samples (the preflight); return the tables.
@@ -302,12 +284,11 @@ class RecordingFolder:
             if positions.shape != site.mic_positions_m.shape or not np.allclose(positions, site.mic_positions_m, atol=1e-3):
                 raise DataError(f"field: the recordings' {len(positions)} mic positions do not match site {site.name!r} "
                                 f"({site.n_mics} mics); build the site from the same mics table")
-        headers: dict = {}
-        files = list(mics["file"]) if "file" in mics else list(dict.fromkeys(events["file"]))
-        for file in files:
-            info = self._header(file, headers)
+        for file in self._audio_files(mics, events):
+            path = self.audio_path(file)
+            info = self._header(path)
             if "file" not in mics and info.channels < len(mics):
-                raise DataError(f"field: {self.audio_path(file)} has {info.channels} channels but the mics table lists {len(mics)} mics")
+                raise DataError(f"field: {path} has {info.channels} channels but the mics table lists {len(mics)} mics")
         n = int(((events["end_s"] - events["start_s"]).max() + 2 * self.pad_s) * self.sample_rate_hz) + 1
         size = len(events) * len(mics) * n * 4
         if size > MAX_AUDIO_BYTES:
@@ -355,8 +336,7 @@ class RecordingFolder:
         """Every table and audio file these recordings are read from (the cache key hashes their contents)."""
         mics, events = self.tables()
         tables = [resolve_path(t) for t in (self.mics_csv, self.events_csv, self.coords_csv, self.detections_csv) if t]
-        names = list(mics["file"]) if "file" in mics else list(dict.fromkeys(events["file"]))
-        return tables + [self.audio_path(f) for f in names]
+        return tables + [self.audio_path(f) for f in self._audio_files(mics, events)]
 
     def load(self, site: Site) -> RecordingBatch:
         """Cut every event from the recordings, flagging bad clips; see :class:`acoustlab.core.contracts.FieldSource`."""
@@ -366,14 +346,15 @@ class RecordingFolder:
         lengths = ((events["end_s"] - events["start_s"]).to_numpy(float) * fs).astype(int) + 2 * pad
         audio = np.zeros((len(events), len(mics), int(lengths.max())), dtype=np.float32)
         per_mic = "file" in mics.columns
+        paths = {f: str(self.audio_path(f)) for f in self._audio_files(mics, events)}  # resolved once, not per event and mic
         reasons = np.empty((len(events), len(mics)), dtype=object)
         for k, ev in enumerate(events.itertuples()):
             start = int(round(ev.start_s * fs)) - pad
             for m in range(len(mics)):
                 if per_mic:
-                    signal = load_mono(str(self.audio_path(mics["file"].iloc[m])), fs)
+                    signal = load_mono(paths[mics["file"].iloc[m]], fs)
                 else:
-                    signal = _read_channels(str(self.audio_path(ev.file)), fs)[m]
+                    signal = load_channels(paths[ev.file], fs)[m]
                 audio[k, m, : lengths[k]], reasons[k, m] = clip_quality(signal, start, int(lengths[k]), self.thresholds, margin=pad)
         flags = [_describe(row, mics) for row in reasons]
         position = events["position_id"].to_numpy(int) if "position_id" in events else events["event_id"].to_numpy(int)
