@@ -4,6 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import NoiseRegime, Site
 from plugins.gates.hybrid import HybridGate, select_tau
 from plugins.gates.simple import ModelOnlyGate, SolverOnlyGate
@@ -143,3 +144,30 @@ def test_learned_gate_survives_a_cue_missing_in_a_whole_fold():
     features = features.assign(solver__height_gdop=rare)
     gate = LearnedGate(n_folds=5).fit(solver, model, features, site, truth, groups=groups)
     assert gate.decide(solver, model, features, site).position_m.shape == solver.shape
+
+
+def test_learned_gate_weighs_events_by_what_a_wrong_choice_costs(monkeypatch):
+    """With stakes_cap_m every classifier fit gets |solver error − model error| (capped) as sample weights."""
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    from plugins.gates.learned import LearnedGate
+
+    site, solver, model, truth, features, groups, _ = gate_scene(300)
+    weights: list = []
+    original = HistGradientBoostingClassifier.fit
+
+    def spy(self, x, y, sample_weight=None):
+        weights.append(sample_weight)
+        return original(self, x, y, sample_weight=sample_weight)
+
+    monkeypatch.setattr(HistGradientBoostingClassifier, "fit", spy)
+    LearnedGate(n_folds=3, stakes_cap_m=5.0).fit(solver, model, features, site, truth, groups=groups)
+    final = weights[-1]
+    stakes = np.abs(np.sqrt(((solver - truth) ** 2).sum(1)) - np.sqrt(((model - truth) ** 2).sum(1)))
+    inside = ~LearnedGate()._failed(solver, site)  # failures are substituted, never trained on
+    assert final == pytest.approx(np.clip(stakes[inside], 1e-3, 5.0))
+    assert final.max() == 5.0 and final.min() < 1.0
+    LearnedGate(n_folds=3).fit(solver, model, features, site, truth, groups=groups)
+    assert (weights[-1] == 1).all()  # unweighted by default
+    with pytest.raises(ConfigError, match="stakes_cap_m"):
+        LearnedGate(stakes_cap_m=0)

@@ -250,6 +250,13 @@ def test_paired_bootstrap_ratio_interval_over_positions():
     low, high = report.paired_ratio_ci(first, noisy, 95)
     assert low < high
     assert report.paired_ratio_ci(first, first.iloc[:50], 95) is None  # not the same test events
+    # another method's column, and failures (NaN) as infinite errors: 10 % failures put every bootstrap p95 at infinity
+    model = first.assign(error_model_m=3 * first["error_gate_m"])
+    assert report.paired_ratio_ci(first.assign(error_model_m=first["error_gate_m"]), model, 50, method="model") == pytest.approx((3.0, 3.0))
+    failing = first.assign(error_gate_m=np.where(np.arange(60) % 10 == 0, np.nan, first["error_gate_m"]))
+    low, high = report.paired_ratio_ci(first, failing, 50)
+    assert 1.0 <= low <= high  # the median moves up when failures count
+    assert report.paired_ratio_ci(first, failing, 99)[0] == np.inf
 
 
 def test_upload_never_runs_code_named_in_a_received_folder(tmp_path, monkeypatch):

@@ -27,6 +27,11 @@ SOLVER_ESTIMATE_COLUMNS = (SOLVER_X, SOLVER_Y)
 SOLVER_GDOP = "solver__gdop"
 SOLVER_SOURCE_HEIGHT = "solver__source_height_m"
 SOLVER_FAILURE = "solver__failure"
+#: The gate's context, an input of the error model beside the features (pipeline.error_model_gate_cues).
+GATE_SOLVER_MODEL_DISTANCE = "gate__solver_model_distance_m"
+GATE_SUBSTITUTED = "gate__substituted"
+GATE_ESTIMATE_GDOP = "gate__estimate_gdop"
+GATE_ESTIMATE_RANGE = "gate__estimate_range_m"
 #: The ``solver`` feature group appended to every feature table (name, unit, definition).
 SOLVER_CATALOG = (
     (SOLVER_X, "m", "solver's estimate, x (east)"),

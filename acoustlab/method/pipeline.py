@@ -22,6 +22,7 @@ from acoustlab.core.contracts import (
     ErrorModel,
     FeatureSet,
     Gate,
+    GateDecision,
     PointModel,
     Solver,
 )
@@ -59,6 +60,8 @@ class Components:
     extra_gates: dict[str, Gate] = field(default_factory=dict)
     #: also calibrate a 2-D error ellipse per detection and level (:mod:`acoustlab.toolkit.regions`)
     ellipse: bool = False
+    #: the error model also sees the gate's context (solver–model distance, substitution, GDOP and range at the estimate)
+    error_model_gate_cues: bool = True
 
 
 @dataclass
@@ -210,7 +213,8 @@ class LocalizationPipeline:
         sim = ~events["is_field"].to_numpy(bool)[train] if "is_field" in events else np.ones(train.size, dtype=bool)
         gate = clone(self.c.gate, safe=False).fit(solver_xy[train][sim], oof_model[sim], features.iloc[train[sim]], site, truth[train][sim],
                                                    groups=groups[train][sim])
-        oof_gate = gate.decide(solver_xy[train], oof_model, features.iloc[train], site)
+        # calibration errors come from gates that never saw the event's position, as the test errors do
+        oof_gate = self._out_of_fold_gate(folds, train, sim, solver_xy, oof_model, features, truth, groups)
         oof_err = error_2d_m(oof_gate.position_m, truth[train])
         gdop_train = self._gdop_at(oof_gate.position_m, features.iloc[train])
         finite = np.isfinite(oof_err)
@@ -219,7 +223,7 @@ class LocalizationPipeline:
         # the error model's predictions are floored at the 5th percentile of the calibration errors, so
         # a fix it wrongly trusts still gets a meaningful radius (never 10⁻⁹ m times a quantile)
         floor = max(float(np.percentile(oof_err[finite], 5)) if finite.any() else 0.0, 1e-9)
-        x_error = features.iloc[train][ecols]
+        x_error = self._error_inputs(features.iloc[train][ecols], solver_xy[train], oof_model, oof_gate, gdop_train)
 
         def out_of_fold(fit_predict: Any, shape: tuple[int, ...] = (), desc: str | None = None) -> np.ndarray:
             """(train, *shape) predictions of ``fit_predict(x_fit, error_fit, x_held)`` over the calibration folds (finite errors only)."""
@@ -228,6 +232,14 @@ class LocalizationPipeline:
                 fit_idx = fit_idx[finite[fit_idx]]
                 out[held_idx] = fit_predict(x_error.iloc[fit_idx], oof_err[fit_idx], x_error.iloc[held_idx])
             return out
+
+        # the test events' error-model inputs: the gate decides first (on the final point model's estimates)
+        log.info("final point and error models on %d training rows", train.size)
+        models = self._fit_point(features.iloc[train][mcols], truth[train], solver_xy[train])
+        model_xy = self._predict_point(models, features.iloc[test][mcols], solver_xy[test])
+        decision = gate.decide(solver_xy[test], model_xy, features.iloc[test], site)
+        gdop_test = self._gdop_at(decision.position_m, features.iloc[test])
+        x_error_test = self._error_inputs(features.iloc[test][ecols], solver_xy[test], model_xy, decision, gdop_test)
 
         log.info("error model, out-of-fold (%d folds)", len(folds))
         oof_pred = np.maximum(out_of_fold(lambda x, y, held: clone(self.c.error_model).fit(x, y).predict(held),
@@ -241,18 +253,13 @@ class LocalizationPipeline:
                 scorers[name] = scorer.fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels,
                                            quantiles=np.maximum(oof_q[finite], floor))
                 test_quantiles[name] = np.maximum(scorer.fit_predict_quantiles(
-                    features.iloc[train[finite]][ecols], oof_err[finite], features.iloc[test][ecols], self.c.levels), floor)
+                    x_error.iloc[finite], oof_err[finite], x_error_test, self.c.levels), floor)
             else:
                 scorers[name] = scorer.fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels)
 
-        # Final models on all training rows.
-        log.info("final point and error models on %d training rows", train.size)
-        models = self._fit_point(features.iloc[train][mcols], truth[train], solver_xy[train])
-        model_xy = self._predict_point(models, features.iloc[test][mcols], solver_xy[test])
-        decision = gate.decide(solver_xy[test], model_xy, features.iloc[test], site)
-        gdop_test = self._gdop_at(decision.position_m, features.iloc[test])
-        error_model = clone(self.c.error_model).fit(features.iloc[train[finite]][ecols], oof_err[finite])
-        predicted = np.maximum(error_model.predict(features.iloc[test][ecols]), floor)
+        # Final error model on all training rows.
+        error_model = clone(self.c.error_model).fit(x_error.iloc[finite], oof_err[finite])
+        predicted = np.maximum(error_model.predict(x_error_test), floor)
 
         out = pd.DataFrame(
             {
@@ -304,6 +311,47 @@ class LocalizationPipeline:
             for k, level in enumerate(self.c.levels):
                 out[col.radius(name, level)] = radii[:, k]
         return MethodResult(out, [split_info])
+
+    def _out_of_fold_gate(self, folds: list[tuple[np.ndarray, np.ndarray]], train: np.ndarray, sim: np.ndarray, solver_xy: np.ndarray,
+                          oof_model: np.ndarray, features: pd.DataFrame, truth: np.ndarray, groups: np.ndarray) -> GateDecision:
+        """The gate's decisions on the training events, each from a gate fitted without that event's position.
+
+        A gate fitted on all training positions and applied to them decides in-sample (the learned
+        gate has seen their labels), so its calibration errors would be smaller than the test
+        errors and the conformal radii too narrow. Each calibration fold gets its own gate, fitted
+        on the other folds' simulated events.
+        """
+        site = self.c.site
+        position = np.full((train.size, 2), np.nan)
+        substituted = np.zeros(train.size, dtype=bool)
+        for fit_idx, held_idx in folds:
+            fit_sim = fit_idx[sim[fit_idx]]
+            fold_gate = clone(self.c.gate, safe=False).fit(solver_xy[train[fit_sim]], oof_model[fit_sim], features.iloc[train[fit_sim]], site,
+                                                            truth[train[fit_sim]], groups=groups[train[fit_sim]])
+            decision = fold_gate.decide(solver_xy[train[held_idx]], oof_model[held_idx], features.iloc[train[held_idx]], site)
+            position[held_idx], substituted[held_idx] = decision.position_m, decision.substituted
+        return GateDecision(position, substituted)
+
+    def _error_inputs(self, x: pd.DataFrame, solver_xy: np.ndarray, model_xy: np.ndarray, decision: GateDecision,
+                      estimate_gdop: np.ndarray) -> pd.DataFrame:
+        """The error model's inputs: its feature columns plus, with ``error_model_gate_cues``, the gate's context.
+
+        The context (columns ``gate__*``) is what the features cannot know: how far the solver's
+        and the point model's estimates lie apart (m; NaN without a solver fix), whether the gate
+        substituted the model's, and the GDOP and range from the array centre (m) at the gated
+        estimate. Where solver and model disagree, one of them is wrong: the strongest single cue
+        of a gross error.
+        """
+        if not self.c.error_model_gate_cues:
+            return x
+        centre = self.c.site.mic_positions_m[:, :2].mean(axis=0)
+        context = pd.DataFrame({
+            col.GATE_SOLVER_MODEL_DISTANCE: np.sqrt(((solver_xy - model_xy) ** 2).sum(axis=1)),
+            col.GATE_SUBSTITUTED: decision.substituted.astype(float),
+            col.GATE_ESTIMATE_GDOP: estimate_gdop,
+            col.GATE_ESTIMATE_RANGE: np.sqrt(((decision.position_m - centre) ** 2).sum(axis=1)),
+        }, index=x.index)
+        return pd.concat([x, context], axis=1)
 
     def _height(self, features: pd.DataFrame) -> np.ndarray | float:
         if col.SOLVER_SOURCE_HEIGHT in features:

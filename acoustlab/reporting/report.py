@@ -150,9 +150,11 @@ def conclusion(runs: list[RunResult]) -> str:
             f"see the relative table for paired 95 % intervals before calling a difference real.")
 
 
-def paired_ratio_ci(first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: int = 1000, seed: int = 0) -> tuple[float, float] | None:
-    """95 % interval of the ratio of the gate's ``q``-th error percentile (other / first), by a
-    paired bootstrap over source positions (the exchangeable unit).
+def paired_ratio_ci(first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: int = 1000, seed: int = 0,
+                    method: str = "gate") -> tuple[float, float] | None:
+    """95 % interval of the ratio of ``method``'s ``q``-th error percentile (other / first), by a
+    paired bootstrap over source positions (the exchangeable unit). Events without an estimate
+    count as infinite errors.
 
     Returns None when the two runs were not evaluated on the same events.
     """
@@ -161,43 +163,51 @@ def paired_ratio_ci(first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: 
     if len(a) != len(b) or not a.index.sort_values().equals(b.index.sort_values()):
         return None
     b = b.loc[a.index]
-    ea, eb = a[col.error_m("gate")].to_numpy(float), b[col.error_m("gate")].to_numpy(float)
-    ok = np.isfinite(ea) & np.isfinite(eb)
-    positions = a["position_id"].to_numpy()[ok]
-    ea, eb = ea[ok], eb[ok]
+    ea = np.nan_to_num(a[col.error_m(method)].to_numpy(float), nan=np.inf)
+    eb = np.nan_to_num(b[col.error_m(method)].to_numpy(float), nan=np.inf)
+    positions = a["position_id"].to_numpy()
     members = [np.flatnonzero(positions == p) for p in np.unique(positions)]
     rng = np.random.default_rng(seed)
     ratios = np.empty(n_boot)
-    for k in range(n_boot):
-        rows = np.concatenate([members[i] for i in rng.integers(0, len(members), len(members))])
-        denominator = np.percentile(ea[rows], q)
-        ratios[k] = np.percentile(eb[rows], q) / denominator if denominator > 0 else np.nan
-    low, high = np.nanpercentile(ratios, [2.5, 97.5])
+    with np.errstate(invalid="ignore"):  # inf / inf: both percentiles are failures, no ratio
+        for k in range(n_boot):
+            rows = np.concatenate([members[i] for i in rng.integers(0, len(members), len(members))])
+            denominator = np.percentile(ea[rows], q)
+            ratios[k] = np.percentile(eb[rows], q) / denominator if denominator > 0 else np.nan
+    if np.isnan(ratios).all():
+        return None
+    # the ends are bootstrap ratios themselves (no interpolation), so an infinite ratio stays infinite
+    low, high = np.nanpercentile(ratios, 2.5, method="lower"), np.nanpercentile(ratios, 97.5, method="higher")
     return float(low), float(high)
 
 
-def relative_rows(runs: list[RunResult]) -> pd.DataFrame:
-    """The gate's p50/p95/p99 error of every run and its ratio to the first run's (e.g. the full
+def relative_rows(runs: list[RunResult], method: str = "gate") -> pd.DataFrame:
+    """``method``'s p50/p95/p99 error of every run and its ratio to the first run's (e.g. the full
     feature set at the head of an ablation sweep), with a 95 % interval from a paired bootstrap over
     source positions when the runs share their test events. Empty for a single run."""
-    if len(runs) < 2:
+    if len(runs) < 2 or any(method not in r.metrics["errors"] for r in runs):
         return pd.DataFrame()
-    first = runs[0].metrics["errors"]["gate"]
+    first = runs[0].metrics["errors"][method]
     first_predictions = runs[0].predictions
     rows = []
     for r in runs:
-        gate = r.metrics["errors"]["gate"]
+        errors = r.metrics["errors"][method]
         predictions = r.predictions
         row = {"run": r.label}
         for name, q in (("p50", 50), ("p95", 95), ("p99", 99)):
-            row[f"gate {name} (m)"] = gate[name]
-            row[f"{name} / first"] = gate[name] / first[name] if first[name] > 0 else float("nan")
+            row[f"{method} {name} (m)"] = errors[name]
+            row[f"{name} / first"] = errors[name] / first[name] if first[name] > 0 else float("nan")
             ci = None
             if r is not runs[0] and first_predictions is not None and predictions is not None:
-                ci = paired_ratio_ci(first_predictions, predictions, q)
+                ci = paired_ratio_ci(first_predictions, predictions, q, method=method)
             row[f"{name} / first, 95 % CI"] = "—" if ci is None else f"[{ci[0]:.2f}, {ci[1]:.2f}]"
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def model_relative_rows(runs: list[RunResult]) -> pd.DataFrame:
+    """:func:`relative_rows` for the point model: where feature groups show (the gate mostly keeps the solver's fix)."""
+    return relative_rows(runs, method="model")
 
 
 def coverage_rows(runs: list[RunResult]) -> pd.DataFrame:
@@ -281,6 +291,7 @@ def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
 _SECTIONS = (
     ("Localization error per detection (m)", error_rows),
     ("Gated error relative to the first run", relative_rows),
+    ("Point-model error relative to the first run", model_relative_rows),
     ("Coverage and interval width of the conformal regions", coverage_rows),
     ("Ranking of errors and gating", uncertainty_rows),
     ("Provenance", provenance_rows),

@@ -61,6 +61,7 @@ class PipelineConfig:
     plausible_margin_fraction: Optional[float] = MISSING
     drop_from_model: list[str] = dc_field(default_factory=list)
     drop_from_error_model: list[str] = dc_field(default_factory=list)
+    error_model_gate_cues: bool = True
     selective: SelectiveConfig = dc_field(default_factory=lambda: SelectiveConfig())
     extra_gates: dict[str, Any] = dc_field(default_factory=dict)
 

@@ -11,7 +11,10 @@ Training is on simulation only and out-of-fold by source position: the classifie
 on the training events come from fits that never saw that position, and the substitution
 threshold is chosen on them: the one with the lowest p95 error whose median error stays within
 ``p50_tolerance`` of the box-gated solver's. A solver failure (no fix, or one outside the box) is
-always substituted.
+always substituted. With ``stakes_cap_m`` each training event weighs what a wrong choice costs
+there (|solver error − model error|, capped): most events differ by centimetres either way, and
+an unweighted classifier spends its capacity on them rather than on the few events that set the
+gated p99 (frozen lake, cross-fitted: gate p99 ÷ oracle p99 1.24 unweighted, 1.12 with a 20 m cap).
 """
 
 from __future__ import annotations
@@ -75,6 +78,11 @@ class LearnedGate:
         Position-grouped folds for the out-of-fold probabilities.
     max_iter, learning_rate, max_leaf_nodes : int, float, int
         Settings of the gradient-boosted classifier.
+    stakes_cap_m : float or None
+        Weight each training event by what the choice costs there, ``|solver error − model error|``
+        capped at this many metres (None: every event weighs the same). Most events differ by
+        centimetres either way; the events where a wrong choice costs metres are the ones that
+        set the gated p95 and p99.
     seed : int
         Seed of the classifier.
     n_threads : int
@@ -84,7 +92,8 @@ class LearnedGate:
     required_feature_groups: tuple[str, ...] = ()
 
     def __init__(self, margin_fraction: float = 0.25, p50_tolerance: float = 0.05, n_folds: int = 5, max_iter: int = 200,
-                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, seed: int = 0, n_threads: int = 1) -> None:
+                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, stakes_cap_m: float | None = None, seed: int = 0,
+                 n_threads: int = 1) -> None:
         if n_folds < 2:
             raise ConfigError(f"gate.n_folds must be >= 2; got {n_folds}")
         if p50_tolerance < 0:
@@ -95,6 +104,9 @@ class LearnedGate:
         self.max_iter = int(max_iter)
         self.learning_rate = float(learning_rate)
         self.max_leaf_nodes = int(max_leaf_nodes)
+        if stakes_cap_m is not None and not stakes_cap_m > 0:
+            raise ConfigError(f"gate.stakes_cap_m must be > 0 m or null; got {stakes_cap_m}")
+        self.stakes_cap_m = None if stakes_cap_m is None else float(stakes_cap_m)
         self.seed = int(seed)
         self.n_threads = max(1, int(n_threads))
 
@@ -132,17 +144,24 @@ class LearnedGate:
             self.classifier_, self.threshold_, self.oof_auc_ = None, np.inf, None
             return self
         x, y, g = cues[use], label[use], groups[use]
+        w = self._weights(err_solver[use], err_model[use])
         oof = np.empty(use.sum())
         for fit_idx, held_idx in GroupKFold(n_splits=self.n_folds).split(x, y, g):
             # a cue missing for every event of this fold's training part is left out of this fold's classifier
             cols = [c for c in x.columns if np.isfinite(x[c].to_numpy(float)[fit_idx]).any()]
-            clf = self._classifier().fit(x.iloc[fit_idx][cols], y[fit_idx]) if np.unique(y[fit_idx]).size > 1 else None
+            clf = self._classifier().fit(x.iloc[fit_idx][cols], y[fit_idx], sample_weight=w[fit_idx]) if np.unique(y[fit_idx]).size > 1 else None
             oof[held_idx] = clf.predict_proba(x.iloc[held_idx][cols])[:, 1] if clf is not None else float(y[fit_idx][0])
         self.oof_auc_ = float(roc_auc_score(y, oof))
         self.threshold_, self.threshold_grid_ = self._choose_threshold(oof, err_solver[use], err_model[use], err_model[~use])
-        self.classifier_ = self._classifier().fit(x, y)
+        self.classifier_ = self._classifier().fit(x, y, sample_weight=w)
         log.info("learned gate: out-of-fold AUC %.3f, threshold %.3f", self.oof_auc_, self.threshold_)
         return self
+
+    def _weights(self, err_solver: np.ndarray, err_model: np.ndarray) -> np.ndarray:
+        """(N,) sample weights: 1, or the capped cost of the wrong choice (m; at least 1 mm so no event is ignored)."""
+        if self.stakes_cap_m is None:
+            return np.ones(err_solver.size)
+        return np.clip(np.abs(err_solver - err_model), 1e-3, self.stakes_cap_m)
 
     def _choose_threshold(self, prob: np.ndarray, err_solver: np.ndarray, err_model: np.ndarray, err_failed: np.ndarray
                           ) -> tuple[float, pd.DataFrame]:
