@@ -12,6 +12,7 @@ from sklearn.neighbors import KNeighborsRegressor
 
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import GateDecision
+from acoustlab.core.errors import DataError
 from acoustlab.core.types import NoiseRegime, Site
 from acoustlab.method.pipeline import Components, LocalizationPipeline
 from plugins.conformal.split import SplitConformal
@@ -132,3 +133,41 @@ def test_gate_context_columns_reach_the_error_model_only_when_asked():
     assert not set(gate_columns) & set(seen[False])
     assert set(gate_columns) <= set(seen[True])
     assert col.SOLVER_X not in seen[True]  # the error model still never sees the solver's point estimate
+
+
+def shifted_scene(seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray, np.ndarray]:
+    """Simulated positions 0–79 with 0.1 m solver noise; field positions 80–119 with 1 m (a simulation-to-field shift)."""
+    features, events = scene(120, seed=seed)
+    rng = np.random.default_rng(seed + 10)
+    field = events["position_id"].to_numpy() >= 80
+    features.loc[field, [col.SOLVER_X, col.SOLVER_Y]] = events.loc[field, ["x_m", "y_m"]].to_numpy() + rng.normal(0, 1.0, (field.sum(), 2))
+    features.loc[~field, [col.SOLVER_X, col.SOLVER_Y]] = events.loc[~field, ["x_m", "y_m"]].to_numpy() + rng.normal(0, 0.1, ((~field).sum(), 2))
+    events["is_field"] = field
+    groups = events["position_id"].to_numpy()
+    return features, events, np.flatnonzero(groups < 110), np.flatnonzero(groups >= 110)
+
+
+@pytest.mark.parametrize("mode, covers", [("all", False), ("auto", True), ("field", True)])
+def test_field_rows_calibrate_where_simulation_is_not_exchangeable_with_the_field(mode, covers):
+    features, events, train, test = shifted_scene()
+    c = components(RecordingGate(), ExactMedian(), cues=False)
+    c.calibrate_on = mode
+    result = LocalizationPipeline(c).fit_predict(features, events, train, test)
+    out = result.predictions
+    coverage = (out[col.error_m("gate")] <= out[col.radius("fixed", 0.8)]).mean()
+    assert (0.65 <= coverage <= 0.95) if covers else coverage < 0.4, coverage
+    info = result.split_diagnostics[0]["calibration"]
+    assert info["on"] == ("all" if mode == "all" else "field")
+    assert info["n_positions"] == (110 if mode == "all" else 30)
+
+
+def test_calibration_on_the_field_needs_field_rows():
+    features, events, train, test = shifted_scene()
+    events["is_field"] = False
+    c = components(RecordingGate(), ExactMedian(), cues=False)
+    c.calibrate_on = "field"
+    with pytest.raises(DataError, match="calibrate_on=field"):
+        LocalizationPipeline(c).fit_predict(features, events, train, test)
+    c.calibrate_on = "auto"  # falls back to every training row
+    result = LocalizationPipeline(c).fit_predict(features, events, train, test)
+    assert result.split_diagnostics[0]["calibration"]["on"] == "all"

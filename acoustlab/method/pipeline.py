@@ -34,6 +34,8 @@ from acoustlab.toolkit.geometry import gdop, position_crb_m
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
 
 log = logging.getLogger(__name__)
+#: ``calibrate_on="auto"`` calibrates on field rows only where they span at least this many positions
+MIN_FIELD_CALIBRATION_POSITIONS = 3
 
 
 
@@ -60,6 +62,8 @@ class Components:
     extra_gates: dict[str, Gate] = field(default_factory=dict)
     #: also calibrate a 2-D error ellipse per detection and level (:mod:`acoustlab.toolkit.regions`)
     ellipse: bool = False
+    #: which training rows calibrate conformal and selective localization: "auto", "all" or "field"
+    calibrate_on: str = "auto"
     #: the error model also sees the gate's context (solver–model distance, substitution, GDOP and range at the estimate)
     error_model_gate_cues: bool = True
 
@@ -223,6 +227,8 @@ class LocalizationPipeline:
         # the error model's predictions are floored at the 5th percentile of the calibration errors, so
         # a fix it wrongly trusts still gets a meaningful radius (never 10⁻⁹ m times a quantile)
         floor = max(float(np.percentile(oof_err[finite], 5)) if finite.any() else 0.0, 1e-9)
+        domain = self._calibration_domain(events, train, finite)  # the rows that calibrate (all, or the field rows)
+        cal = domain & finite
         x_error = self._error_inputs(features.iloc[train][ecols], solver_xy[train], oof_model, oof_gate, gdop_train)
 
         def out_of_fold(fit_predict: Any, shape: tuple[int, ...] = (), desc: str | None = None) -> np.ndarray:
@@ -250,12 +256,12 @@ class LocalizationPipeline:
             if getattr(scorer, "needs_quantiles", False):  # CQR: its own quantile model, out-of-fold like the error model
                 oof_q = out_of_fold(lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, self.c.levels),
                                     shape=(len(self.c.levels),))
-                scorers[name] = scorer.fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels,
-                                           quantiles=np.maximum(oof_q[finite], floor))
+                scorers[name] = scorer.fit(oof_err[cal], oof_pred[cal], gdop_train[cal], self.c.levels,
+                                           quantiles=np.maximum(oof_q[cal], floor))
                 test_quantiles[name] = np.maximum(scorer.fit_predict_quantiles(
                     x_error.iloc[finite], oof_err[finite], x_error_test, self.c.levels), floor)
             else:
-                scorers[name] = scorer.fit(oof_err[finite], oof_pred[finite], gdop_train[finite], self.c.levels)
+                scorers[name] = scorer.fit(oof_err[cal], oof_pred[cal], gdop_train[cal], self.c.levels)
 
         # Final error model on all training rows.
         error_model = clone(self.c.error_model).fit(x_error.iloc[finite], oof_err[finite])
@@ -288,9 +294,11 @@ class LocalizationPipeline:
             out[name] = np.where(solver_better, solver_xy[test, k], model_xy[:, k])
         out[col.error_m("oracle")] = np.minimum(out[col.error_m("solver")], out[col.error_m("model")])
         if self.c.ellipse:
-            self._add_ellipses(out, oof_gate.position_m - truth[train], oof_gate.position_m, oof_pred, features.iloc[train],
+            self._add_ellipses(out, (oof_gate.position_m - truth[train])[cal], oof_gate.position_m[cal], oof_pred[cal], features.iloc[train[cal]],
                                decision.position_m, predicted, features.iloc[test])
-        split_info: dict[str, Any] = {"gate": gate.diagnostics()}
+        split_info: dict[str, Any] = {"gate": gate.diagnostics(), "calibration": {
+            "on": "field" if domain.sum() < domain.size else "all", "n_events": int(cal.sum()),
+            "n_positions": int(np.unique(groups[train][cal]).size)}}
         for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
             extra = clone(configured, safe=False).fit(solver_xy[train][sim], oof_model[sim], features.iloc[train[sim]], site, truth[train][sim],
                                                        groups=groups[train][sim])
@@ -301,7 +309,7 @@ class LocalizationPipeline:
             out[col.error_m(method)] = error_2d_m(position, truth[test])
             split_info.setdefault("extra_gates", {})[name] = extra.diagnostics()
         if self.c.selective is not None:
-            threshold, info = self._selective_threshold(oof_err, oof_pred)
+            threshold, info = self._selective_threshold(oof_err[domain], oof_pred[domain])
             split_info["selective"] = info
             has_fix = np.isfinite(decision.position_m).all(axis=1)
             out["placed"] = has_fix & (predicted <= threshold)
@@ -311,6 +319,33 @@ class LocalizationPipeline:
             for k, level in enumerate(self.c.levels):
                 out[col.radius(name, level)] = radii[:, k]
         return MethodResult(out, [split_info])
+
+    def _calibration_domain(self, events: pd.DataFrame, train: np.ndarray, finite: np.ndarray) -> np.ndarray:
+        """(train,) mask of the training rows whose out-of-fold errors calibrate conformal and selective localization.
+
+        ``calibrate_on="all"``: every training row. ``"field"``: only field recordings with known
+        positions (e.g. the other positions under leave-one-position-out, or calibration
+        playbacks), exchangeable with field test events where simulation is not.
+        ``"auto"``: the field rows where they span at least ``MIN_FIELD_CALIBRATION_POSITIONS``
+        positions and enough events for the highest level (⌈1/(1 − level)⌉ − 1), else all.
+        """
+        mode = self.c.calibrate_on
+        every = np.ones(train.size, dtype=bool)
+        field = events["is_field"].to_numpy(bool)[train] if "is_field" in events else ~every
+        if mode == "all" or (mode == "auto" and not field.any()):
+            return every
+        needed = int(np.ceil(1 / (1 - max(self.c.levels)))) - 1
+        n_rows = int((field & finite).sum())
+        n_positions = np.unique(events["position_id"].to_numpy()[train][field & finite]).size
+        if n_rows >= needed and n_positions >= MIN_FIELD_CALIBRATION_POSITIONS:
+            log.info("conformal calibration on %d field events at %d positions", n_rows, n_positions)
+            return field
+        why = (f"{n_rows} field events with a known position and an estimate at {n_positions} positions in training; calibration "
+               f"on the field needs at least {needed} events (level {max(self.c.levels)}) at {MIN_FIELD_CALIBRATION_POSITIONS} positions")
+        if mode == "field":
+            raise DataError(f"conformal.calibrate_on=field: {why} (protocol=lopo, or localize with calibration playbacks, provide them)")
+        log.info("conformal calibration on all %d training events (%s)", train.size, why)
+        return every
 
     def _out_of_fold_gate(self, folds: list[tuple[np.ndarray, np.ndarray]], train: np.ndarray, sim: np.ndarray, solver_xy: np.ndarray,
                           oof_model: np.ndarray, features: pd.DataFrame, truth: np.ndarray, groups: np.ndarray) -> GateDecision:

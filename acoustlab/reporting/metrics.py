@@ -271,6 +271,9 @@ def split_diagnostics_summary(split_diagnostics: list[dict[str, Any]]) -> dict[s
     gates = [d.get("gate", {}) for d in split_diagnostics]
     selective = [d["selective"] for d in split_diagnostics if "selective" in d]
     extra: dict[str, Any] = {"selective_by_split": selective} if selective else {}
+    calibration = [d["calibration"] for d in split_diagnostics if "calibration" in d]
+    if calibration:  # which rows calibrated conformal in each split (all training rows, or the field rows)
+        extra["calibration_by_split"] = calibration
     if len(gates) == 1:
         return {**dict(gates[0]), **extra}
     if not any(gates):

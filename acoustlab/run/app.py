@@ -34,7 +34,7 @@ from acoustlab.run.registry import (
     group_options,
     to_plain,
 )
-from acoustlab.run.schema import ModelTarget
+from acoustlab.run.schema import CalibrateOn, ModelTarget
 from acoustlab.stages.cache import StageCache, atomic_write_bytes
 from acoustlab.stages.dataset import (
     SimulationPlan,
@@ -148,6 +148,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         levels=list(cfg.conformal.levels),
         dropped_groups=list(cfg.features.drop),
         calibration_folds=cfg.conformal.calibration_folds,
+        calibrate_on=CalibrateOn(cfg.conformal.calibrate_on).value,
         ellipse=bool(cfg.conformal.ellipse),
         model_target=ModelTarget(cfg.pipeline.model_target).value,
         dropped_from_model=list(cfg.pipeline.drop_from_model),

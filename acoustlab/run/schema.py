@@ -24,6 +24,14 @@ from omegaconf import MISSING, OmegaConf
 SCHEMA_NAME = "acoustlab_schema"
 
 
+class CalibrateOn(str, Enum):
+    """Which training rows calibrate conformal: every row, field rows with known positions, or field rows where there are enough."""
+
+    auto = "auto"
+    all = "all"
+    field = "field"
+
+
 class ModelTarget(str, Enum):
     """What the point model predicts: the position (as in the paper) or the solver's error."""
 
@@ -101,6 +109,7 @@ class ConformalConfig:
 
     levels: list[float] = MISSING
     calibration_folds: int = MISSING
+    calibrate_on: CalibrateOn = CalibrateOn.auto
     scorers: dict[str, Any] = dc_field(default_factory=dict)
     ellipse: bool = False
 
