@@ -287,3 +287,18 @@ def test_mlflow_artifacts_live_beside_the_store_not_in_the_working_directory(com
     assert any((out / "mlartifacts").rglob("metrics.json"))
     (run,) = runs_in(out / "mlflow.db")
     assert run.info.artifact_uri.startswith((out / "mlartifacts").resolve().as_uri())
+
+
+def test_gross_error_auc_ranks_failures_as_gross():
+    import numpy as np
+    import pandas as pd
+
+    from acoustlab.reporting.metrics import gross_error_auc
+
+    error = np.array([0.1, 0.2, 0.3, 6.0, 9.0, np.nan])  # the NaN is a failure: gross
+    p = pd.DataFrame({"error_gate_m": error, "predicted_error_m": [0.1, 0.2, 0.3, 4.0, 5.0, 7.0], "gdop": [1.0] * 6})
+    auc = gross_error_auc(p)
+    assert auc["error_model"] == 1.0 and auc["gdop"] is None  # constant GDOP ranks nothing
+    p["predicted_error_m"] = [7.0, 5.0, 4.0, 0.3, 0.2, 0.1]
+    assert gross_error_auc(p)["error_model"] == 0.0
+    assert gross_error_auc(p.iloc[:3])["error_model"] is None  # no gross event

@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from scipy.stats import spearmanr
+from sklearn.metrics import roc_auc_score
 
 from acoustlab.core import columns as col
 from acoustlab.toolkit.regions import inside_ellipse
@@ -105,6 +106,20 @@ def spearman_rho(predictions: pd.DataFrame) -> dict[str, float | None]:
             v = values[ok]
             rho[name] = float(spearmanr(v, err_gate[ok]).statistic) if np.ptp(v) > 0 and np.ptp(err_gate[ok]) > 0 else None
     return rho
+
+
+def gross_error_auc(predictions: pd.DataFrame, gross_m: float = 5.0) -> dict[str, float | None]:
+    """ROC AUC of the error model's prediction and of GDOP for "the gate's error exceeds ``gross_m``" (m).
+
+    Events without an estimate count as gross. None where one class is empty or the score is constant.
+    """
+    err_gate = np.nan_to_num(predictions[col.error_m("gate")].to_numpy(float), nan=np.inf)
+    gross = err_gate > gross_m
+    auc: dict[str, float | None] = {}
+    for name, values in (("error_model", predictions["predicted_error_m"].to_numpy(float)), ("gdop", predictions["gdop"].to_numpy(float))):
+        usable = 0 < gross.sum() < gross.size and np.isfinite(values).all() and np.ptp(values) > 0
+        auc[name] = float(roc_auc_score(gross, values)) if usable else None
+    return auc
 
 
 def coverage_by_position(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict:
@@ -239,6 +254,7 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
     if crb is not None:
         extra["crb_m"] = crb
     extra["spearman_rho"] = spearman_rho(predictions)
+    extra["gross_error_auc"] = gross_error_auc(predictions)
     extra["coverage_by_position"] = coverage_by_position(predictions, levels, scorers)
     coverage, width = coverage_and_width(predictions, levels, scorers)
     errors = errors_by_method(predictions)
@@ -331,9 +347,10 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
         flat[f"selective.{k}"] = v
     for k, v in metrics.get("crb_m", {}).items():
         flat[f"crb.{k}_m"] = v
-    for k, v in metrics.get("spearman_rho", {}).items():
-        if v is not None:
-            flat[f"spearman_rho.{k}"] = v
+    for block in ("spearman_rho", "gross_error_auc"):
+        for k, v in metrics.get(block, {}).items():
+            if v is not None:
+                flat[f"{block}.{k}"] = v
     if "tau_star_db" in metrics:
         flat["tau_star_db"] = metrics["tau_star_db"]
     for k, v in metrics.get("timings_s", {}).items():

@@ -236,6 +236,7 @@ def uncertainty_rows(runs: list[RunResult]) -> pd.DataFrame:
             "run": r.label,
             "ρ error model (Spearman)": rho.get("error_model"),
             "ρ GDOP (Spearman)": rho.get("gdop"),
+            "AUC error model, > 5 m": m.get("gross_error_auc", {}).get("error_model"),
             "substitution rate (%)": None if m.get("substitution_rate") is None else 100 * m["substitution_rate"],
             "τ* (dB)": m.get("tau_star_db"),
             "CRB p50 (m)": m.get("crb_m", {}).get("p50"),
