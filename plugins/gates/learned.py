@@ -149,7 +149,7 @@ class LearnedGate:
         for fit_idx, held_idx in GroupKFold(n_splits=self.n_folds).split(x, y, g):
             # a cue missing for every event of this fold's training part is left out of this fold's classifier
             cols = [c for c in x.columns if np.isfinite(x[c].to_numpy(float)[fit_idx]).any()]
-            clf = self._classifier().fit(x.iloc[fit_idx][cols], y[fit_idx], sample_weight=w[fit_idx]) if np.unique(y[fit_idx]).size > 1 else None
+            clf = self._classifier().fit(x.iloc[fit_idx][cols], y[fit_idx], sample_weight=None if w is None else w[fit_idx]) if np.unique(y[fit_idx]).size > 1 else None
             oof[held_idx] = clf.predict_proba(x.iloc[held_idx][cols])[:, 1] if clf is not None else float(y[fit_idx][0])
         self.oof_auc_ = float(roc_auc_score(y, oof))
         self.threshold_, self.threshold_grid_ = self._choose_threshold(oof, err_solver[use], err_model[use], err_model[~use])
@@ -157,10 +157,13 @@ class LearnedGate:
         log.info("learned gate: out-of-fold AUC %.3f, threshold %.3f", self.oof_auc_, self.threshold_)
         return self
 
-    def _weights(self, err_solver: np.ndarray, err_model: np.ndarray) -> np.ndarray:
-        """(N,) sample weights: 1, or the capped cost of the wrong choice (m; at least 1 mm so no event is ignored)."""
+    def _weights(self, err_solver: np.ndarray, err_model: np.ndarray) -> np.ndarray | None:
+        """(N,) sample weights, the capped cost of the wrong choice (m; at least 1 mm so no event is ignored); None: equal weights.
+
+        (None rather than ones: scikit-learn's gradient boosting takes a ~5× slower path with any sample weights.)
+        """
         if self.stakes_cap_m is None:
-            return np.ones(err_solver.size)
+            return None
         return np.clip(np.abs(err_solver - err_model), 1e-3, self.stakes_cap_m)
 
     def _choose_threshold(self, prob: np.ndarray, err_solver: np.ndarray, err_model: np.ndarray, err_failed: np.ndarray
