@@ -171,3 +171,57 @@ def test_calibration_on_the_field_needs_field_rows():
     c.calibrate_on = "auto"  # falls back to every training row
     result = LocalizationPipeline(c).fit_predict(features, events, train, test)
     assert result.split_diagnostics[0]["calibration"]["on"] == "all"
+
+
+class LimitedKnn(KNeighborsRegressor):
+    """A point model with its own row limit (as TabPFN declares one) that records the rows of every fit."""
+
+    fits: list[pd.Index] = []
+
+    def __init__(self, n_neighbors=10, max_train_rows=None):
+        super().__init__(n_neighbors=n_neighbors)
+        self.max_train_rows = max_train_rows
+
+    def fit(self, x, y):
+        LimitedKnn.fits.append(x.index)
+        return super().fit(x, y)
+
+
+class LimitedMedian(ExactMedian):
+    """The error model's stand-in with a row limit, recording the rows of every fit."""
+
+    fits: list[pd.Index] = []
+
+    def __init__(self, max_train_rows=None):
+        self.max_train_rows = max_train_rows
+
+    def fit(self, x, y):
+        LimitedMedian.fits.append(x.index)
+        return super().fit(x, y)
+
+
+@pytest.mark.parametrize("limit", [None, 150])
+def test_a_model_with_its_own_row_limit_fits_on_whole_positions_within_it(limit):
+    """One protocol budget, several models: a model's ``max_train_rows`` caps its own fits (whole positions, from the seed)."""
+    features, events = scene(120)
+    groups = events["position_id"].to_numpy()
+    train, test = np.flatnonzero(groups >= 20), np.flatnonzero(groups < 20)  # 500 training rows
+    runs = []
+    for _ in range(2):
+        LimitedKnn.fits, LimitedMedian.fits = [], []
+        c = components(RecordingGate(), LimitedMedian(max_train_rows=limit), cues=False)
+        c.point_model = LimitedKnn(max_train_rows=limit)
+        out = LocalizationPipeline(c).fit_predict(features, events, train, test).predictions
+        runs.append((out, [list(i) for i in LimitedKnn.fits + LimitedMedian.fits]))
+    fits = LimitedKnn.fits + LimitedMedian.fits
+    assert len(LimitedKnn.fits) == 12 and len(LimitedMedian.fits) == 6  # x and y per fold and final; error model per fold and final
+    sizes = [len(i) for i in fits]
+    if limit is None:
+        assert max(sizes) == 500
+    else:
+        assert max(sizes) <= limit and min(sizes) >= limit - 5  # 5 events per position: whole positions fill the limit
+        for rows in fits:
+            kept = set(groups[rows])
+            assert all((groups[train] == g).sum() == (groups[rows] == g).sum() for g in kept)  # never part of a position
+    assert runs[0][1] == runs[1][1]  # the same rows from the same seed
+    pd.testing.assert_frame_equal(runs[0][0], runs[1][0])

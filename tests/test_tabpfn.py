@@ -53,6 +53,15 @@ def test_clone_and_row_cap(tiny_checkpoint):
         model.fit(x, y)
 
 
+def test_row_limit_is_checked_against_tabpfns_pretraining_limit():
+    assert TabPFNPointModel().max_train_rows == 1000 and TabPFNErrorModel().max_train_rows == 1000
+    with pytest.raises(ConfigError, match="model.max_train_rows must be between 2 and 1000 .*ignore_pretraining_limits=true; got 5000"):
+        TabPFNPointModel(max_train_rows=5000)
+    with pytest.raises(ConfigError, match="max_train_rows=null"):
+        TabPFNErrorModel(max_train_rows=None)
+    assert TabPFNPointModel(max_train_rows=5000, ignore_pretraining_limits=True).max_train_rows == 5000
+
+
 def test_missing_weights_give_one_clear_message(tmp_path):
     with pytest.raises(ConfigError, match="TabPFN weights not found .*download_all_models.*TABPFN_MODEL_CACHE_DIR.*non-commercial"):
         TabPFNPointModel(model_path=str(tmp_path / "absent.ckpt")).preflight()

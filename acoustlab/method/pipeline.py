@@ -29,6 +29,7 @@ from acoustlab.core.contracts import (
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
 from acoustlab.core.types import Site
+from acoustlab.method.splits import cap_rows
 from acoustlab.toolkit.conformal import conformal_quantile, selective_threshold
 from acoustlab.toolkit.geometry import gdop, position_crb_m
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
@@ -66,6 +67,8 @@ class Components:
     calibrate_on: str = "auto"
     #: the error model also sees the gate's context (solver–model distance, substitution, GDOP and range at the estimate)
     error_model_gate_cues: bool = True
+    #: the run's seed (which whole positions a model with its own row limit fits on)
+    seed: int = 0
 
 
 @dataclass
@@ -157,10 +160,26 @@ class LocalizationPipeline:
         centre = self.c.site.mic_positions_m[:, :2].mean(axis=0)
         return np.where(np.isfinite(solver_xy), solver_xy, centre)
 
-    def _fit_point(self, x: pd.DataFrame, truth: np.ndarray, solver_xy: np.ndarray) -> tuple[Any, Any]:
-        target = truth[:, :2] - self._offset(solver_xy)
-        mx = clone(self.c.point_model).fit(x, target[:, 0])
-        my = clone(self.c.point_model).fit(x, target[:, 1])
+    def _within_limit(self, groups: np.ndarray, plugin: Any) -> np.ndarray:
+        """Indices of the rows (of ``groups``, one per row) that ``plugin`` fits on: all, or whole positions up to its own limit.
+
+        A learned plugin may declare ``max_train_rows`` (TabPFN: 1,000, its pretraining limit), so
+        one protocol budget serves every model: ``protocol.max_train_rows=10000`` gives XGBoost
+        10,000 rows and TabPFN 1,000 of them, chosen by whole positions from the run's seed.
+        """
+        rows = np.arange(groups.size)
+        limit = getattr(plugin, "max_train_rows", None)
+        if limit is None or rows.size <= limit:
+            return rows
+        kept = cap_rows(rows, groups, int(limit), np.random.default_rng([self.c.seed, 3, rows.size]))
+        log.info("%s fits on %d of %d training rows (its max_train_rows=%d, whole positions)", type(plugin).__name__, kept.size, rows.size, limit)
+        return kept
+
+    def _fit_point(self, x: pd.DataFrame, truth: np.ndarray, solver_xy: np.ndarray, groups: np.ndarray) -> tuple[Any, Any]:
+        keep = self._within_limit(groups, self.c.point_model)
+        target = truth[keep, :2] - self._offset(solver_xy[keep])
+        mx = clone(self.c.point_model).fit(x.iloc[keep], target[:, 0])
+        my = clone(self.c.point_model).fit(x.iloc[keep], target[:, 1])
         return mx, my
 
     def _predict_point(self, models: tuple[Any, Any], x: pd.DataFrame, solver_xy: np.ndarray) -> np.ndarray:
@@ -210,7 +229,7 @@ class LocalizationPipeline:
         oof_model = np.empty((train.size, 2))
         for k, (fit_idx, held_idx) in enumerate(progress(folds, desc="point model, out-of-fold", unit="fold", leave=False)):
             log.info("point model, out-of-fold %d/%d (%d rows)", k + 1, len(folds), fit_idx.size)  # progress also in logs and batch jobs
-            models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]], solver_xy[train[fit_idx]])
+            models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]], solver_xy[train[fit_idx]], groups[train[fit_idx]])
             oof_model[held_idx] = self._predict_point(models, features.iloc[train[held_idx]][mcols], solver_xy[train[held_idx]])
         # the gate learns what it needs (e.g. τ* on simulation) from the out-of-fold predictions
         # … on simulated rows only (the paper chooses τ* on simulation; field rows never teach the gate)
@@ -231,30 +250,31 @@ class LocalizationPipeline:
         cal = domain & finite
         x_error = self._error_inputs(features.iloc[train][ecols], solver_xy[train], oof_model, oof_gate, gdop_train)
 
-        def out_of_fold(fit_predict: Any, shape: tuple[int, ...] = (), desc: str | None = None) -> np.ndarray:
+        def out_of_fold(fit_predict: Any, plugin: Any, shape: tuple[int, ...] = (), desc: str | None = None) -> np.ndarray:
             """(train, *shape) predictions of ``fit_predict(x_fit, error_fit, x_held)`` over the calibration folds (finite errors only)."""
             out = np.empty((train.size, *shape))
             for fit_idx, held_idx in (progress(folds, desc=desc, unit="fold", leave=False) if desc else folds):
                 fit_idx = fit_idx[finite[fit_idx]]
+                fit_idx = fit_idx[self._within_limit(groups[train[fit_idx]], plugin)]
                 out[held_idx] = fit_predict(x_error.iloc[fit_idx], oof_err[fit_idx], x_error.iloc[held_idx])
             return out
 
         # the test events' error-model inputs: the gate decides first (on the final point model's estimates)
         log.info("final point and error models on %d training rows", train.size)
-        models = self._fit_point(features.iloc[train][mcols], truth[train], solver_xy[train])
+        models = self._fit_point(features.iloc[train][mcols], truth[train], solver_xy[train], groups[train])
         model_xy = self._predict_point(models, features.iloc[test][mcols], solver_xy[test])
         decision = gate.decide(solver_xy[test], model_xy, features.iloc[test], site)
         gdop_test = self._gdop_at(decision.position_m, features.iloc[test])
         x_error_test = self._error_inputs(features.iloc[test][ecols], solver_xy[test], model_xy, decision, gdop_test)
 
         log.info("error model, out-of-fold (%d folds)", len(folds))
-        oof_pred = np.maximum(out_of_fold(lambda x, y, held: clone(self.c.error_model).fit(x, y).predict(held),
+        oof_pred = np.maximum(out_of_fold(lambda x, y, held: clone(self.c.error_model).fit(x, y).predict(held), self.c.error_model,
                                           desc="error model, out-of-fold"), floor)
         scorers, test_quantiles = {}, {}
         for name, configured in self.c.scorers.items():
             scorer = clone(configured, safe=False)
             if getattr(scorer, "needs_quantiles", False):  # CQR: its own quantile model, out-of-fold like the error model
-                oof_q = out_of_fold(lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, self.c.levels),
+                oof_q = out_of_fold(lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, self.c.levels), scorer,
                                     shape=(len(self.c.levels),))
                 scorers[name] = scorer.fit(oof_err[cal], oof_pred[cal], gdop_train[cal], self.c.levels,
                                            quantiles=np.maximum(oof_q[cal], floor))
@@ -264,7 +284,9 @@ class LocalizationPipeline:
                 scorers[name] = scorer.fit(oof_err[cal], oof_pred[cal], gdop_train[cal], self.c.levels)
 
         # Final error model on all training rows.
-        error_model = clone(self.c.error_model).fit(x_error.iloc[finite], oof_err[finite])
+        fit_rows = np.flatnonzero(finite)
+        fit_rows = fit_rows[self._within_limit(groups[train[fit_rows]], self.c.error_model)]
+        error_model = clone(self.c.error_model).fit(x_error.iloc[fit_rows], oof_err[fit_rows])
         predicted = np.maximum(error_model.predict(x_error_test), floor)
 
         out = pd.DataFrame(

@@ -154,6 +154,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         dropped_from_model=list(cfg.pipeline.drop_from_model),
         dropped_from_error_model=list(cfg.pipeline.drop_from_error_model),
         error_model_gate_cues=bool(cfg.pipeline.error_model_gate_cues),
+        seed=int(cfg.seed),
         selective=dict(cfg.pipeline.selective) if cfg.pipeline.selective.enabled else None,
         extra_gates={name: build(node, "gate") for name, node in cfg.pipeline.extra_gates.items()},
     )

@@ -52,8 +52,12 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
     device : str
         ``auto`` (CUDA when available), ``cpu`` or ``cuda``.
     ignore_pretraining_limits : bool
-        Allow more than 1,000 training rows on a CPU. The protocols cap training at 1,000 rows, so
-        this stays False unless the cap is raised.
+        Allow more than 1,000 training rows (TabPFN's pretraining limit). Needed only with
+        ``max_train_rows`` above 1,000 or null.
+    max_train_rows : int or None
+        The most rows this model fits on (default 1,000). The pipeline keeps whole source
+        positions up to it, so a larger ``protocol.max_train_rows`` feeds other models (XGBoost)
+        more rows in the same run while TabPFN stays within its limit; None: every row.
     batch_size : int
         Rows predicted per call (bounds memory).
     random_state : int
@@ -61,12 +65,19 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
     """
 
     def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
-                 ignore_pretraining_limits: bool = False, batch_size: int = 2000, random_state: int = 0) -> None:
+                 ignore_pretraining_limits: bool = False, max_train_rows: int | None = 1000, batch_size: int = 2000,
+                 random_state: int = 0) -> None:
+        if max_train_rows is not None and (max_train_rows < 2 or (max_train_rows > 1000 and not ignore_pretraining_limits)):
+            raise ConfigError(f"model.max_train_rows must be between 2 and 1000 for TabPFN (its pretraining limit) unless "
+                              f"model.ignore_pretraining_limits=true; got {max_train_rows}")
+        if max_train_rows is None and not ignore_pretraining_limits:
+            raise ConfigError("model.max_train_rows=null (every row) needs model.ignore_pretraining_limits=true for TabPFN")
         self.model_path = model_path
         self.model_version = model_version
         self.n_estimators = n_estimators
         self.device = device
         self.ignore_pretraining_limits = ignore_pretraining_limits
+        self.max_train_rows = max_train_rows
         self.batch_size = batch_size
         self.random_state = random_state
 
@@ -133,11 +144,14 @@ class TabPFNErrorModel(TabPFNPointModel):
     ----------
     quantile : float
         Quantile of TabPFN's predictive distribution returned by ``predict``.
+
+    The other parameters are :class:`TabPFNPointModel`'s.
     """
 
     def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
-                 ignore_pretraining_limits: bool = False, batch_size: int = 2000, random_state: int = 0, quantile: float = 0.5) -> None:
-        super().__init__(model_path, model_version, n_estimators, device, ignore_pretraining_limits, batch_size, random_state)
+                 ignore_pretraining_limits: bool = False, max_train_rows: int | None = 1000, batch_size: int = 2000, random_state: int = 0,
+                 quantile: float = 0.5) -> None:
+        super().__init__(model_path, model_version, n_estimators, device, ignore_pretraining_limits, max_train_rows, batch_size, random_state)
         self.quantile = quantile
 
     def predict(self, X: Any) -> np.ndarray:
