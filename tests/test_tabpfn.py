@@ -57,7 +57,7 @@ def test_row_limit_is_checked_against_tabpfns_pretraining_limit():
     assert TabPFNPointModel().max_train_rows == 1000 and TabPFNErrorModel().max_train_rows == 1000
     with pytest.raises(ConfigError, match="model.max_train_rows must be between 2 and 1000 .*ignore_pretraining_limits=true; got 5000"):
         TabPFNPointModel(max_train_rows=5000)
-    with pytest.raises(ConfigError, match="max_train_rows=null"):
+    with pytest.raises(ConfigError, match="error_model.max_train_rows=null"):
         TabPFNErrorModel(max_train_rows=None)
     assert TabPFNPointModel(max_train_rows=5000, ignore_pretraining_limits=True).max_train_rows == 5000
 

@@ -127,7 +127,9 @@ class Solver(Protocol):
 class PointModel(Protocol):
     """A scikit-learn regressor (``fit`` returns self, ``predict``, ``get_params``/``set_params``).
 
-    The runner clones it once per coordinate (x and y).
+    The runner clones it once per coordinate (x and y). A model that must not see more than some
+    number of rows (TabPFN: 1,000) may set an attribute ``max_train_rows``; the pipeline then fits
+    it on whole source positions up to that many rows, whatever the protocol's budget.
     """
 
     def fit(self, X: Any, y: Any) -> Any: ...
@@ -204,7 +206,10 @@ class StatelessGate:
 
 @runtime_checkable
 class ErrorModel(Protocol):
-    """Predicts the scale of the hybrid estimate's 2-D error (m) from features (scikit-learn style)."""
+    """Predicts the scale of the hybrid estimate's 2-D error (m) from features (scikit-learn style).
+
+    May set ``max_train_rows`` as a :class:`PointModel` may.
+    """
 
     def fit(self, X: pd.DataFrame, error_m: np.ndarray) -> Any: ...
 

@@ -250,12 +250,16 @@ class LocalizationPipeline:
         cal = domain & finite
         x_error = self._error_inputs(features.iloc[train][ecols], solver_xy[train], oof_model, oof_gate, gdop_train)
 
+        def error_fit_rows(rows: np.ndarray, plugin: Any) -> np.ndarray:
+            """The training ``rows`` with a finite error, within ``plugin``'s own row limit."""
+            rows = rows[finite[rows]]
+            return rows[self._within_limit(groups[train[rows]], plugin)]
+
         def out_of_fold(fit_predict: Any, plugin: Any, shape: tuple[int, ...] = (), desc: str | None = None) -> np.ndarray:
             """(train, *shape) predictions of ``fit_predict(x_fit, error_fit, x_held)`` over the calibration folds (finite errors only)."""
             out = np.empty((train.size, *shape))
             for fit_idx, held_idx in (progress(folds, desc=desc, unit="fold", leave=False) if desc else folds):
-                fit_idx = fit_idx[finite[fit_idx]]
-                fit_idx = fit_idx[self._within_limit(groups[train[fit_idx]], plugin)]
+                fit_idx = error_fit_rows(fit_idx, plugin)
                 out[held_idx] = fit_predict(x_error.iloc[fit_idx], oof_err[fit_idx], x_error.iloc[held_idx])
             return out
 
@@ -284,8 +288,7 @@ class LocalizationPipeline:
                 scorers[name] = scorer.fit(oof_err[cal], oof_pred[cal], gdop_train[cal], self.c.levels)
 
         # Final error model on all training rows.
-        fit_rows = np.flatnonzero(finite)
-        fit_rows = fit_rows[self._within_limit(groups[train[fit_rows]], self.c.error_model)]
+        fit_rows = error_fit_rows(np.arange(train.size), self.c.error_model)
         error_model = clone(self.c.error_model).fit(x_error.iloc[fit_rows], oof_err[fit_rows])
         predicted = np.maximum(error_model.predict(x_error_test), floor)
 

@@ -64,14 +64,17 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
         Seed.
     """
 
+    #: the config group its settings live in (named in error messages)
+    config_group = "model"
+
     def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
                  ignore_pretraining_limits: bool = False, max_train_rows: int | None = 1000, batch_size: int = 2000,
                  random_state: int = 0) -> None:
         if max_train_rows is not None and (max_train_rows < 2 or (max_train_rows > 1000 and not ignore_pretraining_limits)):
-            raise ConfigError(f"model.max_train_rows must be between 2 and 1000 for TabPFN (its pretraining limit) unless "
-                              f"model.ignore_pretraining_limits=true; got {max_train_rows}")
+            raise ConfigError(f"{self.config_group}.max_train_rows must be between 2 and 1000 for TabPFN (its pretraining limit) unless "
+                              f"{self.config_group}.ignore_pretraining_limits=true; got {max_train_rows}")
         if max_train_rows is None and not ignore_pretraining_limits:
-            raise ConfigError("model.max_train_rows=null (every row) needs model.ignore_pretraining_limits=true for TabPFN")
+            raise ConfigError(f"{self.config_group}.max_train_rows=null (every row) needs {self.config_group}.ignore_pretraining_limits=true for TabPFN")
         self.model_path = model_path
         self.model_version = model_version
         self.n_estimators = n_estimators
@@ -115,7 +118,7 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
         self.preflight()
         X = np.asarray(X, dtype=np.float32)
         if X.shape[0] > 1000 and not self.ignore_pretraining_limits:
-            raise ConfigError(f"TabPFN got {X.shape[0]} training rows; cap them at 1,000 or set model.ignore_pretraining_limits=true deliberately")
+            raise ConfigError(f"TabPFN got {X.shape[0]} training rows; cap them at 1,000 or set {self.config_group}.ignore_pretraining_limits=true deliberately")
         self.regressor_ = self._regressor().fit(X, np.asarray(y, dtype=np.float32))
         self.n_features_in_ = X.shape[1]
         return self
@@ -147,6 +150,8 @@ class TabPFNErrorModel(TabPFNPointModel):
 
     The other parameters are :class:`TabPFNPointModel`'s.
     """
+
+    config_group = "error_model"
 
     def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
                  ignore_pretraining_limits: bool = False, max_train_rows: int | None = 1000, batch_size: int = 2000, random_state: int = 0,
