@@ -32,6 +32,17 @@ GATE_SOLVER_MODEL_DISTANCE = "gate__solver_model_distance_m"
 GATE_SUBSTITUTED = "gate__substituted"
 GATE_ESTIMATE_GDOP = "gate__estimate_gdop"
 GATE_ESTIMATE_RANGE = "gate__estimate_range_m"
+#: Why the trust check overrode a gate's choice ('' where it did not; :mod:`acoustlab.method.trust`).
+TRUST_REASON = "trust_reason"
+#: The trust check's per-row cues (``trust__novelty``, ``trust__solver_outside_support``, …).
+TRUST_PREFIX = "trust"
+
+
+def trust_flag(name: str) -> str:
+    """``trust__<name>``: one of the trust check's per-row cues in a prediction table."""
+    return f"{TRUST_PREFIX}__{name}"
+
+
 #: The ``solver`` feature group appended to every feature table (name, unit, definition).
 SOLVER_CATALOG = (
     (SOLVER_X, "m", "solver's estimate, x (east)"),

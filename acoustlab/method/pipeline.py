@@ -30,6 +30,7 @@ from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
 from acoustlab.core.types import Site
 from acoustlab.method.splits import cap_rows
+from acoustlab.method.trust import TrainingSupport, TrustedDecision, TrustSettings, apply_trust
 from acoustlab.toolkit.conformal import conformal_quantile, selective_threshold
 from acoustlab.toolkit.geometry import gdop, position_crb_m
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
@@ -69,6 +70,8 @@ class Components:
     error_model_gate_cues: bool = True
     #: the run's seed (which whole positions a model with its own row limit fits on)
     seed: int = 0
+    #: where the point model counts as outside its training support (:mod:`acoustlab.method.trust`)
+    trust: TrustSettings = field(default_factory=TrustSettings)
 
 
 @dataclass
@@ -192,6 +195,30 @@ class LocalizationPipeline:
         g = gdop(self.c.site.mic_positions_m, pos)
         return np.clip(np.where(np.isfinite(g), g, 1e6), 1e-6, 1e6)
 
+    def _fit_gate(self, configured: Gate, rows: np.ndarray, sim: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray,
+                  features: pd.DataFrame, truth: np.ndarray, groups: np.ndarray) -> Gate:
+        """A fresh clone of ``configured`` fitted on the simulated ones of ``rows`` (``model_xy`` indexed like ``rows``).
+
+        The paper chooses τ* on simulation; field rows never teach a gate.
+        """
+        fit = rows[sim]
+        return clone(configured, safe=False).fit(solver_xy[fit], model_xy[sim], features.iloc[fit], self.c.site, truth[fit], groups=groups[fit])
+
+    def _support(self, rows: np.ndarray, features: pd.DataFrame, mcols: list[str], events: pd.DataFrame,
+                 solver_xy: np.ndarray, groups: np.ndarray) -> TrainingSupport | None:
+        """The point model's training support learned from ``rows`` (None with ``trust.enabled=false``)."""
+        if not self.c.trust.enabled:
+            return None
+        truth = events[["x_m", "y_m", "z_m"]].to_numpy(float)[rows] if "z_m" in events else np.column_stack(
+            [events[["x_m", "y_m"]].to_numpy(float)[rows], np.full(rows.size, np.nan)])
+        return TrainingSupport(self.c.trust).fit(features.iloc[rows][mcols], truth, error_2d_m(solver_xy[rows], truth), groups[rows])
+
+    def _decide(self, gate: Gate, rows: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame,
+                mcols: list[str], support: TrainingSupport | None) -> TrustedDecision:
+        """The gate's decision on ``rows`` (``model_xy`` indexed like them), checked against the model's training support."""
+        decision = gate.decide(solver_xy[rows], model_xy, features.iloc[rows], self.c.site)
+        return apply_trust(decision, solver_xy[rows], model_xy, features.iloc[rows], features.iloc[rows][mcols], support)
+
     def _folds(self, groups: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         n_groups = np.unique(groups).size
         # calibration_folds = -1: leave one position out (one fold per training position)
@@ -234,10 +261,9 @@ class LocalizationPipeline:
         # the gate learns what it needs (e.g. τ* on simulation) from the out-of-fold predictions
         # … on simulated rows only (the paper chooses τ* on simulation; field rows never teach the gate)
         sim = ~events["is_field"].to_numpy(bool)[train] if "is_field" in events else np.ones(train.size, dtype=bool)
-        gate = clone(self.c.gate, safe=False).fit(solver_xy[train][sim], oof_model[sim], features.iloc[train[sim]], site, truth[train][sim],
-                                                   groups=groups[train][sim])
+        gate = self._fit_gate(self.c.gate, train, sim, solver_xy, oof_model, features, truth, groups)
         # calibration errors come from gates that never saw the event's position, as the test errors do
-        oof_gate = self._out_of_fold_gate(folds, train, sim, solver_xy, oof_model, features, truth, groups)
+        oof_gate = self._out_of_fold_gate(folds, train, sim, solver_xy, oof_model, features, truth, groups, events, mcols)
         oof_err = error_2d_m(oof_gate.position_m, truth[train])
         gdop_train = self._gdop_at(oof_gate.position_m, features.iloc[train])
         finite = np.isfinite(oof_err)
@@ -267,7 +293,9 @@ class LocalizationPipeline:
         log.info("final point and error models on %d training rows", train.size)
         models = self._fit_point(features.iloc[train][mcols], truth[train], solver_xy[train], groups[train])
         model_xy = self._predict_point(models, features.iloc[test][mcols], solver_xy[test])
-        decision = gate.decide(solver_xy[test], model_xy, features.iloc[test], site)
+        support = self._support(train, features, mcols, events, solver_xy, groups)
+        trusted = self._decide(gate, test, solver_xy, model_xy, features, mcols, support)
+        decision = trusted.decision
         gdop_test = self._gdop_at(decision.position_m, features.iloc[test])
         x_error_test = self._error_inputs(features.iloc[test][ecols], solver_xy[test], model_xy, decision, gdop_test)
 
@@ -303,6 +331,8 @@ class LocalizationPipeline:
                     for k, name in enumerate(col.estimate_xy(method))
                 },
                 "substituted": decision.substituted,
+                col.TRUST_REASON: trusted.reason,
+                **{col.trust_flag(name): values for name, values in trusted.flags.items()},
                 "gdop": gdop_test,
                 "solver_gdop": solver_gdop[test],
                 "predicted_error_m": predicted,
@@ -321,14 +351,13 @@ class LocalizationPipeline:
         if self.c.ellipse:
             self._add_ellipses(out, (oof_gate.position_m - truth[train])[cal], oof_gate.position_m[cal], oof_pred[cal], features.iloc[train[cal]],
                                decision.position_m, predicted, features.iloc[test])
-        split_info: dict[str, Any] = {"gate": gate.diagnostics(), "calibration": {
+        split_info: dict[str, Any] = {"gate": gate.diagnostics(), "trust": self._trust_summary(support, trusted), "calibration": {
             "on": "field" if domain.sum() < domain.size else "all", "n_events": int(cal.sum()),
             "n_positions": int(np.unique(groups[train][cal]).size)}}
         for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
-            extra = clone(configured, safe=False).fit(solver_xy[train][sim], oof_model[sim], features.iloc[train[sim]], site, truth[train][sim],
-                                                       groups=groups[train][sim])
+            extra = self._fit_gate(configured, train, sim, solver_xy, oof_model, features, truth, groups)
             method = col.extra_gate_method(name)
-            position = extra.decide(solver_xy[test], model_xy, features.iloc[test], site).position_m
+            position = self._decide(extra, test, solver_xy, model_xy, features, mcols, support).decision.position_m
             for k, column in enumerate(col.estimate_xy(method)):
                 out[column] = position[:, k]
             out[col.error_m(method)] = error_2d_m(position, truth[test])
@@ -338,7 +367,7 @@ class LocalizationPipeline:
             split_info["selective"] = info
             has_fix = np.isfinite(decision.position_m).all(axis=1)
             out["placed"] = has_fix & (predicted <= threshold)
-            out["abstain_reason"] = np.where(~has_fix, "no estimate", np.where(out["placed"], "", "predicted error above the certified threshold"))
+            out["abstain_reason"] = np.where(~has_fix, np.where(trusted.reason != "", trusted.reason, "no estimate"), np.where(out["placed"], "", "predicted error above the certified threshold"))
         for name, scorer in scorers.items():
             radii = scorer.radius(predicted, gdop_test, quantiles=test_quantiles[name]) if name in test_quantiles else scorer.radius(predicted, gdop_test)
             for k, level in enumerate(self.c.levels):
@@ -372,23 +401,32 @@ class LocalizationPipeline:
         log.info("conformal calibration on all %d training events (%s)", train.size, why)
         return every
 
+    @staticmethod
+    def _trust_summary(support: TrainingSupport | None, trusted: TrustedDecision) -> dict[str, Any]:
+        """The training region and how often the trust check overrode the gate, for metrics.json."""
+        if support is None:
+            return {"enabled": False}
+        reasons, counts = np.unique(trusted.reason[trusted.reason != ""].astype(str), return_counts=True)
+        return {"enabled": True, "training_region": support.description(), "overridden": {str(r): int(n) for r, n in zip(reasons, counts, strict=True)},
+                "n_novel": int((trusted.flags["novelty"] > 1).sum()), "n_solver_outside_support": int(trusted.flags["solver_outside_support"].sum())}
+
     def _out_of_fold_gate(self, folds: list[tuple[np.ndarray, np.ndarray]], train: np.ndarray, sim: np.ndarray, solver_xy: np.ndarray,
-                          oof_model: np.ndarray, features: pd.DataFrame, truth: np.ndarray, groups: np.ndarray) -> GateDecision:
+                          oof_model: np.ndarray, features: pd.DataFrame, truth: np.ndarray, groups: np.ndarray,
+                          events: pd.DataFrame, mcols: list[str]) -> GateDecision:
         """The gate's decisions on the training events, each from a gate fitted without that event's position.
 
         A gate fitted on all training positions and applied to them decides in-sample (the learned
         gate has seen their labels), so its calibration errors would be smaller than the test
         errors and the conformal radii too narrow. Each calibration fold gets its own gate, fitted
-        on the other folds' simulated events.
+        on the other folds' simulated events, and is checked against the support of the point model
+        that predicted the fold (fitted on the other folds).
         """
-        site = self.c.site
         position = np.full((train.size, 2), np.nan)
         substituted = np.zeros(train.size, dtype=bool)
         for fit_idx, held_idx in folds:
-            fit_sim = fit_idx[sim[fit_idx]]
-            fold_gate = clone(self.c.gate, safe=False).fit(solver_xy[train[fit_sim]], oof_model[fit_sim], features.iloc[train[fit_sim]], site,
-                                                            truth[train[fit_sim]], groups=groups[train[fit_sim]])
-            decision = fold_gate.decide(solver_xy[train[held_idx]], oof_model[held_idx], features.iloc[train[held_idx]], site)
+            fold_gate = self._fit_gate(self.c.gate, train[fit_idx], sim[fit_idx], solver_xy, oof_model[fit_idx], features, truth, groups)
+            support = self._support(train[fit_idx], features, mcols, events, solver_xy, groups)
+            decision = self._decide(fold_gate, train[held_idx], solver_xy, oof_model[held_idx], features, mcols, support).decision
             position[held_idx], substituted[held_idx] = decision.position_m, decision.substituted
         return GateDecision(position, substituted)
 

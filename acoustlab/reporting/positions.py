@@ -16,28 +16,42 @@ DETECTION_FIELDS = ("event_id", "file", "start_s", "end_s", "label", "quality_fl
 def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> pd.DataFrame:
     """One row per detection: the position (gate), the solver's and model's estimates, the decision, radii, flags.
 
-    Columns: the detection's own fields; ``x_m, y_m`` (the method's estimate; NaN where it abstains),
-    ``z_m`` (the solver's height: estimated with ``solver.dimensions=3``, else assumed);
-    ``solver_x_m, solver_y_m, model_x_m, model_y_m``; ``source`` (``solver`` or ``model``: which
-    estimate the gate kept) and ``gate_reason`` (why); ``predicted_error_m``; ``radius_<scorer>_<level>_m`` per scorer and level;
-    ellipse columns when computed; ``placed`` and ``abstain_reason``; quality flags from the solver
-    stage (``solver__failure``, ``solver__consistency``, ``solver__n_mics_used``, GDOPs, …).
+    Columns: the detection's own fields; ``x_m, y_m, z_m`` (the method's estimate, all three from
+    one estimate: the solver's fix with its height, estimated with ``solver.dimensions=3`` or else
+    assumed, or the model's, which has no height: ``z_m`` NaN; NaN where it abstains);
+    ``solver_x_m, solver_y_m, solver_z_m, model_x_m, model_y_m`` and ``solver_model_distance_m``;
+    ``source`` (``solver``, ``model`` or ``none``) and ``gate_reason`` (why);
+    ``outside_training_region`` (the solver's fix lies outside the region the model was trained
+    on) and ``novelty`` (> 1: the detection is unlike the training data); ``predicted_error_m``;
+    ``radius_<scorer>_<level>_m`` per scorer and level; ellipse columns when computed; ``placed``
+    and ``abstain_reason``; quality flags from the solver stage (``solver__failure``,
+    ``solver__consistency``, ``solver__n_mics_used``, GDOPs, …).
     """
     out = pd.DataFrame({c: predictions[c] for c in DETECTION_FIELDS if c in predictions})
     gate_x, gate_y = col.estimate_xy("gate")
     placed = predictions["placed"].to_numpy(bool) if "placed" in predictions else np.isfinite(predictions[[gate_x, gate_y]].to_numpy(float)).all(1)
+    substituted = predictions["substituted"].to_numpy(bool)
+    has_estimate = np.isfinite(predictions[[gate_x, gate_y]].to_numpy(float)).all(1)
+    solver_z = predictions[col.SOLVER_SOURCE_HEIGHT].to_numpy(float) if col.SOLVER_SOURCE_HEIGHT in predictions else np.full(len(out), np.nan)
     out["x_m"] = np.where(placed, predictions[gate_x], np.nan)
     out["y_m"] = np.where(placed, predictions[gate_y], np.nan)
-    if col.SOLVER_SOURCE_HEIGHT in predictions:
-        out["z_m"] = np.where(placed, predictions[col.SOLVER_SOURCE_HEIGHT], np.nan)
+    out["z_m"] = np.where(placed & ~substituted, solver_z, np.nan)  # the model estimates no height: never the solver's z under its x, y
     for method in ("solver", "model"):
         for axis, name in zip(("x", "y"), col.estimate_xy(method), strict=True):
             out[f"{method}_{axis}_m"] = predictions[name]
-    substituted = predictions["substituted"].to_numpy(bool)
-    out["source"] = np.where(substituted, "model", "solver")
-    solver_fix = np.isfinite(predictions[list(col.estimate_xy("solver"))].to_numpy(float)).all(axis=1)
-    out["gate_reason"] = np.where(~substituted, "solver fix kept", np.where(
+        if method == "solver":
+            out["solver_z_m"] = solver_z
+    solver_xy = predictions[list(col.estimate_xy("solver"))].to_numpy(float)
+    out["solver_model_distance_m"] = np.sqrt(((solver_xy - predictions[list(col.estimate_xy("model"))].to_numpy(float)) ** 2).sum(axis=1))
+    out["source"] = np.where(~has_estimate, "none", np.where(substituted, "model", "solver"))
+    solver_fix = np.isfinite(solver_xy).all(axis=1)
+    reason = np.where(~substituted, "solver fix kept", np.where(
         solver_fix, "the gate judged the solver's fix worse than the model's", "the solver found no fix (or one outside the plausible region)"))
+    trust = predictions[col.TRUST_REASON].fillna("").astype(str).to_numpy() if col.TRUST_REASON in predictions else np.full(len(out), "")
+    out["gate_reason"] = np.where(trust != "", trust, reason)  # where the trust check overrode the gate: its reason
+    if col.trust_flag("solver_outside_support") in predictions:
+        out["outside_training_region"] = predictions[col.trust_flag("solver_outside_support")].to_numpy(bool)
+        out["novelty"] = predictions[col.trust_flag("novelty")].to_numpy(float)
     out["predicted_error_m"] = predictions["predicted_error_m"]
     for scorer in scorers:
         for level in levels:
@@ -46,7 +60,8 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
         if c.startswith("ellipse__"):
             out[c] = np.where(placed, predictions[c], np.nan)
     out["placed"] = placed
-    out["abstain_reason"] = predictions["abstain_reason"] if "abstain_reason" in predictions else np.where(placed, "", "no estimate")
+    default_reason = np.where(placed, "", np.where(trust != "", trust, "no estimate"))
+    out["abstain_reason"] = predictions["abstain_reason"] if "abstain_reason" in predictions else default_reason
     for c in predictions.columns:
         if col.GROUP_SEPARATOR in c and c.startswith("solver__"):
             out[c] = predictions[c]
@@ -54,9 +69,13 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
 
 
 def localization_summary(table: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict[str, Any]:
-    """For metrics.json of a localization run: counts, share placed, and the median radius per scorer and level (m)."""
-    radii = {s: {col.level_key(lv): float(np.nanmedian(table[f"radius_{s}_{col.level_key(lv)}_m"])) if table["placed"].any() else float("nan")
-                 for lv in levels} for s in scorers}
+    """For metrics.json of a localization run: counts, share placed, and the median, mean and largest radius per scorer and level (m)."""
+    def spread(values: pd.Series) -> dict[str, float]:
+        v = values.to_numpy(float)[table["placed"].to_numpy(bool)]
+        v = v[np.isfinite(v)]
+        return {"median": float(np.median(v)), "mean": float(np.mean(v)), "max": float(np.max(v))} if v.size else {"median": float("nan")}
+
+    radii = {s: {col.level_key(lv): spread(table[f"radius_{s}_{col.level_key(lv)}_m"]) for lv in levels} for s in scorers}
     return {"n_detections": len(table), "n_placed": int(table["placed"].sum()),
             "share_from_model": float((table["source"] == "model").mean()) if len(table) else float("nan"),
-            "median_radius_m": radii}
+            "radius_m": radii}

@@ -62,6 +62,21 @@ class SelectiveConfig:
 
 
 @dataclass
+class TrustConfig:
+    """Where the point model counts as outside its training support (:class:`acoustlab.method.trust.TrustSettings`)."""
+
+    enabled: bool = True
+    support_margin_m: float = 2.0
+    height_margin_m: float = 2.0
+    novelty_factor: float = 1.5
+    novelty_quantile: float = 0.99
+    n_neighbors: int = 5
+    good_fix_m: float = 1.0
+    residual_quantile: float = 0.95
+    residual_factor: float = 2.0
+
+
+@dataclass
 class PipelineConfig:
     """What the point model predicts, the solver's plausible region, and which feature groups each learned model is denied."""
 
@@ -72,6 +87,7 @@ class PipelineConfig:
     error_model_gate_cues: bool = True
     selective: SelectiveConfig = dc_field(default_factory=lambda: SelectiveConfig())
     extra_gates: dict[str, Any] = dc_field(default_factory=dict)
+    trust: TrustConfig = dc_field(default_factory=TrustConfig)
 
 
 @dataclass

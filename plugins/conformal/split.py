@@ -13,7 +13,11 @@ event's Mondrian bin (one bin without ``binning``). Normalisers (σ):
 
 * ``none``: σ = 1 — one additive adjustment for every event (``fixed`` in the paper);
 * ``gdop``: σ = GDOP / median calibration GDOP — the adjustment scaled per detection by the
-  geometry (``gdop_scaled`` in the paper; locally weighted conformal);
+  geometry (``gdop_scaled`` in the paper; locally weighted conformal). The GDOP is first clipped
+  to the central ``gdop_cap_quantile`` range of the calibration GDOPs (by default their 1st to
+  99th percentile): near a singular geometry (a source on the mics' baseline extension) GDOP
+  grows without bound, and an uncapped σ turned errors of centimetres into radii of 160 km on
+  the 3-mic frozen lake. Fit and predict use the same clipped σ, so the coverage guarantee holds;
 * ``predicted_error``: σ = ê — multiplicative, e ≤ ê (1 + q̂) (``error_ratio``).
 
 ``use_error_model: false`` sets ê = 0: with ``normaliser: gdop`` the radius is q̂ × GDOP and
@@ -48,10 +52,16 @@ class SplitConformal:
         (e − ê)/σ for a one-sided bound, or |e − ê|/σ as crepes' two-sided regressor.
     use_error_model : bool
         False: ê = 0 (the radius ignores the error model).
+    gdop_cap_quantile : float or None
+        GDOP is clipped to the [1 − this, this] quantiles of the calibration GDOPs before it
+        scales or bins anything (None: no clipping).
     """
 
     def __init__(self, normaliser: str = "none", binning: str = "none", n_bins: int = 3, score: str = "signed",
-                 use_error_model: bool = True) -> None:
+                 use_error_model: bool = True, gdop_cap_quantile: float | None = 0.99) -> None:
+        if gdop_cap_quantile is not None and not 0.5 <= gdop_cap_quantile <= 1:
+            raise ConfigError(f"conformal gdop_cap_quantile must lie in [0.5, 1] or be null; got {gdop_cap_quantile}")
+        self.gdop_cap_quantile = None if gdop_cap_quantile is None else float(gdop_cap_quantile)
         if normaliser not in NORMALISERS:
             raise ConfigError(f"conformal normaliser must be one of {NORMALISERS}; got {normaliser!r}")
         if binning not in BINNINGS:
@@ -69,24 +79,30 @@ class SplitConformal:
     def _centre(self, predicted_m: np.ndarray) -> np.ndarray:
         return np.asarray(predicted_m, dtype=float) if self.use_error_model else np.zeros(len(predicted_m))
 
+    def _clip_gdop(self, gdop: np.ndarray) -> np.ndarray:
+        low, high = self.gdop_range_
+        return np.clip(np.maximum(np.asarray(gdop, dtype=float), 1e-9), low, high)
+
     def _sigma(self, predicted_m: np.ndarray, gdop: np.ndarray) -> np.ndarray:
         if self.normaliser == "none":
             return np.ones(len(predicted_m))
         if self.normaliser == "gdop":
-            return np.maximum(np.asarray(gdop, dtype=float), 1e-9) / self.gdop_scale_
+            return self._clip_gdop(gdop) / self.gdop_scale_
         return np.maximum(np.asarray(predicted_m, dtype=float), 1e-9)
 
     def _bins(self, predicted_m: np.ndarray, gdop: np.ndarray) -> np.ndarray:
         if self.binning == "none":
             return np.zeros(len(predicted_m), dtype=int)
-        value = np.asarray(gdop if self.binning == "gdop" else predicted_m, dtype=float)
+        value = self._clip_gdop(gdop) if self.binning == "gdop" else np.asarray(predicted_m, dtype=float)
         return np.searchsorted(self.edges_, value, side="right")
 
     def fit(self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float]) -> SplitConformal:
         """Calibrate ``quantiles_`` (bins × levels) on calibration errors, predictions and GDOPs."""
         error_m, predicted_m, gdop = (np.asarray(a, dtype=float) for a in (error_m, predicted_m, gdop))
-        self.gdop_scale_ = float(np.median(np.maximum(gdop, 1e-9)))
-        bins_of = gdop if self.binning == "gdop" else predicted_m
+        q = self.gdop_cap_quantile
+        self.gdop_range_ = (1e-9, np.inf) if q is None else (float(np.quantile(gdop, 1 - q)), float(np.quantile(gdop, q)))
+        self.gdop_scale_ = float(np.median(self._clip_gdop(gdop)))
+        bins_of = self._clip_gdop(gdop) if self.binning == "gdop" else predicted_m
         n_bins = self.n_bins if self.binning != "none" else 1
         self.edges_ = np.quantile(bins_of, np.linspace(0, 1, n_bins + 1)[1:-1]) if n_bins > 1 else np.array([])
         residual = error_m - self._centre(predicted_m)

@@ -83,17 +83,28 @@ class LearnedGate:
         capped at this many metres (None: every event weighs the same). Most events differ by
         centimetres either way; the events where a wrong choice costs metres are the ones that
         set the gated p95 and p99.
+    min_auc : float
+        Fall back to the box-gated solver (substitute failures only) where the classifier's
+        out-of-fold AUC is below this: it cannot tell good fixes from bad ones.
+    min_class_events : int
+        … or where either class ("solver worse" / "model worse") has fewer training events than this.
     seed : int
         Seed of the classifier.
     n_threads : int
         OpenMP threads of the classifier (``${threads:}`` in the config: the free cores).
+
+    Notes
+    -----
+    The gate is never worse than the box-gated solver on its own out-of-fold training
+    predictions: where the chosen threshold's gated p95 or p99 exceeds that reference's, it falls
+    back too. ``diagnostics()["fallback"]`` says why (None where the classifier decides).
     """
 
     required_feature_groups: tuple[str, ...] = ()
 
     def __init__(self, margin_fraction: float = 0.25, p50_tolerance: float = 0.05, n_folds: int = 5, max_iter: int = 200,
-                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, stakes_cap_m: float | None = None, seed: int = 0,
-                 n_threads: int = 1) -> None:
+                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, stakes_cap_m: float | None = None, min_auc: float = 0.6,
+                 min_class_events: int = 10, seed: int = 0, n_threads: int = 1) -> None:
         if n_folds < 2:
             raise ConfigError(f"gate.n_folds must be >= 2; got {n_folds}")
         if p50_tolerance < 0:
@@ -107,6 +118,10 @@ class LearnedGate:
         if stakes_cap_m is not None and not stakes_cap_m > 0:
             raise ConfigError(f"gate.stakes_cap_m must be > 0 m or null; got {stakes_cap_m}")
         self.stakes_cap_m = None if stakes_cap_m is None else float(stakes_cap_m)
+        if not 0 <= min_auc <= 1:
+            raise ConfigError(f"gate.min_auc must lie in [0, 1]; got {min_auc}")
+        self.min_auc = float(min_auc)
+        self.min_class_events = max(1, int(min_class_events))
         self.seed = int(seed)
         self.n_threads = max(1, int(n_threads))
 
@@ -139,10 +154,10 @@ class LearnedGate:
         # cues that are missing for every training event (e.g. a 3-D diagnostic of a 2-D solver) carry nothing
         self.columns_ = [c for c in cues.columns if np.isfinite(cues[c].to_numpy(float)[use]).any()]
         cues = cues[self.columns_]
-        if use.sum() < 20 or np.unique(label[use]).size < 2 or np.unique(groups[use]).size < self.n_folds:
-            log.warning("learned gate: too few usable training events or one class only; substituting failures only")
-            self.classifier_, self.threshold_, self.oof_auc_ = None, np.inf, None
-            return self
+        smallest_class = int(min(label[use].sum(), (1 - label[use]).sum()))
+        if use.sum() < 20 or smallest_class < self.min_class_events or np.unique(groups[use]).size < self.n_folds:
+            return self._fall_back(f"too few usable training events ({int(use.sum())}) or positions, or a class with fewer than "
+                                   f"{self.min_class_events} events ({smallest_class})")
         x, y, g = cues[use], label[use], groups[use]
         w = self._weights(err_solver[use], err_model[use])
         oof = np.empty(use.sum())
@@ -151,10 +166,23 @@ class LearnedGate:
             cols = [c for c in x.columns if np.isfinite(x[c].to_numpy(float)[fit_idx]).any()]
             clf = self._classifier().fit(x.iloc[fit_idx][cols], y[fit_idx], sample_weight=None if w is None else w[fit_idx]) if np.unique(y[fit_idx]).size > 1 else None
             oof[held_idx] = clf.predict_proba(x.iloc[held_idx][cols])[:, 1] if clf is not None else float(y[fit_idx][0])
-        self.oof_auc_ = float(roc_auc_score(y, oof))
-        self.threshold_, self.threshold_grid_ = self._choose_threshold(oof, err_solver[use], err_model[use], err_model[~use])
+        auc = float(roc_auc_score(y, oof))
+        if auc < self.min_auc:
+            return self._fall_back(f"out-of-fold AUC {auc:.3f} is below gate.min_auc={self.min_auc:g}", auc)
+        threshold, grid = self._choose_threshold(oof, err_solver[use], err_model[use], err_model[~use])
+        chosen, reference = grid.loc[grid["threshold"] == threshold].iloc[0], grid.iloc[-1]  # the last row: never substitute (inf)
+        if chosen["p95_m"] > reference["p95_m"] or chosen["p99_m"] > reference["p99_m"]:
+            return self._fall_back(f"its out-of-fold p95/p99 ({chosen['p95_m']:.3g}/{chosen['p99_m']:.3g} m) would exceed the box-gated "
+                                   f"solver's ({reference['p95_m']:.3g}/{reference['p99_m']:.3g} m)", auc, grid)
+        self.oof_auc_, self.threshold_, self.threshold_grid_, self.fallback_ = auc, threshold, grid, None
         self.classifier_ = self._classifier().fit(x, y, sample_weight=w)
         log.info("learned gate: out-of-fold AUC %.3f, threshold %.3f", self.oof_auc_, self.threshold_)
+        return self
+
+    def _fall_back(self, why: str, auc: float | None = None, grid: pd.DataFrame | None = None) -> LearnedGate:
+        """Decide as the box-gated solver (substitute failures only) and say why."""
+        log.warning("learned gate falls back to the solver's fix (substituting failures only): %s", why)
+        self.classifier_, self.threshold_, self.oof_auc_, self.threshold_grid_, self.fallback_ = None, np.inf, auc, grid, why
         return self
 
     def _weights(self, err_solver: np.ndarray, err_model: np.ndarray) -> np.ndarray | None:
@@ -175,11 +203,17 @@ class LearnedGate:
         for t in thresholds:
             gated = np.concatenate([np.where(prob > t, err_model, err_solver), err_failed])
             rows.append({"threshold": float(t), "p50_m": float(np.median(gated)), "p95_m": float(np.percentile(gated, 95)),
+                         "p99_m": float(np.percentile(gated, 99)),
                          "substitution_rate": float(np.mean(np.concatenate([prob > t, np.ones(err_failed.size, bool)])))})
         grid = pd.DataFrame(rows)
         ok = grid["p50_m"] <= (1 + self.p50_tolerance) * reference_p50
-        best = grid[ok]["p95_m"].idxmin() if ok.any() else grid["p50_m"].idxmin()
-        return float(grid.loc[best, "threshold"]), grid
+        if not ok.any():
+            return float(grid.loc[grid["p50_m"].idxmin(), "threshold"]), grid
+        # among thresholds tied at the lowest p95 the most permissive (fewest substitutions): the choice
+        # is then stable across folds where the p95 curve is flat, and keeps the physical fix where it costs nothing
+        best_p95 = grid.loc[ok, "p95_m"].min()
+        tied = ok & (grid["p95_m"] <= best_p95 * (1 + 1e-9))
+        return float(grid.loc[tied, "threshold"].max()), grid
 
     def probability(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> np.ndarray:
         """(B,) the classifier's probability that the solver's fix is worse than the model's (1 for failures)."""
@@ -206,7 +240,7 @@ class LearnedGate:
         """The threshold, the out-of-fold AUC and the threshold grid (records)."""
         if not hasattr(self, "threshold_"):
             return {}
-        out: dict[str, Any] = {"threshold": float(self.threshold_), "oof_auc": self.oof_auc_}
+        out: dict[str, Any] = {"threshold": float(self.threshold_), "oof_auc": self.oof_auc_, "fallback": getattr(self, "fallback_", None)}
         if getattr(self, "threshold_grid_", None) is not None:
             out["threshold_grid"] = self.threshold_grid_.to_dict(orient="records")
         return out

@@ -1,0 +1,286 @@
+"""Where the point model may be trusted: its training support, and a gate's decision checked against it.
+
+A point model learned on simulation predicts positions inside the region it was trained on; asked
+about a source outside it (a bird 100 m up where the site simulates 0–20 m, a speaker 15 m
+outside the array), a tree ensemble returns a point near the edge of its training region with an
+error radius calibrated on events it *did* know. A gate that hands over to the model there trades
+a good physical fix for an extrapolated guess. This module gives the model an applicability
+domain and checks every gate's decision against it:
+
+* **Training support** (:class:`TrainingSupport`): the convex hull of the training sources'
+  horizontal positions and their height range, each grown by a margin, and a novelty score of
+  the detection's feature row (distance to its nearest training rows in robustly standardised
+  feature space, compared with the same distance among the training rows themselves).
+* **Solver consistency**: a solver fix is physically consistent where its TDOA residual is no
+  larger than (twice) the residuals of good fixes (error ≤ ``good_fix_m``) in the training simulation.
+  An array without redundant measurements (3 mics in 2-D: the residual is always 0) cannot
+  show consistency; there no fix counts as consistent.
+* **The rule** (:func:`apply_trust`): where the gate substituted the model's estimate but the
+  model is outside its support (its input is novel, its own estimate lies outside the training
+  hull, or the solver's consistent fix lies outside it), the solver's fix is kept and the row
+  says why. With no solver fix and the model outside its support, the method abstains (NaN).
+
+Choices measured in ``benchmarks/bench_trust.py`` (results in ``benchmarks/results/trust.md``).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import ConvexHull, QhullError
+from sklearn.neighbors import NearestNeighbors
+
+from acoustlab.core import columns as col
+from acoustlab.core.contracts import GateDecision
+from acoustlab.core.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+#: Why a row's estimate is what it is, after the trust check (``trust_reason`` in predictions and positions).
+REASON_GATE = ""
+REASON_SOLVER_OUTSIDE = "solver fix kept: consistent and outside the model's training region"
+REASON_NOVEL = "solver fix kept: the detection is unlike the model's training data"
+REASON_MODEL_OUTSIDE = "solver fix kept: the model's estimate lies outside its training region"
+REASON_ABSTAIN = "no estimate: no solver fix, and the model is outside its training support"
+
+
+@dataclass(frozen=True)
+class TrustSettings:
+    """When the point model counts as outside its training support (``pipeline.trust`` in the config).
+
+    Attributes
+    ----------
+    enabled : bool
+        False: every gate decision stands as the gate made it.
+    support_margin_m : float
+        The training sources' horizontal convex hull is grown by this, m.
+    height_margin_m : float
+        The training sources' height range is grown by this, m (a 3-D fix outside it is outside the support).
+    novelty_factor : float
+        A detection is novel where its mean distance to its ``n_neighbors`` nearest training rows
+        exceeds this × the ``novelty_quantile`` of the training rows' own such distances (0: no novelty check).
+    novelty_quantile : float
+        Quantile of the training rows' leave-self-out neighbour distances that sets the scale.
+    n_neighbors : int
+        Neighbours of the novelty score.
+    good_fix_m : float
+        Training fixes with a 2-D error at most this (m) define "consistent" residuals.
+    residual_quantile, residual_factor : float
+        A fix is consistent where its residual is at most ``residual_factor`` × this quantile of the
+        good fixes' residuals (a gross fix's residual is typically orders of magnitude larger).
+    """
+
+    enabled: bool = True
+    support_margin_m: float = 2.0
+    height_margin_m: float = 2.0
+    novelty_factor: float = 1.5
+    novelty_quantile: float = 0.99
+    n_neighbors: int = 5
+    good_fix_m: float = 1.0
+    residual_quantile: float = 0.95
+    residual_factor: float = 2.0
+
+    def __post_init__(self) -> None:
+        for name in ("support_margin_m", "height_margin_m", "novelty_factor", "good_fix_m", "residual_factor"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0:
+                raise ConfigError(f"pipeline.trust.{name} must be a finite number >= 0; got {value}")
+        for name in ("novelty_quantile", "residual_quantile"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ConfigError(f"pipeline.trust.{name} must lie in (0, 1]; got {getattr(self, name)}")
+        if self.n_neighbors < 1:
+            raise ConfigError(f"pipeline.trust.n_neighbors must be >= 1; got {self.n_neighbors}")
+
+
+def _hull_excess_m(hull_equations: np.ndarray, points_m: np.ndarray) -> np.ndarray:
+    """(N,) how far each 2-D point lies outside a convex hull, m (≤ 0 inside; the largest facet-plane distance)."""
+    return (points_m @ hull_equations[:, :2].T + hull_equations[:, 2]).max(axis=1)
+
+
+class TrainingSupport:
+    """The region and the feature rows a point model was trained on (module docstring).
+
+    Parameters
+    ----------
+    settings : TrustSettings
+        Margins, novelty and consistency settings.
+    """
+
+    def __init__(self, settings: TrustSettings) -> None:
+        self.settings = settings
+
+    def fit(self, features: pd.DataFrame, truth_m: np.ndarray, solver_error_m: np.ndarray, groups: np.ndarray) -> TrainingSupport:
+        """Learn the support from training rows.
+
+        Parameters
+        ----------
+        features : pandas.DataFrame
+            The point model's input columns of the training rows.
+        truth_m : numpy.ndarray
+            (N, 3) true source positions, m (z may be NaN: the height check is then off).
+        solver_error_m : numpy.ndarray
+            (N,) the solver's 2-D error on those rows, m (inf without a fix).
+        groups : numpy.ndarray
+            (N,) source position of each row: a row's neighbours for the novelty scale come from
+            other positions (events at one position are near-copies of each other, so their own
+            distances would make every new position look novel).
+        """
+        s = self.settings
+        xy = np.asarray(truth_m, dtype=float)[:, :2]
+        xy = xy[np.isfinite(xy).all(axis=1)]
+        try:
+            hull = ConvexHull(xy)
+            self.hull_equations_, self.hull_vertices_m_ = hull.equations, xy[hull.vertices]
+        except (QhullError, ValueError):  # collinear or too few sources: a box around them instead
+            low, high = xy.min(axis=0), xy.max(axis=0)
+            self.hull_equations_ = np.array([[-1, 0, low[0]], [1, 0, -high[0]], [0, -1, low[1]], [0, 1, -high[1]]], dtype=float)
+            self.hull_vertices_m_ = np.array([[low[0], low[1]], [high[0], low[1]], [high[0], high[1]], [low[0], high[1]]])
+        z = np.asarray(truth_m, dtype=float)[:, 2] if np.shape(truth_m)[1] > 2 else np.array([np.nan])
+        z = z[np.isfinite(z)]
+        self.height_range_m_ = (float(z.min()), float(z.max())) if z.size else None
+        self._fit_novelty(features, np.asarray(groups))
+        residual = features[col.solver_column("residual_s")].to_numpy(float) if col.solver_column("residual_s") in features else None
+        good = np.asarray(solver_error_m) <= s.good_fix_m
+        good_residuals = residual[good & np.isfinite(residual)] if residual is not None else np.array([])
+        # an array without redundancy fits any fix exactly (residual ≈ 0): consistency cannot be shown there
+        self.residual_limit_s_ = float(s.residual_factor * np.quantile(good_residuals, s.residual_quantile)) if good_residuals.size >= 10 else None
+        if self.residual_limit_s_ is not None and self.residual_limit_s_ < 1e-9:
+            self.residual_limit_s_ = None
+        return self
+
+    def _fit_novelty(self, features: pd.DataFrame, groups: np.ndarray) -> None:
+        s = self.settings
+        x = features.to_numpy(float)
+        self.columns_ = list(features.columns)
+        self.centre_ = np.nanmedian(x, axis=0)
+        iqr = np.nanpercentile(x, 75, axis=0) - np.nanpercentile(x, 25, axis=0)
+        self.scale_ = np.where(np.isfinite(iqr) & (iqr > 0), iqr, 1.0)
+        self.centre_ = np.where(np.isfinite(self.centre_), self.centre_, 0.0)
+        if s.novelty_factor == 0 or len(x) <= s.n_neighbors + 1:
+            self.neighbours_, self.novelty_limit_ = None, np.inf
+            return
+        z = self._standardise(x)
+        per_position = int(np.unique(groups, return_counts=True)[1].max())
+        self.neighbours_ = NearestNeighbors(n_neighbors=min(len(x), s.n_neighbors + per_position)).fit(z)
+        distance, index = self.neighbours_.kneighbors(z)
+        other = groups[index] != groups[:, None]  # leave the row's own position out
+        own = np.array([d[o][: s.n_neighbors].mean() if o.any() else np.nan for d, o in zip(distance, other, strict=True)])
+        own = own[np.isfinite(own)]
+        if own.size == 0:
+            self.neighbours_, self.novelty_limit_ = None, np.inf
+            return
+        self.novelty_limit_ = float(s.novelty_factor * np.quantile(own, s.novelty_quantile))
+
+    def _standardise(self, x: np.ndarray) -> np.ndarray:
+        z = (x - self.centre_) / self.scale_
+        # a missing value sits at the centre; a huge one (a diverged diagnostic) counts, but bounded
+        return np.clip(np.where(np.isfinite(z), z, 0.0), -50.0, 50.0)
+
+    def novelty(self, features: pd.DataFrame) -> np.ndarray:
+        """(B,) mean distance to the nearest training rows ÷ the novelty limit (> 1: novel; 0 without the check)."""
+        if self.neighbours_ is None:
+            return np.zeros(len(features))
+        distance, _ = self.neighbours_.kneighbors(self._standardise(features[self.columns_].to_numpy(float)),
+                                                  n_neighbors=self.settings.n_neighbors)
+        return distance.mean(axis=1) / self.novelty_limit_
+
+    def outside_region(self, position_m: np.ndarray, height_m: np.ndarray | None = None) -> np.ndarray:
+        """(B,) True where a finite position lies outside the grown hull (or a given height outside the grown height range)."""
+        position_m = np.asarray(position_m, dtype=float)
+        finite = np.isfinite(position_m).all(axis=1)
+        outside = np.zeros(len(position_m), dtype=bool)
+        outside[finite] = _hull_excess_m(self.hull_equations_, position_m[finite]) > self.settings.support_margin_m
+        if height_m is not None and self.height_range_m_ is not None:
+            low, high = self.height_range_m_
+            h = np.asarray(height_m, dtype=float)
+            margin = self.settings.height_margin_m
+            outside |= finite & np.isfinite(h) & ((h < low - margin) | (h > high + margin))
+        return outside
+
+    def consistent(self, features: pd.DataFrame) -> np.ndarray:
+        """(B,) True where the solver's fix fits its TDOAs as well as good training fixes did (False without redundancy)."""
+        name = col.solver_column("residual_s")
+        if self.residual_limit_s_ is None or name not in features:
+            return np.zeros(len(features), dtype=bool)
+        residual = features[name].to_numpy(float)
+        return np.isfinite(residual) & (residual <= self.residual_limit_s_)
+
+    def description(self) -> dict[str, Any]:
+        """The training region for metrics.json: hull vertices (m), height range (m), limits."""
+        return {"hull_vertices_m": np.round(self.hull_vertices_m_, 3).tolist(),
+                "height_range_m": None if self.height_range_m_ is None else [round(v, 3) for v in self.height_range_m_],
+                "support_margin_m": self.settings.support_margin_m, "height_margin_m": self.settings.height_margin_m,
+                "residual_limit_s": self.residual_limit_s_,
+                "novelty_limit": None if not np.isfinite(self.novelty_limit_) else self.novelty_limit_}
+
+
+@dataclass
+class TrustedDecision:
+    """A gate's decision after the trust check.
+
+    Attributes
+    ----------
+    decision : GateDecision
+        The estimate each row reports (NaN where the method abstains) and whether it is the model's.
+    reason : numpy.ndarray
+        (B,) object: why the gate's choice was overridden ('' where it stands).
+    flags : dict of str to numpy.ndarray
+        ``novelty``, ``solver_outside_support``, ``model_outside_support``, ``solver_consistent`` per row.
+    """
+
+    decision: GateDecision
+    reason: np.ndarray
+    flags: dict[str, np.ndarray]
+
+
+def solver_height(features: pd.DataFrame) -> np.ndarray | None:
+    """(B,) the solver's estimated source height where a 3-D fix was kept, NaN elsewhere; None for a 2-D solver."""
+    if col.SOLVER_SOURCE_HEIGHT not in features or col.solver_column("dimensions_used") not in features:
+        return None
+    height = features[col.SOLVER_SOURCE_HEIGHT].to_numpy(float)
+    return np.where(features[col.solver_column("dimensions_used")].to_numpy(float) == 3, height, np.nan)
+
+
+def apply_trust(decision: GateDecision, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame,
+                model_features: pd.DataFrame, support: TrainingSupport | None) -> TrustedDecision:
+    """Check a gate's decision against the point model's training support (module docstring).
+
+    Parameters
+    ----------
+    decision : GateDecision
+        What the gate chose.
+    solver_xy, model_xy : numpy.ndarray
+        (B, 2) the solver's and the point model's estimates, m.
+    features : pandas.DataFrame
+        The rows' full feature table (solver columns included).
+    model_features : pandas.DataFrame
+        The point model's input columns of the rows.
+    support : TrainingSupport or None
+        None: the decision stands.
+    """
+    n = len(solver_xy)
+    if support is None:
+        empty = np.zeros(n, dtype=bool)
+        return TrustedDecision(decision, np.full(n, REASON_GATE, dtype=object),
+                               {"novelty": np.zeros(n), "solver_outside_support": empty, "model_outside_support": empty, "solver_consistent": empty})
+    novelty = support.novelty(model_features)
+    solver_outside = support.outside_region(solver_xy, solver_height(features))
+    model_outside = support.outside_region(model_xy)
+    consistent = support.consistent(features)
+    solver_fix = np.isfinite(solver_xy).all(axis=1)
+    reason = np.full(n, REASON_GATE, dtype=object)
+    # the order sets which reason is reported where several apply: the physical one first
+    for applies, why in ((model_outside, REASON_MODEL_OUTSIDE), (novelty > 1, REASON_NOVEL), (solver_outside & consistent, REASON_SOLVER_OUTSIDE)):
+        reason = np.where(applies & (reason == REASON_GATE), why, reason)
+    distrusted = reason != REASON_GATE
+    keep_solver = decision.substituted & distrusted & solver_fix
+    abstain = decision.substituted & distrusted & ~solver_fix
+    reason = np.where(keep_solver, reason, np.where(abstain, REASON_ABSTAIN, REASON_GATE))
+    position = np.where(keep_solver[:, None], solver_xy, decision.position_m)
+    position[abstain] = np.nan
+    flags = {"novelty": novelty, "solver_outside_support": solver_outside, "model_outside_support": model_outside, "solver_consistent": consistent}
+    return TrustedDecision(GateDecision(position, decision.substituted & ~keep_solver & ~abstain), reason, flags)
