@@ -189,3 +189,87 @@ def test_no_positions_row_mixes_estimates():
     assert table["solver_z_m"].iloc[1] == 90.0
     np.testing.assert_allclose(table["solver_model_distance_m"].iloc[:2], [np.hypot(4, 4)] * 2)
     assert table["abstain_reason"].iloc[2] == trust.REASON_ABSTAIN and not table["placed"].iloc[2]
+
+
+# ------------------------------------------------------------------------------- recordings sanity
+def _shared_multichannel_folder(root, with_channel: bool, identical: bool = False):
+    """3 mics listed against one 3-channel WAV (a mics table that names the same file for every mic)."""
+    import soundfile as sf
+
+    root.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    audio = (0.01 * rng.standard_normal((48000, 3))).astype(np.float32)
+    if identical:
+        audio[:, 2] = audio[:, 1]
+    sf.write(root / "all.wav", audio, 24000, subtype="FLOAT")
+    mics = pd.DataFrame({"mic_id": ["a", "b", "c"], "file": "all.wav", "x_m": [0.0, 40.0, 20.0], "y_m": [0.0, 0.0, 35.0], "z_m": 1.5})
+    if with_channel:
+        mics["channel"] = [0, 1, 2]
+    mics.to_csv(root / "mics.csv", index=False)
+    pd.DataFrame({"event_id": [0, 1], "start_s": [0.3, 1.0], "end_s": [0.6, 1.3]}).to_csv(root / "events.csv", index=False)
+    return audio
+
+
+def _folder(root, **kwargs):
+    from plugins.fields.recordings import RecordingFolder
+
+    return RecordingFolder(audio_dir=str(root), mics_csv=str(root / "mics.csv"), events_csv=str(root / "events.csv"),
+                           sample_rate_hz=24000, **kwargs)
+
+
+def test_one_multichannel_file_for_every_mic_needs_a_channel_column(tmp_path):
+    """Never the channel average for every mic (all events at one point, radius 0): refuse, or read each mic's channel."""
+    from acoustlab.core.errors import DataError
+
+    _shared_multichannel_folder(tmp_path / "a", with_channel=False)
+    with pytest.raises(DataError, match="add a 'channel' column"):
+        _folder(tmp_path / "a").validate()
+    audio = _shared_multichannel_folder(tmp_path / "b", with_channel=True)
+    batch = _folder(tmp_path / "b", pad_s=0.0).load(None)
+    np.testing.assert_allclose(batch.audio[0, :, :100], audio[int(0.3 * 24000): int(0.3 * 24000) + 100].T, atol=1e-7)
+    assert batch.events["quality_ok"].all()
+
+
+def test_identical_channels_are_flagged(tmp_path):
+    _shared_multichannel_folder(tmp_path, with_channel=True, identical=True)
+    events = _folder(tmp_path).load(None).events
+    assert not events["quality_ok"].any()
+    assert events["quality_flags"].str.contains("mic c: duplicate").all()
+
+
+def test_a_header_rate_other_than_the_recorders_is_refused(tmp_path):
+    from acoustlab.core.errors import DataError
+
+    _shared_multichannel_folder(tmp_path, with_channel=True)  # written at 24 kHz
+    with pytest.raises(DataError, match="declares 24000 Hz but field.recorder_sample_rate_hz is 48000 Hz"):
+        _folder(tmp_path, recorder_sample_rate_hz=48000).validate()
+    _folder(tmp_path, recorder_sample_rate_hz=24000).validate()
+
+
+# ------------------------------------------------------------------------------- the second simulator
+def test_image_source_field_renders_direct_path_delays(compose_cfg):
+    """pyroomacoustics' renders carry the geometric TDOAs (the delays the method must recover), and sources lie in and around the array."""
+    pytest.importorskip("pyroomacoustics")
+    from scipy.signal import correlate
+
+    from acoustlab.run.registry import build
+    from acoustlab.stages.sites import site_from_config
+
+    cfg = compose_cfg(["+site=frozen_lake", "field=image_source", "field.n_positions=4", "field.events_per_position=1", "field.snr_db=[60,60]",
+                       "field.outside_share=0.5"])
+    site = site_from_config(cfg.site)
+    source = build(cfg.field, "field")
+    batch = source.load(site)
+    assert batch.audio.shape == (4, 3, int(round(cfg.simulator.duration_s * cfg.simulator.sample_rate_hz)))
+    assert batch.events["outside_simulated_region"].tolist() == [False, False, True, True]
+    assert batch.events["speed_of_sound_m_s"].between(300, 360).all() and np.isfinite(batch.audio).all()
+    # an impulse from each source arrives at every mic after distance / c (pyroomacoustics' c for the weather), within
+    # 0.3 ms: the ground reflection, 0.1–0.2 ms behind the direct path at these ranges, merges with it (343 m/s would be ~3 ms off)
+    fs = batch.sample_rate_hz
+    click = np.zeros(64)
+    click[0] = 1.0
+    for source_m in source.source_positions(site):
+        clean, c = source._render(site, source_m, click, 0.1, -10.0, 80.0)
+        distance = np.sqrt(((site.mic_positions_m - source_m) ** 2).sum(axis=1))
+        arrival_s = np.argmax(np.abs(clean), axis=1) / fs
+        np.testing.assert_allclose(arrival_s - arrival_s[0], (distance - distance[0]) / c, atol=3e-4)

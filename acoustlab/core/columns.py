@@ -34,6 +34,8 @@ GATE_ESTIMATE_GDOP = "gate__estimate_gdop"
 GATE_ESTIMATE_RANGE = "gate__estimate_range_m"
 #: Why the trust check overrode a gate's choice ('' where it did not; :mod:`acoustlab.method.trust`).
 TRUST_REASON = "trust_reason"
+#: The extra-gate name under which the configured gate's choice before the trust check is reported (method ``gate_without_trust``).
+GATE_WITHOUT_TRUST = "without_trust"
 #: The trust check's per-row cues (``trust__novelty``, ``trust__solver_outside_support``, …).
 TRUST_PREFIX = "trust"
 

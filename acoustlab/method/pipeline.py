@@ -348,6 +348,8 @@ class LocalizationPipeline:
         for k, name in enumerate(col.estimate_xy("oracle")):
             out[name] = np.where(solver_better, solver_xy[test, k], model_xy[:, k])
         out[col.error_m("oracle")] = np.minimum(out[col.error_m("solver")], out[col.error_m("model")])
+        if support is not None:  # the configured gate as it decided before the trust check, side by side on the same predictions
+            self._add_method(out, col.extra_gate_method(col.GATE_WITHOUT_TRUST), trusted.gate_position_m, truth[test])
         if self.c.ellipse:
             self._add_ellipses(out, (oof_gate.position_m - truth[train])[cal], oof_gate.position_m[cal], oof_pred[cal], features.iloc[train[cal]],
                                decision.position_m, predicted, features.iloc[test])
@@ -356,11 +358,8 @@ class LocalizationPipeline:
             "n_positions": int(np.unique(groups[train][cal]).size)}}
         for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
             extra = self._fit_gate(configured, train, sim, solver_xy, oof_model, features, truth, groups)
-            method = col.extra_gate_method(name)
             position = self._decide(extra, test, solver_xy, model_xy, features, mcols, support).decision.position_m
-            for k, column in enumerate(col.estimate_xy(method)):
-                out[column] = position[:, k]
-            out[col.error_m(method)] = error_2d_m(position, truth[test])
+            self._add_method(out, col.extra_gate_method(name), position, truth[test])
             split_info.setdefault("extra_gates", {})[name] = extra.diagnostics()
         if self.c.selective is not None:
             threshold, info = self._selective_threshold(oof_err[domain], oof_pred[domain])
@@ -400,6 +399,13 @@ class LocalizationPipeline:
             raise DataError(f"conformal.calibrate_on=field: {why} (protocol=lopo, or localize with calibration playbacks, provide them)")
         log.info("conformal calibration on all %d training events (%s)", train.size, why)
         return every
+
+    @staticmethod
+    def _add_method(out: pd.DataFrame, method: str, position_m: np.ndarray, truth_m: np.ndarray) -> None:
+        """A method's estimate and error columns in the predictions table."""
+        for k, column in enumerate(col.estimate_xy(method)):
+            out[column] = position_m[:, k]
+        out[col.error_m(method)] = error_2d_m(position_m, truth_m)
 
     @staticmethod
     def _trust_summary(support: TrainingSupport | None, trusted: TrustedDecision) -> dict[str, Any]:

@@ -230,11 +230,14 @@ class TrustedDecision:
         (B,) object: why the gate's choice was overridden ('' where it stands).
     flags : dict of str to numpy.ndarray
         ``novelty``, ``solver_outside_support``, ``model_outside_support``, ``solver_consistent`` per row.
+    gate_position_m : numpy.ndarray
+        (B, 2) what the gate chose before the check (for comparison).
     """
 
     decision: GateDecision
     reason: np.ndarray
     flags: dict[str, np.ndarray]
+    gate_position_m: np.ndarray
 
 
 def solver_height(features: pd.DataFrame) -> np.ndarray | None:
@@ -266,7 +269,8 @@ def apply_trust(decision: GateDecision, solver_xy: np.ndarray, model_xy: np.ndar
     if support is None:
         empty = np.zeros(n, dtype=bool)
         return TrustedDecision(decision, np.full(n, REASON_GATE, dtype=object),
-                               {"novelty": np.zeros(n), "solver_outside_support": empty, "model_outside_support": empty, "solver_consistent": empty})
+                               {"novelty": np.zeros(n), "solver_outside_support": empty, "model_outside_support": empty, "solver_consistent": empty},
+                               decision.position_m)
     novelty = support.novelty(model_features)
     solver_outside = support.outside_region(solver_xy, solver_height(features))
     model_outside = support.outside_region(model_xy)
@@ -283,4 +287,4 @@ def apply_trust(decision: GateDecision, solver_xy: np.ndarray, model_xy: np.ndar
     position = np.where(keep_solver[:, None], solver_xy, decision.position_m)
     position[abstain] = np.nan
     flags = {"novelty": novelty, "solver_outside_support": solver_outside, "model_outside_support": model_outside, "solver_consistent": consistent}
-    return TrustedDecision(GateDecision(position, decision.substituted & ~keep_solver & ~abstain), reason, flags)
+    return TrustedDecision(GateDecision(position, decision.substituted & ~keep_solver & ~abstain), reason, flags, decision.position_m)

@@ -67,7 +67,7 @@ def errors_by_method(predictions: pd.DataFrame) -> dict[str, dict[str, float]]:
 
 
 def coverage_and_width(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> tuple[dict, dict]:
-    """Empirical coverage of the gate's error by every scorer's radius, and the radii's mean / median (m)."""
+    """Empirical coverage of the gate's error by every scorer's radius, and the radii's mean / median / max (m)."""
     coverage: dict[str, dict[str, float]] = {}
     width: dict[str, dict[str, dict[str, float]]] = {}
     err = predictions[col.error_m("gate")].to_numpy()
@@ -80,6 +80,7 @@ def coverage_and_width(predictions: pd.DataFrame, levels: list[float], scorers: 
             width[name][col.level_key(level)] = {
                 "mean_m": float(finite.mean()) if finite.size else float("inf"),
                 "median_m": float(np.median(finite)) if finite.size else float("inf"),
+                "max_m": float(finite.max()) if finite.size else float("inf"),
             }
     return coverage, width
 

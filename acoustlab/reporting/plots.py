@@ -222,6 +222,30 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
     return paths
 
 
+def _other_estimate(placed: pd.DataFrame) -> np.ndarray:
+    """(N, 2) the estimate each placed row did not report (the model's where the solver's was kept, and the reverse)."""
+    if not {"solver_x_m", "model_x_m", "source"} <= set(placed.columns):
+        return np.full((len(placed), 2), np.nan)
+    model = placed["source"].to_numpy() == "model"
+    solver_xy = placed[["solver_x_m", "solver_y_m"]].to_numpy(float)
+    model_xy = placed[["model_x_m", "model_y_m"]].to_numpy(float)
+    return np.where(model[:, None], solver_xy, model_xy)
+
+
+def _draw_disagreements(ax: plt.Axes, placed: pd.DataFrame, radius: np.ndarray | None) -> None:
+    """Where the solver and the model disagree by more than the reported radius, draw the other estimate and a line to it."""
+    other = _other_estimate(placed)
+    reported = placed[["x_m", "y_m"]].to_numpy(float)
+    distance = np.sqrt(((other - reported) ** 2).sum(axis=1))
+    far = np.isfinite(distance) & (distance > (radius if radius is not None else 0.0))
+    if not far.any():
+        return
+    for (x0, y0), (x1, y1) in zip(reported[far], other[far], strict=True):
+        ax.plot([x0, x1], [y0, y1], color="tab:gray", lw=0.6, ls=":", zorder=2)
+    ax.scatter(other[far, 0], other[far, 1], marker="x", color="tab:gray", s=25, zorder=3,
+               label="the other estimate (solver or model), farther than the radius")
+
+
 def write_positions_map(table: pd.DataFrame, site: Site, levels: list[float], scorers: list[str], out_dir: Path) -> Path:
     """``positions_map.png``: mics, trunks and every placed detection with its radius at the level nearest 0.8.
 
@@ -234,8 +258,9 @@ def write_positions_map(table: pd.DataFrame, site: Site, levels: list[float], sc
         ax.add_collection(PatchCollection(trunks, facecolor="tab:brown", edgecolor="none", alpha=0.5))
     mics = site.mic_positions_m
     placed = table[table["placed"]]
-    xs = np.concatenate([mics[:, 0], placed["x_m"].to_numpy(float)])
-    ys = np.concatenate([mics[:, 1], placed["y_m"].to_numpy(float)])
+    other = _other_estimate(placed)
+    xs = np.concatenate([mics[:, 0], placed["x_m"].to_numpy(float), other[:, 0][np.isfinite(other[:, 0])]])
+    ys = np.concatenate([mics[:, 1], placed["y_m"].to_numpy(float), other[:, 1][np.isfinite(other[:, 1])]])
     extent = max(np.ptp(xs), np.ptp(ys), 1.0)
     scorer = "gdop_scaled" if "gdop_scaled" in scorers else (scorers[0] if scorers else None)
     title = f"{site.name}: {len(placed)} of {len(table)} detections placed"
@@ -247,6 +272,7 @@ def write_positions_map(table: pd.DataFrame, site: Site, levels: list[float], sc
         ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:orange", lw=0.8, alpha=0.7))
         title += f"; circles: {scorer} conformal, {level:.0%}"
     ax.scatter(placed["x_m"], placed["y_m"], marker=".", color="tab:orange", s=30, label="estimate", zorder=3)
+    _draw_disagreements(ax, placed, radius if scorer is not None and levels else None)
     ax.scatter(mics[:, 0], mics[:, 1], marker="^", color="k", s=60, label="microphones", zorder=4)
     pad = 0.2 * extent
     ax.set_xlim(xs.min() - pad, xs.max() + pad)

@@ -4,7 +4,9 @@ A field recorder fails in a handful of ways that all produce numbers a TDOA solv
 turns into a position hundreds of metres away: a dead channel (digital zeros or a constant), a
 file cut short (the event lies partly or wholly past its end, or before its start), non-finite
 samples from a damaged file, and clipping. :func:`clip_quality` names each of these per clip so
-the caller can flag the event instead of localizing it from zeros.
+the caller can flag the event instead of localizing it from zeros. :func:`duplicate_channels`
+finds mics whose clips are the same samples (one channel wired or listed twice): their TDOA is 0
+whatever the source, and every fix collapses onto one point with a radius of 0.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 #: Every reason a clip can be flagged for, in the order they are reported.
-QUALITY_REASONS = ("out_of_range", "truncated", "nonfinite", "dead", "clipped")
+QUALITY_REASONS = ("out_of_range", "truncated", "nonfinite", "dead", "clipped", "duplicate")
 
 
 @dataclass(frozen=True)
@@ -83,3 +85,26 @@ def clip_quality(signal: np.ndarray, start: int, length: int, thresholds: Qualit
     elif float(np.mean(np.abs(part) >= thresholds.clip_level)) > thresholds.clip_share:
         reasons.append("clipped")
     return clip, reasons
+
+
+def duplicate_channels(clips: np.ndarray, tolerance: float = 1e-7) -> list[int]:
+    """Mics whose clip repeats an earlier mic's, sample for sample (dead clips excepted: they are flagged as dead).
+
+    Parameters
+    ----------
+    clips : numpy.ndarray
+        (M, S) one event's clips, full scale = 1.
+    tolerance : float
+        Largest absolute difference (full scale) still counted as the same samples.
+
+    Returns
+    -------
+    list of int
+        Indices of the later mic of every identical pair, each once.
+    """
+    live = [m for m in range(len(clips)) if float(np.ptp(clips[m])) > tolerance]
+    out = []
+    for k, m in enumerate(live):
+        if any(float(np.max(np.abs(clips[m] - clips[j]))) <= tolerance for j in live[:k]):
+            out.append(m)
+    return out

@@ -39,7 +39,7 @@ from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_channels, load_mono
-from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_quality
+from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_quality, duplicate_channels
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +123,15 @@ class RecordingFolder:
     quality : dict, optional
         :class:`acoustlab.toolkit.quality.QualityThresholds` fields (``dead_peak_to_peak``,
         ``clip_level``, ``clip_share``).
+    recorder_sample_rate_hz : float, optional
+        The rate the recorders were set to; every audio file's header must declare it (a file whose
+        samples were written under another rate would place sources metres off). None: not checked.
+
+    Notes
+    -----
+    A mics table may name one multichannel file for several mics; it then needs a ``channel``
+    column (0-based) saying which channel each mic is (never the average of all channels). Two
+    mics whose clips of an event are identical sample for sample are flagged ``duplicate``.
     """
 
     def __init__(
@@ -140,6 +149,7 @@ class RecordingFolder:
         max_event_s: float = 60.0,
         allow_outside_audio_dir: bool = False,
         quality: dict | None = None,
+        recorder_sample_rate_hz: float | None = None,
     ) -> None:
         if not ((mics_csv and events_csv) or (coords_csv and detections_csv)):
             raise ConfigError("field: give mics_csv and events_csv, or coords_csv and detections_csv (OpenSoundscape layout)")
@@ -162,6 +172,9 @@ class RecordingFolder:
         self.pad_s = float(pad_s)
         self.max_event_s = float(max_event_s)
         self.allow_outside_audio_dir = bool(allow_outside_audio_dir)
+        if recorder_sample_rate_hz is not None and not (isinstance(recorder_sample_rate_hz, (int, float)) and recorder_sample_rate_hz > 0):
+            raise ConfigError(f"field.recorder_sample_rate_hz must be a positive number (Hz) or null; got {recorder_sample_rate_hz!r}")
+        self.recorder_sample_rate_hz = None if recorder_sample_rate_hz is None else float(recorder_sample_rate_hz)
         try:
             self.thresholds = QualityThresholds(**(quality or {}))
         except TypeError as exc:
@@ -289,12 +302,37 @@ class RecordingFolder:
             info = self._header(path)
             if "file" not in mics and info.channels < len(mics):
                 raise DataError(f"field: {path} has {info.channels} channels but the mics table lists {len(mics)} mics")
+            if self.recorder_sample_rate_hz is not None and info.samplerate != self.recorder_sample_rate_hz:
+                raise DataError(f"field: {path} declares {info.samplerate} Hz but field.recorder_sample_rate_hz is "
+                                f"{self.recorder_sample_rate_hz:g} Hz; fix the file's header (or the setting)")
+            if "file" in mics:
+                self._check_channels(mics, file, path, info.channels)
         n = int(((events["end_s"] - events["start_s"]).max() + 2 * self.pad_s) * self.sample_rate_hz) + 1
         size = len(events) * len(mics) * n * 4
         if size > MAX_AUDIO_BYTES:
             raise DataError(f"field: {len(events)} events × {len(mics)} mics × {n} samples need {size / 2**30:.1f} GiB; "
                             f"split the events table (at most {MAX_AUDIO_BYTES / 2**30:.0f} GiB at once)")
         return mics, events
+
+    @staticmethod
+    def _check_channels(mics: pd.DataFrame, file: str, path: Path, n_channels: int) -> None:
+        """Mics sharing a file need a ``channel`` column, within the file's channels, one channel per mic."""
+        users = mics.index[mics["file"] == file]
+        names = mics["mic_id"].astype(str) if "mic_id" in mics else pd.Series([str(k) for k in range(len(mics))], index=mics.index)
+        if "channel" not in mics:
+            if len(users) > 1:
+                raise DataError(f"field.mics_csv: mics {', '.join(names[users])} all name {path} ({n_channels} channel(s)); add a "
+                                f"'channel' column (0-based) saying which channel each mic is, or give each mic its own file")
+            return
+        channel = pd.to_numeric(mics.loc[users, "channel"], errors="coerce")
+        bad = ~channel.between(0, n_channels - 1) | (channel != np.round(channel))
+        if bad.any():
+            k = bad.idxmax()
+            raise DataError(f"field.mics_csv: mic {names[k]} reads channel {mics.loc[k, 'channel']!r} of {path}, which has "
+                            f"channels 0–{n_channels - 1}")
+        if channel.duplicated().any():
+            raise DataError(f"field.mics_csv: mics {', '.join(names[users[channel.duplicated(keep=False).to_numpy()]])} read the same "
+                            f"channel of {path}; each mic is its own channel")
 
     def projection(self) -> tuple[np.ndarray, np.ndarray, str] | None:
         """The rigid map from the site's local frame to the mics table's projected coordinates, or None without them.
@@ -351,11 +389,15 @@ class RecordingFolder:
         for k, ev in enumerate(events.itertuples()):
             start = int(round(ev.start_s * fs)) - pad
             for m in range(len(mics)):
-                if per_mic:
+                if per_mic and "channel" in mics:
+                    signal = load_channels(paths[mics["file"].iloc[m]], fs)[int(mics["channel"].iloc[m])]
+                elif per_mic:
                     signal = load_mono(paths[mics["file"].iloc[m]], fs)
                 else:
                     signal = load_channels(paths[ev.file], fs)[m]
                 audio[k, m, : lengths[k]], reasons[k, m] = clip_quality(signal, start, int(lengths[k]), self.thresholds, margin=pad)
+            for m in duplicate_channels(audio[k, :, : lengths[k]]):  # the same samples on two mics: a wiring or table error
+                reasons[k, m] = [*reasons[k, m], "duplicate"]
         flags = [_describe(row, mics) for row in reasons]
         position = events["position_id"].to_numpy(int) if "position_id" in events else events["event_id"].to_numpy(int)
         failed = (events["hardware_failure"].astype(str).str.strip().str.lower().isin(["1", "1.0", "true", "yes"]).to_numpy()

@@ -1,0 +1,175 @@
+"""Recordings rendered by an independent simulator: pyroomacoustics' image-source method, outdoors.
+
+The method learns from acoustlab's own simulator; its users need to see what a *different*
+simulator costs it before they go to the field. This field source renders labelled events with
+`pyroomacoustics <https://github.com/LCAV/pyroomacoustics>`_ (MIT): a room so large that only its
+floor matters, walls and ceiling fully absorbing (reflection 0), ``max_order=1`` (direct path and
+one ground reflection with a frequency-independent energy absorption), pyroomacoustics' own air
+absorption and speed of sound from the event's temperature and humidity, fractional-delay
+image sources. Calls come from the site's pool of real dry calls (and synthetic ones where the
+site's pool has them), background noise from the site's noise regimes (real recordings where it
+has them) at an SNR drawn per event.
+
+Where acoustlab's simulator has a locally reacting impedance ground, trunk scattering, its own
+absorption tables and field impairments, this one has none of them: the differences are the
+point. Sources lie in and around the array (``outside_share`` of the positions between the
+site's simulated source region and ``outside_expansion`` × the array extent), at heights across
+the site's range, so a benchmark sees the sources a field study has, including those a
+simulation of the array's interior never showed the model.
+
+``protocol=field_eval field=image_source`` trains on acoustlab's simulation and evaluates on
+these recordings (every position withheld): the cross-simulator protocol.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.core.errors import ConfigError
+from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.calls import CallPool
+from acoustlab.toolkit.geometry import distance_to_polygon_m, sample_in_expanded_hull, source_region
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.scene_sampling import draw_weather, noise_matrix, noise_std_for_snr
+
+log = logging.getLogger(__name__)
+
+_POSITIONS_STREAM, _EVENT_STREAM = 20, 21
+#: Metres of fully absorbing room around every mic and source (walls never reflect; this keeps them away).
+_ROOM_MARGIN_M = 5.0
+
+
+class ImageSourceField:
+    """Labelled events rendered with pyroomacoustics (a :class:`acoustlab.core.contracts.FieldSource`).
+
+    Parameters
+    ----------
+    sample_rate_hz, duration_s : float
+        Rate (Hz) and length (s) of every recording (the training simulator's, so features agree).
+    n_positions : int
+        Source positions (the exchangeable unit of the evaluation).
+    events_per_position : int
+        Calls rendered at each position (each with its own call, weather, noise and SNR).
+    outside_share : float
+        Share of positions outside the site's simulated source region.
+    outside_expansion : float
+        Those lie within the mics' hull grown by this × the largest mic-to-mic distance.
+    ground_energy_absorption : float
+        Energy absorption coefficient of the ground (0 rigid … 1 no reflection), all frequencies.
+    snr_db : sequence of float
+        SNR range at the nearest mic, dB.
+    onset_s : sequence of float
+        Range of the call's emission time within the recording, s.
+    include_share_alike : bool
+        Also draw CC BY-SA calls.
+    seed : int
+        Seed of positions and renders (independent of the training simulation's).
+    """
+
+    def __init__(self, sample_rate_hz: float = 24000.0, duration_s: float = 1.1, n_positions: int = 60, events_per_position: int = 5,
+                 outside_share: float = 0.3, outside_expansion: float = 0.6, ground_energy_absorption: float = 0.4,
+                 snr_db: Sequence[float] = (5.0, 30.0), onset_s: Sequence[float] = (0.05, 0.25), include_share_alike: bool = False,
+                 seed: int = 2000) -> None:
+        if n_positions < 2 or events_per_position < 1:
+            raise ConfigError(f"field.n_positions must be >= 2 and field.events_per_position >= 1; got {n_positions}, {events_per_position}")
+        if not 0 <= outside_share <= 1:
+            raise ConfigError(f"field.outside_share must lie in [0, 1]; got {outside_share}")
+        if not 0 <= ground_energy_absorption <= 1:
+            raise ConfigError(f"field.ground_energy_absorption must lie in [0, 1]; got {ground_energy_absorption}")
+        if len(snr_db) != 2 or snr_db[0] > snr_db[1] or len(onset_s) != 2 or not 0 <= onset_s[0] <= onset_s[1] < duration_s:
+            raise ConfigError(f"field.snr_db and field.onset_s must be [low, high] ranges (onset within duration_s); got {snr_db}, {onset_s}")
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.duration_s = float(duration_s)
+        self.n_positions = int(n_positions)
+        self.events_per_position = int(events_per_position)
+        self.outside_share = float(outside_share)
+        self.outside_expansion = float(outside_expansion)
+        self.ground_energy_absorption = float(ground_energy_absorption)
+        self.snr_db = (float(snr_db[0]), float(snr_db[1]))
+        self.onset_s = (float(onset_s[0]), float(onset_s[1]))
+        self.include_share_alike = bool(include_share_alike)
+        self.seed = int(seed)
+
+    def validate(self, site: Site) -> None:
+        """Check that pyroomacoustics is installed and the outside region is larger than the simulated one."""
+        try:
+            import pyroomacoustics  # noqa: F401
+        except ImportError:
+            raise ConfigError("field=image_source renders with pyroomacoustics, which is not installed: pip install -e \".[crosssim]\"") from None
+        if self.outside_share > 0 and self.outside_expansion <= site.hull_expansion:
+            raise ConfigError(f"field.outside_expansion={self.outside_expansion} must exceed the site's hull_expansion={site.hull_expansion} "
+                              "(outside positions lie between the two)")
+
+    def source_positions(self, site: Site) -> np.ndarray:
+        """(K, 3) source positions in m: inside the site's source region, and ``outside_share`` of them around it."""
+        rng = np.random.default_rng([self.seed, _POSITIONS_STREAM])
+        n_out = int(round(self.outside_share * self.n_positions))
+        inside = sample_in_expanded_hull(rng, site.mic_positions_m, site.hull_expansion, self.n_positions - n_out)
+        polygon, buffer_m = source_region(site.mic_positions_m, site.hull_expansion)
+        outside = np.empty((0, 2))
+        while len(outside) < n_out:
+            candidates = sample_in_expanded_hull(rng, site.mic_positions_m, self.outside_expansion, 4 * n_out)
+            outside = np.vstack([outside, candidates[distance_to_polygon_m(candidates, polygon) > buffer_m]])
+        xy = np.vstack([inside, outside[:n_out]])
+        height = rng.uniform(*site.source_height_range_m, size=len(xy))
+        return np.column_stack([xy, height])
+
+    def _render(self, site: Site, source_m: np.ndarray, signal: np.ndarray, onset_s: float, temperature_c: float,
+                humidity_pct: float) -> tuple[np.ndarray, float]:
+        """(M, S) clean recording of ``signal`` emitted at ``onset_s`` from ``source_m``, and pyroomacoustics' speed of sound."""
+        import pyroomacoustics as pra
+
+        points = np.vstack([site.mic_positions_m, source_m])
+        offset = np.array([points[:, 0].min() - _ROOM_MARGIN_M, points[:, 1].min() - _ROOM_MARGIN_M, 0.0])
+        size = np.array([np.ptp(points[:, 0]), np.ptp(points[:, 1]), points[:, 2].max()]) + np.array([2, 2, 1]) * _ROOM_MARGIN_M
+        walls = pra.Material(1.0)
+        materials = {"floor": pra.Material(self.ground_energy_absorption), "ceiling": walls,
+                     "east": walls, "west": walls, "north": walls, "south": walls}
+        room = pra.ShoeBox(size, fs=int(self.sample_rate_hz), max_order=1, materials=materials, air_absorption=True,
+                           temperature=float(temperature_c), humidity=float(humidity_pct))
+        room.add_source(source_m - offset, signal=signal, delay=float(onset_s))
+        room.add_microphone_array((site.mic_positions_m - offset).T)
+        room.simulate()
+        n_out = int(round(self.duration_s * self.sample_rate_hz))
+        out = np.zeros((site.n_mics, n_out))
+        rendered = room.mic_array.signals[:, :n_out]
+        out[:, : rendered.shape[1]] = rendered
+        return out, float(room.c)
+
+    def load(self, site: Site) -> RecordingBatch:
+        """Every event: positions × ``events_per_position``, each with its own call, weather, noise and SNR."""
+        self.validate(site)
+        pool = CallPool(site.species_pool, self.sample_rate_hz, self.include_share_alike)
+        positions = self.source_positions(site)
+        n_out = int(round(self.duration_s * self.sample_rate_hz))
+        audio = np.empty((len(positions) * self.events_per_position, site.n_mics, n_out), dtype=np.float32)
+        rows = []
+        for event_id in range(audio.shape[0]):
+            pid = event_id // self.events_per_position
+            source = positions[pid]
+            rng = np.random.default_rng([self.seed, _EVENT_STREAM, event_id])
+            weather = draw_weather(rng, site)
+            call = pool.draw(rng)
+            onset = rng.uniform(*self.onset_s)
+            snr_db = rng.uniform(*self.snr_db)
+            regime = int(rng.integers(len(site.noise_regimes)))
+            clean, simulator_c = self._render(site, source, call.signal, onset, weather.temperature_c, weather.relative_humidity_pct)
+            nearest = int(np.argmin(np.sqrt(((site.mic_positions_m - source) ** 2).sum(-1))))
+            noise_std = noise_std_for_snr(clean[nearest], call.signal.size / self.sample_rate_hz, self.sample_rate_hz, snr_db)
+            audio[event_id] = clean + noise_std * noise_matrix(rng, site, regime, n_out, self.sample_rate_hz)
+            rows.append({
+                "event_id": event_id, "position_id": pid, "x_m": source[0], "y_m": source[1], "z_m": source[2],
+                "temperature_c": weather.temperature_c, "relative_humidity_pct": weather.relative_humidity_pct,
+                # what a user computes from a thermometer; the renderer used its own formula (simulator_speed_of_sound_m_s)
+                "speed_of_sound_m_s": float(speed_of_sound_m_s(weather.temperature_c, weather.relative_humidity_pct)),
+                "simulator_speed_of_sound_m_s": simulator_c,
+                "snr_db": snr_db, "noise_regime": site.noise_regimes[regime].kind, "call": call.label, "call_licence": call.licence,
+                "emission_time_s": onset, "outside_simulated_region": pid >= self.n_positions - int(round(self.outside_share * self.n_positions)),
+                "hardware_failure": False, "source": "pyroomacoustics_image_source",
+            })
+        log.info("image-source field: %d events at %d positions rendered with pyroomacoustics", len(rows), len(positions))
+        return RecordingBatch(audio=audio, sample_rate_hz=self.sample_rate_hz, events=pd.DataFrame(rows))
