@@ -273,3 +273,77 @@ def test_image_source_field_renders_direct_path_delays(compose_cfg):
         distance = np.sqrt(((site.mic_positions_m - source_m) ** 2).sum(axis=1))
         arrival_s = np.argmax(np.abs(clean), axis=1) / fs
         np.testing.assert_allclose(arrival_s - arrival_s[0], (distance - distance[0]) / c, atol=3e-4)
+
+
+def test_calibration_on_too_few_positions_for_a_level_warns(caplog):
+    """4 field playback spots support 0.5 and 0.8 for a new position, not 0.95 (19 needed): said in the log and the diagnostics."""
+    features, events = scene(n_positions=60)
+    groups = events["position_id"].to_numpy()
+    events["is_field"] = groups < 5
+    train, test = np.flatnonzero(groups != 0), np.flatnonzero(groups == 0)
+    settings = components(BoundingBoxGate())
+    settings.calibrate_on = "field"
+    with caplog.at_level("WARNING"):
+        result = LocalizationPipeline(settings).fit_predict(features, events, train, test)
+    calibration = result.split_diagnostics[0]["calibration"]
+    assert calibration["on"] == "field" and calibration["n_positions"] == 4
+    assert calibration["unsupported_levels"] == ["0.95"] and calibration["positions_needed_by_level"]["0.95"] == 19
+    assert "cannot support level(s) 0.95" in caplog.text
+
+
+# ------------------------------------------------------------------------------- measured-input uncertainty
+def _solve_xy(mics: np.ndarray, ranges_m: np.ndarray, start: np.ndarray, height: float) -> np.ndarray:
+    from scipy.optimize import least_squares
+
+    def residual(p):
+        source = np.array([p[0], p[1], height])
+        return ranges_m - np.sqrt(((mics - source) ** 2).sum(axis=1)) - p[2]
+
+    return least_squares(residual, [*start, 0.0], xtol=1e-12, ftol=1e-12).x[:2]
+
+
+@pytest.mark.parametrize("stated", [dict(temperature_c=1.0, mic_position_m=0.0, clock_offset_s=0.0),
+                                    dict(temperature_c=0.0, mic_position_m=0.0, clock_offset_s=1e-4),
+                                    dict(temperature_c=0.0, mic_position_m=0.2, clock_offset_s=0.0)])
+def test_input_uncertainty_matches_a_monte_carlo_of_the_solve(stated):
+    """The first-order position error from stated input errors equals the spread of exact solves with those errors (±15 %)."""
+    from acoustlab.toolkit.input_uncertainty import InputUncertainty, position_sigma_m
+    from acoustlab.toolkit.physics import speed_of_sound_m_s
+
+    rng = np.random.default_rng(0)
+    mics = np.array([[0.0, 0, 1.2], [50, 0, 1.2], [24, 44, 1.2], [45, 40, 1.5]])
+    source = np.array([35.0, 20.0, 1.2])
+    temperature, humidity = -10.0, 80.0
+    c = float(speed_of_sound_m_s(temperature, humidity))
+    sigma_c = float(speed_of_sound_m_s(temperature + 0.5, humidity) - speed_of_sound_m_s(temperature - 0.5, humidity)) * stated["temperature_c"]
+    travel_s = np.sqrt(((mics - source) ** 2).sum(axis=1)) / c
+    errors = []
+    for _ in range(400):
+        c_used = c + rng.normal(0, sigma_c) if sigma_c else c
+        arrival = travel_s + rng.normal(0, stated["clock_offset_s"], 4) if stated["clock_offset_s"] else travel_s
+        surveyed = mics + np.column_stack([rng.normal(0, stated["mic_position_m"], (4, 2)), np.zeros(4)]) if stated["mic_position_m"] else mics
+        errors.append(_solve_xy(surveyed, c_used * arrival, source[:2], source[2]) - source[:2])
+    monte_carlo = np.sqrt(np.mean(np.square(errors)) )
+    predicted = position_sigma_m(mics, source[None], np.array([temperature]), np.array([humidity]), InputUncertainty(**stated))[0]
+    assert predicted == pytest.approx(monte_carlo, rel=0.15)
+
+
+def test_radii_of_field_detections_carry_the_stated_input_errors():
+    """Field rows (calibrated on simulation) get radii grown in quadrature; simulated rows keep theirs."""
+    from acoustlab.toolkit.input_uncertainty import InputUncertainty
+
+    features, events = scene(n_positions=60)
+    groups = events["position_id"].to_numpy()
+    events["is_field"] = groups < 6
+    events["temperature_c"], events["relative_humidity_pct"] = 10.0, 60.0
+    train, test = np.flatnonzero(groups >= 6), np.flatnonzero(groups < 12)
+    radius = col.radius("fixed", 0.95)
+    runs = {}
+    for sigma in (0.0, 5.0):
+        settings = components(BoundingBoxGate())
+        settings.input_uncertainty = InputUncertainty(temperature_c=sigma)
+        runs[sigma] = LocalizationPipeline(settings).fit_predict(features, events, train[groups[train] >= 12], test).predictions
+    field = runs[5.0]["position_id"].to_numpy() < 6
+    assert (runs[5.0][col.INPUT_SIGMA][field] > 0).all() and (runs[5.0][col.INPUT_SIGMA][~field] == 0).all()
+    assert (runs[5.0][radius][field] > runs[0.0][radius][field]).all()
+    np.testing.assert_allclose(runs[5.0][radius][~field], runs[0.0][radius][~field])

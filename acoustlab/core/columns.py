@@ -36,6 +36,8 @@ GATE_ESTIMATE_RANGE = "gate__estimate_range_m"
 TRUST_REASON = "trust_reason"
 #: The extra-gate name under which the configured gate's choice before the trust check is reported (method ``gate_without_trust``).
 GATE_WITHOUT_TRUST = "without_trust"
+#: Per-axis position error (m) the stated input errors cause at a field detection (carried into its radii).
+INPUT_SIGMA = "input_sigma_m"
 #: The trust check's per-row cues (``trust__novelty``, ``trust__solver_outside_support``, …).
 TRUST_PREFIX = "trust"
 

@@ -33,6 +33,7 @@ from acoustlab.method.splits import cap_rows
 from acoustlab.method.trust import TrainingSupport, TrustedDecision, TrustSettings, apply_trust
 from acoustlab.toolkit.conformal import conformal_quantile, selective_threshold
 from acoustlab.toolkit.geometry import gdop, position_crb_m
+from acoustlab.toolkit.input_uncertainty import InputUncertainty, level_factor, position_sigma_m
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
 
 log = logging.getLogger(__name__)
@@ -72,6 +73,8 @@ class Components:
     seed: int = 0
     #: where the point model counts as outside its training support (:mod:`acoustlab.method.trust`)
     trust: TrustSettings = field(default_factory=TrustSettings)
+    #: the stated errors of the inputs a user measures, carried into the radii of field detections
+    input_uncertainty: InputUncertainty = field(default_factory=InputUncertainty)
 
 
 @dataclass
@@ -116,6 +119,11 @@ def crb_from_features(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
         site.mic_positions_m, events[["x_m", "y_m", "z_m"]].to_numpy(float), med(col.snr_db),
         np.sqrt(centroid**2 + bandwidth**2), med(col.ir_spread_s), 2 * bandwidth, c,
     )
+
+
+def positions_needed(level: float) -> int:
+    """Exchangeable positions split conformal needs to reach ``level`` for a new position: ⌈1/(1 − level)⌉ − 1."""
+    return int(np.ceil(1 / (1 - level) - 1e-9)) - 1
 
 
 def error_2d_m(estimate_m: np.ndarray, truth_m: np.ndarray) -> np.ndarray:
@@ -353,9 +361,8 @@ class LocalizationPipeline:
         if self.c.ellipse:
             self._add_ellipses(out, (oof_gate.position_m - truth[train])[cal], oof_gate.position_m[cal], oof_pred[cal], features.iloc[train[cal]],
                                decision.position_m, predicted, features.iloc[test])
-        split_info: dict[str, Any] = {"gate": gate.diagnostics(), "trust": self._trust_summary(support, trusted), "calibration": {
-            "on": "field" if domain.sum() < domain.size else "all", "n_events": int(cal.sum()),
-            "n_positions": int(np.unique(groups[train][cal]).size)}}
+        split_info: dict[str, Any] = {"gate": gate.diagnostics(), "trust": self._trust_summary(support, trusted),
+                                      "calibration": self._calibration_summary(domain, cal, groups[train])}
         for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
             extra = self._fit_gate(configured, train, sim, solver_xy, oof_model, features, truth, groups)
             position = self._decide(extra, test, solver_xy, model_xy, features, mcols, support).decision.position_m
@@ -367,11 +374,34 @@ class LocalizationPipeline:
             has_fix = np.isfinite(decision.position_m).all(axis=1)
             out["placed"] = has_fix & (predicted <= threshold)
             out["abstain_reason"] = np.where(~has_fix, np.where(trusted.reason != "", trusted.reason, "no estimate"), np.where(out["placed"], "", "predicted error above the certified threshold"))
+        input_sigma = self._input_sigma(decision.position_m, features.iloc[test], events.iloc[test], calibrated_on_field=domain.sum() < domain.size)
+        out[col.INPUT_SIGMA] = input_sigma
+        allowance = input_sigma[:, None] * np.array([level_factor(level) for level in self.c.levels])[None, :]
         for name, scorer in scorers.items():
             radii = scorer.radius(predicted, gdop_test, quantiles=test_quantiles[name]) if name in test_quantiles else scorer.radius(predicted, gdop_test)
+            radii = np.sqrt(radii**2 + np.nan_to_num(allowance) ** 2)  # independent error sources add in quadrature
             for k, level in enumerate(self.c.levels):
                 out[col.radius(name, level)] = radii[:, k]
         return MethodResult(out, [split_info])
+
+    def _input_sigma(self, position_m: np.ndarray, features: pd.DataFrame, events: pd.DataFrame, calibrated_on_field: bool) -> np.ndarray:
+        """(B,) per-axis position error (m) the stated input errors cause at each field detection; 0 where none applies.
+
+        Simulated events know their inputs exactly, and radii calibrated on field recordings
+        already hold the field's input errors: the allowance is for field detections whose radii
+        were calibrated on simulation.
+        """
+        stated = self.c.input_uncertainty
+        field = events["is_field"].to_numpy(bool) if "is_field" in events else np.zeros(len(events), bool)
+        sigma = np.zeros(len(events))
+        if stated.is_zero or calibrated_on_field or not field.any() or "temperature_c" not in events:
+            return sigma
+        height = self._height(features)
+        source = np.column_stack([position_m, np.broadcast_to(height, (len(position_m),))])
+        humidity = events["relative_humidity_pct"].to_numpy(float) if "relative_humidity_pct" in events else np.zeros(len(events))
+        sigma[field] = position_sigma_m(self.c.site.mic_positions_m, source[field], events["temperature_c"].to_numpy(float)[field],
+                                        humidity[field], stated)
+        return sigma
 
     def _calibration_domain(self, events: pd.DataFrame, train: np.ndarray, finite: np.ndarray) -> np.ndarray:
         """(train,) mask of the training rows whose out-of-fold errors calibrate conformal and selective localization.
@@ -415,6 +445,26 @@ class LocalizationPipeline:
         reasons, counts = np.unique(trusted.reason[trusted.reason != ""].astype(str), return_counts=True)
         return {"enabled": True, "training_region": support.description(), "overridden": {str(r): int(n) for r, n in zip(reasons, counts, strict=True)},
                 "n_novel": int((trusted.flags["novelty"] > 1).sum()), "n_solver_outside_support": int(trusted.flags["solver_outside_support"].sum())}
+
+    def _calibration_summary(self, domain: np.ndarray, cal: np.ndarray, train_groups: np.ndarray) -> dict[str, Any]:
+        """Which rows calibrated, and which levels their number of positions can support.
+
+        Events of one position share its propagation, so a guarantee for a *new position* rests
+        on the number of positions n, not of events: split conformal over n exchangeable
+        positions reaches level ℓ only when n ≥ ⌈1/(1 − ℓ)⌉ − 1 (19 positions for 0.95, 4 for
+        0.8). Simulation gives hundreds; a few field playback spots do not, and the levels they
+        cannot support are listed (and logged as a warning) instead of silently reported as met.
+        """
+        n_positions = int(np.unique(train_groups[cal]).size)
+        needed = {col.level_key(level): positions_needed(level) for level in self.c.levels}
+        unsupported = [level for level, n in needed.items() if n_positions < n]
+        on = "field" if domain.sum() < domain.size else "all"
+        if unsupported:
+            log.warning("conformal calibration on %d %s positions cannot support level(s) %s for a new position (they need %s positions); "
+                        "their radii are the largest calibration errors or infinite", n_positions, "field" if on == "field" else "training",
+                        ", ".join(unsupported), ", ".join(str(needed[lv]) for lv in unsupported))
+        return {"on": on, "n_events": int(cal.sum()), "n_positions": n_positions, "positions_needed_by_level": needed,
+                "unsupported_levels": unsupported}
 
     def _out_of_fold_gate(self, folds: list[tuple[np.ndarray, np.ndarray]], train: np.ndarray, sim: np.ndarray, solver_xy: np.ndarray,
                           oof_model: np.ndarray, features: pd.DataFrame, truth: np.ndarray, groups: np.ndarray,

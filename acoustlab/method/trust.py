@@ -14,7 +14,8 @@ domain and checks every gate's decision against it:
 * **Solver consistency**: a solver fix is physically consistent where its TDOA residual is no
   larger than (twice) the residuals of good fixes (error ≤ ``good_fix_m``) in the training simulation.
   An array without redundant measurements (3 mics in 2-D: the residual is always 0) cannot
-  show consistency; there no fix counts as consistent.
+  show consistency; there no fix counts as consistent, and neither does a fix from exactly as
+  many mics as unknowns + 1 (``solver__n_mics_used`` < ``solver__dimensions_used`` + 2).
 * **The rule** (:func:`apply_trust`): where the gate substituted the model's estimate but the
   model is outside its support (its input is novel, its own estimate lies outside the training
   hull, or the solver's consistent fix lies outside it), the solver's fix is kept and the row
@@ -81,7 +82,7 @@ class TrustSettings:
     novelty_quantile: float = 0.99
     n_neighbors: int = 5
     good_fix_m: float = 1.0
-    residual_quantile: float = 0.95
+    residual_quantile: float = 0.99
     residual_factor: float = 2.0
 
     def __post_init__(self) -> None:
@@ -154,12 +155,14 @@ class TrainingSupport:
 
     def _fit_novelty(self, features: pd.DataFrame, groups: np.ndarray) -> None:
         s = self.settings
-        x = features.to_numpy(float)
+        x = np.where(np.isfinite(features.to_numpy(float)), features.to_numpy(float), np.nan)
         self.columns_ = list(features.columns)
-        self.centre_ = np.nanmedian(x, axis=0)
-        iqr = np.nanpercentile(x, 75, axis=0) - np.nanpercentile(x, 25, axis=0)
-        self.scale_ = np.where(np.isfinite(iqr) & (iqr > 0), iqr, 1.0)
-        self.centre_ = np.where(np.isfinite(self.centre_), self.centre_, 0.0)
+        present = np.isfinite(x).any(axis=0)  # a column missing in every training row carries nothing (centre 0, scale 1)
+        self.centre_, self.scale_ = np.zeros(x.shape[1]), np.ones(x.shape[1])
+        if present.any():
+            low, centre, high = np.nanpercentile(x[:, present], [25, 50, 75], axis=0)
+            self.centre_[present] = centre
+            self.scale_[present] = np.where(high - low > 0, high - low, 1.0)
         if s.novelty_factor == 0 or len(x) <= s.n_neighbors + 1:
             self.neighbours_, self.novelty_limit_ = None, np.inf
             return
@@ -207,7 +210,13 @@ class TrainingSupport:
         if self.residual_limit_s_ is None or name not in features:
             return np.zeros(len(features), dtype=bool)
         residual = features[name].to_numpy(float)
-        return np.isfinite(residual) & (residual <= self.residual_limit_s_)
+        consistent = np.isfinite(residual) & (residual <= self.residual_limit_s_)
+        used, dims = col.solver_column("n_mics_used"), col.solver_column("dimensions_used")
+        if used in features and dims in features:  # a fix from exactly as many mics as unknowns + 1 fits any TDOAs: no evidence
+            n_used, n_dims = features[used].to_numpy(float), features[dims].to_numpy(float)
+            known = np.isfinite(n_used) & np.isfinite(n_dims)
+            consistent &= ~known | (n_used >= n_dims + 2)
+        return consistent
 
     def description(self) -> dict[str, Any]:
         """The training region for metrics.json: hull vertices (m), height range (m), limits."""

@@ -288,6 +288,9 @@ def split_diagnostics_summary(split_diagnostics: list[dict[str, Any]]) -> dict[s
     gates = [d.get("gate", {}) for d in split_diagnostics]
     selective = [d["selective"] for d in split_diagnostics if "selective" in d]
     extra: dict[str, Any] = {"selective_by_split": selective} if selective else {}
+    trust = [d["trust"] for d in split_diagnostics if "trust" in d]
+    if trust:  # the point model's training region and what the trust check overrode
+        extra.update({"trust": trust[0]} if len(trust) == 1 else {"trust_by_split": trust})
     calibration = [d["calibration"] for d in split_diagnostics if "calibration" in d]
     if calibration:  # which rows calibrated conformal in each split (all training rows, or the field rows)
         extra["calibration_by_split"] = calibration

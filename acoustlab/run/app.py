@@ -19,6 +19,7 @@ from acoustlab import __version__
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.method.pipeline import Components, LocalizationPipeline
 from acoustlab.method.trust import TrustSettings
+from acoustlab.toolkit.input_uncertainty import InputUncertainty
 from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
 from acoustlab.reporting.metrics import (
     split_diagnostics_summary,
@@ -159,6 +160,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         selective=dict(cfg.pipeline.selective) if cfg.pipeline.selective.enabled else None,
         extra_gates={name: build(node, "gate") for name, node in cfg.pipeline.extra_gates.items()},
         trust=TrustSettings(**OmegaConf.to_container(cfg.pipeline.trust, resolve=True)),
+        input_uncertainty=InputUncertainty(**OmegaConf.to_container(cfg.conformal.input_uncertainty, resolve=True)),
     )
     check_feature_requirements(feature_sets, solver=components.solver, gate=components.gate,
                                **{f"pipeline.extra_gates.{name}": g for name, g in components.extra_gates.items()})

@@ -72,7 +72,7 @@ class TrustConfig:
     novelty_quantile: float = 0.99
     n_neighbors: int = 5
     good_fix_m: float = 1.0
-    residual_quantile: float = 0.95
+    residual_quantile: float = 0.99
     residual_factor: float = 2.0
 
 
@@ -120,6 +120,15 @@ class FeaturesConfig:
 
 
 @dataclass
+class InputUncertaintyConfig:
+    """Stated standard deviations of measured inputs (:class:`acoustlab.toolkit.input_uncertainty.InputUncertainty`)."""
+
+    temperature_c: float = 1.0
+    mic_position_m: float = 0.0
+    clock_offset_s: float = 0.0
+
+
+@dataclass
 class ConformalConfig:
     """Conformal scorers (plugins) compared in one run, and the settings they share."""
 
@@ -128,6 +137,7 @@ class ConformalConfig:
     calibrate_on: CalibrateOn = CalibrateOn.auto
     scorers: dict[str, Any] = dc_field(default_factory=dict)
     ellipse: bool = False
+    input_uncertainty: InputUncertaintyConfig = dc_field(default_factory=InputUncertaintyConfig)
 
 
 @dataclass

@@ -66,6 +66,9 @@ class ImageSourceField:
         Range of the call's emission time within the recording, s.
     include_share_alike : bool
         Also draw CC BY-SA calls.
+    temperature_error_c : float
+        The events table's temperature (and the speed of sound computed from it) is off by this
+        from the air the sound travelled through: a thermometer error (°C).
     seed : int
         Seed of positions and renders (independent of the training simulation's).
     """
@@ -73,7 +76,7 @@ class ImageSourceField:
     def __init__(self, sample_rate_hz: float = 24000.0, duration_s: float = 1.1, n_positions: int = 60, events_per_position: int = 5,
                  outside_share: float = 0.3, outside_expansion: float = 0.6, ground_energy_absorption: float = 0.4,
                  snr_db: Sequence[float] = (5.0, 30.0), onset_s: Sequence[float] = (0.05, 0.25), include_share_alike: bool = False,
-                 seed: int = 2000) -> None:
+                 temperature_error_c: float = 0.0, seed: int = 2000) -> None:
         if n_positions < 2 or events_per_position < 1:
             raise ConfigError(f"field.n_positions must be >= 2 and field.events_per_position >= 1; got {n_positions}, {events_per_position}")
         if not 0 <= outside_share <= 1:
@@ -92,6 +95,7 @@ class ImageSourceField:
         self.snr_db = (float(snr_db[0]), float(snr_db[1]))
         self.onset_s = (float(onset_s[0]), float(onset_s[1]))
         self.include_share_alike = bool(include_share_alike)
+        self.temperature_error_c = float(temperature_error_c)
         self.seed = int(seed)
 
     def validate(self, site: Site) -> None:
@@ -163,9 +167,10 @@ class ImageSourceField:
             audio[event_id] = clean + noise_std * noise_matrix(rng, site, regime, n_out, self.sample_rate_hz)
             rows.append({
                 "event_id": event_id, "position_id": pid, "x_m": source[0], "y_m": source[1], "z_m": source[2],
-                "temperature_c": weather.temperature_c, "relative_humidity_pct": weather.relative_humidity_pct,
-                # what a user computes from a thermometer; the renderer used its own formula (simulator_speed_of_sound_m_s)
-                "speed_of_sound_m_s": float(speed_of_sound_m_s(weather.temperature_c, weather.relative_humidity_pct)),
+                "temperature_c": weather.temperature_c + self.temperature_error_c, "relative_humidity_pct": weather.relative_humidity_pct,
+                # what a user computes from a thermometer (off by temperature_error_c); the renderer used its own formula
+                # and the true temperature (simulator_speed_of_sound_m_s)
+                "speed_of_sound_m_s": float(speed_of_sound_m_s(weather.temperature_c + self.temperature_error_c, weather.relative_humidity_pct)),
                 "simulator_speed_of_sound_m_s": simulator_c,
                 "snr_db": snr_db, "noise_regime": site.noise_regimes[regime].kind, "call": call.label, "call_licence": call.licence,
                 "emission_time_s": onset, "outside_simulated_region": pid >= self.n_positions - int(round(self.outside_share * self.n_positions)),
