@@ -132,6 +132,75 @@ def error_2d_m(estimate_m: np.ndarray, truth_m: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(err), err, np.inf)
 
 
+@dataclass
+class SplitData:
+    """One split's tables and the arrays every step reads (rows ``train`` and ``test`` index the tables)."""
+
+    features: pd.DataFrame
+    events: pd.DataFrame
+    train: np.ndarray
+    test: np.ndarray
+    #: (N, 2) true horizontal positions, m
+    truth: np.ndarray
+    #: (N,) source positions (the exchangeable unit)
+    groups: np.ndarray
+    #: the point model's and the error model's input columns
+    mcols: list[str]
+    ecols: list[str]
+    #: (N, 2) the solver's fixes, m; (N,) the solver's GDOP
+    solver_xy: np.ndarray
+    solver_gdop: np.ndarray
+    #: (train,) True for the simulated training rows (the ones a gate learns from)
+    sim: np.ndarray
+    #: calibration folds over the training positions (indices into ``train``)
+    folds: list[tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass
+class CalibrationErrors:
+    """Out-of-fold results on the training events (indexed like ``train``), and the rows that calibrate."""
+
+    #: (train, 2) point-model estimates, m
+    model_xy: np.ndarray
+    #: the out-of-fold gates' decisions (after the trust check)
+    gate: GateDecision
+    #: (train,) gated 2-D errors, m (inf without an estimate); (train,) GDOP at the gated estimate
+    error: np.ndarray
+    gdop: np.ndarray
+    #: (train,) finite error
+    finite: np.ndarray
+    #: the error model's floor, m (5th percentile of the finite errors)
+    floor: float
+    #: (train,) rows of the calibration domain (all, or the field rows); ``rows`` = domain & finite
+    domain: np.ndarray
+    rows: np.ndarray
+    #: the error model's inputs on the training events
+    x_error: pd.DataFrame
+
+
+@dataclass
+class TestEstimates:
+    """The test events' estimates and the error model's inputs for them."""
+
+    #: (test, 2) the final point model's estimates, m
+    model_xy: np.ndarray
+    support: TrainingSupport | None
+    trusted: TrustedDecision
+    #: (test,) GDOP at the reported estimate
+    gdop: np.ndarray
+    x_error: pd.DataFrame
+
+
+@dataclass
+class ErrorPredictions:
+    """The error model's predictions (out-of-fold on training, final on test; m) and the fitted conformal scorers."""
+
+    oof_predicted: np.ndarray
+    predicted: np.ndarray
+    scorers: dict[str, ConformalScorer]
+    test_quantiles: dict[str, np.ndarray]
+
+
 class LocalizationPipeline:
     """Fits the learned parts of the method on training events and predicts for test events.
 
@@ -241,148 +310,189 @@ class LocalizationPipeline:
         Every fitted plugin (point and error models, gate, conformal scorers) is a fresh clone of the
         configured one, so splits never share fitted state. Conformal calibration uses out-of-fold
         errors over training *positions* (group K-fold): every calibration error comes from point
-        and error models that never saw that position.
+        and error models that never saw that position. The steps, in order: the split's arrays;
+        out-of-fold point-model estimates; the gate; out-of-fold (calibration) errors; the test
+        events' estimates, checked against the point model's training support; the error model
+        and conformal scorers; the predictions table; gates compared beside the configured one,
+        selective localization and the radii.
 
         Returns
         -------
         MethodResult
             ``predictions``: one row per test event: truth, solver/model/gate estimates and errors
             (m), GDOP, predicted error (m), substitution flag and ``radius__<scorer>__<level>`` (m);
-            ``split_diagnostics``: ``[{"gate": ...}]``, what the fitted gate reports.
+            ``split_diagnostics``: ``[{"gate": ..., "trust": ..., "calibration": ...}]``.
         """
-        site = self.c.site
-        truth = events[["x_m", "y_m"]].to_numpy(dtype=float)
+        split = self._split(features, events, train, test)
+        oof_model = self._out_of_fold_point(split)
+        # the gate learns what it needs (e.g. τ* on simulation) from the out-of-fold predictions, on simulated rows only
+        gate = self._fit_gate(self.c.gate, train, split.sim, split.solver_xy, oof_model, features, split.truth, split.groups)
+        cal = self._calibration_errors(split, oof_model)
+        log.info("final point and error models on %d training rows", train.size)
+        estimates = self._test_estimates(split, gate)
+        errors = self._fit_error_models(split, cal, estimates)
+        out = self._predictions_table(split, estimates, errors.predicted)
+        split_info: dict[str, Any] = {"gate": gate.diagnostics(), "trust": self._trust_summary(estimates.support, estimates.trusted),
+                                      "calibration": self._calibration_summary(cal.domain, cal.rows, split.groups[train])}
+        if self.c.ellipse:
+            self._add_ellipses(out, (cal.gate.position_m - split.truth[train])[cal.rows], cal.gate.position_m[cal.rows], errors.oof_predicted[cal.rows],
+                               features.iloc[train[cal.rows]], estimates.trusted.decision.position_m, errors.predicted, features.iloc[test])
+        for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
+            extra = self._fit_gate(configured, train, split.sim, split.solver_xy, oof_model, features, split.truth, split.groups)
+            position = self._decide(extra, test, split.solver_xy, estimates.model_xy, features, split.mcols, estimates.support).decision.position_m
+            self._add_method(out, col.extra_gate_method(name), position, split.truth[test])
+            split_info.setdefault("extra_gates", {})[name] = extra.diagnostics()
+        if self.c.selective is not None:
+            split_info["selective"] = self._place_selectively(out, cal, errors, estimates.trusted)
+        self._add_radii(out, split, cal, estimates, errors)
+        return MethodResult(out, [split_info])
+
+    def _split(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray, test: np.ndarray) -> SplitData:
+        """The split's arrays, checked: no position on both sides."""
         groups = events["position_id"].to_numpy()
         if np.intersect1d(groups[train], groups[test]).size:
             raise DataError("a source position appears in both training and test rows")
-        mcols, ecols = self.model_columns(features), self.error_columns(features)
-        solver_xy = features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(dtype=float)
-        solver_gdop = features[col.SOLVER_GDOP].to_numpy(dtype=float) if col.SOLVER_GDOP in features else np.full(len(features), np.nan)
+        return SplitData(
+            features=features, events=events, train=train, test=test, truth=events[["x_m", "y_m"]].to_numpy(dtype=float), groups=groups,
+            mcols=self.model_columns(features), ecols=self.error_columns(features),
+            solver_xy=features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(dtype=float),
+            solver_gdop=features[col.SOLVER_GDOP].to_numpy(dtype=float) if col.SOLVER_GDOP in features else np.full(len(features), np.nan),
+            # the paper chooses τ* on simulation: field rows never teach a gate
+            sim=~events["is_field"].to_numpy(bool)[train] if "is_field" in events else np.ones(train.size, dtype=bool),
+            folds=self._folds(groups[train]),
+        )
 
-        # Out-of-fold hybrid errors on the training positions, for the error model and calibration.
-        folds = self._folds(groups[train])
-        oof_model = np.empty((train.size, 2))
-        for k, (fit_idx, held_idx) in enumerate(progress(folds, desc="point model, out-of-fold", unit="fold", leave=False)):
-            log.info("point model, out-of-fold %d/%d (%d rows)", k + 1, len(folds), fit_idx.size)  # progress also in logs and batch jobs
-            models = self._fit_point(features.iloc[train[fit_idx]][mcols], truth[train[fit_idx]], solver_xy[train[fit_idx]], groups[train[fit_idx]])
-            oof_model[held_idx] = self._predict_point(models, features.iloc[train[held_idx]][mcols], solver_xy[train[held_idx]])
-        # the gate learns what it needs (e.g. τ* on simulation) from the out-of-fold predictions
-        # … on simulated rows only (the paper chooses τ* on simulation; field rows never teach the gate)
-        sim = ~events["is_field"].to_numpy(bool)[train] if "is_field" in events else np.ones(train.size, dtype=bool)
-        gate = self._fit_gate(self.c.gate, train, sim, solver_xy, oof_model, features, truth, groups)
+    def _out_of_fold_point(self, s: SplitData) -> np.ndarray:
+        """(train, 2) point-model estimates of the training events, each from a fit without its position."""
+        oof_model = np.empty((s.train.size, 2))
+        for k, (fit_idx, held_idx) in enumerate(progress(s.folds, desc="point model, out-of-fold", unit="fold", leave=False)):
+            log.info("point model, out-of-fold %d/%d (%d rows)", k + 1, len(s.folds), fit_idx.size)  # progress also in logs and batch jobs
+            fit, held = s.train[fit_idx], s.train[held_idx]
+            models = self._fit_point(s.features.iloc[fit][s.mcols], s.truth[fit], s.solver_xy[fit], s.groups[fit])
+            oof_model[held_idx] = self._predict_point(models, s.features.iloc[held][s.mcols], s.solver_xy[held])
+        return oof_model
+
+    def _calibration_errors(self, s: SplitData, oof_model: np.ndarray) -> CalibrationErrors:
+        """Out-of-fold gated errors of the training events and what calibrates on them."""
+        train = s.train
         # calibration errors come from gates that never saw the event's position, as the test errors do
-        oof_gate = self._out_of_fold_gate(folds, train, sim, solver_xy, oof_model, features, truth, groups, events, mcols)
-        oof_err = error_2d_m(oof_gate.position_m, truth[train])
-        gdop_train = self._gdop_at(oof_gate.position_m, features.iloc[train])
-        finite = np.isfinite(oof_err)
+        oof_gate = self._out_of_fold_gate(s.folds, train, s.sim, s.solver_xy, oof_model, s.features, s.truth, s.groups, s.events, s.mcols)
+        error = error_2d_m(oof_gate.position_m, s.truth[train])
+        gdop_train = self._gdop_at(oof_gate.position_m, s.features.iloc[train])
+        finite = np.isfinite(error)
         if not finite.all():
             log.warning("%d training events have no finite hybrid estimate; left out of calibration", (~finite).sum())
         # the error model's predictions are floored at the 5th percentile of the calibration errors, so
         # a fix it wrongly trusts still gets a meaningful radius (never 10⁻⁹ m times a quantile)
-        floor = max(float(np.percentile(oof_err[finite], 5)) if finite.any() else 0.0, 1e-9)
-        domain = self._calibration_domain(events, train, finite)  # the rows that calibrate (all, or the field rows)
-        cal = domain & finite
-        x_error = self._error_inputs(features.iloc[train][ecols], solver_xy[train], oof_model, oof_gate, gdop_train)
+        floor = max(float(np.percentile(error[finite], 5)) if finite.any() else 0.0, 1e-9)
+        domain = self._calibration_domain(s.events, train, finite)  # the rows that calibrate (all, or the field rows)
+        x_error = self._error_inputs(s.features.iloc[train][s.ecols], s.solver_xy[train], oof_model, oof_gate, gdop_train)
+        return CalibrationErrors(oof_model, oof_gate, error, gdop_train, finite, floor, domain, domain & finite, x_error)
 
-        def error_fit_rows(rows: np.ndarray, plugin: Any) -> np.ndarray:
-            """The training ``rows`` with a finite error, within ``plugin``'s own row limit."""
-            rows = rows[finite[rows]]
-            return rows[self._within_limit(groups[train[rows]], plugin)]
+    def _test_estimates(self, s: SplitData, gate: Gate) -> TestEstimates:
+        """The final point model's estimates of the test events, the gate's decision checked against its support, the error inputs."""
+        train, test = s.train, s.test
+        models = self._fit_point(s.features.iloc[train][s.mcols], s.truth[train], s.solver_xy[train], s.groups[train])
+        model_xy = self._predict_point(models, s.features.iloc[test][s.mcols], s.solver_xy[test])
+        support = self._support(train, s.features, s.mcols, s.events, s.solver_xy, s.groups)
+        trusted = self._decide(gate, test, s.solver_xy, model_xy, s.features, s.mcols, support)
+        gdop_test = self._gdop_at(trusted.decision.position_m, s.features.iloc[test])
+        x_error = self._error_inputs(s.features.iloc[test][s.ecols], s.solver_xy[test], model_xy, trusted.decision, gdop_test)
+        return TestEstimates(model_xy, support, trusted, gdop_test, x_error)
 
-        def out_of_fold(fit_predict: Any, plugin: Any, shape: tuple[int, ...] = (), desc: str | None = None) -> np.ndarray:
-            """(train, *shape) predictions of ``fit_predict(x_fit, error_fit, x_held)`` over the calibration folds (finite errors only)."""
-            out = np.empty((train.size, *shape))
-            for fit_idx, held_idx in (progress(folds, desc=desc, unit="fold", leave=False) if desc else folds):
-                fit_idx = error_fit_rows(fit_idx, plugin)
-                out[held_idx] = fit_predict(x_error.iloc[fit_idx], oof_err[fit_idx], x_error.iloc[held_idx])
-            return out
+    def _error_fit_rows(self, s: SplitData, cal: CalibrationErrors, rows: np.ndarray, plugin: Any) -> np.ndarray:
+        """The training ``rows`` with a finite error, within ``plugin``'s own row limit."""
+        rows = rows[cal.finite[rows]]
+        return rows[self._within_limit(s.groups[s.train[rows]], plugin)]
 
-        # the test events' error-model inputs: the gate decides first (on the final point model's estimates)
-        log.info("final point and error models on %d training rows", train.size)
-        models = self._fit_point(features.iloc[train][mcols], truth[train], solver_xy[train], groups[train])
-        model_xy = self._predict_point(models, features.iloc[test][mcols], solver_xy[test])
-        support = self._support(train, features, mcols, events, solver_xy, groups)
-        trusted = self._decide(gate, test, solver_xy, model_xy, features, mcols, support)
-        decision = trusted.decision
-        gdop_test = self._gdop_at(decision.position_m, features.iloc[test])
-        x_error_test = self._error_inputs(features.iloc[test][ecols], solver_xy[test], model_xy, decision, gdop_test)
+    def _out_of_fold_errors(self, s: SplitData, cal: CalibrationErrors, fit_predict: Any, plugin: Any, shape: tuple[int, ...] = (),
+                            desc: str | None = None) -> np.ndarray:
+        """(train, *shape) predictions of ``fit_predict(x_fit, error_fit, x_held)`` over the calibration folds (finite errors only)."""
+        out = np.empty((s.train.size, *shape))
+        for fit_idx, held_idx in (progress(s.folds, desc=desc, unit="fold", leave=False) if desc else s.folds):
+            fit_idx = self._error_fit_rows(s, cal, fit_idx, plugin)
+            out[held_idx] = fit_predict(cal.x_error.iloc[fit_idx], cal.error[fit_idx], cal.x_error.iloc[held_idx])
+        return out
 
-        log.info("error model, out-of-fold (%d folds)", len(folds))
-        oof_pred = np.maximum(out_of_fold(lambda x, y, held: clone(self.c.error_model).fit(x, y).predict(held), self.c.error_model,
-                                          desc="error model, out-of-fold"), floor)
+    def _fit_error_models(self, s: SplitData, cal: CalibrationErrors, t: TestEstimates) -> ErrorPredictions:
+        """The error model (out-of-fold for calibration, then on every training row) and the conformal scorers."""
+        log.info("error model, out-of-fold (%d folds)", len(s.folds))
+        oof_pred = np.maximum(self._out_of_fold_errors(s, cal, lambda x, y, held: clone(self.c.error_model).fit(x, y).predict(held),
+                                                       self.c.error_model, desc="error model, out-of-fold"), cal.floor)
+        rows, levels = cal.rows, self.c.levels
         scorers, test_quantiles = {}, {}
         for name, configured in self.c.scorers.items():
             scorer = clone(configured, safe=False)
             if getattr(scorer, "needs_quantiles", False):  # CQR: its own quantile model, out-of-fold like the error model
-                oof_q = out_of_fold(lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, self.c.levels), scorer,
-                                    shape=(len(self.c.levels),))
-                scorers[name] = scorer.fit(oof_err[cal], oof_pred[cal], gdop_train[cal], self.c.levels,
-                                           quantiles=np.maximum(oof_q[cal], floor))
+                oof_q = self._out_of_fold_errors(s, cal, lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, levels),
+                                                 scorer, shape=(len(levels),))
+                scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, quantiles=np.maximum(oof_q[rows], cal.floor))
                 test_quantiles[name] = np.maximum(scorer.fit_predict_quantiles(
-                    x_error.iloc[finite], oof_err[finite], x_error_test, self.c.levels), floor)
+                    cal.x_error.iloc[cal.finite], cal.error[cal.finite], t.x_error, levels), cal.floor)
             else:
-                scorers[name] = scorer.fit(oof_err[cal], oof_pred[cal], gdop_train[cal], self.c.levels)
+                scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels)
+        fit_rows = self._error_fit_rows(s, cal, np.arange(s.train.size), self.c.error_model)
+        error_model = clone(self.c.error_model).fit(cal.x_error.iloc[fit_rows], cal.error[fit_rows])
+        return ErrorPredictions(oof_pred, np.maximum(error_model.predict(t.x_error), cal.floor), scorers, test_quantiles)
 
-        # Final error model on all training rows.
-        fit_rows = error_fit_rows(np.arange(train.size), self.c.error_model)
-        error_model = clone(self.c.error_model).fit(x_error.iloc[fit_rows], oof_err[fit_rows])
-        predicted = np.maximum(error_model.predict(x_error_test), floor)
-
+    def _predictions_table(self, s: SplitData, t: TestEstimates, predicted: np.ndarray) -> pd.DataFrame:
+        """One row per test event: truth, every estimate and its error, the oracle, the trust check's cues, GDOPs, predicted error."""
+        test, decision = s.test, t.trusted.decision
         out = pd.DataFrame(
             {
-                "event_id": events["event_id"].to_numpy()[test],
-                "position_id": groups[test],
-                **dict(zip(col.estimate_xy("true"), (truth[test, 0], truth[test, 1]), strict=True)),
+                "event_id": s.events["event_id"].to_numpy()[test],
+                "position_id": s.groups[test],
+                **dict(zip(col.estimate_xy("true"), (s.truth[test, 0], s.truth[test, 1]), strict=True)),
                 **{
                     name: xy[:, k]
-                    for method, xy in zip(col.ESTIMATORS, (solver_xy[test], model_xy, decision.position_m), strict=True)
+                    for method, xy in zip(col.ESTIMATORS, (s.solver_xy[test], t.model_xy, decision.position_m), strict=True)
                     for k, name in enumerate(col.estimate_xy(method))
                 },
                 "substituted": decision.substituted,
-                col.TRUST_REASON: trusted.reason,
-                **{col.trust_flag(name): values for name, values in trusted.flags.items()},
-                "gdop": gdop_test,
-                "solver_gdop": solver_gdop[test],
+                col.TRUST_REASON: t.trusted.reason,
+                **{col.trust_flag(name): values for name, values in t.trusted.flags.items()},
+                "gdop": t.gdop,
+                "solver_gdop": s.solver_gdop[test],
                 "predicted_error_m": predicted,
             }
         )
-        crb = crb_from_features(features.iloc[test], events.iloc[test], site)
+        crb = crb_from_features(s.features.iloc[test], s.events.iloc[test], self.c.site)
         if crb is not None:
             out["crb_m"] = crb
         for method in col.ESTIMATORS:
-            out[col.error_m(method)] = error_2d_m(out[list(col.estimate_xy(method))].to_numpy(), truth[test])
+            out[col.error_m(method)] = error_2d_m(out[list(col.estimate_xy(method))].to_numpy(), s.truth[test])
         # the oracle: the better of solver and model per event (what a perfect gate would reach)
         solver_better = out[col.error_m("solver")].to_numpy() <= out[col.error_m("model")].to_numpy()
         for k, name in enumerate(col.estimate_xy("oracle")):
-            out[name] = np.where(solver_better, solver_xy[test, k], model_xy[:, k])
+            out[name] = np.where(solver_better, s.solver_xy[test, k], t.model_xy[:, k])
         out[col.error_m("oracle")] = np.minimum(out[col.error_m("solver")], out[col.error_m("model")])
-        if support is not None:  # the configured gate as it decided before the trust check, side by side on the same predictions
-            self._add_method(out, col.extra_gate_method(col.GATE_WITHOUT_TRUST), trusted.gate_position_m, truth[test])
-        if self.c.ellipse:
-            self._add_ellipses(out, (oof_gate.position_m - truth[train])[cal], oof_gate.position_m[cal], oof_pred[cal], features.iloc[train[cal]],
-                               decision.position_m, predicted, features.iloc[test])
-        split_info: dict[str, Any] = {"gate": gate.diagnostics(), "trust": self._trust_summary(support, trusted),
-                                      "calibration": self._calibration_summary(domain, cal, groups[train])}
-        for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
-            extra = self._fit_gate(configured, train, sim, solver_xy, oof_model, features, truth, groups)
-            position = self._decide(extra, test, solver_xy, model_xy, features, mcols, support).decision.position_m
-            self._add_method(out, col.extra_gate_method(name), position, truth[test])
-            split_info.setdefault("extra_gates", {})[name] = extra.diagnostics()
-        if self.c.selective is not None:
-            threshold, info = self._selective_threshold(oof_err[domain], oof_pred[domain])
-            split_info["selective"] = info
-            has_fix = np.isfinite(decision.position_m).all(axis=1)
-            out["placed"] = has_fix & (predicted <= threshold)
-            out["abstain_reason"] = np.where(~has_fix, np.where(trusted.reason != "", trusted.reason, "no estimate"), np.where(out["placed"], "", "predicted error above the certified threshold"))
-        input_sigma = self._input_sigma(decision.position_m, features.iloc[test], events.iloc[test], calibrated_on_field=domain.sum() < domain.size)
+        if t.support is not None:  # the configured gate as it decided before the trust check, side by side on the same predictions
+            self._add_method(out, col.extra_gate_method(col.GATE_WITHOUT_TRUST), t.trusted.gate_position_m, s.truth[test])
+        return out
+
+    def _place_selectively(self, out: pd.DataFrame, cal: CalibrationErrors, errors: ErrorPredictions, trusted: TrustedDecision) -> dict[str, Any]:
+        """``placed`` and ``abstain_reason`` columns from the certified threshold; returns its diagnostics."""
+        threshold, info = self._selective_threshold(cal.error[cal.domain], errors.oof_predicted[cal.domain])
+        has_fix = np.isfinite(trusted.decision.position_m).all(axis=1)
+        out["placed"] = has_fix & (errors.predicted <= threshold)
+        out["abstain_reason"] = np.where(~has_fix, np.where(trusted.reason != "", trusted.reason, "no estimate"),
+                                         np.where(out["placed"], "", "predicted error above the certified threshold"))
+        return info
+
+    def _add_radii(self, out: pd.DataFrame, s: SplitData, cal: CalibrationErrors, t: TestEstimates, errors: ErrorPredictions) -> None:
+        """``radius__<scorer>__<level>`` columns: conformal radii grown by the stated input errors where they apply."""
+        input_sigma = self._input_sigma(t.trusted.decision.position_m, s.features.iloc[s.test], s.events.iloc[s.test],
+                                        calibrated_on_field=cal.domain.sum() < cal.domain.size)
         out[col.INPUT_SIGMA] = input_sigma
         allowance = input_sigma[:, None] * np.array([level_factor(level) for level in self.c.levels])[None, :]
-        for name, scorer in scorers.items():
-            radii = scorer.radius(predicted, gdop_test, quantiles=test_quantiles[name]) if name in test_quantiles else scorer.radius(predicted, gdop_test)
+        for name, scorer in errors.scorers.items():
+            if name in errors.test_quantiles:
+                radii = scorer.radius(errors.predicted, t.gdop, quantiles=errors.test_quantiles[name])
+            else:
+                radii = scorer.radius(errors.predicted, t.gdop)
             radii = np.sqrt(radii**2 + np.nan_to_num(allowance) ** 2)  # independent error sources add in quadrature
             for k, level in enumerate(self.c.levels):
                 out[col.radius(name, level)] = radii[:, k]
-        return MethodResult(out, [split_info])
 
     def _input_sigma(self, position_m: np.ndarray, features: pd.DataFrame, events: pd.DataFrame, calibrated_on_field: bool) -> np.ndarray:
         """(B,) per-axis position error (m) the stated input errors cause at each field detection; 0 where none applies.
