@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import shutil
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-from common import compose_cfg, machine, write_results
+from common import REPO, compose_cfg, machine, write_results
 
 from acoustlab.run.app import run_experiment
 
@@ -40,12 +41,16 @@ METHOD = ["model=xgboost", "error_model=xgboost_quantile", "gate=learned", "conf
 LEVELS = ("0.5", "0.8", "0.95")
 
 
-def run(overrides: list[str]) -> dict:
+def run(overrides: list[str], keep: Path | None = None) -> dict:
+    """One job's metrics; its predictions.parquet is kept at ``keep`` (outputs/, not committed) for a closer look."""
     cfg = compose_cfg([*overrides, "tracking=none", "plots=false"])
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
         metrics = run_experiment(cfg, Path(tmp) / "run", {})
         metrics["bench_seconds"] = time.perf_counter() - start
+        if keep is not None:
+            keep.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(Path(tmp) / "run" / "predictions.parquet", keep)
         return metrics
 
 
@@ -88,9 +93,10 @@ def main() -> None:
     opts = parser.parse_args()
     field = ["protocol=field_eval", "field=image_source", f"field.n_positions={opts.n_positions}"]
     runs: dict[str, dict] = {}
+    kept = REPO / "outputs" / "bench_cross_simulator"
     for site in opts.sites:
         base = [f"+site={site}", *METHOD]
-        runs[f"{site}/cross_simulator"] = run([*base, *field])
+        runs[f"{site}/cross_simulator"] = run([*base, *field], kept / f"{site}_cross_simulator.parquet")
         runs[f"{site}/cross_simulator_without_trust"] = run([*base, *field, "pipeline.trust.enabled=false"])
         runs[f"{site}/cross_simulator_thermometer_error"] = run([*base, *field, f"field.temperature_error_c={opts.temperature_error_c}"])
         if opts.own_sim:

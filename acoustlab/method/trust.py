@@ -32,8 +32,6 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.spatial import ConvexHull, QhullError
-from sklearn.neighbors import NearestNeighbors
 
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import GateDecision
@@ -49,7 +47,7 @@ REASON_MODEL_OUTSIDE = "solver fix kept: the model's estimate lies outside its t
 REASON_ABSTAIN = "no estimate: no solver fix, and the model is outside its training support"
 
 
-@dataclass(frozen=True)
+@dataclass
 class TrustSettings:
     """When the point model counts as outside its training support (``pipeline.trust`` in the config).
 
@@ -130,6 +128,8 @@ class TrainingSupport:
             other positions (events at one position are near-copies of each other, so their own
             distances would make every new position look novel).
         """
+        from scipy.spatial import ConvexHull, QhullError  # imported when fitting: the config schema imports this module
+
         s = self.settings
         xy = np.asarray(truth_m, dtype=float)[:, :2]
         xy = xy[np.isfinite(xy).all(axis=1)]
@@ -166,6 +166,8 @@ class TrainingSupport:
         if s.novelty_factor == 0 or len(x) <= s.n_neighbors + 1:
             self.neighbours_, self.novelty_limit_ = None, np.inf
             return
+        from sklearn.neighbors import NearestNeighbors
+
         z = self._standardise(x)
         per_position = int(np.unique(groups, return_counts=True)[1].max())
         self.neighbours_ = NearestNeighbors(n_neighbors=min(len(x), s.n_neighbors + per_position)).fit(z)

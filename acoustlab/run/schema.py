@@ -21,6 +21,9 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
+from acoustlab.method.trust import TrustSettings
+from acoustlab.toolkit.input_uncertainty import InputUncertainty
+
 SCHEMA_NAME = "acoustlab_schema"
 
 
@@ -62,21 +65,6 @@ class SelectiveConfig:
 
 
 @dataclass
-class TrustConfig:
-    """Where the point model counts as outside its training support (:class:`acoustlab.method.trust.TrustSettings`)."""
-
-    enabled: bool = True
-    support_margin_m: float = 2.0
-    height_margin_m: float = 2.0
-    novelty_factor: float = 1.5
-    novelty_quantile: float = 0.99
-    n_neighbors: int = 5
-    good_fix_m: float = 1.0
-    residual_quantile: float = 0.99
-    residual_factor: float = 2.0
-
-
-@dataclass
 class PipelineConfig:
     """What the point model predicts, the solver's plausible region, and which feature groups each learned model is denied."""
 
@@ -87,7 +75,7 @@ class PipelineConfig:
     error_model_gate_cues: bool = True
     selective: SelectiveConfig = dc_field(default_factory=lambda: SelectiveConfig())
     extra_gates: dict[str, Any] = dc_field(default_factory=dict)
-    trust: TrustConfig = dc_field(default_factory=TrustConfig)
+    trust: TrustSettings = dc_field(default_factory=TrustSettings)
 
 
 @dataclass
@@ -120,15 +108,6 @@ class FeaturesConfig:
 
 
 @dataclass
-class InputUncertaintyConfig:
-    """Stated standard deviations of measured inputs (:class:`acoustlab.toolkit.input_uncertainty.InputUncertainty`)."""
-
-    temperature_c: float = 1.0
-    mic_position_m: float = 0.0
-    clock_offset_s: float = 0.0
-
-
-@dataclass
 class ConformalConfig:
     """Conformal scorers (plugins) compared in one run, and the settings they share."""
 
@@ -137,7 +116,7 @@ class ConformalConfig:
     calibrate_on: CalibrateOn = CalibrateOn.auto
     scorers: dict[str, Any] = dc_field(default_factory=dict)
     ellipse: bool = False
-    input_uncertainty: InputUncertaintyConfig = dc_field(default_factory=InputUncertaintyConfig)
+    input_uncertainty: InputUncertainty = dc_field(default_factory=InputUncertainty)
 
 
 @dataclass

@@ -28,7 +28,7 @@ from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 
-@dataclass(frozen=True)
+@dataclass
 class InputUncertainty:
     """Standard deviations of the inputs a user measures (``conformal.input_uncertainty`` in the config).
 

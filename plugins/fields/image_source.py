@@ -12,10 +12,13 @@ has them) at an SNR drawn per event.
 
 Where acoustlab's simulator has a locally reacting impedance ground, trunk scattering, its own
 absorption tables and field impairments, this one has none of them: the differences are the
-point. Sources lie in and around the array (``outside_share`` of the positions between the
-site's simulated source region and ``outside_expansion`` × the array extent), at heights across
-the site's range, so a benchmark sees the sources a field study has, including those a
-simulation of the array's interior never showed the model.
+point. Sources lie in and around the array: inside the mics' hull grown by ``inside_expansion``
+× the array extent, and ``outside_share`` of the positions between that and ``outside_expansion``
+× the array extent, at heights across the site's range, so a benchmark sees the sources a field
+study has, including those a simulation of the array's interior never showed the model. The
+region is the field source's own, independent of the site's simulated region (so a training
+simulation can be widened without moving the evaluation's sources); each event says whether it
+lies outside the site's simulated region (``outside_simulated_region``).
 
 ``protocol=field_eval field=image_source`` trains on acoustlab's simulation and evaluates on
 these recordings (every position withheld): the cross-simulator protocol.
@@ -54,10 +57,12 @@ class ImageSourceField:
         Source positions (the exchangeable unit of the evaluation).
     events_per_position : int
         Calls rendered at each position (each with its own call, weather, noise and SNR).
+    inside_expansion : float
+        Inner region: the mics' hull grown by this × the largest mic-to-mic distance.
     outside_share : float
-        Share of positions outside the site's simulated source region.
+        Share of positions between the inner region and …
     outside_expansion : float
-        Those lie within the mics' hull grown by this × the largest mic-to-mic distance.
+        … the mics' hull grown by this × the largest mic-to-mic distance.
     ground_energy_absorption : float
         Energy absorption coefficient of the ground (0 rigid … 1 no reflection), all frequencies.
     snr_db : sequence of float
@@ -74,7 +79,7 @@ class ImageSourceField:
     """
 
     def __init__(self, sample_rate_hz: float = 24000.0, duration_s: float = 1.1, n_positions: int = 60, events_per_position: int = 5,
-                 outside_share: float = 0.3, outside_expansion: float = 0.6, ground_energy_absorption: float = 0.4,
+                 inside_expansion: float = 0.2, outside_share: float = 0.3, outside_expansion: float = 0.6, ground_energy_absorption: float = 0.4,
                  snr_db: Sequence[float] = (5.0, 30.0), onset_s: Sequence[float] = (0.05, 0.25), include_share_alike: bool = False,
                  temperature_error_c: float = 0.0, seed: int = 2000) -> None:
         if n_positions < 2 or events_per_position < 1:
@@ -89,6 +94,9 @@ class ImageSourceField:
         self.duration_s = float(duration_s)
         self.n_positions = int(n_positions)
         self.events_per_position = int(events_per_position)
+        if outside_share > 0 and not outside_expansion > inside_expansion >= 0:
+            raise ConfigError(f"field.outside_expansion ({outside_expansion}) must exceed field.inside_expansion ({inside_expansion}) >= 0")
+        self.inside_expansion = float(inside_expansion)
         self.outside_share = float(outside_share)
         self.outside_expansion = float(outside_expansion)
         self.ground_energy_absorption = float(ground_energy_absorption)
@@ -99,21 +107,18 @@ class ImageSourceField:
         self.seed = int(seed)
 
     def validate(self, site: Site) -> None:
-        """Check that pyroomacoustics is installed and the outside region is larger than the simulated one."""
+        """Check that pyroomacoustics is installed."""
         try:
             import pyroomacoustics  # noqa: F401
         except ImportError:
             raise ConfigError("field=image_source renders with pyroomacoustics, which is not installed: pip install -e \".[crosssim]\"") from None
-        if self.outside_share > 0 and self.outside_expansion <= site.hull_expansion:
-            raise ConfigError(f"field.outside_expansion={self.outside_expansion} must exceed the site's hull_expansion={site.hull_expansion} "
-                              "(outside positions lie between the two)")
 
     def source_positions(self, site: Site) -> np.ndarray:
-        """(K, 3) source positions in m: inside the site's source region, and ``outside_share`` of them around it."""
+        """(K, 3) source positions in m: inside the inner region, and ``outside_share`` of them around it."""
         rng = np.random.default_rng([self.seed, _POSITIONS_STREAM])
         n_out = int(round(self.outside_share * self.n_positions))
-        inside = sample_in_expanded_hull(rng, site.mic_positions_m, site.hull_expansion, self.n_positions - n_out)
-        polygon, buffer_m = source_region(site.mic_positions_m, site.hull_expansion)
+        inside = sample_in_expanded_hull(rng, site.mic_positions_m, self.inside_expansion, self.n_positions - n_out)
+        polygon, buffer_m = source_region(site.mic_positions_m, self.inside_expansion)
         outside = np.empty((0, 2))
         while len(outside) < n_out:
             candidates = sample_in_expanded_hull(rng, site.mic_positions_m, self.outside_expansion, 4 * n_out)
@@ -149,6 +154,8 @@ class ImageSourceField:
         self.validate(site)
         pool = CallPool(site.species_pool, self.sample_rate_hz, self.include_share_alike)
         positions = self.source_positions(site)
+        polygon, buffer_m = source_region(site.mic_positions_m, site.hull_expansion)
+        outside_site = distance_to_polygon_m(positions[:, :2], polygon) > buffer_m
         n_out = int(round(self.duration_s * self.sample_rate_hz))
         audio = np.empty((len(positions) * self.events_per_position, site.n_mics, n_out), dtype=np.float32)
         rows = []
@@ -173,7 +180,7 @@ class ImageSourceField:
                 "speed_of_sound_m_s": float(speed_of_sound_m_s(weather.temperature_c + self.temperature_error_c, weather.relative_humidity_pct)),
                 "simulator_speed_of_sound_m_s": simulator_c,
                 "snr_db": snr_db, "noise_regime": site.noise_regimes[regime].kind, "call": call.label, "call_licence": call.licence,
-                "emission_time_s": onset, "outside_simulated_region": pid >= self.n_positions - int(round(self.outside_share * self.n_positions)),
+                "emission_time_s": onset, "outside_simulated_region": bool(outside_site[pid]),
                 "hardware_failure": False, "source": "pyroomacoustics_image_source",
             })
         log.info("image-source field: %d events at %d positions rendered with pyroomacoustics", len(rows), len(positions))
