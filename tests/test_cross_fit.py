@@ -5,6 +5,7 @@ import pandas as pd
 import pytest
 
 from acoustlab.core import columns as col
+from acoustlab.method import trust
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.method.protocols.cross_fit import CrossFitProtocol
 from acoustlab.reporting.metrics import position_bootstrap_ci
@@ -73,6 +74,6 @@ def test_cross_fit_end_to_end(compose_cfg, tmp_path):
     assert (pred[col.ellipse(0.95, "a_m")] >= pred[col.ellipse(0.95, "b_m")]).all()
     assert len(metrics["selective_by_split"]) == 3
     placed = pred["placed"].to_numpy(bool)
-    assert set(pred.loc[~placed, "abstain_reason"]) <= {"no estimate", "predicted error above the certified threshold"}
+    assert set(pred.loc[~placed, "abstain_reason"]) <= {"no estimate", "predicted error above the certified threshold", trust.REASON_ABSTAIN}
     assert metrics["selective"]["share_placed"] == pytest.approx(placed.mean())
     assert [r["share_placed"] for r in metrics["risk_coverage"]][0] == 1.0
