@@ -210,3 +210,37 @@ def test_cqr_rejects_a_model_without_quantiles():
 
     with pytest.raises(ConfigError, match="not a quantile regressor"):
         ConformalizedQuantile(LinearRegression())
+
+
+def test_position_level_calibration_covers_new_positions_where_event_level_does_not():
+    """One position with 100× the events of the others: calibrating over positions covers a new position, over events it does not."""
+    from acoustlab.toolkit.conformal import grouped_conformal_quantile
+
+    rng = np.random.default_rng(0)
+    level, n_positions = 0.8, 30
+    covered = {"event": [], "position": []}
+    for _ in range(400):
+        scale = rng.lognormal(0.0, 1.0, n_positions)  # each position's own error scale
+        counts = np.full(n_positions, 3)
+        counts[0] = 300  # one spot with many playbacks (a scale drawn like every other position's)
+        groups = np.repeat(np.arange(n_positions), counts)
+        scores = np.abs(rng.normal(0, scale[groups]))
+        q_event = conformal_quantile(scores, level)
+        q_position = grouped_conformal_quantile(scores, groups, level)
+        new = np.abs(rng.normal(0, rng.lognormal(0.0, 1.0)))  # an event of a new position, like the others
+        covered["event"].append(new <= q_event)
+        covered["position"].append(new <= q_position)
+    assert np.mean(covered["position"]) >= level - 0.05
+    assert np.mean(covered["event"]) <= level - 0.07  # 0.70 with this seed
+
+
+def test_position_level_quantile_needs_enough_positions():
+    from acoustlab.toolkit.conformal import grouped_conformal_quantile
+
+    scores, groups = np.arange(40.0), np.repeat(np.arange(10), 4)
+    assert grouped_conformal_quantile(scores, groups, 0.95) == np.inf  # 10 positions cannot support 0.95 (19 needed)
+    assert np.isfinite(grouped_conformal_quantile(scores, groups, 0.9))
+    # equal events per position: the same as weighing events equally with the n + 1 correction over positions
+    assert grouped_conformal_quantile(scores, groups, 0.5) == np.sort(scores)[int(np.ceil(0.5 * 11 / 10 * 40)) - 1]
+    scorer = SplitConformal(calibration_unit="position").fit(scores, np.zeros(40), np.ones(40), [0.5, 0.95], groups=groups)
+    assert np.isinf(scorer.quantiles_[0, 1]) and np.isfinite(scorer.quantiles_[0, 0])

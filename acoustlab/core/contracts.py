@@ -221,8 +221,8 @@ class ErrorModel(Protocol):
 class ConformalScorer(Protocol):
     """Turns predicted errors into calibrated radii at nominal coverage levels."""
 
-    def fit(self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float]) -> Any:
-        """Calibrate on held-out errors (m), the error model's predictions (m) and GDOP."""
+    def fit(self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float], groups: np.ndarray | None = None) -> Any:
+        """Calibrate on held-out errors (m), the error model's predictions (m), GDOP and the events' positions (``groups``)."""
 
     def radius(self, predicted_m: np.ndarray, gdop: np.ndarray) -> np.ndarray:
         """(B, L) radii in m, one column per calibrated level."""

@@ -420,17 +420,19 @@ class LocalizationPipeline:
         oof_pred = np.maximum(self._out_of_fold_errors(s, cal, lambda x, y, held: clone(self.c.error_model).fit(x, y).predict(held),
                                                        self.c.error_model, desc="error model, out-of-fold"), cal.floor)
         rows, levels = cal.rows, self.c.levels
+        positions = s.groups[s.train][rows]  # a scorer may calibrate over positions rather than events
         scorers, test_quantiles = {}, {}
         for name, configured in self.c.scorers.items():
             scorer = clone(configured, safe=False)
             if getattr(scorer, "needs_quantiles", False):  # CQR: its own quantile model, out-of-fold like the error model
                 oof_q = self._out_of_fold_errors(s, cal, lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, levels),
                                                  scorer, shape=(len(levels),))
-                scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, quantiles=np.maximum(oof_q[rows], cal.floor))
+                scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, quantiles=np.maximum(oof_q[rows], cal.floor),
+                                           groups=positions)
                 test_quantiles[name] = np.maximum(scorer.fit_predict_quantiles(
                     cal.x_error.iloc[cal.finite], cal.error[cal.finite], t.x_error, levels), cal.floor)
             else:
-                scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels)
+                scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, groups=positions)
         fit_rows = self._error_fit_rows(s, cal, np.arange(s.train.size), self.c.error_model)
         error_model = clone(self.c.error_model).fit(cal.x_error.iloc[fit_rows], cal.error[fit_rows])
         return ErrorPredictions(oof_pred, np.maximum(error_model.predict(t.x_error), cal.floor), scorers, test_quantiles)

@@ -76,8 +76,8 @@ class ConformalizedQuantile:
         return quantiles
 
     def fit(self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float],
-            quantiles: np.ndarray | None = None) -> ConformalizedQuantile:
-        """Calibrate one correction per level from calibration errors and their out-of-fold quantile predictions."""
+            quantiles: np.ndarray | None = None, groups: np.ndarray | None = None) -> ConformalizedQuantile:
+        """Calibrate one correction per level from calibration errors and their out-of-fold quantile predictions (``groups`` unused)."""
         self.levels_ = [float(v) for v in levels]
         scores = np.asarray(error_m, dtype=float)[:, None] - self._quantiles(predicted_m, quantiles)
         self.corrections_ = np.array([conformal_quantile(scores[:, k], level) for k, level in enumerate(self.levels_)])

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.conformal import conformal_quantile
+from acoustlab.toolkit.conformal import conformal_quantile, grouped_conformal_quantile
 
 NORMALISERS = ("none", "gdop", "predicted_error")
 BINNINGS = ("none", "gdop", "predicted_error")
@@ -55,10 +55,17 @@ class SplitConformal:
     gdop_cap_quantile : float or None
         GDOP is clipped to the [1 − this, this] quantiles of the calibration GDOPs before it
         scales or bins anything (None: no clipping).
+    calibration_unit : {"event", "position"}
+        ``event``: the usual quantile over calibration events. ``position``: a guarantee over
+        source positions (:func:`acoustlab.toolkit.conformal.grouped_conformal_quantile`), for
+        calibration on a few field playback spots whose events are not exchangeable across spots.
     """
 
     def __init__(self, normaliser: str = "none", binning: str = "none", n_bins: int = 3, score: str = "signed",
-                 use_error_model: bool = True, gdop_cap_quantile: float | None = 0.99) -> None:
+                 use_error_model: bool = True, gdop_cap_quantile: float | None = 0.99, calibration_unit: str = "event") -> None:
+        if calibration_unit not in ("event", "position"):
+            raise ConfigError(f"conformal calibration_unit must be 'event' or 'position'; got {calibration_unit!r}")
+        self.calibration_unit = calibration_unit
         if gdop_cap_quantile is not None and not 0.5 <= gdop_cap_quantile <= 1:
             raise ConfigError(f"conformal gdop_cap_quantile must lie in [0.5, 1] or be null; got {gdop_cap_quantile}")
         self.gdop_cap_quantile = None if gdop_cap_quantile is None else float(gdop_cap_quantile)
@@ -96,8 +103,9 @@ class SplitConformal:
         value = self._clip_gdop(gdop) if self.binning == "gdop" else np.asarray(predicted_m, dtype=float)
         return np.searchsorted(self.edges_, value, side="right")
 
-    def fit(self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float]) -> SplitConformal:
-        """Calibrate ``quantiles_`` (bins × levels) on calibration errors, predictions and GDOPs."""
+    def fit(self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float],
+            groups: np.ndarray | None = None) -> SplitConformal:
+        """Calibrate ``quantiles_`` (bins × levels) on calibration errors, predictions, GDOPs (and positions, ``groups``)."""
         error_m, predicted_m, gdop = (np.asarray(a, dtype=float) for a in (error_m, predicted_m, gdop))
         q = self.gdop_cap_quantile
         self.gdop_range_ = (1e-9, np.inf) if q is None else (float(np.quantile(gdop, 1 - q)), float(np.quantile(gdop, q)))
@@ -109,8 +117,17 @@ class SplitConformal:
         scores = (np.abs(residual) if self.score == "absolute" else residual) / self._sigma(predicted_m, gdop)
         bins = self._bins(predicted_m, gdop)
         self.levels_ = [float(v) for v in levels]
-        self.quantiles_ = np.array([[conformal_quantile(scores[bins == b], v) if (bins == b).any() else np.inf for v in self.levels_]
-                                    for b in range(n_bins)])
+        if self.calibration_unit == "position" and groups is None:
+            raise ValueError("calibration_unit='position' needs the calibration events' positions (groups)")
+
+        def quantile(in_bin: np.ndarray, level: float) -> float:
+            if not in_bin.any():
+                return np.inf
+            if self.calibration_unit == "position":
+                return grouped_conformal_quantile(scores[in_bin], np.asarray(groups)[in_bin], level)
+            return conformal_quantile(scores[in_bin], level)
+
+        self.quantiles_ = np.array([[quantile(bins == b, v) for v in self.levels_] for b in range(n_bins)])
         self.n_calibration_ = int(scores.size)
         return self
 
