@@ -134,7 +134,7 @@ def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     assert report.main([str(tmp_path / "runs"), "--out", str(tmp_path / "rep")]) == 0
     runs = report.collect_runs([tmp_path / "runs"])
     errors = report.error_rows(runs)
-    assert len(errors) == 8 and set(errors["method"]) == {"solver", "model", "gate", "oracle"}
+    assert len(errors) == 10 and set(errors["method"]) == {"solver", "model", "gate", "oracle", "gate_without_trust"}
     gate = errors[errors["method"] == "gate"]["p95 (m)"].tolist()
     assert gate == pytest.approx([m1["errors"]["gate"]["p95"], m2["errors"]["gate"]["p95"]])
     coverage = report.coverage_rows(runs)

@@ -219,16 +219,17 @@ def check_conformal(option: str) -> None:
     gdop = rng.uniform(1.0, 5.0, size=2 * n)
     predicted = rng.uniform(0.5, 3.0, size=2 * n)
     error = predicted * gdop * rng.exponential(1.0, size=2 * n)  # heteroscedastic, exchangeable
+    positions = np.arange(2 * n) // 4  # four events per source position (for scorers calibrated over positions)
     for name, scorer in build_scorers(cfg.conformal).items():
         if getattr(scorer, "needs_quantiles", False):  # CQR: a quantile model fitted on a third, independent sample
             x = pd.DataFrame({"predicted": predicted, "gdop": gdop})
             extra_gdop, extra_predicted = rng.uniform(1.0, 5.0, size=n), rng.uniform(0.5, 3.0, size=n)
             x_extra = pd.DataFrame({"predicted": extra_predicted, "gdop": extra_gdop})
             quantiles = scorer.fit_predict_quantiles(x_extra, extra_predicted * extra_gdop * rng.exponential(1.0, size=n), x, levels)
-            fitted = clone(scorer, safe=False).fit(error[:n], predicted[:n], gdop[:n], levels, quantiles=quantiles[:n])
+            fitted = clone(scorer, safe=False).fit(error[:n], predicted[:n], gdop[:n], levels, quantiles=quantiles[:n], groups=positions[:n])
             radii = fitted.radius(predicted[n:], gdop[n:], quantiles=quantiles[n:])
         else:
-            fitted = clone(scorer, safe=False).fit(error[:n], predicted[:n], gdop[:n], levels)
+            fitted = clone(scorer, safe=False).fit(error[:n], predicted[:n], gdop[:n], levels, groups=positions[:n])
             radii = fitted.radius(predicted[n:], gdop[n:])
         assert radii.shape == (n, len(levels)), f"conformal={option}, {name}: radius shape {radii.shape}"
         assert np.all(np.isfinite(radii)), f"conformal={option}, {name}: non-finite radii"
