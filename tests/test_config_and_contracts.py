@@ -67,7 +67,8 @@ def test_every_option_composes_and_instantiates_to_its_contract(compose_cfg, gro
     if group == "field" and obj is None:
         return  # 'none': no field data
     if group == "protocol":
-        assert callable(getattr(obj, "run", None)) and hasattr(obj, "needs_simulation")
+        assert isinstance(obj, interfaces.EvaluationProtocol)
+        assert isinstance(interfaces.declared(obj, "needs_field"), bool) and isinstance(interfaces.declared(obj, "evaluates"), bool)
         return
     assert isinstance(obj, CONTRACTS[group]), f"{group}={option} does not satisfy {CONTRACTS[group].__name__}"
     if group in ("model", "error_model"):
@@ -189,3 +190,46 @@ def test_a_mistyped_ablation_group_fails_in_preflight(compose_cfg):
     with pytest.raises(ConfigError, match=r"pipeline.drop_from_model names feature groups \['xcor'\]"):
         build_run(compose_cfg(["+site=frozen_lake", "pipeline.drop_from_model=[xcor]", "tracking=none"]))
     build_run(compose_cfg(["+site=frozen_lake", "features.drop=[solver,xcorr]", "tracking=none"]))
+
+
+#: Attribute names acoustlab reads by name from objects that are not plugins (the standard library,
+#: numpy/AST nodes, plugin packages), each with why it is not a plugin property.
+NOT_PLUGIN_ATTRIBUTES = {
+    "sched_getaffinity": "os: free cores",
+    "errno": "OSError: disk full",
+    "body": "ast nodes: docstring-free source digests",
+    "__len__": "iterables: progress totals",
+    "__name__": "functions: plugin check names",
+    "__file__": "packages: where a plugins package lives",
+    "__path__": "packages: where a plugins package lives",
+    "ACOUSTLAB_PLUGINS": "packages: the marker a plugins package must set",
+}
+
+
+def test_no_plugin_attribute_is_read_that_no_contract_declares():
+    """Every getattr/hasattr/declared/hook with a literal name in acoustlab/ names a declared property, hook or contract attribute."""
+    import ast
+    import inspect
+    from pathlib import Path
+
+    import acoustlab
+
+    contract_names = {name for obj in vars(interfaces).values() if inspect.isclass(obj) and getattr(obj, "_is_protocol", False)
+                      for name in (*getattr(obj, "__annotations__", {}), *(n for n in vars(obj) if not n.startswith("_")))}
+    allowed = {"getattr": set(interfaces.OPTIONAL_PROPERTIES) | set(interfaces.OPTIONAL_HOOKS) | contract_names | set(NOT_PLUGIN_ATTRIBUTES),
+               "declared": set(interfaces.OPTIONAL_PROPERTIES), "hook": set(interfaces.OPTIONAL_HOOKS)}
+    allowed["hasattr"] = allowed["getattr"]
+    offenders = []
+    for path in Path(acoustlab.__file__).parent.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in allowed and len(node.args) >= 2
+                    and isinstance(node.args[1], ast.Constant) and isinstance(node.args[1].value, str)
+                    and node.args[1].value not in allowed[node.func.id]):
+                offenders.append(f"{path.name}:{node.lineno} {node.func.id}(…, {node.args[1].value!r})")
+    assert not offenders, "attributes read by name that no contract declares (add them to OPTIONAL_PROPERTIES / OPTIONAL_HOOKS): " + ", ".join(offenders)
+
+
+def test_declared_refuses_an_undeclared_name():
+    with pytest.raises(KeyError, match="not an optional plugin property"):
+        interfaces.declared(object(), "needs_simulation")
+    assert interfaces.declared(object(), "evaluates") is True and interfaces.hook(object(), "preflight") is None

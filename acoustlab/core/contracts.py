@@ -7,6 +7,7 @@ Every plugin is a class registered by a YAML file with a ``_target_`` in its Hyd
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -14,6 +15,57 @@ import numpy as np
 import pandas as pd
 
 from acoustlab.core.types import RecordingBatch, Site
+
+
+#: Optional properties a plugin may declare (as a class or instance attribute), and the value every
+#: plugin that declares none is taken to have, as scikit-learn's estimator tags. Read them with
+#: :func:`declared`; a name not listed here is a programming error (a test scans for others).
+OPTIONAL_PROPERTIES: dict[str, Any] = {
+    # learned plugins (point and error models, CQR): fit on whole source positions up to this many rows (None: every row)
+    "max_train_rows": None,
+    # conformal scorers: needs per-level quantile predictions from its own fit_predict_quantiles (CQR)
+    "needs_quantiles": False,
+    # evaluation protocols: needs field recordings (checked in the preflight)
+    "needs_field": False,
+    # evaluation protocols: has ground truth and writes error metrics (False: positions only, protocol=localize)
+    "evaluates": True,
+    # simulators and feature sets: bumped by hand to invalidate cached results of an unchanged module
+    "cache_version": "0",
+    # trackers: the id of the last run sent and where it went (for the upload marker)
+    "last_run_id": None,
+    "tracking_uri": None,
+}
+#: Optional hooks a plugin may define; a plugin without one is taken to need nothing there. Get them with :func:`hook`.
+#: ``preflight()`` (models: check what must exist before anything is simulated, e.g. weights), ``validate(site)``
+#: (field sources: check tables and headers), ``input_files()`` (field sources: the files whose contents key the
+#: cache), ``projection()`` (field sources: the rigid map to projected coordinates, or None).
+OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection")
+
+
+def declared(plugin: Any, name: str) -> Any:
+    """The optional property ``name`` of ``plugin``: its own value, or the default of :data:`OPTIONAL_PROPERTIES`.
+
+    Raises
+    ------
+    KeyError
+        For a name no contract declares.
+    """
+    if name not in OPTIONAL_PROPERTIES:
+        raise KeyError(f"{name!r} is not an optional plugin property; declared: {sorted(OPTIONAL_PROPERTIES)}")
+    return getattr(plugin, name, OPTIONAL_PROPERTIES[name])
+
+
+def hook(plugin: Any, name: str) -> Callable[..., Any] | None:
+    """The optional hook ``name`` of ``plugin`` (a bound method), or None where it defines none.
+
+    Raises
+    ------
+    KeyError
+        For a name no contract declares.
+    """
+    if name not in OPTIONAL_HOOKS:
+        raise KeyError(f"{name!r} is not an optional plugin hook; declared: {list(OPTIONAL_HOOKS)}")
+    return getattr(plugin, name, None)
 
 
 @runtime_checkable
@@ -226,6 +278,19 @@ class ConformalScorer(Protocol):
 
     def radius(self, predicted_m: np.ndarray, gdop: np.ndarray) -> np.ndarray:
         """(B, L) radii in m, one column per calibrated level."""
+
+
+@runtime_checkable
+class EvaluationProtocol(Protocol):
+    """Decides which events train, calibrate and test, and runs the localization pipeline on them.
+
+    May declare ``needs_field`` and ``evaluates`` (:data:`OPTIONAL_PROPERTIES`). ``dataset`` and
+    ``field_recordings`` are :class:`acoustlab.stages.dataset.Dataset` s, ``pipeline`` a
+    :class:`acoustlab.method.pipeline.LocalizationPipeline` (typed loosely: this layer is below both).
+    """
+
+    def run(self, dataset: Any, pipeline: Any, field_recordings: Any = None) -> Any:
+        """Fit and predict; returns a :class:`acoustlab.method.pipeline.MethodResult`."""
 
 
 @runtime_checkable

@@ -25,6 +25,7 @@ from acoustlab.core.contracts import (
     GateDecision,
     PointModel,
     Solver,
+    declared,
 )
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
@@ -248,7 +249,7 @@ class LocalizationPipeline:
         10,000 rows and TabPFN 1,000 of them, chosen by whole positions from the run's seed.
         """
         rows = np.arange(groups.size)
-        limit = getattr(plugin, "max_train_rows", None)
+        limit = declared(plugin, "max_train_rows")
         if limit is None or rows.size <= limit:
             return rows
         kept = cap_rows(rows, groups, int(limit), np.random.default_rng([self.c.seed, 3, rows.size]))
@@ -424,7 +425,7 @@ class LocalizationPipeline:
         scorers, test_quantiles = {}, {}
         for name, configured in self.c.scorers.items():
             scorer = clone(configured, safe=False)
-            if getattr(scorer, "needs_quantiles", False):  # CQR: its own quantile model, out-of-fold like the error model
+            if declared(scorer, "needs_quantiles"):  # CQR: its own quantile model, out-of-fold like the error model
                 oof_q = self._out_of_fold_errors(s, cal, lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, levels),
                                                  scorer, shape=(len(levels),))
                 scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, quantiles=np.maximum(oof_q[rows], cal.floor),

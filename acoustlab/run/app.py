@@ -16,6 +16,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from acoustlab import __version__
+from acoustlab.core.contracts import declared, hook
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.method.pipeline import Components, LocalizationPipeline
 from acoustlab.method.trust import TrustSettings
@@ -170,17 +171,19 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         if not 0 < level < 1:
             raise ConfigError(f"conformal.levels must lie in (0, 1); got {level}")
     for learned in (components.point_model, components.error_model):
-        if hasattr(learned, "preflight"):  # e.g. TabPFN: weights must exist before anything is simulated
-            learned.preflight()
+        preflight = hook(learned, "preflight")
+        if preflight is not None:  # e.g. TabPFN: weights must exist before anything is simulated
+            preflight()
     protocol = build(cfg.protocol, "protocol")
     field_source = None
-    if getattr(protocol, "needs_field", False):  # recordings are checked now, not after the training simulation
+    if declared(protocol, "needs_field"):  # recordings are checked now, not after the training simulation
         field_source = build(cfg.field, "field")
         if field_source is None:
             protocol_name = (choices or {}).get("protocol") or type(protocol).__name__
             raise ConfigError(f"protocol={protocol_name} needs field recordings: choose field=playback_standin or field=recordings")
-        if hasattr(field_source, "validate"):
-            field_source.validate(site)
+        validate = hook(field_source, "validate")
+        if validate is not None:
+            validate(site)
     tracker = build(cfg.tracking, "tracking")
 
     cache = StageCache(cfg.cache.dir, enabled=cfg.cache.enabled, file_mode=cfg.cache.file_mode)
@@ -241,7 +244,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     predictions = result.predictions
     timings["models_s"] = time.perf_counter() - stage_start
 
-    if not getattr(protocol, "evaluates", True):
+    if not declared(protocol, "evaluates"):
         return _write_localization(cfg, run_dir, predictions, result, components, site, dataset, field_data, choices, timings, started,
                                    tracker, parent_run_id, run_name, built.field_source)
     summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
@@ -328,7 +331,7 @@ def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFram
                         tracker: Any, parent_run_id: str | None, run_name: str | None = None, field_source: Any = None) -> dict:
     """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
     table = positions_table(predictions, components.levels, list(components.scorers))
-    projection = field_source.projection() if hasattr(field_source, "projection") else None
+    projection = hook(field_source, "projection")() if hook(field_source, "projection") is not None else None
     if projection is not None:  # also in the mics table's projected coordinates
         rotation, translation, crs = projection
         projected = table[["x_m", "y_m"]].to_numpy(float) @ rotation.T + translation

@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 from sklearn.base import clone
 
 from acoustlab.core import columns as col
-from acoustlab.core.contracts import GateDecision, SolverInputs
+from acoustlab.core.contracts import GateDecision, SolverInputs, declared, hook
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.run.registry import CONF_DIR, build, build_feature_sets, build_scorers, group_options
@@ -143,7 +143,7 @@ def check_solver_exact(option: str) -> None:
 # --- point and error models ----------------------------------------------------------------
 
 def _weights_or_skip(model: Any, what: str) -> None:
-    preflight = getattr(model, "preflight", None)  # the optional hook of models that need weights
+    preflight = hook(model, "preflight")  # the optional hook of models that need weights
     if preflight is not None:
         try:
             preflight()
@@ -221,7 +221,7 @@ def check_conformal(option: str) -> None:
     error = predicted * gdop * rng.exponential(1.0, size=2 * n)  # heteroscedastic, exchangeable
     positions = np.arange(2 * n) // 4  # four events per source position (for scorers calibrated over positions)
     for name, scorer in build_scorers(cfg.conformal).items():
-        if getattr(scorer, "needs_quantiles", False):  # CQR: a quantile model fitted on a third, independent sample
+        if declared(scorer, "needs_quantiles"):  # CQR: a quantile model fitted on a third, independent sample
             x = pd.DataFrame({"predicted": predicted, "gdop": gdop})
             extra_gdop, extra_predicted = rng.uniform(1.0, 5.0, size=n), rng.uniform(0.5, 3.0, size=n)
             x_extra = pd.DataFrame({"predicted": extra_predicted, "gdop": extra_gdop})

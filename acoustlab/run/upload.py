@@ -22,6 +22,7 @@ from typing import Any
 import yaml
 from omegaconf import OmegaConf
 
+from acoustlab.core.contracts import declared
 from acoustlab.core.errors import AcoustlabError, ConfigError
 from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
 from acoustlab.run.registry import CONF_DIR, build
@@ -92,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         ok = log_run_dir(tracker, run_dir)
         failed += not ok
-        if ok and getattr(tracker, "last_run_id", None):
-            marker.write_text(json.dumps({"run_id": tracker.last_run_id, "tracking_uri": str(getattr(tracker, "tracking_uri", ""))}))
+        if ok and declared(tracker, "last_run_id"):
+            marker.write_text(json.dumps({"run_id": tracker.last_run_id, "tracking_uri": str(declared(tracker, "tracking_uri") or "")}))
     log.info("uploaded %d of %d run directories", len(run_dirs) - failed, len(run_dirs))
     return 1 if failed else 0

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from acoustlab.core.contracts import declared
 from acoustlab.core.errors import AcoustlabError, ConfigError
 from acoustlab.core.imports import import_closure, module_source_path
 from acoustlab.core.types import stable_hash
@@ -50,7 +51,7 @@ def plugin_version(obj: Any) -> str:
     physics a simulator uses invalidates the entries that simulator produced.
     """
     cls = obj if isinstance(obj, type) else type(obj)
-    return f"{cls.__module__}.{cls.__qualname__}:{getattr(cls, 'cache_version', '0')}:{code_digest(cls.__module__)}"
+    return f"{cls.__module__}.{cls.__qualname__}:{declared(cls, 'cache_version')}:{code_digest(cls.__module__)}"
 
 
 def code_digest(module: str, follow_imports: bool = True) -> str:

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 from joblib import Parallel, delayed
 
-from acoustlab.core.contracts import FeatureSet, Simulator
+from acoustlab.core.contracts import FeatureSet, Simulator, hook
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
 from acoustlab.core.types import RecordingBatch, Site
@@ -334,7 +334,8 @@ def load_or_build_field(
     site: Site, field_source: Any, field_cfg: dict[str, Any], feature_sets: dict[str, FeatureSet], features_cfg: dict[str, Any], cache: StageCache
 ) -> Dataset:
     """Feature and event tables of a field source's recordings, cached like the simulated ones."""
-    inputs = field_source.input_files() if hasattr(field_source, "input_files") else []
+    input_files = hook(field_source, "input_files")
+    inputs = input_files() if input_files is not None else []
     key = StageCache.key(
         {
             "stage": "field_features",

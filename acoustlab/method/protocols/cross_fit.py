@@ -36,7 +36,6 @@ class CrossFitProtocol:
         Seed of the fold assignment and the caps.
     """
 
-    needs_simulation = True
 
     def __init__(self, n_folds: int = 10, max_train_rows: int = 1000, seed: int = 0) -> None:
         if n_folds < 2:

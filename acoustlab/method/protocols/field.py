@@ -67,7 +67,6 @@ class FieldEvalProtocol:
         Seed of the training subsample.
     """
 
-    needs_simulation = True
     needs_field = True
 
     def __init__(self, max_train_rows: int = 1000, exclude_failed_from_summary: bool = True, seed: int = 0) -> None:
@@ -101,7 +100,6 @@ class LopoProtocol:
         Seed of the subsamples.
     """
 
-    needs_simulation = True
     needs_field = True
 
     def __init__(self, field_fraction: float = 0.2, max_train_rows: int = 1000, exclude_failed_from_summary: bool = True, seed: int = 0) -> None:

@@ -38,7 +38,6 @@ class LocalizeProtocol:
         Seed of the training subsample.
     """
 
-    needs_simulation = True
     needs_field = True
     #: no ground truth: the app writes positions, not error metrics
     evaluates = False

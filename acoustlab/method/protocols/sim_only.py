@@ -29,7 +29,6 @@ class SimOnlyProtocol:
         Seed of the split.
     """
 
-    needs_simulation = True
 
     def __init__(self, test_fraction: float = 0.1, max_train_rows: int = 1000, seed: int = 0) -> None:
         if not 0 < test_fraction < 1:
