@@ -33,6 +33,7 @@ from acoustlab.core.types import Site
 from acoustlab.method.splits import cap_rows
 from acoustlab.method.trust import TrainingSupport, TrustedDecision, TrustSettings, apply_trust
 from acoustlab.toolkit.conformal import conformal_quantile, selective_threshold
+from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
 from acoustlab.toolkit.geometry import gdop, position_crb_m
 from acoustlab.toolkit.input_uncertainty import InputUncertainty, level_factor, position_sigma_m
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
@@ -115,7 +116,7 @@ def crb_from_features(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
         return np.median(features[[name(k) for k in range(m)]].to_numpy(float), axis=1)
 
     centroid, bandwidth = med(col.spectral_centroid_hz), med(col.spectral_bandwidth_hz)
-    c = events["speed_of_sound_m_s"].to_numpy(float) if "speed_of_sound_m_s" in events else 343.0
+    c = event_speed_of_sound_m_s(events)
     return position_crb_m(
         site.mic_positions_m, events[["x_m", "y_m", "z_m"]].to_numpy(float), med(col.snr_db),
         np.sqrt(centroid**2 + bandwidth**2), med(col.ir_spread_s), 2 * bandwidth, c,
@@ -268,8 +269,7 @@ class LocalizationPipeline:
 
     def _gdop_at(self, position_m: np.ndarray, features: pd.DataFrame) -> np.ndarray:
         """GDOP at estimated positions (finite, ≥ 1e-6; a large value where the geometry is singular)."""
-        height = features[col.SOLVER_SOURCE_HEIGHT].to_numpy(float) if col.SOLVER_SOURCE_HEIGHT in features else np.full(len(position_m), np.mean(self.c.site.source_height_range_m))
-        pos = np.column_stack([np.nan_to_num(position_m), np.nan_to_num(height)])
+        pos = np.column_stack([np.nan_to_num(position_m), source_height_m(features, self.c.site)])
         g = gdop(self.c.site.mic_positions_m, pos)
         return np.clip(np.where(np.isfinite(g), g, 1e6), 1e-6, 1e6)
 
@@ -620,11 +620,8 @@ class LocalizationPipeline:
         }, index=x.index)
         return pd.concat([x, context], axis=1)
 
-    def _height(self, features: pd.DataFrame) -> np.ndarray | float:
-        if col.SOLVER_SOURCE_HEIGHT in features:
-            h = features[col.SOLVER_SOURCE_HEIGHT].to_numpy(float)
-            return np.where(np.isfinite(h), h, np.mean(self.c.site.source_height_range_m))
-        return float(np.mean(self.c.site.source_height_range_m))
+    def _height(self, features: pd.DataFrame) -> np.ndarray:
+        return source_height_m(features, self.c.site)
 
     def _add_ellipses(self, out: pd.DataFrame, cal_error_xy: np.ndarray, cal_position: np.ndarray, cal_pred: np.ndarray,
                       cal_features: pd.DataFrame, test_position: np.ndarray, test_pred: np.ndarray, test_features: pd.DataFrame) -> None:

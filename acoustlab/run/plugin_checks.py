@@ -33,6 +33,7 @@ from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.run.registry import CONF_DIR, build, build_feature_sets, build_scorers, group_options
 from acoustlab.stages.sites import site_from_config
 from acoustlab.toolkit.geometry import sample_in_expanded_hull
+from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 Check = Callable[[], None]
@@ -68,7 +69,7 @@ def _exact_scene(site: Site, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndar
     """Sources in the site's source region at its mid height: (E, 3) positions, (E, M) TDOAs to mic 0, (E, M) levels, c."""
     rng = np.random.default_rng(seed)
     xy = sample_in_expanded_hull(rng, site.mic_positions_m, site.hull_expansion, n)
-    height = float(np.mean(site.source_height_range_m))
+    height = assumed_source_height_m(site)
     src = np.column_stack([xy, np.full(n, height)])
     dist = np.sqrt(((src[:, None, :] - site.mic_positions_m[None]) ** 2).sum(-1))
     c = float(speed_of_sound_m_s(np.mean(site.temperature_range_c), np.mean(site.relative_humidity_range_pct)))
@@ -126,7 +127,7 @@ def check_solver_exact(option: str) -> None:
         assert "tdoa" in solver.required_feature_groups, f"solver={option} must declare the 'tdoa' feature group"
         src, tdoa, levels, c = _exact_scene(site, 200)
         pair_lags = np.stack([tdoa[:, j] - tdoa[:, i] for i, j in site.mic_pairs], axis=1)[..., None]
-        height = float(np.mean(site.source_height_range_m))
+        height = assumed_source_height_m(site)
         inputs = SolverInputs(site.mic_positions_m, tdoa, c, received_level_db=levels, pair_lag_candidates_s=pair_lags, source_height_m=height)
         result = solver.solve(inputs)
         assert result.position_m.shape == (len(src), 2), f"solver={option}: position shape {result.position_m.shape}"

@@ -12,7 +12,7 @@ from acoustlab.core.contracts import Solver, SolverInputs
 from acoustlab.core.errors import DataError
 from acoustlab.core.types import Site
 from acoustlab.toolkit.geometry import bounding_box
-from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.event_physics import assumed_source_height_m, event_speed_of_sound_m_s
 
 
 def tdoa_matrix(features: pd.DataFrame, n_mics: int) -> np.ndarray:
@@ -60,10 +60,7 @@ def solver_inputs_for(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
     temperature and humidity; the source height is the middle of the site's source-height range;
     the SRP-PHAT estimate (when the ``srp`` group exists) is the prior position.
     """
-    if "speed_of_sound_m_s" in events:
-        speed = events["speed_of_sound_m_s"].to_numpy(dtype=float)
-    else:
-        speed = speed_of_sound_m_s(events["temperature_c"].to_numpy(float), events["relative_humidity_pct"].to_numpy(float))
+    speed = event_speed_of_sound_m_s(events)
     candidates = pair_candidate_lags(features, site)
     return SolverInputs(
         mic_positions_m=site.mic_positions_m,
@@ -71,7 +68,7 @@ def solver_inputs_for(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
         speed_of_sound_m_s=speed,
         received_level_db=received_levels_db(features, site),
         pair_lag_candidates_s=candidates,
-        source_height_m=float(np.mean(site.source_height_range_m)),
+        source_height_m=assumed_source_height_m(site),
         pair_lag_weights=None if candidates is None else pair_candidate_weights(features, site, candidates.shape[-1]),
         prior_position_m=features[["srp__x_m", "srp__y_m"]].to_numpy(float) if {"srp__x_m", "srp__y_m"} <= set(features.columns) else None,
     )

@@ -15,7 +15,7 @@ from scipy.ndimage import maximum_filter1d
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.dsp import gcc
 from acoustlab.toolkit.geometry import bounding_box
-from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.event_physics import assumed_source_height_m, event_speed_of_sound_m_s
 
 
 def _steered_power(cc: np.ndarray, lag0_s: float, step_s: float, grid: np.ndarray, mics: np.ndarray, pairs, height: float, c: np.ndarray) -> np.ndarray:
@@ -76,9 +76,8 @@ class SrpPhat:
         mics = site.mic_positions_m
         pairs = site.mic_pairs
         cc, lags = gcc(batch.audio, pairs, batch.sample_rate_hz, "phat", self.band_hz, 2)
-        c = batch.events["speed_of_sound_m_s"].to_numpy(float) if "speed_of_sound_m_s" in batch.events else speed_of_sound_m_s(
-            batch.events["temperature_c"].to_numpy(float), batch.events["relative_humidity_pct"].to_numpy(float))
-        height = float(np.mean(site.source_height_range_m))
+        c = event_speed_of_sound_m_s(batch.events)
+        height = assumed_source_height_m(site)
         low, high = bounding_box(mics, self.box_margin_fraction)
         gx, gy = np.meshgrid(np.arange(low[0], high[0] + 1e-9, self.coarse_step_m), np.arange(low[1], high[1] + 1e-9, self.coarse_step_m))
         coarse = np.broadcast_to(np.column_stack([gx.ravel(), gy.ravel()]), (batch.n_events, gx.size, 2))

@@ -20,6 +20,7 @@ import pandas as pd
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.calls import Call, CallPool, catalog, synthetic_call
+from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.geometry import sample_in_expanded_hull
 from plugins.simulators.outdoor import OutdoorSimulator
 
@@ -109,7 +110,7 @@ class PlaybackStandIn:
         """(K, 3) loudspeaker positions in m, inside the mics' expanded hull, at the site's mid source height."""
         rng = np.random.default_rng([self.seed, _POSITIONS_STREAM])
         xy = sample_in_expanded_hull(rng, site.mic_positions_m, site.hull_expansion, self.n_positions)
-        return np.column_stack([xy, np.full(self.n_positions, np.mean(site.source_height_range_m))])
+        return np.column_stack([xy, np.full(self.n_positions, assumed_source_height_m(site))])
 
     def load(self, site: Site) -> RecordingBatch:
         """Every playback: positions × settings × stimuli, with impairments and mismatched propagation."""

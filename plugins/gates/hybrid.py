@@ -25,6 +25,7 @@ from acoustlab.core import columns as col
 from acoustlab.core.contracts import GateDecision
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
+from acoustlab.toolkit.event_physics import source_height_m
 from acoustlab.toolkit.geometry import bounding_box
 from acoustlab.toolkit.tdoa import energy_residual_db
 
@@ -100,7 +101,7 @@ class HybridGate:
         missing = [c for c in cols if c not in features.columns]
         if missing:
             raise DataError(f"the hybrid gate needs the 'environment' feature group (received levels); missing {missing[:2]}")
-        height = features[col.SOLVER_SOURCE_HEIGHT].to_numpy(float) if col.SOLVER_SOURCE_HEIGHT in features else np.mean(site.source_height_range_m)
+        height = source_height_m(features, site)
         return energy_residual_db(features[cols].to_numpy(float), site.mic_positions_m, position_m, height)
 
     def _inside(self, position_m: np.ndarray, site: Site) -> np.ndarray:
