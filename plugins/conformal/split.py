@@ -14,10 +14,11 @@ event's Mondrian bin (one bin without ``binning``). Normalisers (σ):
 * ``none``: σ = 1 — one additive adjustment for every event (``fixed`` in the paper);
 * ``gdop``: σ = GDOP / median calibration GDOP — the adjustment scaled per detection by the
   geometry (``gdop_scaled`` in the paper; locally weighted conformal). The GDOP is first clipped
-  to the central ``gdop_cap_quantile`` range of the calibration GDOPs (by default their 1st to
-  99th percentile): near a singular geometry (a source on the mics' baseline extension) GDOP
+  to the central ``gdop_cap_quantile`` range of the calibration GDOPs (by default their 5th to
+  95th percentile): near a singular geometry (a source on the mics' baseline extension) GDOP
   grows without bound, and an uncapped σ turned errors of centimetres into radii of 160 km on
-  the 3-mic frozen lake. Fit and predict use the same clipped σ, so the coverage guarantee holds;
+  the 3-mic frozen lake (capped at the 99th percentile the largest 0.95 radius was still 7,900×
+  the median there, because GDOP at a diverged estimate is itself extreme). Fit and predict use the same clipped σ, so the coverage guarantee holds;
 * ``predicted_error``: σ = ê — multiplicative, e ≤ ê (1 + q̂) (``error_ratio``).
 
 ``use_error_model: false`` sets ê = 0: with ``normaliser: gdop`` the radius is q̂ × GDOP and
@@ -62,7 +63,7 @@ class SplitConformal:
     """
 
     def __init__(self, normaliser: str = "none", binning: str = "none", n_bins: int = 3, score: str = "signed",
-                 use_error_model: bool = True, gdop_cap_quantile: float | None = 0.99, calibration_unit: str = "event") -> None:
+                 use_error_model: bool = True, gdop_cap_quantile: float | None = 0.95, calibration_unit: str = "event") -> None:
         if calibration_unit not in ("event", "position"):
             raise ConfigError(f"conformal calibration_unit must be 'event' or 'position'; got {calibration_unit!r}")
         self.calibration_unit = calibration_unit
