@@ -66,3 +66,22 @@ def test_the_layer_test_sees_imports():
 
 def test_package_root_imports_nothing():
     assert not internal_imports("acoustlab"), "acoustlab/__init__.py must stay metadata only (every layer may import it)"
+
+
+def test_no_function_in_acoustlab_is_longer_than_60_lines():
+    """A function one reads in a sitting: at most 60 lines of code after its docstring."""
+    import ast
+    from pathlib import Path
+
+    import acoustlab
+
+    long = []
+    for path in Path(acoustlab.__file__).parent.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                body = node.body
+                has_docstring = isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) and len(body) > 1
+                lines = node.end_lineno - (body[1] if has_docstring else body[0]).lineno + 1
+                if lines > 60:
+                    long.append(f"{path.name}:{node.lineno} {node.name} ({lines} lines)")
+    assert not long, "functions over 60 lines: " + ", ".join(long)

@@ -248,28 +248,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         return _write_localization(cfg, run_dir, predictions, result, components, site, dataset, field_data, choices, timings, started,
                                    tracker, parent_run_id, run_name, built.field_source)
     summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
-    if not summary_rows.any():  # e.g. every field event flagged: nothing to summarise, but the predictions say why
-        atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
-        counts = quality_flag_counts(predictions) if "quality_flags" in predictions else {}
-        raise DataError(f"all {len(predictions)} test detections are flagged or from failed hardware ({counts or 'hardware_failure'}), "
-                        f"so there are no errors to summarise; {run_dir / 'predictions.parquet'} has every detection with its flags")
-    metrics = summarise(predictions[summary_rows], components.levels, list(components.scorers))
-    if not summary_rows.all():
-        metrics["all_detections"] = summarise(predictions, components.levels, list(components.scorers))
-        metrics["excluded_from_summary"] = int((~summary_rows).sum())
-    if "quality_flags" in predictions:
-        metrics["quality_flags"] = quality_flag_counts(predictions)
-    if field_data is not None:
-        metrics["field_dataset_hash"] = field_data.dataset_hash
-    metrics.update(split_diagnostics_summary(result.split_diagnostics))
-    metrics["dataset_hash"] = dataset.dataset_hash
-    metrics["features_sha256"] = dataset.features_sha256
-    metrics["site"] = site.name
-    metrics["choices"] = choices
-    metrics["n_features"] = int(len(dataset.features.columns))
-    metrics["code_version"] = code_version()
-    if run_name:
-        metrics["run_name"] = run_name
+    metrics = _evaluation_metrics(run_dir, predictions, summary_rows, result, components, dataset, field_data)
+    metrics.update({"site": site.name, "choices": choices, **({"run_name": run_name} if run_name else {})})
 
     # Results land in the run dir first (metrics before any optional artefact), so neither a tracker
     # nor a plotting failure loses them; the pending marker stays until the tracker has them.
@@ -289,6 +269,34 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     log.info("timings (s): %s", ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in metrics["timings_s"].items()))
     log.info("run directory: %s", run_dir)
     log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
+    return metrics
+
+
+def _evaluation_metrics(run_dir: Path, predictions: pd.DataFrame, summary_rows: np.ndarray, result: Any, components: Components,
+                        dataset: Any, field_data: Any) -> dict[str, Any]:
+    """metrics.json of a run with ground truth: error and coverage summaries, quality flags, diagnostics, data hashes.
+
+    Raises
+    ------
+    DataError
+        When every test detection is flagged (after writing predictions.parquet, which says why).
+    """
+    if not summary_rows.any():  # e.g. every field event flagged: nothing to summarise, but the predictions say why
+        atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
+        counts = quality_flag_counts(predictions) if "quality_flags" in predictions else {}
+        raise DataError(f"all {len(predictions)} test detections are flagged or from failed hardware ({counts or 'hardware_failure'}), "
+                        f"so there are no errors to summarise; {run_dir / 'predictions.parquet'} has every detection with its flags")
+    metrics = summarise(predictions[summary_rows], components.levels, list(components.scorers))
+    if not summary_rows.all():
+        metrics["all_detections"] = summarise(predictions, components.levels, list(components.scorers))
+        metrics["excluded_from_summary"] = int((~summary_rows).sum())
+    if "quality_flags" in predictions:
+        metrics["quality_flags"] = quality_flag_counts(predictions)
+    if field_data is not None:
+        metrics["field_dataset_hash"] = field_data.dataset_hash
+    metrics.update(split_diagnostics_summary(result.split_diagnostics))
+    metrics.update({"dataset_hash": dataset.dataset_hash, "features_sha256": dataset.features_sha256,
+                    "n_features": int(len(dataset.features.columns)), "code_version": code_version()})
     return metrics
 
 
