@@ -233,3 +233,10 @@ def test_declared_refuses_an_undeclared_name():
     with pytest.raises(KeyError, match="not an optional plugin property"):
         interfaces.declared(object(), "needs_simulation")
     assert interfaces.declared(object(), "evaluates") is True and interfaces.hook(object(), "preflight") is None
+
+
+def test_srp_phat_cross_correlates_in_the_shared_gcc_band(compose_cfg):
+    """features.gcc.band_hz reaches SRP-PHAT too, so every group that cross-correlates uses one band."""
+    cfg = compose_cfg(["+site=loca2021", "features=physics_srp", "features.gcc.band_hz=[6000,10500]"])
+    sets = build_feature_sets(cfg.features)
+    assert sets["srp"].band_hz == (6000.0, 10500.0)
