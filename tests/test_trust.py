@@ -12,7 +12,7 @@ from acoustlab.core.contracts import GateDecision
 from acoustlab.core.errors import ConfigError
 from acoustlab.method import trust
 from acoustlab.method.pipeline import Components, LocalizationPipeline
-from acoustlab.method.trust import TrainingSupport, TrustSettings, apply_trust
+from acoustlab.method.trust import TrainingSupport, TrustSettings, apply_trust, support_cues
 from acoustlab.reporting.positions import positions_table
 from plugins.conformal.split import SplitConformal
 from plugins.gates.bounding_box import BoundingBoxGate
@@ -100,15 +100,15 @@ def test_a_model_asked_outside_its_training_support_is_not_used():
     model_xy = np.array([[11.0, 11.0], [12.0, 12.0], [21.0, 21.0]])
     novel[list(col.SOLVER_ESTIMATE_COLUMNS)] = solver_xy
     substituted = np.ones(3, dtype=bool)
-    out = apply_trust(GateDecision(model_xy.copy(), substituted), solver_xy, model_xy, novel, novel, support)
+    out = apply_trust(GateDecision(model_xy.copy(), substituted), solver_xy, support_cues(solver_xy, model_xy, novel, novel, support))
     assert (out.flags["novelty"] > 1).all()
     np.testing.assert_array_equal(out.decision.position_m[[0, 2]], solver_xy[[0, 2]])  # the solver's fix kept
     assert np.isnan(out.decision.position_m[1]).all()  # no solver fix: the method abstains …
     assert out.reason[1] == trust.REASON_ABSTAIN and out.reason[0] == trust.REASON_NOVEL  # … and says why
     assert not out.decision.substituted.any()
     # a row like the training ones: the gate's choice stands
-    same = apply_trust(GateDecision(model_xy[:1].copy(), substituted[:1]), solver_xy[:1], model_xy[:1], features.iloc[:1],
-                       features.iloc[:1], support)
+    same = apply_trust(GateDecision(model_xy[:1].copy(), substituted[:1]), solver_xy[:1],
+                       support_cues(solver_xy[:1], model_xy[:1], features.iloc[:1], features.iloc[:1], support))
     assert same.decision.substituted.all() and same.reason[0] == trust.REASON_GATE
 
 

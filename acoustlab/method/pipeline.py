@@ -31,7 +31,7 @@ from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
 from acoustlab.core.types import Site
 from acoustlab.method.splits import cap_rows
-from acoustlab.method.trust import TrainingSupport, TrustedDecision, TrustSettings, apply_trust
+from acoustlab.method.trust import SupportCues, TrainingSupport, TrustedDecision, TrustSettings, apply_trust, support_cues
 from acoustlab.toolkit.conformal import conformal_quantile, selective_threshold
 from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
 from acoustlab.toolkit.geometry import gdop, position_crb_m
@@ -187,6 +187,8 @@ class TestEstimates:
     #: (test, 2) the final point model's estimates, m
     model_xy: np.ndarray
     support: TrainingSupport | None
+    #: the test rows checked against the support (shared by the configured and the extra gates)
+    cues: SupportCues
     trusted: TrustedDecision
     #: (test,) GDOP at the reported estimate
     gdop: np.ndarray
@@ -291,11 +293,17 @@ class LocalizationPipeline:
             [events[["x_m", "y_m"]].to_numpy(float)[rows], np.full(rows.size, np.nan)])
         return TrainingSupport(self.c.trust).fit(features.iloc[rows][mcols], truth, error_2d_m(solver_xy[rows], truth), groups[rows])
 
+    @staticmethod
+    def _cues(rows: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, mcols: list[str],
+              support: TrainingSupport | None) -> SupportCues:
+        """``rows`` (``model_xy`` indexed like them) checked against the model's training support, once for every gate."""
+        return support_cues(solver_xy[rows], model_xy, features.iloc[rows], features.iloc[rows][mcols], support)
+
     def _decide(self, gate: Gate, rows: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame,
-                mcols: list[str], support: TrainingSupport | None) -> TrustedDecision:
-        """The gate's decision on ``rows`` (``model_xy`` indexed like them), checked against the model's training support."""
+                cues: SupportCues) -> TrustedDecision:
+        """The gate's decision on ``rows`` (``model_xy`` indexed like them) with hand-overs to a distrusted model undone."""
         decision = gate.decide(solver_xy[rows], model_xy, features.iloc[rows], self.c.site)
-        return apply_trust(decision, solver_xy[rows], model_xy, features.iloc[rows], features.iloc[rows][mcols], support)
+        return apply_trust(decision, solver_xy[rows], cues)
 
     def _folds(self, groups: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         n_groups = np.unique(groups).size
@@ -340,7 +348,7 @@ class LocalizationPipeline:
                                features.iloc[train[cal.rows]], estimates.trusted.decision.position_m, errors.predicted, features.iloc[test])
         for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
             extra = self._fit_gate(configured, train, split.sim, split.solver_xy, oof_model, features, split.truth, split.groups)
-            position = self._decide(extra, test, split.solver_xy, estimates.model_xy, features, split.mcols, estimates.support).decision.position_m
+            position = self._decide(extra, test, split.solver_xy, estimates.model_xy, features, estimates.cues).decision.position_m
             self._add_method(out, col.extra_gate_method(name), position, split.truth[test])
             split_info.setdefault("extra_gates", {})[name] = extra.diagnostics()
         if self.c.selective is not None:
@@ -396,10 +404,11 @@ class LocalizationPipeline:
         models = self._fit_point(s.features.iloc[train][s.mcols], s.truth[train], s.solver_xy[train], s.groups[train])
         model_xy = self._predict_point(models, s.features.iloc[test][s.mcols], s.solver_xy[test])
         support = self._support(train, s.features, s.mcols, s.events, s.solver_xy, s.groups)
-        trusted = self._decide(gate, test, s.solver_xy, model_xy, s.features, s.mcols, support)
+        cues = self._cues(test, s.solver_xy, model_xy, s.features, s.mcols, support)
+        trusted = self._decide(gate, test, s.solver_xy, model_xy, s.features, cues)
         gdop_test = self._gdop_at(trusted.decision.position_m, s.features.iloc[test])
         x_error = self._error_inputs(s.features.iloc[test][s.ecols], s.solver_xy[test], model_xy, trusted.decision, gdop_test)
-        return TestEstimates(model_xy, support, trusted, gdop_test, x_error)
+        return TestEstimates(model_xy, support, cues, trusted, gdop_test, x_error)
 
     def _error_fit_rows(self, s: SplitData, cal: CalibrationErrors, rows: np.ndarray, plugin: Any) -> np.ndarray:
         """The training ``rows`` with a finite error, within ``plugin``'s own row limit."""
@@ -509,8 +518,7 @@ class LocalizationPipeline:
         sigma = np.zeros(len(events))
         if stated.is_zero or calibrated_on_field or not field.any() or "temperature_c" not in events:
             return sigma
-        height = self._height(features)
-        source = np.column_stack([position_m, np.broadcast_to(height, (len(position_m),))])
+        source = np.column_stack([position_m, source_height_m(features, self.c.site)])
         humidity = events["relative_humidity_pct"].to_numpy(float) if "relative_humidity_pct" in events else np.zeros(len(events))
         sigma[field] = position_sigma_m(self.c.site.mic_positions_m, source[field], events["temperature_c"].to_numpy(float)[field],
                                         humidity[field], stated)
@@ -595,7 +603,8 @@ class LocalizationPipeline:
         for fit_idx, held_idx in folds:
             fold_gate = self._fit_gate(self.c.gate, train[fit_idx], sim[fit_idx], solver_xy, oof_model[fit_idx], features, truth, groups)
             support = self._support(train[fit_idx], features, mcols, events, solver_xy, groups)
-            decision = self._decide(fold_gate, train[held_idx], solver_xy, oof_model[held_idx], features, mcols, support).decision
+            cues = self._cues(train[held_idx], solver_xy, oof_model[held_idx], features, mcols, support)
+            decision = self._decide(fold_gate, train[held_idx], solver_xy, oof_model[held_idx], features, cues).decision
             position[held_idx], substituted[held_idx] = decision.position_m, decision.substituted
         return GateDecision(position, substituted)
 
@@ -620,18 +629,14 @@ class LocalizationPipeline:
         }, index=x.index)
         return pd.concat([x, context], axis=1)
 
-    def _height(self, features: pd.DataFrame) -> np.ndarray:
-        return source_height_m(features, self.c.site)
-
     def _add_ellipses(self, out: pd.DataFrame, cal_error_xy: np.ndarray, cal_position: np.ndarray, cal_pred: np.ndarray,
                       cal_features: pd.DataFrame, test_position: np.ndarray, test_pred: np.ndarray, test_features: pd.DataFrame) -> None:
         """Ellipse columns ``ellipse__<level>__a_m|b_m|angle_deg``: shape from the TDOA geometry, size from conformal on the calibration events."""
         mics = self.c.site.mic_positions_m
         ok = np.isfinite(cal_error_xy).all(axis=1)
-        height = self._height(cal_features)
-        shape = shape_matrices(mics, cal_position[ok], height[ok] if np.ndim(height) else height)
+        shape = shape_matrices(mics, cal_position[ok], source_height_m(cal_features, self.c.site)[ok])
         scores = mahalanobis(cal_error_xy[ok], shape) / cal_pred[ok]
-        test_shape = shape_matrices(mics, test_position, self._height(test_features))
+        test_shape = shape_matrices(mics, test_position, source_height_m(test_features, self.c.site))
         for level in self.c.levels:
             q = conformal_quantile(scores, level)
             a, b, angle = ellipse_axes(test_shape, q * test_pred)

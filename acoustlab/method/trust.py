@@ -16,12 +16,12 @@ domain and checks every gate's decision against it:
   An array without redundant measurements (3 mics in 2-D: the residual is always 0) cannot
   show consistency; there no fix counts as consistent, and neither does a fix from exactly as
   many mics as unknowns + 1 (``solver__n_mics_used`` < ``solver__dimensions_used`` + 2).
-* **The rule** (:func:`apply_trust`): where the gate substituted the model's estimate but the
+* **The rule** (:func:`support_cues` once per rows, :func:`apply_trust` per gate): where the gate substituted the model's estimate but the
   model is outside its support (its input is novel, its own estimate lies outside the training
   hull, or the solver's consistent fix lies outside it), the solver's fix is kept and the row
   says why. With no solver fix and the model outside its support, the method abstains (NaN).
 
-Choices measured in ``benchmarks/bench_trust.py`` (results in ``benchmarks/results/trust.md``).
+Measured off the simulator in ``benchmarks/bench_cross_simulator.py`` (``benchmarks/results/cross_simulator.md``).
 """
 
 from __future__ import annotations
@@ -259,14 +259,28 @@ def solver_height(features: pd.DataFrame) -> np.ndarray | None:
     return np.where(features[col.solver_column("dimensions_used")].to_numpy(float) == 3, height, np.nan)
 
 
-def apply_trust(decision: GateDecision, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame,
-                model_features: pd.DataFrame, support: TrainingSupport | None) -> TrustedDecision:
-    """Check a gate's decision against the point model's training support (module docstring).
+@dataclass
+class SupportCues:
+    """Each row checked against the point model's training support: the same for every gate deciding on those rows.
+
+    Attributes
+    ----------
+    flags : dict of str to numpy.ndarray
+        ``novelty``, ``solver_outside_support``, ``model_outside_support``, ``solver_consistent`` per row.
+    distrust : numpy.ndarray
+        (B,) object: why the model's estimate must not be used there ('' where it may).
+    """
+
+    flags: dict[str, np.ndarray]
+    distrust: np.ndarray
+
+
+def support_cues(solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, model_features: pd.DataFrame,
+                 support: TrainingSupport | None) -> SupportCues:
+    """Check rows against the point model's training support (module docstring); no gate is involved yet.
 
     Parameters
     ----------
-    decision : GateDecision
-        What the gate chose.
     solver_xy, model_xy : numpy.ndarray
         (B, 2) the solver's and the point model's estimates, m.
     features : pandas.DataFrame
@@ -274,28 +288,42 @@ def apply_trust(decision: GateDecision, solver_xy: np.ndarray, model_xy: np.ndar
     model_features : pandas.DataFrame
         The point model's input columns of the rows.
     support : TrainingSupport or None
-        None: the decision stands.
+        None: nothing is distrusted.
     """
     n = len(solver_xy)
     if support is None:
         empty = np.zeros(n, dtype=bool)
-        return TrustedDecision(decision, np.full(n, REASON_GATE, dtype=object),
-                               {"novelty": np.zeros(n), "solver_outside_support": empty, "model_outside_support": empty, "solver_consistent": empty},
-                               decision.position_m)
+        return SupportCues({"novelty": np.zeros(n), "solver_outside_support": empty, "model_outside_support": empty,
+                            "solver_consistent": empty}, np.full(n, REASON_GATE, dtype=object))
     novelty = support.novelty(model_features)
     solver_outside = support.outside_region(solver_xy, solver_height(features))
     model_outside = support.outside_region(model_xy)
     consistent = support.consistent(features)
-    solver_fix = np.isfinite(solver_xy).all(axis=1)
-    reason = np.full(n, REASON_GATE, dtype=object)
+    distrust = np.full(n, REASON_GATE, dtype=object)
     # the order sets which reason is reported where several apply: the physical one first
     for applies, why in ((model_outside, REASON_MODEL_OUTSIDE), (novelty > 1, REASON_NOVEL), (solver_outside & consistent, REASON_SOLVER_OUTSIDE)):
-        reason = np.where(applies & (reason == REASON_GATE), why, reason)
-    distrusted = reason != REASON_GATE
+        distrust = np.where(applies & (distrust == REASON_GATE), why, distrust)
+    flags = {"novelty": novelty, "solver_outside_support": solver_outside, "model_outside_support": model_outside, "solver_consistent": consistent}
+    return SupportCues(flags, distrust)
+
+
+def apply_trust(decision: GateDecision, solver_xy: np.ndarray, cues: SupportCues) -> TrustedDecision:
+    """A gate's decision with every hand-over to a distrusted model estimate undone (the solver's fix kept, or no estimate).
+
+    Parameters
+    ----------
+    decision : GateDecision
+        What the gate chose.
+    solver_xy : numpy.ndarray
+        (B, 2) the solver's estimates, m.
+    cues : SupportCues
+        The rows checked against the training support (:func:`support_cues`).
+    """
+    distrusted = cues.distrust != REASON_GATE
+    solver_fix = np.isfinite(solver_xy).all(axis=1)
     keep_solver = decision.substituted & distrusted & solver_fix
     abstain = decision.substituted & distrusted & ~solver_fix
-    reason = np.where(keep_solver, reason, np.where(abstain, REASON_ABSTAIN, REASON_GATE))
+    reason = np.where(keep_solver, cues.distrust, np.where(abstain, REASON_ABSTAIN, REASON_GATE))
     position = np.where(keep_solver[:, None], solver_xy, decision.position_m)
     position[abstain] = np.nan
-    flags = {"novelty": novelty, "solver_outside_support": solver_outside, "model_outside_support": model_outside, "solver_consistent": consistent}
-    return TrustedDecision(GateDecision(position, decision.substituted & ~keep_solver & ~abstain), reason, flags, decision.position_m)
+    return TrustedDecision(GateDecision(position, decision.substituted & ~keep_solver & ~abstain), reason, cues.flags, decision.position_m)

@@ -339,7 +339,8 @@ def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFram
                         tracker: Any, parent_run_id: str | None, run_name: str | None = None, field_source: Any = None) -> dict:
     """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
     table = positions_table(predictions, components.levels, list(components.scorers))
-    projection = hook(field_source, "projection")() if hook(field_source, "projection") is not None else None
+    project = hook(field_source, "projection")
+    projection = project() if project is not None else None
     if projection is not None:  # also in the mics table's projected coordinates
         rotation, translation, crs = projection
         projected = table[["x_m", "y_m"]].to_numpy(float) @ rotation.T + translation
