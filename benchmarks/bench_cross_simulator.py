@@ -28,15 +28,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shutil
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
-from common import REPO, compose_cfg, machine, write_results
+from common import REPO, compose_cfg, fmt, machine, run_in_process, write_results
 
-from acoustlab.run.app import run_experiment
 
 log = logging.getLogger("bench_cross_simulator")
 METHOD = ["model=xgboost", "error_model=xgboost_quantile", "gate=learned", "conformal=paper", "+gate@pipeline.extra_gates.hybrid=hybrid",
@@ -44,29 +40,8 @@ METHOD = ["model=xgboost", "error_model=xgboost_quantile", "gate=learned", "conf
 LEVELS = ("0.5", "0.8", "0.95")
 
 
-def run(overrides: list[str], keep: Path | None = None) -> dict:
-    """One job's metrics; its predictions.parquet is kept at ``keep`` (outputs/, not committed) for a closer look."""
-    cfg = compose_cfg([*overrides, "tracking=none", "plots=false"])
-    with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
-        metrics = run_experiment(cfg, Path(tmp) / "run", {})
-        metrics["bench_seconds"] = time.perf_counter() - start
-        if keep is not None:
-            keep.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy(Path(tmp) / "run" / "predictions.parquet", keep)
-        return metrics
-
-
 def pct(v: float) -> str:
     return "—" if v is None or not np.isfinite(v) else f"{100 * v:.1f}"
-
-
-def fmt(v: float) -> str:
-    if v is None or np.isnan(v):
-        return "—"
-    if v == float("inf"):
-        return "∞"
-    return f"{v:.2f}" if v < 10 else f"{v:.0f}"
 
 
 def error_rows(m: dict, label: str) -> list[str]:
@@ -122,14 +97,14 @@ def main() -> None:
     kept = REPO / "outputs" / "bench_cross_simulator"
     for site in opts.sites:
         base = [f"+site={site}", *METHOD]
-        runs[f"{site}/cross_simulator"] = run([*base, *field], kept / f"{site}_cross_simulator.parquet")
-        runs[f"{site}/cross_simulator_without_trust"] = run([*base, *field, "pipeline.trust.enabled=false"])
-        runs[f"{site}/cross_simulator_thermometer_error"] = run([*base, *field, f"field.temperature_error_c={opts.temperature_error_c}"])
+        runs[f"{site}/cross_simulator"] = run_in_process([*base, *field], kept / f"{site}_cross_simulator.parquet")
+        runs[f"{site}/cross_simulator_without_trust"] = run_in_process([*base, *field, "pipeline.trust.enabled=false"])
+        runs[f"{site}/cross_simulator_thermometer_error"] = run_in_process([*base, *field, f"field.temperature_error_c={opts.temperature_error_c}"])
         if opts.wide_training is not None:
-            runs[f"{site}/cross_simulator_wide_training"] = run([*base, *field, f"site.hull_expansion={opts.wide_training}"],
+            runs[f"{site}/cross_simulator_wide_training"] = run_in_process([*base, *field, f"site.hull_expansion={opts.wide_training}"],
                                                                 kept / f"{site}_cross_simulator_wide_training.parquet")
         if site in opts.own_sim:
-            runs[f"{site}/own_simulation"] = run([f"+site={site}", "+experiment=cross_fit_gates", "protocol.n_folds=5", "conformal=paper",
+            runs[f"{site}/own_simulation"] = run_in_process([f"+site={site}", "+experiment=cross_fit_gates", "protocol.n_folds=5", "conformal=paper",
                                                   "model=xgboost", "data.n_events=1100"])
     lines = ["# Cross-simulator: trained on acoustlab's simulator, evaluated on pyroomacoustics' image-source renders", "",
              f"`python benchmarks/bench_cross_simulator.py --sites {' '.join(opts.sites)} --n-positions {opts.n_positions}"

@@ -21,34 +21,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import tempfile
-import time
-from pathlib import Path
 
 import numpy as np
-from common import compose_cfg, machine, write_results
+from common import fmt, machine, run_in_process, write_results
 
-from acoustlab.run.app import run_experiment
 
 log = logging.getLogger("bench_method_crossfit")
 SELECTIVE = ["pipeline.selective.enabled=true", "pipeline.selective.delta=0.01", "pipeline.selective.epsilon=0.1", "conformal.ellipse=true"]
-
-
-def run(overrides: list[str]) -> dict:
-    cfg = compose_cfg([*overrides, "tracking=none", "plots=false"])
-    with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
-        metrics = run_experiment(cfg, Path(tmp) / "run", {})
-        metrics["bench_seconds"] = time.perf_counter() - start
-        return metrics
-
-
-def fmt(v: float) -> str:
-    if np.isnan(v):
-        return "—"
-    if v == float("inf"):
-        return "∞"
-    return f"{v:.2f}" if v < 10 else f"{v:.0f}"
 
 
 def ci(metrics: dict, method: str, stat: str) -> str:
@@ -121,9 +100,9 @@ def main() -> None:
     opts = parser.parse_args()
     common = [f"data.n_events={opts.n_events}", "model=xgboost"]
     runs = {
-        "forest": run(["+site=forest", "+experiment=cross_fit_gates", f"protocol.n_folds={opts.n_folds}", *common, *SELECTIVE]),
-        "frozen_lake": run(["+site=frozen_lake", "+experiment=cross_fit_gates", f"protocol.n_folds={opts.n_folds}", *common, *SELECTIVE]),
-        "frozen_lake_standin_lopo": run(["+site=frozen_lake", "+experiment=paper_frozen_lake", "conformal=cqr", *common]),
+        "forest": run_in_process(["+site=forest", "+experiment=cross_fit_gates", f"protocol.n_folds={opts.n_folds}", *common, *SELECTIVE]),
+        "frozen_lake": run_in_process(["+site=frozen_lake", "+experiment=cross_fit_gates", f"protocol.n_folds={opts.n_folds}", *common, *SELECTIVE]),
+        "frozen_lake_standin_lopo": run_in_process(["+site=frozen_lake", "+experiment=paper_frozen_lake", "conformal=cqr", *common]),
     }
     lines = ["# The method, cross-fitted", "", f"`python benchmarks/bench_method_crossfit.py --n-events {opts.n_events} --n-folds {opts.n_folds}`. "
              "Methods: solver (consistent set), model (XGBoost), gate (the configured gate: learned on the simulations, hybrid on the "

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import platform
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -57,3 +60,30 @@ def write_results(name: str, result: dict[str, Any], markdown: list[str]) -> Non
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2, default=float))
     (RESULTS / f"{name}.md").write_text("\n".join(markdown) + "\n")
+
+
+def run_in_process(overrides: list[str], keep: Path | None = None) -> dict[str, Any]:
+    """One acoustlab job in this process (``tracking=none``, no plots): its metrics, with ``bench_seconds``.
+
+    With ``keep`` its predictions.parquet is copied there (e.g. under outputs/, not committed) for a closer look.
+    """
+    from acoustlab.run.app import run_experiment  # imported when a benchmark runs a job, not by every script importing this module
+
+    cfg = compose_cfg([*overrides, "tracking=none", "plots=false"])
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        metrics = run_experiment(cfg, Path(tmp) / "run", {})
+        metrics["bench_seconds"] = time.perf_counter() - start
+        if keep is not None:
+            keep.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(Path(tmp) / "run" / "predictions.parquet", keep)
+        return metrics
+
+
+def fmt(v: float | None) -> str:
+    """A metric for a Markdown table: '—' for a missing value, '∞' for a failure, 2 decimals below 10, none above."""
+    if v is None or math.isnan(v):
+        return "—"
+    if v == float("inf"):
+        return "∞"
+    return f"{v:.2f}" if v < 10 else f"{v:.0f}"

@@ -33,7 +33,7 @@ from acoustlab.core import columns as col
 from acoustlab.core.contracts import GateDecision
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
-from acoustlab.toolkit.event_physics import source_height_m as solver_height_or_assumed
+from acoustlab.toolkit.event_physics import source_height_m
 from acoustlab.toolkit.geometry import bounding_box
 from acoustlab.toolkit.tdoa import energy_residual_db
 
@@ -56,7 +56,7 @@ def gate_cues(solver_position_m: np.ndarray, model_position_m: np.ndarray, featu
     cues["model_range_from_centre_m"] = np.sqrt(((model_position_m - centre) ** 2).sum(axis=1))
     levels = [col.level_db(m) for m in range(site.n_mics)]
     if all(c in features.columns for c in levels):
-        height = solver_height_or_assumed(features, site)
+        height = source_height_m(features, site)
         lv = features[levels].to_numpy(float)
         solver_energy = energy_residual_db(lv, site.mic_positions_m, np.nan_to_num(solver_position_m), height)
         cues["energy_residual_solver_db"] = np.where(np.isfinite(solver_position_m).all(1), solver_energy, np.nan)
