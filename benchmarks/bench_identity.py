@@ -9,7 +9,7 @@ Usage::
 
     python benchmarks/bench_identity.py --label before            # on the old code: writes the reference
     python benchmarks/bench_identity.py --label after --compare before \
-        --allow frozen_lake_lopo_standin:tau_star_db frozen_lake_lopo_standin:gate_by_split ...
+        --allow frozen_lake_lopo_standin:gate forest_sim_only:crb_m ...
 
 Writes ``benchmarks/results/identity_<label>.json`` (and ``identity.md`` with ``--compare``).
 Exit status 1 when a compared job differs in anything but the ``JOB:KEY`` pairs listed in ``--allow``.

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from common import compose_cfg, machine, write_results
 
+from acoustlab.reporting.metrics import gate_scalars
 from acoustlab.run.app import run_experiment
 
 log = logging.getLogger("bench_method")
@@ -47,7 +48,7 @@ def main() -> None:
     for name, m in forest.items():
         e = m["errors"]
         lines.append(f"| {name} | {fmt(e['solver'])} | {fmt(e['model'])} | {fmt(e['gate'])} | {e['solver']['p99'] / max(e['gate']['p99'], 1e-9):.1f}× lower | "
-                     f"{e['gate']['p50'] / max(e['solver']['p50'], 1e-9):.2f} | {m.get('tau_star_db', float('nan')):.3g} | {100 * m['substitution_rate']:.0f} % |")
+                     f"{e['gate']['p50'] / max(e['solver']['p50'], 1e-9):.2f} | {gate_scalars(m).get('tau_star_db', float('nan')):.3g} | {100 * m['substitution_rate']:.0f} % |")
     lines += ["", "Coverage (XGBoost):", "", "| scorer | 0.50 | 0.80 | 0.95 | median width at 0.95 (m) |", "|---|---|---|---|---|"]
     for scorer, cov in forest["xgboost"]["coverage"].items():
         w = forest["xgboost"]["interval_width"][scorer]["0.95"]["median_m"]
@@ -56,7 +57,7 @@ def main() -> None:
     lines += ["", f"Spearman ρ with the actual error: error model {rho.get('error_model')}, GDOP {rho.get('gdop')}.", ""]
     e = lake["errors"]
     lines += ["## Frozen lake, SYNTHETIC field stand-in, leave-one-position-out (XGBoost)", "",
-              f"Per-detection errors (failed position excluded, n = {e['gate']['n']}): solver {fmt(e['solver'])}, model {fmt(e['model'])}, gate {fmt(e['gate'])} m; τ* = {lake.get('tau_star_db', float('nan')):.3g} dB.", "",
+              f"Per-detection errors (failed position excluded, n = {e['gate']['n']}): solver {fmt(e['solver'])}, model {fmt(e['model'])}, gate {fmt(e['gate'])} m; τ* = {gate_scalars(lake).get('tau_star_db', float('nan')):.3g} dB.", "",
               "| scorer | 0.50 | 0.80 | 0.95 | worst position at 0.95 |", "|---|---|---|---|---|"]
     for scorer, cov in lake["coverage"].items():
         lines.append(f"| {scorer} | {cov['0.5']:.2f} | {cov['0.8']:.2f} | {cov['0.95']:.2f} | {lake['coverage_by_position'][scorer]['0.95']['min']:.2f} |")

@@ -85,3 +85,61 @@ def test_no_function_in_acoustlab_is_longer_than_60_lines():
                 if lines > 60:
                     long.append(f"{path.name}:{node.lineno} {node.name} ({lines} lines)")
     assert not long, "functions over 60 lines: " + ", ".join(long)
+
+
+#: Literals that share a column's spelling but are something else: config keys and settings fields.
+NOT_COLUMNS = {
+    "acoustlab/stages/sites.py": {"temperature_c", "relative_humidity_pct", "snr_db"},  # site.* config keys
+    "acoustlab/toolkit/input_uncertainty.py": {"temperature_c"},  # conformal.input_uncertainty field
+}
+
+
+#: Constants whose values are ordinary words used in many other senses (method names, config groups).
+GENERIC_WORDS = {"ESTIMATORS", "METHODS", "TRUST_PREFIX", "RADIUS_PREFIX", "POSITION_SOURCE", "GROUP_SEPARATOR", "EXTRA_GATE_PREFIX", "GATE_WITHOUT_TRUST"}
+
+
+def _column_names() -> set[str]:
+    """Every column name :mod:`acoustlab.core.columns` defines as a module constant."""
+    from acoustlab.core import columns
+
+    names = set()
+    for name, value in vars(columns).items():
+        if name.isupper() and name not in GENERIC_WORDS:
+            values = value if isinstance(value, tuple) else (value,)
+            names |= {v for v in values if isinstance(v, str) and len(v) >= 3}
+    return names | {name for name, _, _ in columns.SOLVER_CATALOG}
+
+
+def _literal_uses(path: Path, names: set[str]) -> list[tuple[int, str]]:
+    """(line, literal) of every string constant in ``path`` spelled like a column, docstrings and f-string parts excluded."""
+    import ast
+
+    tree = ast.parse(path.read_text())
+    skip = {id(n.body[0].value) for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and n.body
+            and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+    skip |= {id(v) for n in ast.walk(tree) if isinstance(n, ast.JoinedStr) for v in n.values}
+    return [(n.lineno, n.value) for n in ast.walk(tree)
+            if isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value in names and id(n) not in skip]
+
+
+def test_column_names_are_written_only_through_the_columns_module():
+    """A rename in core/columns.py reaches every writer and reader: no module spells a column itself."""
+    root = PACKAGE.parent
+    names = _column_names()
+    assert {"snr_db", "crb_m", "x_m", "solver__gdop", "placed"} <= names  # the scan sees the constants
+    spelled = []
+    for path in sorted([*PACKAGE.rglob("*.py"), *(root / "plugins").rglob("*.py")]):
+        rel = path.relative_to(root).as_posix()
+        if rel == "acoustlab/core/columns.py":
+            continue
+        allowed = NOT_COLUMNS.get(rel, set())
+        spelled += [f"{rel}:{line} {value!r}" for line, value in _literal_uses(path, names) if value not in allowed]
+    assert not spelled, "column names spelled outside acoustlab/core/columns.py: " + ", ".join(spelled)
+
+
+def test_the_column_scan_sees_a_spelled_column(tmp_path):
+    """The scan above is not blind: a module that writes ``events["snr_db"]`` is found, a docstring is not."""
+    module = tmp_path / "writer.py"
+    module.write_text('"""Writes snr_db."""\ndef f(events):\n    events["snr_db"] = 1\n    return f"{events}_x_m"\n')
+    assert _literal_uses(module, {"snr_db", "_x_m"}) == [(3, "snr_db")]

@@ -66,7 +66,8 @@ def test_cross_fit_end_to_end(compose_cfg, tmp_path):
     assert len(pred) == 120 and pred["event_id"].is_unique  # every simulated event, once
     assert set(pred["fold"]) == {0, 1, 2}
     assert (pred[col.error_m("oracle")] <= pred[col.error_m("gate")] + 1e-12).all()
-    assert len(metrics["gate_by_split"]) == 3 and all("threshold" in g for g in metrics["gate_by_split"])
+    assert len(metrics["gate"]["by_split"]) == 3 and all("threshold" in g for g in metrics["gate"]["by_split"])
+    assert metrics["gate"]["diagnostics"]["threshold"] == pytest.approx(np.median([g["threshold"] for g in metrics["gate"]["by_split"]]))
     assert set(metrics["ci95"]["coverage"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "cqr"}
     assert "p95_gate_over_oracle" in metrics["gate_gap"] and "p95_gate_box_over_oracle" in metrics["gate_gap"]
     assert "gate_box" in metrics["errors"] and (pred[col.error_m("oracle")] <= pred[col.error_m("gate_box")] + 1e-12).all()

@@ -83,11 +83,12 @@ def test_field_protocols_end_to_end(compose_cfg, tmp_path, protocol):
     assert set(preds["position_id"]) == set(range(6))
     assert metrics["excluded_from_summary"] == (preds["hardware_failure"]).sum() > 0
     assert metrics["errors"]["gate"]["n"] == (~preds["hardware_failure"]).sum()
-    assert "tau_star_db" in metrics and set(metrics["coverage"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "cqr"}
+    assert metrics["gate"]["name"] == "HybridGate" and "tau_star_db" in metrics["gate"]["diagnostics"]
+    assert set(metrics["coverage"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "cqr"}
     if protocol == "lopo":
         assert (preds["withheld_position"] == preds["position_id"]).all()
         # τ* is chosen per fold by that fold's own gate and reported per fold (not the last fold's only)
-        by_split = metrics["gate_by_split"]
+        by_split = metrics["gate"]["by_split"]
         assert [d["split"] for d in by_split] == [f"withheld_position={p}" for p in range(6)]
-        assert metrics["tau_star_db"] == pytest.approx(np.median([d["tau_star_db"] for d in by_split]))
+        assert metrics["gate"]["diagnostics"]["tau_star_db"] == pytest.approx(np.median([d["tau_star_db"] for d in by_split]))
         assert all(5 < len(d["tau_grid"]) <= 20 for d in by_split)  # quantiles of the training energy residuals

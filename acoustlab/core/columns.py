@@ -21,12 +21,62 @@ GROUP_SEPARATOR = "__"
 ESTIMATORS = ("solver", "model", "gate")
 #: …and the oracle: per event the better of solver and model (it needs the truth; a bound on what a gate can reach).
 METHODS = (*ESTIMATORS, "oracle")
+#: Event tables (written by simulators and field sources, read by the pipeline, protocols and
+#: reports): the key, the true source position (NaN where unknown) and the event's weather.
+EVENT_ID = "event_id"
+POSITION_ID = "position_id"
+TRUE_X, TRUE_Y, TRUE_Z = "x_m", "y_m", "z_m"
+TRUE_XY = (TRUE_X, TRUE_Y)
+TRUE_XYZ = (TRUE_X, TRUE_Y, TRUE_Z)
+TEMPERATURE = "temperature_c"
+HUMIDITY = "relative_humidity_pct"
+#: Speed of sound the simulator used for the event (m/s); field tables may lack it (then derived from the weather).
+SPEED_OF_SOUND = "speed_of_sound_m_s"
+#: Event SNR (dB) a simulator drew; read by the Cramér–Rao bound.
+SNR = "snr_db"
+CALL_DURATION = "call_duration_s"
+EMISSION_TIME = "emission_time_s"
+#: Cramér–Rao bound on the 2-D position error at a test event (m), in prediction tables.
+CRB = "crb_m"
+#: A detection's window in its recording (s from the file's start; events tables of recordings, positions.csv).
+START, END = "start_s", "end_s"
+#: Mic tables (a site's ``mics_csv``, a recordings folder's mics.csv): one row per mic.
+MIC_X, MIC_Y, MIC_Z = "x_m", "y_m", "z_m"
+MIC_XYZ = (MIC_X, MIC_Y, MIC_Z)
+#: A site's ``trees_csv``: one row per trunk.
+TREE_X, TREE_Y, TREE_DIAMETER = "x_m", "y_m", "diameter_m"
+#: The ``environment`` feature group's weather columns.
+ENV_TEMPERATURE = "environment__temperature_c"
+ENV_HUMIDITY = "environment__relative_humidity_pct"
+ENV_SPEED_OF_SOUND = "environment__speed_of_sound_m_s"
+#: The SRP-PHAT feature group's estimate (features=physics_srp).
+SRP_X, SRP_Y, SRP_POWER = "srp__x_m", "srp__y_m", "srp__power"
+#: positions.csv (protocol=localize) beside x_m, y_m, z_m of the reported estimate.
+POSITION_SOLVER_Z = "solver_z_m"
+#: Distance between the solver's and the model's estimates (m); also a cue of the learned gate.
+SOLVER_MODEL_DISTANCE = "solver_model_distance_m"
+POSITION_SOURCE = "source"
+#: Prediction tables, beside the estimates: the gate's choice, selective localization, quality.
+SUBSTITUTED = "substituted"
+PLACED = "placed"
+ABSTAIN_REASON = "abstain_reason"
+PREDICTED_ERROR = "predicted_error_m"
+FOLD = "fold"
+WITHHELD_POSITION = "withheld_position"
+IN_SUMMARY = "in_summary"
+QUALITY_FLAGS = "quality_flags"
+HARDWARE_FAILURE = "hardware_failure"
 #: The solver's point estimate (withheld from the error model).
 SOLVER_X, SOLVER_Y = "solver__x_m", "solver__y_m"
 SOLVER_ESTIMATE_COLUMNS = (SOLVER_X, SOLVER_Y)
 SOLVER_GDOP = "solver__gdop"
 SOLVER_SOURCE_HEIGHT = "solver__source_height_m"
 SOLVER_FAILURE = "solver__failure"
+SOLVER_RESIDUAL = "solver__residual_m"
+SOLVER_HEIGHT_GDOP = "solver__height_gdop"
+SOLVER_HEIGHT_AMBIGUOUS = "solver__height_ambiguous"
+SOLVER_CONSISTENCY = "solver__consistency"
+SOLVER_N_MICS_USED = "solver__n_mics_used"
 #: The gate's context, an input of the error model beside the features (pipeline.error_model_gate_cues).
 GATE_SOLVER_MODEL_DISTANCE = "gate__solver_model_distance_m"
 GATE_SUBSTITUTED = "gate__substituted"
@@ -51,21 +101,21 @@ def trust_flag(name: str) -> str:
 SOLVER_CATALOG = (
     (SOLVER_X, "m", "solver's estimate, x (east)"),
     (SOLVER_Y, "m", "solver's estimate, y (north)"),
-    ("solver__residual_m", "m", "RMS range-difference residual at the estimate"),
+    (SOLVER_RESIDUAL, "m", "RMS range-difference residual at the estimate"),
     ("solver__converged", "1", "1 where the iteration converged"),
     (SOLVER_GDOP, "1", "TDOA geometric dilution of precision at the estimate"),
     ("solver__n_roots", "1", "number of distinct positions that fit the TDOAs equally well"),
     (SOLVER_SOURCE_HEIGHT, "m", "source height: assumed by a 2-D solver, estimated by a 3-D one (solver.dimensions=3)"),
-    ("solver__height_gdop", "1", "factor from range-difference error (m) to height error (m) of a 3-D fix; large near the mics' plane"),
-    ("solver__height_ambiguous", "1", "1 where a 3-D fix's mirror image about the mics' plane is above ground and fits as well"),
+    (SOLVER_HEIGHT_GDOP, "1", "factor from range-difference error (m) to height error (m) of a 3-D fix; large near the mics' plane"),
+    (SOLVER_HEIGHT_AMBIGUOUS, "1", "1 where a 3-D fix's mirror image about the mics' plane is above ground and fits as well"),
     ("solver__dimensions_used", "1", "3 where the 3-D fix was kept, 2 where it failed or was implausible and the 2-D fix replaced it"),
     ("solver__residual_s", "s", "RMS residual expressed as time"),
     ("solver__conditioning", "1", "condition number of the TDOA Jacobian at the estimate"),
     (SOLVER_FAILURE, "1", "why there is no fix: 0 a fix, 1 no solution, 2 a fix outside the plausible region (then x, y are NaN)"),
     ("solver__consistent_pairs", "1", "mic pairs with a GCC peak consistent with the chosen arrival times (consistent-set solver)"),
-    ("solver__consistency", "1", "share of the pairs among trusted mics that are consistent (consistent-set solver)"),
+    (SOLVER_CONSISTENCY, "1", "share of the pairs among trusted mics that are consistent (consistent-set solver)"),
     ("solver__score_margin", "1", "GCC-height score of the chosen candidate set minus the runner-up's (consistent-set solver)"),
-    ("solver__n_mics_used", "1", "mics trusted for the fix (consistent-set solver)"),
+    (SOLVER_N_MICS_USED, "1", "mics trusted for the fix (consistent-set solver)"),
     ("solver__closure_rms_s", "s", "RMS misfit of the chosen pair lags to the fitted arrival times (consistent-set solver)"),
     ("solver__srp_disagreement_m", "m", "distance from the solver's fix to the SRP-PHAT estimate (features=physics_srp)"),
 )
@@ -116,6 +166,11 @@ def solver_column(name: str) -> str:
 def level_db(mic: int) -> str:
     """``environment__level_<mic>_db``: received level in the call band, dB."""
     return f"environment__level_{mic}_db"
+
+
+def noise_db(mic: int) -> str:
+    """``environment__noise_<mic>_db``: noise level in the call band, dB."""
+    return f"environment__noise_{mic}_db"
 
 
 def snr_db(mic: int) -> str:

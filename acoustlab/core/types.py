@@ -15,17 +15,18 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError, DataError
 
 #: Columns every event table carries (true position NaN where unknown).
 EVENT_COLUMNS = (
-    "event_id",
-    "position_id",
-    "x_m",
-    "y_m",
-    "z_m",
-    "temperature_c",
-    "relative_humidity_pct",
+    col.EVENT_ID,
+    col.POSITION_ID,
+    col.TRUE_X,
+    col.TRUE_Y,
+    col.TRUE_Z,
+    col.TEMPERATURE,
+    col.HUMIDITY,
 )
 
 
@@ -201,7 +202,7 @@ class RecordingBatch:
     @property
     def true_position_m(self) -> np.ndarray:
         """(E, 3) true source positions in m (NaN where unknown)."""
-        return self.events[["x_m", "y_m", "z_m"]].to_numpy(dtype=float)
+        return self.events[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(dtype=float)
 
 
 def stable_hash(obj: Any) -> str:

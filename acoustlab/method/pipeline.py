@@ -109,7 +109,7 @@ def crb_from_features(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
     """
     m = site.n_mics
     per_mic = (col.snr_db, col.spectral_centroid_hz, col.spectral_bandwidth_hz, col.ir_spread_s)
-    if not all(name(k) in features.columns for name in per_mic for k in range(m)) or events[["x_m", "y_m"]].isna().any().any():
+    if not all(name(k) in features.columns for name in per_mic for k in range(m)) or events[[col.TRUE_X, col.TRUE_Y]].isna().any().any():
         return None
 
     def med(name: Callable[[int], str]) -> np.ndarray:
@@ -118,7 +118,7 @@ def crb_from_features(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
     centroid, bandwidth = med(col.spectral_centroid_hz), med(col.spectral_bandwidth_hz)
     c = event_speed_of_sound_m_s(events)
     return position_crb_m(
-        site.mic_positions_m, events[["x_m", "y_m", "z_m"]].to_numpy(float), med(col.snr_db),
+        site.mic_positions_m, events[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float), med(col.snr_db),
         np.sqrt(centroid**2 + bandwidth**2), med(col.ir_spread_s), 2 * bandwidth, c,
     )
 
@@ -289,8 +289,8 @@ class LocalizationPipeline:
         """The point model's training support learned from ``rows`` (None with ``trust.enabled=false``)."""
         if not self.c.trust.enabled:
             return None
-        truth = events[["x_m", "y_m", "z_m"]].to_numpy(float)[rows] if "z_m" in events else np.column_stack(
-            [events[["x_m", "y_m"]].to_numpy(float)[rows], np.full(rows.size, np.nan)])
+        truth = events[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float)[rows] if col.TRUE_Z in events else np.column_stack(
+            [events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)[rows], np.full(rows.size, np.nan)])
         return TrainingSupport(self.c.trust).fit(features.iloc[rows][mcols], truth, error_2d_m(solver_xy[rows], truth), groups[rows])
 
     @staticmethod
@@ -358,11 +358,11 @@ class LocalizationPipeline:
 
     def _split(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray, test: np.ndarray) -> SplitData:
         """The split's arrays, checked: no position on both sides."""
-        groups = events["position_id"].to_numpy()
+        groups = events[col.POSITION_ID].to_numpy()
         if np.intersect1d(groups[train], groups[test]).size:
             raise DataError("a source position appears in both training and test rows")
         return SplitData(
-            features=features, events=events, train=train, test=test, truth=events[["x_m", "y_m"]].to_numpy(dtype=float), groups=groups,
+            features=features, events=events, train=train, test=test, truth=events[[col.TRUE_X, col.TRUE_Y]].to_numpy(dtype=float), groups=groups,
             mcols=self.model_columns(features), ecols=self.error_columns(features),
             solver_xy=features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(dtype=float),
             solver_gdop=features[col.SOLVER_GDOP].to_numpy(dtype=float) if col.SOLVER_GDOP in features else np.full(len(features), np.nan),
@@ -374,7 +374,7 @@ class LocalizationPipeline:
     def _out_of_fold_point(self, s: SplitData) -> np.ndarray:
         """(train, 2) point-model estimates of the training events, each from a fit without its position."""
         oof_model = np.empty((s.train.size, 2))
-        for k, (fit_idx, held_idx) in enumerate(progress(s.folds, desc="point model, out-of-fold", unit="fold", leave=False)):
+        for k, (fit_idx, held_idx) in enumerate(progress(s.folds, desc="point model, out-of-fold", unit=col.FOLD, leave=False)):
             log.info("point model, out-of-fold %d/%d (%d rows)", k + 1, len(s.folds), fit_idx.size)  # progress also in logs and batch jobs
             fit, held = s.train[fit_idx], s.train[held_idx]
             models = self._fit_point(s.features.iloc[fit][s.mcols], s.truth[fit], s.solver_xy[fit], s.groups[fit])
@@ -419,7 +419,7 @@ class LocalizationPipeline:
                             desc: str | None = None) -> np.ndarray:
         """(train, *shape) predictions of ``fit_predict(x_fit, error_fit, x_held)`` over the calibration folds (finite errors only)."""
         out = np.empty((s.train.size, *shape))
-        for fit_idx, held_idx in (progress(s.folds, desc=desc, unit="fold", leave=False) if desc else s.folds):
+        for fit_idx, held_idx in (progress(s.folds, desc=desc, unit=col.FOLD, leave=False) if desc else s.folds):
             fit_idx = self._error_fit_rows(s, cal, fit_idx, plugin)
             out[held_idx] = fit_predict(cal.x_error.iloc[fit_idx], cal.error[fit_idx], cal.x_error.iloc[held_idx])
         return out
@@ -452,25 +452,25 @@ class LocalizationPipeline:
         test, decision = s.test, t.trusted.decision
         out = pd.DataFrame(
             {
-                "event_id": s.events["event_id"].to_numpy()[test],
-                "position_id": s.groups[test],
+                col.EVENT_ID: s.events[col.EVENT_ID].to_numpy()[test],
+                col.POSITION_ID: s.groups[test],
                 **dict(zip(col.estimate_xy("true"), (s.truth[test, 0], s.truth[test, 1]), strict=True)),
                 **{
                     name: xy[:, k]
                     for method, xy in zip(col.ESTIMATORS, (s.solver_xy[test], t.model_xy, decision.position_m), strict=True)
                     for k, name in enumerate(col.estimate_xy(method))
                 },
-                "substituted": decision.substituted,
+                col.SUBSTITUTED: decision.substituted,
                 col.TRUST_REASON: t.trusted.reason,
                 **{col.trust_flag(name): values for name, values in t.trusted.flags.items()},
                 "gdop": t.gdop,
                 "solver_gdop": s.solver_gdop[test],
-                "predicted_error_m": predicted,
+                col.PREDICTED_ERROR: predicted,
             }
         )
         crb = crb_from_features(s.features.iloc[test], s.events.iloc[test], self.c.site)
         if crb is not None:
-            out["crb_m"] = crb
+            out[col.CRB] = crb
         for method in col.ESTIMATORS:
             out[col.error_m(method)] = error_2d_m(out[list(col.estimate_xy(method))].to_numpy(), s.truth[test])
         # the oracle: the better of solver and model per event (what a perfect gate would reach)
@@ -486,9 +486,9 @@ class LocalizationPipeline:
         """``placed`` and ``abstain_reason`` columns from the certified threshold; returns its diagnostics."""
         threshold, info = self._selective_threshold(cal.error[cal.domain], errors.oof_predicted[cal.domain])
         has_fix = np.isfinite(trusted.decision.position_m).all(axis=1)
-        out["placed"] = has_fix & (errors.predicted <= threshold)
-        out["abstain_reason"] = np.where(~has_fix, np.where(trusted.reason != "", trusted.reason, "no estimate"),
-                                         np.where(out["placed"], "", "predicted error above the certified threshold"))
+        out[col.PLACED] = has_fix & (errors.predicted <= threshold)
+        out[col.ABSTAIN_REASON] = np.where(~has_fix, np.where(trusted.reason != "", trusted.reason, "no estimate"),
+                                         np.where(out[col.PLACED], "", "predicted error above the certified threshold"))
         return info
 
     def _add_radii(self, out: pd.DataFrame, s: SplitData, cal: CalibrationErrors, t: TestEstimates, errors: ErrorPredictions) -> None:
@@ -516,11 +516,11 @@ class LocalizationPipeline:
         stated = self.c.input_uncertainty
         field = events["is_field"].to_numpy(bool) if "is_field" in events else np.zeros(len(events), bool)
         sigma = np.zeros(len(events))
-        if stated.is_zero or calibrated_on_field or not field.any() or "temperature_c" not in events:
+        if stated.is_zero or calibrated_on_field or not field.any() or col.TEMPERATURE not in events:
             return sigma
         source = np.column_stack([position_m, source_height_m(features, self.c.site)])
-        humidity = events["relative_humidity_pct"].to_numpy(float) if "relative_humidity_pct" in events else np.zeros(len(events))
-        sigma[field] = position_sigma_m(self.c.site.mic_positions_m, source[field], events["temperature_c"].to_numpy(float)[field],
+        humidity = events[col.HUMIDITY].to_numpy(float) if col.HUMIDITY in events else np.zeros(len(events))
+        sigma[field] = position_sigma_m(self.c.site.mic_positions_m, source[field], events[col.TEMPERATURE].to_numpy(float)[field],
                                         humidity[field], stated)
         return sigma
 
@@ -540,7 +540,7 @@ class LocalizationPipeline:
             return every
         needed = int(np.ceil(1 / (1 - max(self.c.levels)))) - 1
         n_rows = int((field & finite).sum())
-        n_positions = np.unique(events["position_id"].to_numpy()[train][field & finite]).size
+        n_positions = np.unique(events[col.POSITION_ID].to_numpy()[train][field & finite]).size
         if n_rows >= needed and n_positions >= MIN_FIELD_CALIBRATION_POSITIONS:
             log.info("conformal calibration on %d field events at %d positions", n_rows, n_positions)
             return field

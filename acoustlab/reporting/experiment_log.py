@@ -88,8 +88,9 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
         else:
             summary = metrics.get("localization", {})
             tracker.log_metrics({f"localization.{k}": float(v) for k, v in summary.items() if isinstance(v, (int, float))})
-        if "tau_grid" in metrics:
-            tracker.log_table(pd.DataFrame(metrics["tau_grid"]), "tables/tau_grid.json")
+        tau_grid = metrics.get("gate", {}).get("diagnostics", {}).get("tau_grid")
+        if tau_grid:  # the hybrid gate's τ* search
+            tracker.log_table(pd.DataFrame(tau_grid), "tables/tau_grid.json")
         if "risk_coverage" in metrics:
             tracker.log_table(pd.DataFrame(metrics["risk_coverage"]), "tables/risk_coverage.json")
         for name in (*RUN_ARTIFACTS, "positions.csv", "plots"):

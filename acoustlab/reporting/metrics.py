@@ -87,9 +87,9 @@ def coverage_and_width(predictions: pd.DataFrame, levels: list[float], scorers: 
 
 def crb_summary(predictions: pd.DataFrame) -> dict[str, float] | None:
     """Median and p90 of the per-event Cramér–Rao bound (m); None when absent or all non-finite."""
-    if "crb_m" not in predictions:
+    if col.CRB not in predictions:
         return None
-    crb = predictions["crb_m"].to_numpy(float)
+    crb = predictions[col.CRB].to_numpy(float)
     crb = crb[np.isfinite(crb)]
     return {"p50": float(np.median(crb)), "p90": float(np.percentile(crb, 90))} if crb.size else None
 
@@ -103,7 +103,7 @@ def spearman_rho(predictions: pd.DataFrame) -> dict[str, float | None]:
     ok = np.isfinite(err_gate)
     rho: dict[str, float | None] = {}
     if ok.sum() >= 3:
-        for name, values in (("error_model", predictions["predicted_error_m"].to_numpy(float)), ("gdop", predictions["gdop"].to_numpy(float))):
+        for name, values in (("error_model", predictions[col.PREDICTED_ERROR].to_numpy(float)), ("gdop", predictions["gdop"].to_numpy(float))):
             v = values[ok]
             rho[name] = float(spearmanr(v, err_gate[ok]).statistic) if np.ptp(v) > 0 and np.ptp(err_gate[ok]) > 0 else None
     return rho
@@ -117,7 +117,7 @@ def gross_error_auc(predictions: pd.DataFrame, gross_m: float = 5.0) -> dict[str
     err_gate = np.nan_to_num(predictions[col.error_m("gate")].to_numpy(float), nan=np.inf)
     gross = err_gate > gross_m
     auc: dict[str, float | None] = {}
-    for name, values in (("error_model", predictions["predicted_error_m"].to_numpy(float)), ("gdop", predictions["gdop"].to_numpy(float))):
+    for name, values in (("error_model", predictions[col.PREDICTED_ERROR].to_numpy(float)), ("gdop", predictions["gdop"].to_numpy(float))):
         usable = 0 < gross.sum() < gross.size and np.isfinite(values).all() and np.ptp(values) > 0
         auc[name] = float(roc_auc_score(gross, values)) if usable else None
     return auc
@@ -130,7 +130,7 @@ def coverage_by_position(predictions: pd.DataFrame, levels: list[float], scorers
     for name in scorers:
         by_position[name] = {}
         for level in levels:
-            hit = (gate_err <= predictions[col.radius(name, level)]).groupby(predictions["position_id"]).mean()
+            hit = (gate_err <= predictions[col.radius(name, level)]).groupby(predictions[col.POSITION_ID]).mean()
             by_position[name][col.level_key(level)] = {"mean": float(hit.mean()), "min": float(hit.min()), "n_positions": int(hit.size)}
     return by_position
 
@@ -148,7 +148,7 @@ def position_bootstrap_ci(predictions: pd.DataFrame, levels: list[float], scorer
         ``errors``: {method: {p50|p90|p95|p99|share_gt_5m: [low, high]}}; ``coverage``:
         {scorer: {level: [low, high]}}; ``n_bootstrap``; ``n_positions``.
     """
-    groups = predictions["position_id"].to_numpy()
+    groups = predictions[col.POSITION_ID].to_numpy()
     codes, inverse = np.unique(groups, return_inverse=True)
     rows_of = [np.flatnonzero(inverse == k) for k in range(codes.size)]
     rng = np.random.default_rng(seed)
@@ -206,7 +206,7 @@ def risk_coverage(predictions: pd.DataFrame) -> list[dict[str, float]]:
     """
     err = predictions[col.error_m("gate")].to_numpy(float)
     err = np.where(np.isnan(err), np.inf, err)
-    pred = predictions["predicted_error_m"].to_numpy(float)
+    pred = predictions[col.PREDICTED_ERROR].to_numpy(float)
     order = np.argsort(pred, kind="stable")
     rows = []
     for share in PLACED_SHARES:
@@ -220,14 +220,14 @@ def risk_coverage(predictions: pd.DataFrame) -> list[dict[str, float]]:
 
 def selective_summary(predictions: pd.DataFrame) -> dict[str, Any] | None:
     """With selective localization: the share placed and the gate's errors among the placed (None without it)."""
-    if "placed" not in predictions:
+    if col.PLACED not in predictions:
         return None
-    placed = predictions["placed"].to_numpy(bool)
+    placed = predictions[col.PLACED].to_numpy(bool)
     out: dict[str, Any] = {"share_placed": float(placed.mean()), "n_placed": int(placed.sum())}
     if placed.any():
         err = predictions[col.error_m("gate")].to_numpy(float)[placed]
         out.update({k: v for k, v in error_summary(err).items() if k in ("p50", "p90", "p95", "p99", "share_gt_5m")})
-        by_position = pd.Series(~(err <= GROSS_ERROR_M)).groupby(predictions["position_id"].to_numpy()[placed]).mean()
+        by_position = pd.Series(~(err <= GROSS_ERROR_M)).groupby(predictions[col.POSITION_ID].to_numpy()[placed]).mean()
         out["worst_position_share_gt_5m"] = float(by_position.max())
     return out
 
@@ -242,7 +242,7 @@ def ellipse_coverage(predictions: pd.DataFrame, levels: list[float]) -> dict[str
     for level in levels:
         a, b, angle = (predictions[col.ellipse(level, p)].to_numpy(float) for p in ("a_m", "b_m", "angle_deg"))
         hit = inside_ellipse(np.nan_to_num(d, nan=np.inf), a, b, angle) & np.isfinite(d).all(axis=1)
-        by_position = pd.Series(hit).groupby(predictions["position_id"].to_numpy()).mean()
+        by_position = pd.Series(hit).groupby(predictions[col.POSITION_ID].to_numpy()).mean()
         out[col.level_key(level)] = {"coverage": float(hit.mean()), "worst_position": float(by_position.min()),
                                      "median_area_m2": float(np.median(np.pi * a * b))}
     return out
@@ -253,7 +253,7 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
     extra = {}
     crb = crb_summary(predictions)
     if crb is not None:
-        extra["crb_m"] = crb
+        extra[col.CRB] = crb
     extra["spearman_rho"] = spearman_rho(predictions)
     extra["gross_error_auc"] = gross_error_auc(predictions)
     extra["coverage_by_position"] = coverage_by_position(predictions, levels, scorers)
@@ -273,39 +273,56 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
         "errors": errors,
         "coverage": coverage,
         "interval_width": width,
-        "substitution_rate": float(predictions["substituted"].mean()),
+        "substitution_rate": float(predictions[col.SUBSTITUTED].mean()),
     }
 
 
-def split_diagnostics_summary(split_diagnostics: list[dict[str, Any]]) -> dict[str, Any]:
-    """What the fitted gates reported, for metrics.json.
+def split_diagnostics_summary(split_diagnostics: list[dict[str, Any]], gate_name: str = "gate") -> dict[str, Any]:
+    """What the fitted gates (and the trust check, selective localization, calibration) reported, for metrics.json.
 
-    One split (sim-only, field evaluation): the gate's diagnostics as they are (``tau_star_db``,
-    ``tau_rule_met``, ``tau_grid`` for the hybrid gate). Several splits (leave-one-position-out):
-    every split's diagnostics under ``gate_by_split``, plus the median of each numeric scalar
-    and, for flags, whether every split had it.
+    The configured gate's diagnostics land under ``metrics["gate"]``: ``{"name": <gate>,
+    "diagnostics": {...}}``, whatever keys that gate reports (the hybrid gate's ``tau_star_db``,
+    ``tau_grid``; the learned gate's ``threshold``, ``fallback``). With several splits
+    (leave-one-position-out, cross-fitting) ``diagnostics`` holds the median of each numeric
+    scalar and, for flags, whether every split had it, and ``by_split`` every split's own.
+
+    Parameters
+    ----------
+    split_diagnostics : list of dict
+        One entry per split, as :class:`~acoustlab.method.pipeline.MethodResult` has them.
+    gate_name : str
+        The configured gate's name (its ``gate=`` option).
     """
     gates = [d.get("gate", {}) for d in split_diagnostics]
     selective = [d["selective"] for d in split_diagnostics if "selective" in d]
-    extra: dict[str, Any] = {"selective_by_split": selective} if selective else {}
+    out: dict[str, Any] = {"selective_by_split": selective} if selective else {}
     trust = [d["trust"] for d in split_diagnostics if "trust" in d]
     if trust:  # the point model's training region and what the trust check overrode
-        extra.update({"trust": trust[0]} if len(trust) == 1 else {"trust_by_split": trust})
+        out.update({"trust": trust[0]} if len(trust) == 1 else {"trust_by_split": trust})
     calibration = [d["calibration"] for d in split_diagnostics if "calibration" in d]
     if calibration:  # which rows calibrated conformal in each split (all training rows, or the field rows)
-        extra["calibration_by_split"] = calibration
-    if len(gates) == 1:
-        return {**dict(gates[0]), **extra}
+        out["calibration_by_split"] = calibration
     if not any(gates):
-        return extra
-    out: dict[str, Any] = {**extra, "gate_by_split": [{"split": d.get("split", str(k)), **g} for k, (d, g) in enumerate(zip(split_diagnostics, gates, strict=True))]}
+        return out
+    if len(gates) == 1:
+        out["gate"] = {"name": gate_name, "diagnostics": dict(gates[0])}
+        return out
+    pooled: dict[str, Any] = {}
     for key in gates[0]:
         values = [g.get(key) for g in gates]
         if all(isinstance(v, bool) for v in values):
-            out[key] = all(values)
+            pooled[key] = all(values)
         elif all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
-            out[key] = float(np.median(values))
+            pooled[key] = float(np.median(values))
+    by_split = [{"split": d.get("split", str(k)), **g} for k, (d, g) in enumerate(zip(split_diagnostics, gates, strict=True))]
+    out["gate"] = {"name": gate_name, "diagnostics": pooled, "by_split": by_split}
     return out
+
+
+def gate_scalars(metrics: dict[str, Any]) -> dict[str, float]:
+    """The configured gate's numeric scalar diagnostics (``{"tau_star_db": 3.1}`` for the hybrid gate); {} without a gate block."""
+    diagnostics = metrics.get("gate", {}).get("diagnostics", {})
+    return {k: float(v) for k, v in diagnostics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
 
 
 def error_table(metrics: dict) -> pd.DataFrame:
@@ -349,14 +366,15 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
         flat[f"ellipse.{level}.coverage"] = v["coverage"]
     for k, v in (metrics.get("selective") or {}).items():
         flat[f"selective.{k}"] = v
-    for k, v in metrics.get("crb_m", {}).items():
+    for k, v in metrics.get(col.CRB, {}).items():
         flat[f"crb.{k}_m"] = v
     for block in ("spearman_rho", "gross_error_auc"):
         for k, v in metrics.get(block, {}).items():
             if v is not None:
                 flat[f"{block}.{k}"] = v
-    if "tau_star_db" in metrics:
-        flat["tau_star_db"] = metrics["tau_star_db"]
+    gate_name = metrics.get("gate", {}).get("name", "gate")
+    for k, v in gate_scalars(metrics).items():
+        flat[f"gate.{gate_name}.{k}"] = v
     for k, v in metrics.get("timings_s", {}).items():
         flat[f"time.{k}"] = v
     return {k: float(v) for k, v in flat.items() if np.isfinite(v)}

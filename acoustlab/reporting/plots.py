@@ -111,7 +111,7 @@ def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column:
     if len(site.tree_positions_m):
         trunks = [Circle((x, y), max(d / 2, 0.15)) for (x, y), d in zip(site.tree_positions_m, site.trunk_diameters_m)]
         ax.add_collection(PatchCollection(trunks, facecolor="tab:brown", edgecolor="none", alpha=0.5))
-    shown = predictions.sort_values("event_id").head(MAP_EVENTS)
+    shown = predictions.sort_values(col.EVENT_ID).head(MAP_EVENTS)
     (true_x, true_y), (gate_x, gate_y) = col.estimate_xy("true"), col.estimate_xy("gate")
     mics = site.mic_positions_m
     extent = max(np.ptp(np.concatenate([mics[:, 0], shown[true_x]])), np.ptp(np.concatenate([mics[:, 1], shown[true_y]])), 1.0)
@@ -163,7 +163,7 @@ def _zoom_inset(ax: plt.Axes, shown: pd.DataFrame, radius: np.ndarray, floor: fl
     inset.set_aspect("equal")
     inset.set_xticks([])
     inset.set_yticks([])
-    inset.set_title(f"true scale: event {int(row['event_id'])}, r = {radius[k]:.2g} m, box {2 * half:.2g} m", fontsize=6)
+    inset.set_title(f"true scale: event {int(row[col.EVENT_ID])}, r = {radius[k]:.2g} m, box {2 * half:.2g} m", fontsize=6)
 
 
 def _save(fig: plt.Figure, path: Path) -> Path:
@@ -210,7 +210,7 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
     paths.append(_save(fig, out_dir / "coverage_calibration.png"))
 
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
-    predicted_vs_actual(ax, predictions["predicted_error_m"].to_numpy(float), predictions[col.error_m("gate")].to_numpy(float),
+    predicted_vs_actual(ax, predictions[col.PREDICTED_ERROR].to_numpy(float), predictions[col.error_m("gate")].to_numpy(float),
                         metrics.get("spearman_rho", {}).get("error_model"))
     paths.append(_save(fig, out_dir / "predicted_vs_actual_error.png"))
 
@@ -235,7 +235,7 @@ def _other_estimate(placed: pd.DataFrame) -> np.ndarray:
 def _draw_disagreements(ax: plt.Axes, placed: pd.DataFrame, radius: np.ndarray | None) -> None:
     """Where the solver and the model disagree by more than the reported radius, draw the other estimate and a line to it."""
     other = _other_estimate(placed)
-    reported = placed[["x_m", "y_m"]].to_numpy(float)
+    reported = placed[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)
     distance = np.sqrt(((other - reported) ** 2).sum(axis=1))
     far = np.isfinite(distance) & (distance > (radius if radius is not None else 0.0))
     if not far.any():
@@ -257,10 +257,10 @@ def write_positions_map(table: pd.DataFrame, site: Site, levels: list[float], sc
         trunks = [Circle((x, y), max(d / 2, 0.15)) for (x, y), d in zip(site.tree_positions_m, site.trunk_diameters_m)]
         ax.add_collection(PatchCollection(trunks, facecolor="tab:brown", edgecolor="none", alpha=0.5))
     mics = site.mic_positions_m
-    placed = table[table["placed"]]
+    placed = table[table[col.PLACED]]
     other = _other_estimate(placed)
-    xs = np.concatenate([mics[:, 0], placed["x_m"].to_numpy(float), other[:, 0][np.isfinite(other[:, 0])]])
-    ys = np.concatenate([mics[:, 1], placed["y_m"].to_numpy(float), other[:, 1][np.isfinite(other[:, 1])]])
+    xs = np.concatenate([mics[:, 0], placed[col.TRUE_X].to_numpy(float), other[:, 0][np.isfinite(other[:, 0])]])
+    ys = np.concatenate([mics[:, 1], placed[col.TRUE_Y].to_numpy(float), other[:, 1][np.isfinite(other[:, 1])]])
     extent = max(np.ptp(xs), np.ptp(ys), 1.0)
     scorer = "gdop_scaled" if "gdop_scaled" in scorers else (scorers[0] if scorers else None)
     title = f"{site.name}: {len(placed)} of {len(table)} detections placed"
@@ -268,10 +268,10 @@ def write_positions_map(table: pd.DataFrame, site: Site, levels: list[float], sc
         level = min(levels, key=lambda lv: abs(lv - 0.8))
         radius = placed[f"radius_{scorer}_{col.level_key(level)}_m"].to_numpy(float)
         shown = np.maximum(radius, MIN_CIRCLE_FRACTION * extent)
-        circles = [Circle((x, y), r) for x, y, r in zip(placed["x_m"], placed["y_m"], shown) if np.isfinite(r)]
+        circles = [Circle((x, y), r) for x, y, r in zip(placed[col.TRUE_X], placed[col.TRUE_Y], shown) if np.isfinite(r)]
         ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:orange", lw=0.8, alpha=0.7))
         title += f"; circles: {scorer} conformal, {level:.0%}"
-    ax.scatter(placed["x_m"], placed["y_m"], marker=".", color="tab:orange", s=30, label="estimate", zorder=3)
+    ax.scatter(placed[col.TRUE_X], placed[col.TRUE_Y], marker=".", color="tab:orange", s=30, label="estimate", zorder=3)
     _draw_disagreements(ax, placed, radius if scorer is not None and levels else None)
     ax.scatter(mics[:, 0], mics[:, 1], marker="^", color="k", s=60, label="microphones", zorder=4)
     pad = 0.2 * extent

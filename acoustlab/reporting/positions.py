@@ -10,7 +10,7 @@ import pandas as pd
 from acoustlab.core import columns as col
 
 #: Columns of a detection's own record carried into the table when present.
-DETECTION_FIELDS = ("event_id", "file", "start_s", "end_s", "label", "quality_flags", "hardware_failure")
+DETECTION_FIELDS = (col.EVENT_ID, "file", col.START, col.END, "label", col.QUALITY_FLAGS, col.HARDWARE_FAILURE)
 
 
 def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> pd.DataFrame:
@@ -29,20 +29,20 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     """
     out = pd.DataFrame({c: predictions[c] for c in DETECTION_FIELDS if c in predictions})
     gate_x, gate_y = col.estimate_xy("gate")
-    placed = predictions["placed"].to_numpy(bool) if "placed" in predictions else np.isfinite(predictions[[gate_x, gate_y]].to_numpy(float)).all(1)
-    substituted = predictions["substituted"].to_numpy(bool)
+    placed = predictions[col.PLACED].to_numpy(bool) if col.PLACED in predictions else np.isfinite(predictions[[gate_x, gate_y]].to_numpy(float)).all(1)
+    substituted = predictions[col.SUBSTITUTED].to_numpy(bool)
     has_estimate = np.isfinite(predictions[[gate_x, gate_y]].to_numpy(float)).all(1)
     solver_z = predictions[col.SOLVER_SOURCE_HEIGHT].to_numpy(float) if col.SOLVER_SOURCE_HEIGHT in predictions else np.full(len(out), np.nan)
-    out["x_m"] = np.where(placed, predictions[gate_x], np.nan)
-    out["y_m"] = np.where(placed, predictions[gate_y], np.nan)
-    out["z_m"] = np.where(placed & ~substituted, solver_z, np.nan)  # the model estimates no height: never the solver's z under its x, y
+    out[col.TRUE_X] = np.where(placed, predictions[gate_x], np.nan)
+    out[col.TRUE_Y] = np.where(placed, predictions[gate_y], np.nan)
+    out[col.TRUE_Z] = np.where(placed & ~substituted, solver_z, np.nan)  # the model estimates no height: never the solver's z under its x, y
     for method in ("solver", "model"):
         for axis, name in zip(("x", "y"), col.estimate_xy(method), strict=True):
             out[f"{method}_{axis}_m"] = predictions[name]
         if method == "solver":
-            out["solver_z_m"] = solver_z
+            out[col.POSITION_SOLVER_Z] = solver_z
     solver_xy = predictions[list(col.estimate_xy("solver"))].to_numpy(float)
-    out["solver_model_distance_m"] = np.sqrt(((solver_xy - predictions[list(col.estimate_xy("model"))].to_numpy(float)) ** 2).sum(axis=1))
+    out[col.SOLVER_MODEL_DISTANCE] = np.sqrt(((solver_xy - predictions[list(col.estimate_xy("model"))].to_numpy(float)) ** 2).sum(axis=1))
     out["source"] = np.where(~has_estimate, "none", np.where(substituted, "model", "solver"))
     solver_fix = np.isfinite(solver_xy).all(axis=1)
     reason = np.where(~substituted, "solver fix kept", np.where(
@@ -52,16 +52,16 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     if col.trust_flag("solver_outside_support") in predictions:
         out["outside_training_region"] = predictions[col.trust_flag("solver_outside_support")].to_numpy(bool)
         out["novelty"] = predictions[col.trust_flag("novelty")].to_numpy(float)
-    out["predicted_error_m"] = predictions["predicted_error_m"]
+    out[col.PREDICTED_ERROR] = predictions[col.PREDICTED_ERROR]
     for scorer in scorers:
         for level in levels:
             out[f"radius_{scorer}_{col.level_key(level)}_m"] = np.where(placed, predictions[col.radius(scorer, level)], np.nan)
     for c in predictions.columns:
         if c.startswith("ellipse__"):
             out[c] = np.where(placed, predictions[c], np.nan)
-    out["placed"] = placed
+    out[col.PLACED] = placed
     default_reason = np.where(placed, "", np.where(trust != "", trust, "no estimate"))
-    out["abstain_reason"] = predictions["abstain_reason"] if "abstain_reason" in predictions else default_reason
+    out[col.ABSTAIN_REASON] = predictions[col.ABSTAIN_REASON] if col.ABSTAIN_REASON in predictions else default_reason
     for c in predictions.columns:
         if col.GROUP_SEPARATOR in c and c.startswith("solver__"):
             out[c] = predictions[c]
@@ -71,11 +71,11 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
 def localization_summary(table: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict[str, Any]:
     """For metrics.json of a localization run: counts, share placed, and the median, mean and largest radius per scorer and level (m)."""
     def spread(values: pd.Series) -> dict[str, float]:
-        v = values.to_numpy(float)[table["placed"].to_numpy(bool)]
+        v = values.to_numpy(float)[table[col.PLACED].to_numpy(bool)]
         v = v[np.isfinite(v)]
         return {"median": float(np.median(v)), "mean": float(np.mean(v)), "max": float(np.max(v))} if v.size else {"median": float("nan")}
 
     radii = {s: {col.level_key(lv): spread(table[f"radius_{s}_{col.level_key(lv)}_m"]) for lv in levels} for s in scorers}
-    return {"n_detections": len(table), "n_placed": int(table["placed"].sum()),
+    return {"n_detections": len(table), "n_placed": int(table[col.PLACED].sum()),
             "share_from_model": float((table["source"] == "model").mean()) if len(table) else float("nan"),
             "radius_m": radii}

@@ -27,7 +27,7 @@ import pandas as pd
 import yaml
 
 from acoustlab.core import columns as col
-from acoustlab.reporting.metrics import GROSS_ERROR_M, share_gross
+from acoustlab.reporting.metrics import GROSS_ERROR_M, gate_scalars, share_gross
 
 log = logging.getLogger(__name__)
 
@@ -110,8 +110,8 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
     rows = []
     for r in runs:
         predictions = r.predictions
-        if predictions is not None and "in_summary" in predictions:
-            predictions = predictions[predictions["in_summary"].to_numpy(bool)]
+        if predictions is not None and col.IN_SUMMARY in predictions:
+            predictions = predictions[predictions[col.IN_SUMMARY].to_numpy(bool)]
         for method in r.metrics["errors"]:  # solver, model, gate, oracle (newer runs) and any extra gates
             stats = r.metrics["errors"][method]
             row = {"run": r.label, "method": method, "n (detections)": stats["n"],
@@ -158,14 +158,14 @@ def paired_ratio_ci(first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: 
 
     Returns None when the two runs were not evaluated on the same events.
     """
-    a = first.set_index("event_id")
-    b = other.set_index("event_id")
+    a = first.set_index(col.EVENT_ID)
+    b = other.set_index(col.EVENT_ID)
     if len(a) != len(b) or not a.index.sort_values().equals(b.index.sort_values()):
         return None
     b = b.loc[a.index]
     ea = np.nan_to_num(a[col.error_m(method)].to_numpy(float), nan=np.inf)
     eb = np.nan_to_num(b[col.error_m(method)].to_numpy(float), nan=np.inf)
-    positions = a["position_id"].to_numpy()
+    positions = a[col.POSITION_ID].to_numpy()
     members = [np.flatnonzero(positions == p) for p in np.unique(positions)]
     rng = np.random.default_rng(seed)
     ratios = np.empty(n_boot)
@@ -227,7 +227,7 @@ def coverage_rows(runs: list[RunResult]) -> pd.DataFrame:
 
 
 def uncertainty_rows(runs: list[RunResult]) -> pd.DataFrame:
-    """Spearman ρ of predicted vs actual error (error model and GDOP alone), substitution rate, τ*, timings."""
+    """Spearman ρ of predicted vs actual error (error model and GDOP alone), substitution rate, the gate as fitted, timings."""
     rows = []
     for r in runs:
         m = r.metrics
@@ -238,12 +238,21 @@ def uncertainty_rows(runs: list[RunResult]) -> pd.DataFrame:
             "ρ GDOP (Spearman)": rho.get("gdop"),
             "AUC error model, > 5 m": m.get("gross_error_auc", {}).get("error_model"),
             "substitution rate (%)": None if m.get("substitution_rate") is None else 100 * m["substitution_rate"],
-            "τ* (dB)": m.get("tau_star_db"),
-            "CRB p50 (m)": m.get("crb_m", {}).get("p50"),
+            "gate": _gate_summary(m),
+            "CRB p50 (m)": m.get(col.CRB, {}).get("p50"),
             "features (columns)": m.get("n_features"),
             "models time (s)": m.get("timings_s", {}).get("models_s"),
         })
     return pd.DataFrame(rows)
+
+
+def _gate_summary(metrics: dict) -> str | None:
+    """``hybrid: tau_star_db 3.1`` — the configured gate's name and its numeric settings as fitted (median over splits)."""
+    gate = metrics.get("gate")
+    if not gate:
+        return None
+    settings = ", ".join(f"{k} {v:.3g}" for k, v in gate_scalars(metrics).items())
+    return f"{gate.get('name', 'gate')}: {settings}" if settings else str(gate.get("name", "gate"))
 
 
 def provenance_rows(runs: list[RunResult]) -> pd.DataFrame:
@@ -347,7 +356,7 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
     for heading, table in tables:
         if table.empty:
             continue
-        table = table.astype(object).where(table.notna(), "—")  # τ* of a run without the hybrid gate is not "nan"
+        table = table.astype(object).where(table.notna(), "—")  # a value a run does not have (e.g. a gate setting) is not "nan"
         md += [f"## {heading}", "", table.to_markdown(index=False, floatfmt=".3g"), ""]
         page += [f"<h2>{html.escape(heading)}</h2>", table.to_html(index=False, float_format=lambda v: f"{v:.3g}")]
     md += ["## Plots", ""]

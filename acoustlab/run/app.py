@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
+from acoustlab.core import columns as col
 from acoustlab import __version__
 from acoustlab.core.contracts import declared, hook
 from acoustlab.core.errors import ConfigError, DataError
@@ -63,7 +64,7 @@ def code_version() -> str:
 
 def quality_flag_counts(predictions: pd.DataFrame) -> dict[str, int]:
     """How many detections were flagged, in all and per reason (``dead``, ``truncated``, …), for metrics.json."""
-    flags = predictions["quality_flags"].fillna("").astype(str)
+    flags = predictions[col.QUALITY_FLAGS].fillna("").astype(str)
     counts = {"flagged": int((flags != "").sum())}
     for reason in QUALITY_REASONS:
         counts[reason] = int(flags.str.contains(rf"\b{reason}\b").sum())
@@ -247,8 +248,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     if not declared(protocol, "evaluates"):
         return _write_localization(cfg, run_dir, predictions, result, components, site, dataset, field_data, choices, timings, started,
                                    tracker, parent_run_id, run_name, built.field_source)
-    summary_rows = predictions["in_summary"].to_numpy(bool) if "in_summary" in predictions else np.ones(len(predictions), bool)
-    metrics = _evaluation_metrics(run_dir, predictions, summary_rows, result, components, dataset, field_data)
+    summary_rows = predictions[col.IN_SUMMARY].to_numpy(bool) if col.IN_SUMMARY in predictions else np.ones(len(predictions), bool)
+    metrics = _evaluation_metrics(run_dir, predictions, summary_rows, result, components, dataset, field_data, choices.get("gate") or type(components.gate).__name__)
     metrics.update({"site": site.name, "choices": choices, **({"run_name": run_name} if run_name else {})})
 
     # Results land in the run dir first (metrics before any optional artefact), so neither a tracker
@@ -273,7 +274,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
 
 
 def _evaluation_metrics(run_dir: Path, predictions: pd.DataFrame, summary_rows: np.ndarray, result: Any, components: Components,
-                        dataset: Any, field_data: Any) -> dict[str, Any]:
+                        dataset: Any, field_data: Any, gate_name: str) -> dict[str, Any]:
     """metrics.json of a run with ground truth: error and coverage summaries, quality flags, diagnostics, data hashes.
 
     Raises
@@ -283,18 +284,18 @@ def _evaluation_metrics(run_dir: Path, predictions: pd.DataFrame, summary_rows: 
     """
     if not summary_rows.any():  # e.g. every field event flagged: nothing to summarise, but the predictions say why
         atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
-        counts = quality_flag_counts(predictions) if "quality_flags" in predictions else {}
-        raise DataError(f"all {len(predictions)} test detections are flagged or from failed hardware ({counts or 'hardware_failure'}), "
+        counts = quality_flag_counts(predictions) if col.QUALITY_FLAGS in predictions else {}
+        raise DataError(f"all {len(predictions)} test detections are flagged or from failed hardware ({counts or col.HARDWARE_FAILURE}), "
                         f"so there are no errors to summarise; {run_dir / 'predictions.parquet'} has every detection with its flags")
     metrics = summarise(predictions[summary_rows], components.levels, list(components.scorers))
     if not summary_rows.all():
         metrics["all_detections"] = summarise(predictions, components.levels, list(components.scorers))
         metrics["excluded_from_summary"] = int((~summary_rows).sum())
-    if "quality_flags" in predictions:
-        metrics["quality_flags"] = quality_flag_counts(predictions)
+    if col.QUALITY_FLAGS in predictions:
+        metrics[col.QUALITY_FLAGS] = quality_flag_counts(predictions)
     if field_data is not None:
         metrics["field_dataset_hash"] = field_data.dataset_hash
-    metrics.update(split_diagnostics_summary(result.split_diagnostics))
+    metrics.update(split_diagnostics_summary(result.split_diagnostics, gate_name))
     metrics.update({"dataset_hash": dataset.dataset_hash, "features_sha256": dataset.features_sha256,
                     "n_features": int(len(dataset.features.columns)), "code_version": code_version()})
     return metrics
@@ -343,8 +344,8 @@ def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFram
     projection = project() if project is not None else None
     if projection is not None:  # also in the mics table's projected coordinates
         rotation, translation, crs = projection
-        projected = table[["x_m", "y_m"]].to_numpy(float) @ rotation.T + translation
-        at = table.columns.get_loc("y_m") + 1
+        projected = table[[col.TRUE_X, col.TRUE_Y]].to_numpy(float) @ rotation.T + translation
+        at = table.columns.get_loc(col.TRUE_Y) + 1
         table.insert(at, "easting_m", projected[:, 0])
         table.insert(at + 1, "northing_m", projected[:, 1])
         table.insert(at + 2, "crs", crs)
@@ -354,9 +355,9 @@ def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFram
     for split in result.split_diagnostics:
         if "training" in split:  # simulated events and calibration playbacks the method was fitted on
             metrics["training"] = split["training"]
-    if "quality_flags" in predictions:
-        metrics["quality_flags"] = quality_flag_counts(predictions)
-    metrics.update(split_diagnostics_summary(result.split_diagnostics))
+    if col.QUALITY_FLAGS in predictions:
+        metrics[col.QUALITY_FLAGS] = quality_flag_counts(predictions)
+    metrics.update(split_diagnostics_summary(result.split_diagnostics, choices.get("gate") or type(components.gate).__name__))
     metrics.update({"dataset_hash": dataset.dataset_hash, "field_dataset_hash": field_data.dataset_hash, "site": site.name,
                     "choices": choices, "n_features": int(len(dataset.features.columns)), "code_version": code_version()})
     if run_name:
@@ -369,7 +370,7 @@ def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFram
 
         write_positions_map(table, site, components.levels, list(components.scorers), run_dir / "plots")
     plot_and_time(cfg, run_dir, metrics, timings, started, "the positions map", plot)
-    shown = table[["x_m", "y_m", *(["z_m"] if "z_m" in table else []), "source", "placed"]].head(20)
+    shown = table[[col.TRUE_X, col.TRUE_Y, *([col.TRUE_Z] if col.TRUE_Z in table else []), "source", col.PLACED]].head(20)
     log.info("positions (first %d of %d detections; all in %s):\n%s", len(shown), len(table), run_dir / "positions.csv",
              shown.to_string(float_format=lambda v: f"{v:.2f}"))
     log.info("run directory: %s", run_dir)

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import NoiseRegime, Site, require_range
@@ -41,10 +42,10 @@ def _read_csv(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataF
     values = table[list(required)]
     bad = ~np.isfinite(values.apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float))
     if bad.any():
-        row, col = np.argwhere(bad)[0]
+        row, position = np.argwhere(bad)[0]
         raise DataError(
-            f"site.{field}: {path} row {row + 2} column {required[col]!r} is not a finite number "
-            f"({values.iloc[row, col]!r})"
+            f"site.{field}: {path} row {row + 2} column {required[position]!r} is not a finite number "
+            f"({values.iloc[row, position]!r})"
         )
     return table
 
@@ -52,8 +53,8 @@ def _read_csv(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataF
 def load_mics(cfg: Mapping[str, Any]) -> np.ndarray:
     """Microphone positions (M, 3) in m from ``mics`` or ``mics_csv``."""
     if cfg.get("mics_csv"):
-        table = _read_csv(str(cfg["mics_csv"]), "mics_csv", ("x_m", "y_m", "z_m"))
-        return table[["x_m", "y_m", "z_m"]].to_numpy(dtype=float)
+        table = _read_csv(str(cfg["mics_csv"]), "mics_csv", col.MIC_XYZ)
+        return table[list(col.MIC_XYZ)].to_numpy(dtype=float)
     mics = cfg.get("mics")
     if not mics:
         raise ConfigError("site: give microphone positions as 'mics' ([[x, y, z], ...] in m) or 'mics_csv'")
@@ -70,12 +71,12 @@ def load_trees(cfg: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """Tree positions (T, 2) and trunk diameters (T,) in m from ``trees_csv`` (none if absent)."""
     if not cfg.get("trees_csv"):
         return np.zeros((0, 2)), np.zeros(0)
-    table = _read_csv(str(cfg["trees_csv"]), "trees_csv", ("x_m", "y_m", "diameter_m"))
-    diam = table["diameter_m"].to_numpy(dtype=float)
+    table = _read_csv(str(cfg["trees_csv"]), "trees_csv", (col.TREE_X, col.TREE_Y, col.TREE_DIAMETER))
+    diam = table[col.TREE_DIAMETER].to_numpy(dtype=float)
     if (diam <= 0).any():
         row = int(np.argmax(diam <= 0))
         raise DataError(f"site.trees_csv: row {row + 2} has diameter_m={diam[row]}; expected > 0 m")
-    return table[["x_m", "y_m"]].to_numpy(dtype=float), diam
+    return table[[col.TREE_X, col.TREE_Y]].to_numpy(dtype=float), diam
 
 
 def _noise_regimes(noise_cfg: Mapping[str, Any]) -> tuple[NoiseRegime, ...]:

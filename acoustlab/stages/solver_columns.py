@@ -70,7 +70,7 @@ def solver_inputs_for(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
         pair_lag_candidates_s=candidates,
         source_height_m=assumed_source_height_m(site),
         pair_lag_weights=None if candidates is None else pair_candidate_weights(features, site, candidates.shape[-1]),
-        prior_position_m=features[["srp__x_m", "srp__y_m"]].to_numpy(float) if {"srp__x_m", "srp__y_m"} <= set(features.columns) else None,
+        prior_position_m=features[[col.SRP_X, col.SRP_Y]].to_numpy(float) if {col.SRP_X, col.SRP_Y} <= set(features.columns) else None,
     )
 
 
@@ -127,8 +127,8 @@ def add_solver_columns(
     for name, values in result.diagnostics.items():
         out[col.solver_column(name)] = np.asarray(values, dtype=float)
     out[col.SOLVER_FAILURE] = failure.astype(float)
-    if {"srp__x_m", "srp__y_m"} <= set(features.columns):  # score-based agreement: how far the SRP-PHAT map's peak lies
-        srp = features[["srp__x_m", "srp__y_m"]].to_numpy(float)
+    if {col.SRP_X, col.SRP_Y} <= set(features.columns):  # score-based agreement: how far the SRP-PHAT map's peak lies
+        srp = features[[col.SRP_X, col.SRP_Y]].to_numpy(float)
         out[col.solver_column("srp_disagreement_m")] = np.sqrt(((position - srp) ** 2).sum(axis=1))
     for name, _, _ in col.SOLVER_CATALOG:  # every solver fills the same columns (NaN where it has no such diagnostic)
         if name not in out.columns:

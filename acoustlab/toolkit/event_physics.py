@@ -37,9 +37,9 @@ def event_speed_of_sound_m_s(events: pd.DataFrame) -> np.ndarray:
     DataError
         When the events carry neither.
     """
-    if "speed_of_sound_m_s" in events:
-        return events["speed_of_sound_m_s"].to_numpy(dtype=float)
-    if "temperature_c" not in events:
+    if col.SPEED_OF_SOUND in events:
+        return events[col.SPEED_OF_SOUND].to_numpy(dtype=float)
+    if col.TEMPERATURE not in events:
         raise DataError("the events have neither speed_of_sound_m_s nor temperature_c; the speed of sound cannot be computed")
-    humidity = events["relative_humidity_pct"].to_numpy(float) if "relative_humidity_pct" in events else np.zeros(len(events))
-    return np.asarray(speed_of_sound_m_s(events["temperature_c"].to_numpy(float), humidity), dtype=float)
+    humidity = events[col.HUMIDITY].to_numpy(float) if col.HUMIDITY in events else np.zeros(len(events))
+    return np.asarray(speed_of_sound_m_s(events[col.TEMPERATURE].to_numpy(float), humidity), dtype=float)

@@ -8,6 +8,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.utils.validation import check_is_fitted
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError
 
 
@@ -20,7 +21,7 @@ class GdopOnlyErrorModel(RegressorMixin, BaseEstimator):
         Feature column holding the GDOP.
     """
 
-    def __init__(self, column: str = "solver__gdop") -> None:
+    def __init__(self, column: str = col.SOLVER_GDOP) -> None:
         self.column = column
 
     def _gdop(self, X: Any) -> np.ndarray:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
@@ -50,33 +51,33 @@ class Environment:
 
     def catalog(self, site: Site) -> list[tuple[str, str, str]]:
         rows = [
-            ("environment__temperature_c", "°C", "air temperature recorded with the event"),
-            ("environment__relative_humidity_pct", "%", "relative humidity recorded with the event"),
-            ("environment__speed_of_sound_m_s", "m/s", "speed of sound from temperature and humidity"),
+            (col.ENV_TEMPERATURE, "°C", "air temperature recorded with the event"),
+            (col.ENV_HUMIDITY, "%", "relative humidity recorded with the event"),
+            (col.ENV_SPEED_OF_SOUND, "m/s", "speed of sound from temperature and humidity"),
         ]
         for m in range(site.n_mics):
             rows += [
-                (f"environment__level_{m}_db", "dB", "received level: power of the loudest 10 % of 10 ms frames"),
-                (f"environment__noise_{m}_db", "dB", "noise level: power of the quietest 20 % of 10 ms frames"),
-                (f"environment__snr_{m}_db", "dB", "received level minus noise level"),
+                (col.level_db(m), "dB", "received level: power of the loudest 10 % of 10 ms frames"),
+                (col.noise_db(m), "dB", "noise level: power of the quietest 20 % of 10 ms frames"),
+                (col.snr_db(m), "dB", "received level minus noise level"),
             ]
         return rows
 
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         ev = batch.events
-        t = ev["temperature_c"].to_numpy(float)
-        rh = ev["relative_humidity_pct"].to_numpy(float)
+        t = ev[col.TEMPERATURE].to_numpy(float)
+        rh = ev[col.HUMIDITY].to_numpy(float)
         cols = {
-            "environment__temperature_c": t,
-            "environment__relative_humidity_pct": rh,
-            "environment__speed_of_sound_m_s": np.where(np.isfinite(t) & np.isfinite(rh), speed_of_sound_m_s(np.nan_to_num(t, nan=10.0), np.nan_to_num(rh, nan=50.0)), np.nan),
+            col.ENV_TEMPERATURE: t,
+            col.ENV_HUMIDITY: rh,
+            col.ENV_SPEED_OF_SOUND: np.where(np.isfinite(t) & np.isfinite(rh), speed_of_sound_m_s(np.nan_to_num(t, nan=10.0), np.nan_to_num(rh, nan=50.0)), np.nan),
         }
         levels = np.sort(frame_levels_db(batch.audio, batch.sample_rate_hz), axis=-1)
         k = levels.shape[-1]
         loud = 10 * np.log10(np.mean(10 ** (levels[..., -max(k // 10, 1) :] / 10), axis=-1))
         quiet = 10 * np.log10(np.mean(10 ** (levels[..., : max(k // 5, 1)] / 10), axis=-1))
         for m in range(site.n_mics):
-            cols[f"environment__level_{m}_db"] = loud[:, m]
-            cols[f"environment__noise_{m}_db"] = quiet[:, m]
-            cols[f"environment__snr_{m}_db"] = loud[:, m] - quiet[:, m]
+            cols[col.level_db(m)] = loud[:, m]
+            cols[col.noise_db(m)] = quiet[:, m]
+            cols[col.snr_db(m)] = loud[:, m] - quiet[:, m]
         return pd.DataFrame(cols)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.dsp import gcc, parabolic_peak
@@ -13,7 +14,7 @@ from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 def tdoa_column(i: int, j: int) -> str:
     """Name of the pair (i, j) lag column: arrival at mic j minus arrival at mic i, in s."""
-    return f"tdoa__lag_{i}_{j}_s"
+    return col.tdoa_lag(i, j)
 
 
 class GccPhatTdoa:

@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 from scipy.ndimage import maximum_filter1d
 
+from acoustlab.core import columns as col
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.dsp import gcc
 from acoustlab.toolkit.geometry import bounding_box
@@ -61,9 +62,9 @@ class SrpPhat:
 
     def catalog(self, site: Site) -> list[tuple[str, str, str]]:
         return [
-            ("srp__x_m", "m", "SRP-PHAT estimate, x"),
-            ("srp__y_m", "m", "SRP-PHAT estimate, y"),
-            ("srp__power", "1", "steered response power at the estimate over the number of pairs"),
+            (col.SRP_X, "m", "SRP-PHAT estimate, x"),
+            (col.SRP_Y, "m", "SRP-PHAT estimate, y"),
+            (col.SRP_POWER, "1", "steered response power at the estimate over the number of pairs"),
         ]
 
     @staticmethod
@@ -93,4 +94,4 @@ class SrpPhat:
         power = _steered_power(self._spread(cc, self.fine_step_m, step_s, c), lags[0], step_s, fine, mics, pairs, height, c)
         k = np.argmax(power, axis=1)
         est = fine[np.arange(batch.n_events), k]
-        return pd.DataFrame({"srp__x_m": est[:, 0], "srp__y_m": est[:, 1], "srp__power": power[np.arange(batch.n_events), k] / len(pairs)})
+        return pd.DataFrame({col.SRP_X: est[:, 0], col.SRP_Y: est[:, 1], col.SRP_POWER: power[np.arange(batch.n_events), k] / len(pairs)})

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import scipy.signal as ss
 
+from acoustlab.core import columns as col
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.gcc_candidates import lag_windows_s
 
@@ -51,7 +52,7 @@ class BlindIrSummaries:
                 (f"ir__decay_{m}_db_s", "dB/s", "slope of the envelope (dB) over 0–100 ms after its peak"),
                 (f"ir__early_late_{m}_db", "dB", "energy 0–50 ms after onset over 50–300 ms after onset"),
                 (f"ir__rise_time_{m}_s", "s", "10 % to 90 % rise time of the envelope before its peak"),
-                (f"ir__spread_{m}_s", "s", "time the envelope stays within 10 dB of its peak"),
+                (col.ir_spread_s(m), "s", "time the envelope stays within 10 dB of its peak"),
             ]
         return rows
 
@@ -87,7 +88,7 @@ class BlindIrSummaries:
             cols[f"ir__decay_{k}_db_s"] = slope[:, k]
             cols[f"ir__early_late_{k}_db"] = early_late[:, k]
             cols[f"ir__rise_time_{k}_s"] = rise[:, k]
-            cols[f"ir__spread_{k}_s"] = spread[:, k]
+            cols[col.ir_spread_s(k)] = spread[:, k]
         return pd.DataFrame(cols)
 
 
@@ -104,8 +105,8 @@ class SpectralSummaries:
         rows = []
         for m in range(site.n_mics):
             rows += [
-                (f"spectral__centroid_{m}_hz", "Hz", "power-weighted mean frequency around the loudest frame"),
-                (f"spectral__bandwidth_{m}_hz", "Hz", "power-weighted standard deviation of frequency"),
+                (col.spectral_centroid_hz(m), "Hz", "power-weighted mean frequency around the loudest frame"),
+                (col.spectral_bandwidth_hz(m), "Hz", "power-weighted standard deviation of frequency"),
                 (f"spectral__rolloff_{m}_hz", "Hz", "frequency below which 85 % of the power lies"),
             ]
         rows += [(f"spectral__centroid_diff_{i}_{j}_hz", "Hz", f"centroid of mic {i} minus mic {j}") for i, j in site.mic_pairs]
@@ -130,8 +131,8 @@ class SpectralSummaries:
         rolloff = f[np.argmax(cum >= 0.85, axis=-1)]
         cols = {}
         for k in range(m):
-            cols[f"spectral__centroid_{k}_hz"] = centroid[:, k]
-            cols[f"spectral__bandwidth_{k}_hz"] = bandwidth[:, k]
+            cols[col.spectral_centroid_hz(k)] = centroid[:, k]
+            cols[col.spectral_bandwidth_hz(k)] = bandwidth[:, k]
             cols[f"spectral__rolloff_{k}_hz"] = rolloff[:, k]
         for i, j in site.mic_pairs:
             cols[f"spectral__centroid_diff_{i}_{j}_hz"] = centroid[:, i] - centroid[:, j]

@@ -32,6 +32,7 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.calls import CallPool
@@ -173,15 +174,15 @@ class ImageSourceField:
             noise_std = noise_std_for_snr(clean[nearest], call.signal.size / self.sample_rate_hz, self.sample_rate_hz, snr_db)
             audio[event_id] = clean + noise_std * noise_matrix(rng, site, regime, n_out, self.sample_rate_hz)
             rows.append({
-                "event_id": event_id, "position_id": pid, "x_m": source[0], "y_m": source[1], "z_m": source[2],
-                "temperature_c": weather.temperature_c + self.temperature_error_c, "relative_humidity_pct": weather.relative_humidity_pct,
+                col.EVENT_ID: event_id, col.POSITION_ID: pid, col.TRUE_X: source[0], col.TRUE_Y: source[1], col.TRUE_Z: source[2],
+                col.TEMPERATURE: weather.temperature_c + self.temperature_error_c, col.HUMIDITY: weather.relative_humidity_pct,
                 # what a user computes from a thermometer (off by temperature_error_c); the renderer used its own formula
                 # and the true temperature (simulator_speed_of_sound_m_s)
-                "speed_of_sound_m_s": float(speed_of_sound_m_s(weather.temperature_c + self.temperature_error_c, weather.relative_humidity_pct)),
+                col.SPEED_OF_SOUND: float(speed_of_sound_m_s(weather.temperature_c + self.temperature_error_c, weather.relative_humidity_pct)),
                 "simulator_speed_of_sound_m_s": simulator_c,
-                "snr_db": snr_db, "noise_regime": site.noise_regimes[regime].kind, "call": call.label, "call_licence": call.licence,
-                "emission_time_s": onset, "outside_simulated_region": bool(outside_site[pid]),
-                "hardware_failure": False, "source": "pyroomacoustics_image_source",
+                col.SNR: snr_db, "noise_regime": site.noise_regimes[regime].kind, "call": call.label, "call_licence": call.licence,
+                col.EMISSION_TIME: onset, "outside_simulated_region": bool(outside_site[pid]),
+                col.HARDWARE_FAILURE: False, "source": "pyroomacoustics_image_source",
             })
         log.info("image-source field: %d events at %d positions rendered with pyroomacoustics", len(rows), len(positions))
         return RecordingBatch(audio=audio, sample_rate_hz=self.sample_rate_hz, events=pd.DataFrame(rows))

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.calls import Call, CallPool, catalog, synthetic_call
@@ -138,11 +139,11 @@ class PlaybackStandIn:
                     audio.append(rec)
                     rows.append(
                         {
-                            "event_id": event_id, "position_id": pid,
-                            "x_m": speaker[0], "y_m": speaker[1], "z_m": speaker[2],
+                            col.EVENT_ID: event_id, col.POSITION_ID: pid,
+                            col.TRUE_X: speaker[0], col.TRUE_Y: speaker[1], col.TRUE_Z: speaker[2],
                             **row,
                             "setting": setting, "stimulus": stim_id, "stimulus_region": region,
-                            "hardware_failure": failed, "source": "synthetic_playback_standin",
+                            col.HARDWARE_FAILURE: failed, "source": "synthetic_playback_standin",
                         }
                     )
                     event_id += 1

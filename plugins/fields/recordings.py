@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import RecordingBatch, Site
@@ -184,36 +185,36 @@ class RecordingFolder:
     def tables(self) -> tuple[pd.DataFrame, pd.DataFrame]:
         """(mics, events) in the acoustlab layout, checked, converting the OpenSoundscape layout if needed."""
         if self.mics_csv and self.events_csv:
-            mics = _read(self.mics_csv, "mics_csv", ("x_m", "y_m", "z_m"))
-            events = _read(self.events_csv, "events_csv", ("event_id", "start_s", "end_s"))
+            mics = _read(self.mics_csv, "mics_csv", col.MIC_XYZ)
+            events = _read(self.events_csv, "events_csv", (col.EVENT_ID, col.START, col.END))
         else:
             mics, events = self._opensoundscape_tables()
-        _numeric(mics, "mics_csv", ("x_m", "y_m", "z_m"))
+        _numeric(mics, "mics_csv", col.MIC_XYZ)
         if "mic_id" in mics:
             _unique(mics, "mics_csv", "mic_id")
         if "file" in mics:
             mics["file"] = mics["file"].astype(str).str.strip()
-        _numeric(events, "events_csv", ("event_id", "start_s", "end_s", "position_id"))
-        _numeric(events, "events_csv", ("x_m", "y_m", "z_m"), finite=False)
-        _numeric(events, "events_csv", ("temperature_c",), lower=-60.0, upper=60.0)
-        _numeric(events, "events_csv", ("relative_humidity_pct",), lower=0.0, upper=100.0)
-        for name in ("event_id", "position_id"):
+        _numeric(events, "events_csv", (col.EVENT_ID, col.START, col.END, col.POSITION_ID))
+        _numeric(events, "events_csv", (col.TRUE_X, col.TRUE_Y, col.TRUE_Z), finite=False)
+        _numeric(events, "events_csv", (col.TEMPERATURE,), lower=-60.0, upper=60.0)
+        _numeric(events, "events_csv", (col.HUMIDITY,), lower=0.0, upper=100.0)
+        for name in (col.EVENT_ID, col.POSITION_ID):
             if name in events and (events[name] != np.round(events[name])).any():
                 i = int(np.flatnonzero((events[name] != np.round(events[name])).to_numpy())[0])
                 raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}, column {name!r}: "
                                 f"{events[name].iloc[i]!r} is not a whole number")
-        events["event_id"] = events["event_id"].astype(np.int64)
-        _unique(events, "events_csv", "event_id")
-        too_short = events["end_s"] <= events["start_s"]
+        events[col.EVENT_ID] = events[col.EVENT_ID].astype(np.int64)
+        _unique(events, "events_csv", col.EVENT_ID)
+        too_short = events[col.END] <= events[col.START]
         if too_short.any():
             i = int(np.flatnonzero(too_short.to_numpy())[0])
-            raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: end_s {events['end_s'].iloc[i]} "
-                            f"is not after start_s {events['start_s'].iloc[i]}")
-        too_long = (events["end_s"] - events["start_s"]) > self.max_event_s
+            raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: end_s {events[col.END].iloc[i]} "
+                            f"is not after start_s {events[col.START].iloc[i]}")
+        too_long = (events[col.END] - events[col.START]) > self.max_event_s
         if too_long.any():
             i = int(np.flatnonzero(too_long.to_numpy())[0])
             raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: the event lasts "
-                            f"{events['end_s'].iloc[i] - events['start_s'].iloc[i]:g} s, more than field.max_event_s={self.max_event_s:g} s "
+                            f"{events[col.END].iloc[i] - events[col.START].iloc[i]:g} s, more than field.max_event_s={self.max_event_s:g} s "
                             f"(raise it if the event really is that long)")
         if "file" not in mics and "file" not in events:
             raise DataError("field: the mics table has no 'file' column, so events_csv needs one (multichannel files)")
@@ -230,8 +231,8 @@ class RecordingFolder:
         _numeric(det, "detections_csv", tuple(classes))
         coords["file"] = coords["file"].astype(str).str.strip()
         det["file"] = det["file"].astype(str).str.strip()
-        mics = pd.DataFrame({"file": coords["file"], "x_m": coords["x"], "y_m": coords["y"],
-                             "z_m": coords["z"] if "z" in coords else 0.0})
+        mics = pd.DataFrame({"file": coords["file"], col.MIC_X: coords["x"], col.MIC_Y: coords["y"],
+                             col.MIC_Z: coords["z"] if "z" in coords else 0.0})
         mics.attrs["path"] = coords.attrs["path"]
         known = det["file"].isin(set(mics["file"]))
         if not known.any():
@@ -247,8 +248,8 @@ class RecordingFolder:
         if windows.empty:
             raise DataError(f"field.detections_csv: no time window was detected by at least field.min_receivers={self.min_receivers} "
                             f"receivers, so there is nothing to localize")
-        events = pd.DataFrame({"event_id": np.arange(len(windows)), "start_s": windows["start_time"].to_numpy(float),
-                               "end_s": windows["end_time"].to_numpy(float)})
+        events = pd.DataFrame({col.EVENT_ID: np.arange(len(windows)), col.START: windows["start_time"].to_numpy(float),
+                               col.END: windows["end_time"].to_numpy(float)})
         events.attrs["path"] = det.attrs.get("path", self.detections_csv)
         return mics, events
 
@@ -293,7 +294,7 @@ class RecordingFolder:
         """
         mics, events = self.tables()
         if site is not None:
-            positions = mics[["x_m", "y_m", "z_m"]].to_numpy(float)
+            positions = mics[list(col.MIC_XYZ)].to_numpy(float)
             if positions.shape != site.mic_positions_m.shape or not np.allclose(positions, site.mic_positions_m, atol=1e-3):
                 raise DataError(f"field: the recordings' {len(positions)} mic positions do not match site {site.name!r} "
                                 f"({site.n_mics} mics); build the site from the same mics table")
@@ -307,7 +308,7 @@ class RecordingFolder:
                                 f"{self.recorder_sample_rate_hz:g} Hz; fix the file's header (or the setting)")
             if "file" in mics:
                 self._check_channels(mics, file, path, info.channels)
-        n = int(((events["end_s"] - events["start_s"]).max() + 2 * self.pad_s) * self.sample_rate_hz) + 1
+        n = int(((events[col.END] - events[col.START]).max() + 2 * self.pad_s) * self.sample_rate_hz) + 1
         size = len(events) * len(mics) * n * 4
         if size > MAX_AUDIO_BYTES:
             raise DataError(f"field: {len(events)} events × {len(mics)} mics × {n} samples need {size / 2**30:.1f} GiB; "
@@ -356,7 +357,7 @@ class RecordingFolder:
         if not {"easting_m", "northing_m"} <= set(mics.columns):
             return None
         _numeric(mics, "mics_csv", ("easting_m", "northing_m"))
-        local = mics[["x_m", "y_m"]].to_numpy(float)
+        local = mics[[col.MIC_X, col.MIC_Y]].to_numpy(float)
         projected = mics[["easting_m", "northing_m"]].to_numpy(float)
         lc, pc = local.mean(axis=0), projected.mean(axis=0)
         u, _, vt = np.linalg.svd((projected - pc).T @ (local - lc))
@@ -381,7 +382,7 @@ class RecordingFolder:
         mics, events = self.validate(site)
         fs = self.sample_rate_hz
         pad = int(self.pad_s * fs)
-        lengths = ((events["end_s"] - events["start_s"]).to_numpy(float) * fs).astype(int) + 2 * pad
+        lengths = ((events[col.END] - events[col.START]).to_numpy(float) * fs).astype(int) + 2 * pad
         audio = np.zeros((len(events), len(mics), int(lengths.max())), dtype=np.float32)
         per_mic = "file" in mics.columns
         paths = {f: str(self.audio_path(f)) for f in self._audio_files(mics, events)}  # resolved once, not per event and mic
@@ -399,29 +400,29 @@ class RecordingFolder:
             for m in duplicate_channels(audio[k, :, : lengths[k]]):  # the same samples on two mics: a wiring or table error
                 reasons[k, m] = [*reasons[k, m], "duplicate"]
         flags = [_describe(row, mics) for row in reasons]
-        position = events["position_id"].to_numpy(int) if "position_id" in events else events["event_id"].to_numpy(int)
-        failed = (events["hardware_failure"].astype(str).str.strip().str.lower().isin(["1", "1.0", "true", "yes"]).to_numpy()
-                  if "hardware_failure" in events else np.zeros(len(events), bool))
+        position = events[col.POSITION_ID].to_numpy(int) if col.POSITION_ID in events else events[col.EVENT_ID].to_numpy(int)
+        failed = (events[col.HARDWARE_FAILURE].astype(str).str.strip().str.lower().isin(["1", "1.0", "true", "yes"]).to_numpy()
+                  if col.HARDWARE_FAILURE in events else np.zeros(len(events), bool))
         failed = failed | _dead_at_position(reasons, position)
         n_flagged = sum(bool(f) for f in flags)
         if n_flagged:
             log.warning("field: %d of %d events flagged (%s); they are kept in the predictions and left out of summaries",
-                        n_flagged, len(events), "; ".join(f"event {e}: {f}" for e, f in zip(events["event_id"], flags) if f)[:300])
+                        n_flagged, len(events), "; ".join(f"event {e}: {f}" for e, f in zip(events[col.EVENT_ID], flags) if f)[:300])
         rows = pd.DataFrame(
             {
-                "event_id": events["event_id"].to_numpy(int),
-                "position_id": position,
-                "x_m": events["x_m"].to_numpy(float) if "x_m" in events else np.nan,
-                "y_m": events["y_m"].to_numpy(float) if "y_m" in events else np.nan,
-                "z_m": events["z_m"].to_numpy(float) if "z_m" in events else np.nan,
-                "temperature_c": events["temperature_c"].fillna(self.temperature_c).to_numpy(float) if "temperature_c" in events else self.temperature_c,
-                "relative_humidity_pct": events["relative_humidity_pct"].fillna(self.relative_humidity_pct).to_numpy(float)
-                if "relative_humidity_pct" in events else self.relative_humidity_pct,
-                "start_s": events["start_s"].to_numpy(float),
-                "end_s": events["end_s"].to_numpy(float),
-                "quality_flags": flags,
+                col.EVENT_ID: events[col.EVENT_ID].to_numpy(int),
+                col.POSITION_ID: position,
+                col.TRUE_X: events[col.TRUE_X].to_numpy(float) if col.TRUE_X in events else np.nan,
+                col.TRUE_Y: events[col.TRUE_Y].to_numpy(float) if col.TRUE_Y in events else np.nan,
+                col.TRUE_Z: events[col.TRUE_Z].to_numpy(float) if col.TRUE_Z in events else np.nan,
+                col.TEMPERATURE: events[col.TEMPERATURE].fillna(self.temperature_c).to_numpy(float) if col.TEMPERATURE in events else self.temperature_c,
+                col.HUMIDITY: events[col.HUMIDITY].fillna(self.relative_humidity_pct).to_numpy(float)
+                if col.HUMIDITY in events else self.relative_humidity_pct,
+                col.START: events[col.START].to_numpy(float),
+                col.END: events[col.END].to_numpy(float),
+                col.QUALITY_FLAGS: flags,
                 "quality_ok": [not f for f in flags],
-                "hardware_failure": failed,
+                col.HARDWARE_FAILURE: failed,
             }
         )
         return RecordingBatch(audio=audio, sample_rate_hz=fs, events=rows)

@@ -50,7 +50,7 @@ def gate_cues(solver_position_m: np.ndarray, model_position_m: np.ndarray, featu
     """
     cues = {name: features[name].to_numpy(float) for name in features.columns
             if col.group_of(name) == "solver" and name not in col.SOLVER_ESTIMATE_COLUMNS}
-    cues["solver_model_distance_m"] = np.sqrt(((solver_position_m - model_position_m) ** 2).sum(axis=1))
+    cues[col.SOLVER_MODEL_DISTANCE] = np.sqrt(((solver_position_m - model_position_m) ** 2).sum(axis=1))
     centre = site.mic_positions_m[:, :2].mean(axis=0)
     cues["solver_range_from_centre_m"] = np.sqrt(((solver_position_m - centre) ** 2).sum(axis=1))
     cues["model_range_from_centre_m"] = np.sqrt(((model_position_m - centre) ** 2).sum(axis=1))

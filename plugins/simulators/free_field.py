@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 import scipy.signal as ss
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site, require_range
 from acoustlab.toolkit.dsp import delay_and_scale
@@ -155,21 +156,21 @@ class FreeFieldSimulator:
             audio[k] = clean + noise_std * noise_matrix(rng, site, regime_index, n_samples, self.sample_rate_hz)
             rows.append(
                 {
-                    "event_id": int(eid),
-                    "position_id": int(pid),
-                    "x_m": source[0],
-                    "y_m": source[1],
-                    "z_m": source[2],
-                    "temperature_c": temperature_c,
-                    "relative_humidity_pct": humidity_pct,
-                    "speed_of_sound_m_s": c,
-                    "snr_db": snr_db,
+                    col.EVENT_ID: int(eid),
+                    col.POSITION_ID: int(pid),
+                    col.TRUE_X: source[0],
+                    col.TRUE_Y: source[1],
+                    col.TRUE_Z: source[2],
+                    col.TEMPERATURE: temperature_c,
+                    col.HUMIDITY: humidity_pct,
+                    col.SPEED_OF_SOUND: c,
+                    col.SNR: snr_db,
                     "noise_regime": site.noise_regimes[regime_index].kind,
                     "call": f"synthetic:{name}",
                     "call_f_start_hz": f0,
                     "call_f_end_hz": f1,
-                    "call_duration_s": dur,
-                    "emission_time_s": onset,
+                    col.CALL_DURATION: dur,
+                    col.EMISSION_TIME: onset,
                 }
             )
         return RecordingBatch(audio=audio, sample_rate_hz=self.sample_rate_hz, events=pd.DataFrame(rows))

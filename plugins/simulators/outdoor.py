@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 import scipy.fft as sfft
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site, require_range
 from acoustlab.toolkit.calls import CallPool
@@ -453,15 +454,15 @@ class OutdoorSimulator:
         noise_std = noise_std_for_snr(clean[nearest], call.signal.size / self.sample_rate_hz, self.sample_rate_hz, snr_db)
         rec = clean + noise_std * noise_matrix(rng, site, regime, n_out, self.sample_rate_hz, self.diffuse_noise_fraction)
         row: dict[str, Any] = {
-            "temperature_c": weather.temperature_c,
-            "relative_humidity_pct": weather.relative_humidity_pct,
-            "speed_of_sound_m_s": float(speed_of_sound_m_s(weather.temperature_c, weather.relative_humidity_pct)),
-            "snr_db": snr_db,
+            col.TEMPERATURE: weather.temperature_c,
+            col.HUMIDITY: weather.relative_humidity_pct,
+            col.SPEED_OF_SOUND: float(speed_of_sound_m_s(weather.temperature_c, weather.relative_humidity_pct)),
+            col.SNR: snr_db,
             "noise_regime": site.noise_regimes[regime].kind,
             "call": call.label,
             "call_licence": call.licence,
-            "call_duration_s": call.signal.size / self.sample_rate_hz,
-            "emission_time_s": emission,
+            col.CALL_DURATION: call.signal.size / self.sample_rate_hz,
+            col.EMISSION_TIME: emission,
             "interference_mic": -1,
             "interference_kind": "",
             "failed_mic": -1,
@@ -493,5 +494,5 @@ class OutdoorSimulator:
         for k, (eid, pid) in enumerate(zip(event_ids, position_ids, strict=True)):
             source = draw_source(site, seed, int(pid))
             audio[k], row = self.render_event(site, source, event_rng(seed, int(eid)), gains_db=gains_db)
-            rows.append({"event_id": int(eid), "position_id": int(pid), "x_m": source[0], "y_m": source[1], "z_m": source[2], **row})
+            rows.append({col.EVENT_ID: int(eid), col.POSITION_ID: int(pid), col.TRUE_X: source[0], col.TRUE_Y: source[1], col.TRUE_Z: source[2], **row})
         return RecordingBatch(audio=audio, sample_rate_hz=self.sample_rate_hz, events=pd.DataFrame(rows))

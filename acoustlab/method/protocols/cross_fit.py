@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 from sklearn.model_selection import GroupKFold
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
 from acoustlab.method.splits import cap_rows
@@ -48,7 +49,7 @@ class CrossFitProtocol:
 
     def splits(self, events: pd.DataFrame) -> list[tuple[np.ndarray, np.ndarray]]:
         """(train, test) row indices per fold; the test rows of all folds partition every row."""
-        groups = events["position_id"].to_numpy()
+        groups = events[col.POSITION_ID].to_numpy()
         positions = np.unique(groups)
         if positions.size < self.n_folds:
             raise DataError(f"cross_fit with {self.n_folds} folds needs at least {self.n_folds} source positions; got {positions.size}")
@@ -67,6 +68,6 @@ class CrossFitProtocol:
         for k, (train, test) in enumerate(self.splits(dataset.events)):
             log.info("cross-fit fold %d/%d: %d training rows, %d test rows", k + 1, self.n_folds, train.size, test.size)
             result = pipeline.fit_predict(dataset.features, dataset.events, train, test)
-            result.predictions["fold"] = k
+            result.predictions[col.FOLD] = k
             parts.append(MethodResult(result.predictions, [{"split": f"fold {k}", **d} for d in result.split_diagnostics]))
         return MethodResult.concat(parts)

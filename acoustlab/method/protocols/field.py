@@ -13,6 +13,7 @@ import logging
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
 from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
@@ -35,15 +36,15 @@ def combine(sim: Dataset, field_recordings: Dataset, need_truth: bool = True) ->
     if missing:
         raise DataError(f"simulated and field feature tables differ in columns {sorted(missing)[:5]}")
     fev = field_recordings.events.copy()
-    for name in ("x_m", "y_m", "z_m"):
+    for name in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z):
         if name not in fev:
             fev[name] = np.nan
-    if need_truth and fev[["x_m", "y_m"]].isna().any().any():
+    if need_truth and fev[[col.TRUE_X, col.TRUE_Y]].isna().any().any():
         raise DataError("field evaluation needs true positions for every field event (x_m, y_m); to localize recordings "
                         "without them use protocol=localize (python -m acoustlab localize +site=NAME field=recordings)")
-    if "position_id" not in fev or fev["position_id"].isna().any():
-        fev["position_id"] = np.arange(len(fev))  # unknown positions: every detection its own group
-    fev["position_id"] = fev["position_id"].astype(np.int64) + FIELD_POSITION_OFFSET
+    if col.POSITION_ID not in fev or fev[col.POSITION_ID].isna().any():
+        fev[col.POSITION_ID] = np.arange(len(fev))  # unknown positions: every detection its own group
+    fev[col.POSITION_ID] = fev[col.POSITION_ID].astype(np.int64) + FIELD_POSITION_OFFSET
     fev["is_field"] = True
     sev = sim.events.copy()
     sev["is_field"] = False
@@ -79,7 +80,7 @@ class FieldEvalProtocol:
         if field_recordings is None:
             raise ConfigError("protocol=field_eval needs field data: choose a field source, e.g. field=playback_standin")
         features, events, sim_rows, field_rows = combine(dataset, field_recordings)
-        groups = events["position_id"].to_numpy()
+        groups = events[col.POSITION_ID].to_numpy()
         train = cap_rows(sim_rows, groups, self.max_train_rows, np.random.default_rng([self.seed, 2]))
         result = pipeline.fit_predict(features, events, train, field_rows)
         return MethodResult(_annotate(result.predictions, events, field_rows, self.exclude_failed_from_summary), result.split_diagnostics)
@@ -112,7 +113,7 @@ class LopoProtocol:
 
     def splits(self, events: pd.DataFrame, sim_rows: np.ndarray, field_rows: np.ndarray):
         """Yield (withheld position, train rows, test rows) for every field position."""
-        groups = events["position_id"].to_numpy()
+        groups = events[col.POSITION_ID].to_numpy()
         n_field = int(round(self.field_fraction * self.max_train_rows))
         for k, pos in enumerate(np.unique(groups[field_rows])):
             rng = np.random.default_rng([self.seed, 3, k])
@@ -128,13 +129,13 @@ class LopoProtocol:
             raise ConfigError("protocol=lopo needs field data: choose a field source, e.g. field=playback_standin")
         features, events, sim_rows, field_rows = combine(dataset, field_recordings)
         pooled = []
-        n_positions = np.unique(events["position_id"].to_numpy()[field_rows]).size
+        n_positions = np.unique(events[col.POSITION_ID].to_numpy()[field_rows]).size
         for pos, train, test in progress(self.splits(events, sim_rows, field_rows), total=n_positions, desc="LOPO", unit="position"):
             log.info("LOPO: withholding field position %d (%d test, %d training rows)", pos - FIELD_POSITION_OFFSET, test.size, train.size)
             result = pipeline.fit_predict(features, events, train, test)
             withheld = int(pos - FIELD_POSITION_OFFSET)
             out = result.predictions
-            out["withheld_position"] = withheld
+            out[col.WITHHELD_POSITION] = withheld
             diagnostics = [{"split": f"withheld_position={withheld}", **d} for d in result.split_diagnostics]
             pooled.append(MethodResult(_annotate(out, events, test, self.exclude_failed_from_summary), diagnostics))
         return MethodResult.concat(pooled)
@@ -142,11 +143,11 @@ class LopoProtocol:
 
 def _annotate(out: pd.DataFrame, events: pd.DataFrame, rows: np.ndarray, exclude_failed: bool) -> pd.DataFrame:
     out = out.copy()
-    out["position_id"] = out["position_id"] - FIELD_POSITION_OFFSET
-    failed = events["hardware_failure"].to_numpy(bool)[rows] if "hardware_failure" in events else np.zeros(rows.size, bool)
-    out["hardware_failure"] = failed
+    out[col.POSITION_ID] = out[col.POSITION_ID] - FIELD_POSITION_OFFSET
+    failed = events[col.HARDWARE_FAILURE].to_numpy(bool)[rows] if col.HARDWARE_FAILURE in events else np.zeros(rows.size, bool)
+    out[col.HARDWARE_FAILURE] = failed
     flagged = ~events["quality_ok"].fillna(True).to_numpy(bool)[rows] if "quality_ok" in events else np.zeros(rows.size, bool)
-    if "quality_flags" in events:
-        out["quality_flags"] = events["quality_flags"].fillna("").to_numpy(object)[rows]
-    out["in_summary"] = ~(failed | flagged) if exclude_failed else ~flagged
+    if col.QUALITY_FLAGS in events:
+        out[col.QUALITY_FLAGS] = events[col.QUALITY_FLAGS].fillna("").to_numpy(object)[rows]
+    out[col.IN_SUMMARY] = ~(failed | flagged) if exclude_failed else ~flagged
     return out

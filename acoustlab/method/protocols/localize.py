@@ -23,8 +23,8 @@ from acoustlab.stages.dataset import Dataset
 log = logging.getLogger(__name__)
 
 #: Solver-stage columns copied into the positions table as quality flags.
-QUALITY_COLUMNS = (col.SOLVER_FAILURE, col.SOLVER_SOURCE_HEIGHT, "solver__height_gdop", "solver__height_ambiguous", "solver__residual_m",
-                   "solver__consistency", "solver__n_mics_used", col.SOLVER_GDOP)
+QUALITY_COLUMNS = (col.SOLVER_FAILURE, col.SOLVER_SOURCE_HEIGHT, col.SOLVER_HEIGHT_GDOP, col.SOLVER_HEIGHT_AMBIGUOUS, col.SOLVER_RESIDUAL,
+                   col.SOLVER_CONSISTENCY, col.SOLVER_N_MICS_USED, col.SOLVER_GDOP)
 
 
 class LocalizeProtocol:
@@ -56,8 +56,8 @@ class LocalizeProtocol:
         if field_recordings is None:
             raise ConfigError("protocol=localize needs recordings: choose field=recordings (see the README, 'Localize your recordings')")
         features, events, sim_rows, all_field_rows = combine(dataset, field_recordings, need_truth=False)
-        groups = events["position_id"].to_numpy()
-        known = np.isfinite(events[["x_m", "y_m"]].to_numpy(float)[all_field_rows]).all(axis=1)
+        groups = events[col.POSITION_ID].to_numpy()
+        known = np.isfinite(events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)[all_field_rows]).all(axis=1)
         usable = known & events["quality_ok"].fillna(True).to_numpy(bool)[all_field_rows] if "quality_ok" in events else known
         calibration_rows, field_rows = all_field_rows[usable], all_field_rows[~known]
         if field_rows.size == 0:
@@ -79,15 +79,15 @@ class LocalizeProtocol:
         for name in QUALITY_COLUMNS:  # why a fix may be weak, from the solver stage
             if name in features:
                 predictions[name] = features[name].to_numpy()[field_rows]
-        keep = [c for c in field_recordings.events.columns if c not in predictions.columns and c not in ("x_m", "y_m", "z_m")]
+        keep = [c for c in field_recordings.events.columns if c not in predictions.columns and c not in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z)]
         placed_events = field_recordings.events.iloc[field_rows - sim_rows.size]
         for name in keep:  # the detection's own fields (file, start time, …)
             predictions[name] = placed_events[name].to_numpy()
         if "quality_ok" in predictions:  # a clip out of its file, dead, truncated, …: no position, and why
-            has_fix = predictions["placed"].to_numpy(bool) if "placed" in predictions else np.isfinite(
+            has_fix = predictions[col.PLACED].to_numpy(bool) if col.PLACED in predictions else np.isfinite(
                 predictions[list(col.estimate_xy("gate"))].to_numpy(float)).all(1)
             good = predictions["quality_ok"].to_numpy(bool)
-            reason = predictions["abstain_reason"].to_numpy(object) if "abstain_reason" in predictions else np.where(has_fix, "", "no estimate")
-            predictions["placed"] = has_fix & good
-            predictions["abstain_reason"] = np.where(good, reason, "quality: " + predictions["quality_flags"].astype(str))
+            reason = predictions[col.ABSTAIN_REASON].to_numpy(object) if col.ABSTAIN_REASON in predictions else np.where(has_fix, "", "no estimate")
+            predictions[col.PLACED] = has_fix & good
+            predictions[col.ABSTAIN_REASON] = np.where(good, reason, "quality: " + predictions[col.QUALITY_FLAGS].astype(str))
         return MethodResult(predictions, result.split_diagnostics)

@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 from sklearn.model_selection import GroupShuffleSplit
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
 from acoustlab.method.splits import cap_rows
@@ -41,7 +42,7 @@ class SimOnlyProtocol:
 
     def split(self, events: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
         """Row indices (train, test); no position appears in both."""
-        groups = events["position_id"].to_numpy()
+        groups = events[col.POSITION_ID].to_numpy()
         if np.unique(groups).size < 3:
             raise DataError(f"sim-only needs at least 3 source positions; got {np.unique(groups).size}")
         splitter = GroupShuffleSplit(n_splits=1, test_size=self.test_fraction, random_state=self.seed)
