@@ -16,12 +16,11 @@ import numpy as np
 from common import compose_cfg, machine, write_results
 
 from acoustlab.core.contracts import SolverInputs
+from acoustlab.core import columns as col
 from acoustlab.method.pipeline import error_2d_m
-from acoustlab.run.registry import build, build_feature_sets, to_plain
-from acoustlab.stages.cache import StageCache
-from acoustlab.stages.dataset import SimulationPlan, load_or_build_simulated
-from acoustlab.stages.sites import site_from_config
-from acoustlab.stages.solver_columns import add_solver_columns, tdoa_matrix
+from acoustlab.run.app import build_run, prepare_data
+from acoustlab.stages.solver_columns import tdoa_matrix
+from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.propagation import segment_trunk_clearance
 
 log = logging.getLogger("bench_error_tail")
@@ -30,22 +29,18 @@ GROSS_M = 5.0
 
 def analyse(site_name: str, n_events: int) -> dict:
     cfg = compose_cfg([f"+site={site_name}", f"data.n_events={n_events}"])
-    site = site_from_config(cfg.site)
-    simulator = build(cfg.simulator, "simulator")
-    features = build_feature_sets(cfg.features)
-    solver = build(cfg.solver, "solver", source_height_m=float(np.mean(site.source_height_range_m)))
-    plan = SimulationPlan(n_events, int(cfg.data.events_per_position), int(cfg.seed), int(cfg.data.chunk_size), n_jobs=2)
-    data = load_or_build_simulated(site, simulator, to_plain(cfg.simulator), features, to_plain(cfg.features.groups), plan, StageCache(cfg.cache.dir))
-    table = add_solver_columns(data.features, data.events, site, solver)
-    ev = data.events
-    truth = ev[["x_m", "y_m", "z_m"]].to_numpy()
-    err = error_2d_m(table[["solver__x_m", "solver__y_m"]].to_numpy(), truth)
+    built = build_run(cfg)
+    site, solver = built.site, built.components.solver
+    data = prepare_data(cfg, built).dataset  # the data a real run gets: a fix outside the plausible region is a failure (inf)
+    table, ev = data.features, data.events
+    truth = ev[list(col.TRUE_XYZ)].to_numpy()
+    err = error_2d_m(table[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(), truth)
     dist = np.sqrt(((truth[:, None, :] - site.mic_positions_m[None]) ** 2).sum(-1))
-    c = ev["speed_of_sound_m_s"].to_numpy()
+    c = ev[col.SPEED_OF_SOUND].to_numpy()
     true_tdoa = (dist - dist[:, :1]) / c[:, None]
     measured = tdoa_matrix(table, site.n_mics)
-    tdoa_err_samples = np.abs(measured - true_tdoa).max(axis=1) * simulator.sample_rate_hz
-    ideal = solver.solve(SolverInputs(site.mic_positions_m, true_tdoa, c))
+    tdoa_err_samples = np.abs(measured - true_tdoa).max(axis=1) * built.simulator.sample_rate_hz
+    ideal = solver.solve(SolverInputs(site.mic_positions_m, true_tdoa, c, source_height_m=assumed_source_height_m(site)))
     ideal_err = error_2d_m(ideal.position_m, truth)
     occluded = np.zeros(len(ev), bool)
     if site.tree_positions_m.shape[0]:
@@ -63,8 +58,8 @@ def analyse(site_name: str, n_events: int) -> dict:
         "gross_with_bad_tdoa": float((gross & bad_tdoa).sum() / max(gross.sum(), 1)),
         "gross_with_true_tdoa_also_gross": float((gross & (ideal_err > GROSS_M)).sum() / max(gross.sum(), 1)),
         "bad_tdoa_fraction": float(bad_tdoa.mean()),
-        "median_snr_db_gross": float(np.median(ev["snr_db"][gross])) if gross.any() else None,
-        "median_snr_db_ok": float(np.median(ev["snr_db"][~gross])),
+        "median_snr_db_gross": float(np.median(ev[col.SNR][gross])) if gross.any() else None,
+        "median_snr_db_ok": float(np.median(ev[col.SNR][~gross])),
         "occluded_fraction_gross": float(occluded[gross].mean()) if gross.any() else None,
         "occluded_fraction_ok": float(occluded[~gross].mean()),
         "ideal_tdoa_error_m": {"p50": float(np.percentile(ideal_err, 50)), "p95": float(np.percentile(ideal_err, 95))},

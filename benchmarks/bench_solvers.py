@@ -16,12 +16,10 @@ import time
 import numpy as np
 from common import compose_cfg, machine, write_results
 
+from acoustlab.core import columns as col
 from acoustlab.method.pipeline import error_2d_m
-from acoustlab.run.registry import build, build_feature_sets, to_plain
-from acoustlab.stages.cache import StageCache
-from acoustlab.stages.dataset import SimulationPlan, load_or_build_simulated
-from acoustlab.stages.sites import site_from_config
-from acoustlab.stages.solver_columns import add_solver_columns
+from acoustlab.run.app import build_run, prepare_data, solver_features
+from acoustlab.run.registry import build
 
 log = logging.getLogger("bench_solvers")
 SOLVERS = ("least_squares", "hyperbolic", "robust")
@@ -29,22 +27,19 @@ SOLVERS = ("least_squares", "hyperbolic", "robust")
 
 def evaluate(site_name: str, n_events: int) -> dict:
     cfg = compose_cfg([f"+site={site_name}", "features=physics_srp", f"data.n_events={n_events}"])
-    site = site_from_config(cfg.site)
-    plan = SimulationPlan(n_events, int(cfg.data.events_per_position), int(cfg.seed), int(cfg.data.chunk_size), n_jobs=2)
-    data = load_or_build_simulated(site, build(cfg.simulator, "simulator"), to_plain(cfg.simulator), build_feature_sets(cfg.features),
-                                   to_plain(cfg.features.groups), plan, StageCache(cfg.cache.dir))
-    truth = data.events[["x_m", "y_m"]].to_numpy()
-    snr = data.events["snr_db"].to_numpy()
+    built = build_run(cfg)
+    data = prepare_data(cfg, built).dataset  # the data a real run gets, plausible-region bound included
+    truth = data.events[list(col.TRUE_XY)].to_numpy()
+    snr = data.events[col.SNR].to_numpy()
     low, high = snr <= np.percentile(snr, 33.3), snr >= np.percentile(snr, 66.7)
     errors, timing = {}, {}
-    height = float(np.mean(site.source_height_range_m))
     for name in SOLVERS:
-        solver = build(compose_cfg([f"+site={site_name}", f"solver={name}"]).solver, "solver", source_height_m=height)
+        solver = build(compose_cfg([f"+site={site_name}", f"solver={name}"]).solver, "solver")
         start = time.perf_counter()
-        table = add_solver_columns(data.features, data.events, site, solver)
+        table = solver_features(cfg, data.features, data.events, built.site, solver)
         timing[name] = (time.perf_counter() - start) / len(truth)
-        errors[name] = error_2d_m(table[["solver__x_m", "solver__y_m"]].to_numpy(), truth)
-    errors["srp_phat"] = error_2d_m(data.features[["srp__x_m", "srp__y_m"]].to_numpy(), truth)
+        errors[name] = error_2d_m(table[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(), truth)  # a fix outside the bound: infinite
+    errors["srp_phat"] = error_2d_m(data.features[[col.SRP_X, col.SRP_Y]].to_numpy(), truth)
     timing["srp_phat"] = float("nan")
 
     def stats(e):

@@ -240,3 +240,56 @@ def test_srp_phat_cross_correlates_in_the_shared_gcc_band(compose_cfg):
     cfg = compose_cfg(["+site=loca2021", "features=physics_srp", "features.gcc.band_hz=[6000,10500]"])
     sets = build_feature_sets(cfg.features)
     assert sets["srp"].band_hz == (6000.0, 10500.0)
+
+
+#: Options that are deliberate variants of a plugin (its name says how), by (group, option, plugin label) → the settings that make the variant.
+YAML_VARIANTS: dict[tuple[str, str, str], set[str]] = {
+    # every conformal scorer is one SplitConformal variant: what it scales by, whether it uses the error model, its bins, its unit
+    **{("conformal", option, label): {"normaliser", "use_error_model", "binning", "n_bins", "calibration_unit"}
+       for option in group_options("conformal") for label in ("fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop")},
+    ("field", "recordings", "field"): {"mics_csv", "events_csv"},  # the shipped LOCA 2021 example; a user's own files have no default
+}
+
+
+def _same(a, b) -> bool:
+    """Equal plugin settings: numbers, strings, sequences and mappings compared by value, arrays elementwise."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple, np.ndarray)) and isinstance(b, (list, tuple, np.ndarray)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if hasattr(a, "__dict__") and type(a) is type(b) and not isinstance(a, type):
+        return _same(vars(a), vars(b))
+    return a == b or (isinstance(a, float) and isinstance(b, float) and np.isnan(a) and np.isnan(b))
+
+
+def _plugin_nodes(cfg, group):
+    """(label, node) of every project plugin the option configures (feature groups one by one)."""
+    node = cfg[group]
+    nodes = node.groups.items() if group == "features" else node.scorers.items() if group == "conformal" else [(group, node)]
+    return [(label, n) for label, n in nodes if n is not None and str(n.get("_target_", "")).startswith("plugins.")]
+
+
+@pytest.mark.parametrize("group,option", OPTIONS)
+def test_python_defaults_equal_the_yaml_defaults(compose_cfg, group, option):
+    """A plugin built in a notebook with no arguments behaves as the command line's option: every setting the YAML
+    states that is not wired to the run (``${seed}``, ``${threads:}``, the site's or the shared GCC's values) equals the
+    Python default, compared on the built objects (nested defaults included)."""
+    import importlib
+    import inspect
+
+    from hydra.utils import instantiate
+
+    cfg = compose_cfg(["+site=frozen_lake", f"{group}={option}", "paths.outputs_dir=/tmp/acoustlab-contract"])
+    for label, node in _plugin_nodes(cfg, group):
+        module, name = str(node._target_).rsplit(".", 1)
+        cls = getattr(importlib.import_module(module), name)
+        params = inspect.signature(cls).parameters
+        raw = OmegaConf.to_container(node, resolve=False)
+        wired = {k for k, v in raw.items() if isinstance(v, str) and "${" in v} | YAML_VARIANTS.get((group, option, label), set())
+        needed = {k for k in raw if k != "_target_" and (k in wired or (k in params and params[k].default is inspect.Parameter.empty))}
+        from_yaml = instantiate(node, _convert_="all")
+        resolved = OmegaConf.to_container(node, resolve=True)
+        from_python = instantiate({"_target_": resolved["_target_"], **{k: resolved[k] for k in needed}}, _convert_="all")
+        differing = [k for k in vars(from_yaml) if not _same(vars(from_yaml)[k], vars(from_python).get(k))]
+        assert not differing, (f"conf/{group}/{option}.yaml ({label}, {node._target_}) differs from the Python defaults in "
+                               + ", ".join(f"{k}: YAML {vars(from_yaml)[k]!r} vs Python {vars(from_python).get(k)!r}" for k in differing))

@@ -194,6 +194,52 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
     return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source)
 
 
+@dataclass
+class RunData:
+    """A run's data, ready for its protocol: the simulated dataset and the field recordings (or None), each
+    with the solver's columns under the plausible-region bound (``pipeline.plausible_margin_fraction``)."""
+
+    dataset: Any
+    field_data: Any = None
+
+
+def prepare_data(cfg: DictConfig, built: BuiltRun | None = None) -> RunData | None:
+    """The one path from a config to a run's data: simulate (or load from the cache), features, solver columns, bound.
+
+    The app, the protocols' tests and the benchmarks all call this, so a benchmark measures the data
+    a real run gets (the same plausible-region bound, the same field preparation).
+
+    Parameters
+    ----------
+    cfg : omegaconf.DictConfig
+        The composed config.
+    built : BuiltRun, optional
+        The checked plugins (:func:`build_run`); built from ``cfg`` when not given.
+
+    Returns
+    -------
+    RunData or None
+        None for a sharded simulation run (``data.shard_count > 1``) that filled its shard of the cache.
+    """
+    built = built if built is not None else build_run(cfg)
+    dataset = load_or_build_simulated(built.site, built.simulator, to_plain(cfg.simulator), built.feature_sets,
+                                      to_plain(cfg.features.groups), built.plan, built.cache)
+    if dataset is None:
+        return None
+    dataset.features = solver_features(cfg, dataset.features, dataset.events, built.site, built.components.solver)
+    field_data = None
+    if built.field_source is not None:
+        field_data = load_or_build_field(built.site, built.field_source, to_plain(cfg.field), built.feature_sets,
+                                         to_plain(cfg.features.groups), built.cache)
+        field_data.features = solver_features(cfg, field_data.features, field_data.events, built.site, built.components.solver)
+    return RunData(dataset, field_data)
+
+
+def solver_features(cfg: DictConfig, features: pd.DataFrame, events: pd.DataFrame, site: Any, solver: Any) -> pd.DataFrame:
+    """``features`` with ``solver``'s columns appended under the run's plausible-region bound (to compare solvers on one dataset)."""
+    return add_solver_columns(features, events, site, solver, cfg.pipeline.plausible_margin_fraction)
+
+
 def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None,
                    run_name: str | None = None) -> dict:
     """Run one job: build plugins, get the (cached) dataset, run the protocol, write and log results.
@@ -221,24 +267,15 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     choices = {g: str(v) for g, v in (choices or {}).items() if g in (*PLUGIN_GROUPS, "site", "experiment") and v is not None}
 
     built = build_run(cfg, choices)
-    site, simulator, feature_sets, components, protocol, tracker, cache, plan = (
-        built.site, built.simulator, built.feature_sets, built.components, built.protocol, built.tracker, built.cache, built.plan)
+    site, components, protocol, tracker, plan = built.site, built.components, built.protocol, built.tracker, built.plan
     timings: dict[str, float] = {"preflight_s": time.perf_counter() - started}
     stage_start = time.perf_counter()
-    dataset = load_or_build_simulated(
-        site, simulator, to_plain(cfg.simulator), feature_sets, to_plain(cfg.features.groups), plan, cache
-    )
-    if dataset is None:
+    data = prepare_data(cfg, built)
+    if data is None:
         log.info("sharded simulation run: shard %d of %d is in the cache; run without data.shard_count to finish",
                  plan.shard_index + 1, plan.shard_count)
         return {"shard": {"index": plan.shard_index, "count": plan.shard_count}}
-    bound = cfg.pipeline.plausible_margin_fraction
-    dataset.features = add_solver_columns(dataset.features, dataset.events, site, components.solver, bound)
-    field_data = None
-    if built.field_source is not None:
-        field_source = built.field_source
-        field_data = load_or_build_field(site, field_source, to_plain(cfg.field), feature_sets, to_plain(cfg.features.groups), cache)
-        field_data.features = add_solver_columns(field_data.features, field_data.events, site, components.solver, bound)
+    dataset, field_data = data.dataset, data.field_data
     timings["data_s"] = time.perf_counter() - stage_start
     stage_start = time.perf_counter()
     result = protocol.run(dataset, LocalizationPipeline(components), field_recordings=field_data)

@@ -40,7 +40,7 @@ class _GccGroup:
     """
 
     cache_version = "1"
-    DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "phat", "beta": 0.8, "upsample": 4, "band_hz": (300.0, 10000.0)}
+    DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "beta_phat", "beta": 0.8, "upsample": 2, "band_hz": (300.0, 10000.0)}
 
     def __init__(self, gcc: Mapping[str, Any] | None = None, **settings: Any) -> None:
         unknown = sorted((set(gcc or {}) | set(settings)) - set(self.DEFAULTS))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import pandas as pd
 
@@ -36,7 +38,7 @@ class GccPhatTdoa:
     group = "tdoa"
     cache_version = "1"
 
-    def __init__(self, max_lag_margin_s: float = 0.002, band_hz: list[float] | None = None, upsample: int = 4) -> None:
+    def __init__(self, max_lag_margin_s: float = 0.002, band_hz: Sequence[float] | None = (300.0, 10000.0), upsample: int = 4) -> None:
         if max_lag_margin_s < 0:
             raise ConfigError(f"features tdoa.max_lag_margin_s must be >= 0; got {max_lag_margin_s}")
         self.max_lag_margin_s = float(max_lag_margin_s)

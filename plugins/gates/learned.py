@@ -81,7 +81,7 @@ class LearnedGate:
         Settings of the gradient-boosted classifier.
     stakes_cap_m : float or None
         Weight each training event by what the choice costs there, ``|solver error − model error|``
-        capped at this many metres (None: every event weighs the same). Most events differ by
+        capped at this many metres (default 20 m, as ``conf/gate/learned.yaml``; None: every event weighs the same). Most events differ by
         centimetres either way; the events where a wrong choice costs metres are the ones that
         set the gated p95 and p99.
     min_auc : float
@@ -104,7 +104,7 @@ class LearnedGate:
     required_feature_groups: tuple[str, ...] = ()
 
     def __init__(self, margin_fraction: float = 0.25, p50_tolerance: float = 0.05, n_folds: int = 5, max_iter: int = 200,
-                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, stakes_cap_m: float | None = None, min_auc: float = 0.6,
+                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, stakes_cap_m: float | None = 20.0, min_auc: float = 0.6,
                  min_class_events: int = 10, seed: int = 0, n_threads: int = 1) -> None:
         if n_folds < 2:
             raise ConfigError(f"gate.n_folds must be >= 2; got {n_folds}")

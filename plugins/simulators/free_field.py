@@ -55,6 +55,14 @@ def synthetic_chirp(
     return sweep * ss.windows.tukey(t.size, alpha=0.2)
 
 
+#: The synthetic call pool: two linear FM sweeps and a logarithmic whistle (ranges sampled per event).
+DEFAULT_CALLS = (
+    {"name": "up_sweep", "method": "linear", "f_start_hz": (1500.0, 3000.0), "f_end_hz": (4000.0, 6500.0), "duration_s": (0.08, 0.3)},
+    {"name": "down_sweep", "method": "linear", "f_start_hz": (4000.0, 6500.0), "f_end_hz": (1500.0, 3000.0), "duration_s": (0.08, 0.3)},
+    {"name": "log_whistle", "method": "logarithmic", "f_start_hz": (2000.0, 3000.0), "f_end_hz": (3500.0, 5000.0), "duration_s": (0.15, 0.35)},
+)
+
+
 class FreeFieldSimulator:
     """Direct-path simulator with synthetic FM-chirp calls.
 
@@ -68,7 +76,8 @@ class FreeFieldSimulator:
         (low, high) emission time of the call within the recording, in s.
     calls : sequence of mapping
         The call pool. Each entry: ``name``, ``method`` (scipy chirp method), and [low, high]
-        ranges ``f_start_hz``, ``f_end_hz``, ``duration_s`` sampled per event.
+        ranges ``f_start_hz``, ``f_end_hz``, ``duration_s`` sampled per event (default
+        :data:`DEFAULT_CALLS`, as ``conf/simulator/free_field.yaml``).
     """
 
     cache_version = "1"
@@ -78,7 +87,7 @@ class FreeFieldSimulator:
         sample_rate_hz: float = 16000.0,
         duration_s: float = 1.0,
         onset_s: Sequence[float] = (0.02, 0.08),
-        calls: Sequence[Mapping[str, Any]] = (),
+        calls: Sequence[Mapping[str, Any]] = DEFAULT_CALLS,
     ) -> None:
         self.sample_rate_hz = float(sample_rate_hz)
         self.duration_s = float(duration_s)
