@@ -302,3 +302,60 @@ def test_gross_error_auc_ranks_failures_as_gross():
     p["predicted_error_m"] = [7.0, 5.0, 4.0, 0.3, 0.2, 0.1]
     assert gross_error_auc(p)["error_model"] == 0.0
     assert gross_error_auc(p.iloc[:3])["error_model"] is None  # no gross event
+
+
+def _received_run(tmp_path: Path) -> Path:
+    """A run folder as someone else could send it: its own outputs_dir, a symlink to a file of ours in plots/ and as positions.csv."""
+    import yaml
+
+    run_dir = tmp_path / "received"
+    (run_dir / "plots").mkdir(parents=True)
+    secret = tmp_path / "secret.txt"
+    secret.write_text("the uploader's private file")
+    (run_dir / "config_resolved.yaml").write_text(yaml.safe_dump({"paths": {"outputs_dir": str(tmp_path / "their_outputs")}}))
+    (run_dir / "metrics.json").write_text(json.dumps({"site": "forest", "dataset_hash": "abc", "code_version": "x",
+                                                      "localization": {"n_detections": 3}}))
+    (run_dir / "plots" / "site_map.png").write_bytes(b"png")
+    (run_dir / "plots" / "leak.png").symlink_to(secret)
+    (run_dir / "positions.csv").symlink_to(secret)
+    return run_dir
+
+
+def test_upload_sends_only_regular_files_inside_the_folder_to_the_uploaders_store(tmp_path, caplog):
+    run_dir = _received_run(tmp_path)
+    caplog.set_level(logging.WARNING)
+    assert upload.main([str(run_dir), "--store-dir", str(tmp_path / "mine")]) == 0
+    assert not (tmp_path / "their_outputs").exists()  # the folder does not choose where the store goes
+    (run,) = runs_in(tmp_path / "mine" / "mlflow.db")
+    stored = {p.relative_to(tmp_path / "mine" / "mlartifacts").as_posix().split("/artifacts/", 1)[-1]
+              for p in (tmp_path / "mine" / "mlartifacts").rglob("*") if p.is_file()}
+    assert {"metrics.json", "config_resolved.yaml", "plots/site_map.png"} <= stored
+    assert "positions.csv" not in stored and "plots/leak.png" not in stored
+    assert not any("private" in p.read_text(errors="ignore") for p in (tmp_path / "mine" / "mlartifacts").rglob("*") if p.is_file())
+    assert sum("not a regular file inside" in r.message for r in caplog.records) == 2
+
+
+@pytest.mark.parametrize("content", ["{not json", "[1, 2]", '{"site": "forest"}'])
+def test_a_malformed_received_metrics_json_is_refused_in_one_line(tmp_path, capsys, caplog, content):
+    run_dir = _received_run(tmp_path)
+    (run_dir / "metrics.json").write_text(content)
+    assert upload.main([str(run_dir), "--store-dir", str(tmp_path / "mine")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(run_dir / "metrics.json") in err
+    from acoustlab.reporting.report import main as report_main
+
+    caplog.set_level(logging.WARNING)
+    assert report_main([str(run_dir)]) == 2  # nothing left to report, and no traceback
+    unreadable = content != '{"site": "forest"}'  # the last is readable, only not a finished evaluation
+    assert unreadable == any("left out of the report" in r.message and "metrics.json" in r.message for r in caplog.records)
+
+
+def test_result_files_are_readable_by_the_group_as_a_plain_open_would_make_them(tmp_path):
+    import os
+
+    from acoustlab.stages.cache import atomic_write_bytes
+
+    atomic_write_bytes(tmp_path / "metrics.json", b"{}")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "metrics.json").stat().st_mode & 0o777 == 0o666 & ~umask

@@ -18,6 +18,7 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from acoustlab.core.errors import DataError
 from acoustlab.reporting.metrics import coverage_table, error_table, flat_metrics
 
 log = logging.getLogger(__name__)
@@ -26,6 +27,56 @@ log = logging.getLogger(__name__)
 PENDING_FILE = "TRACKING_PENDING.json"
 #: Files of a run directory uploaded as artifacts (when present), plus the ``plots`` directory.
 RUN_ARTIFACTS = ("metrics.json", "predictions.parquet", "config_resolved.yaml")
+
+
+#: metrics.json keys a run always writes and the tracker tags a run with.
+REQUIRED_METRICS_KEYS = ("site", "dataset_hash", "code_version")
+
+
+def read_metrics(run_dir: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A run directory's ``metrics.json``, checked: a JSON object with ``required`` keys as strings.
+
+    Raises
+    ------
+    DataError
+        One line naming the file and what is wrong (unreadable, not JSON, not an object, a key missing),
+        for a folder received from someone else as much as for a damaged one.
+    """
+    path = Path(run_dir) / "metrics.json"
+    try:
+        metrics = json.loads(path.read_text())
+    except OSError as exc:
+        raise DataError(f"{path} cannot be read ({exc.strerror or exc})") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path} is not valid JSON ({exc}); expected the metrics.json an acoustlab run writes") from None
+    if not isinstance(metrics, dict):
+        raise DataError(f"{path} holds a JSON {type(metrics).__name__}; expected an object of metrics")
+    missing = [k for k in required if not isinstance(metrics.get(k), str)]
+    if missing:
+        raise DataError(f"{path} lacks {', '.join(missing)} (or they are not strings); expected the metrics.json an acoustlab run writes")
+    return metrics
+
+
+def artifact_paths(run_dir: Path) -> list[Path]:
+    """The run's artifacts to upload: regular files inside ``run_dir`` only.
+
+    A symbolic link (in a folder received from someone else it could point at any file of the
+    uploading machine) and anything that resolves outside the folder are left out with a warning;
+    a directory (``plots``) is listed file by file.
+    """
+    root = Path(run_dir).resolve()
+    out: list[Path] = []
+    for name in (*RUN_ARTIFACTS, "positions.csv", "plots"):
+        path = Path(run_dir) / name
+        candidates = sorted(path.rglob("*")) if path.is_dir() and not path.is_symlink() else [path]
+        for item in candidates:
+            if not (item.exists() or item.is_symlink()) or (item.is_dir() and not item.is_symlink()):
+                continue
+            if item.is_symlink() or not item.is_file() or not item.resolve().is_relative_to(root):
+                log.warning("%s is not a regular file inside %s; not uploaded", item, run_dir)
+                continue
+            out.append(item)
+    return out
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -70,7 +121,11 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
         upload the directory later and ``TRACKING_PENDING.json`` marks it).
     """
     run_dir = Path(run_dir)
-    metrics = json.loads((run_dir / "metrics.json").read_text())
+    try:
+        metrics = read_metrics(run_dir, REQUIRED_METRICS_KEYS)
+    except DataError as exc:
+        log.warning("not sent to the tracker: %s", exc)
+        return False
     choices = metrics.get("choices", {})
     run_name = metrics.get("run_name") or f"{metrics['site']}-{choices.get('model', 'model')}"
     tags = {"dataset_hash": metrics["dataset_hash"], "code_version": metrics["code_version"], "site": metrics["site"],
@@ -93,9 +148,8 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
             tracker.log_table(pd.DataFrame(tau_grid), "tables/tau_grid.json")
         if "risk_coverage" in metrics:
             tracker.log_table(pd.DataFrame(metrics["risk_coverage"]), "tables/risk_coverage.json")
-        for name in (*RUN_ARTIFACTS, "positions.csv", "plots"):
-            if (run_dir / name).exists():
-                tracker.log_artifact(str(run_dir / name))
+        for path in artifact_paths(run_dir):
+            tracker.log_artifact(str(path), str(path.parent.relative_to(run_dir)) if path.parent != run_dir else None)
         tracker.finish("FINISHED")
     except Exception as exc:  # noqa: BLE001 - never lose a finished run to a tracking problem
         destination = getattr(tracker, "destination", None)

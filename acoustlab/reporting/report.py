@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import base64
 import html
-import json
 import logging
 import shutil
 import sys
@@ -27,6 +26,8 @@ import pandas as pd
 import yaml
 
 from acoustlab.core import columns as col
+from acoustlab.core.errors import DataError
+from acoustlab.reporting.experiment_log import read_metrics
 from acoustlab.reporting.metrics import GROSS_ERROR_M, gate_scalars, share_gross
 
 log = logging.getLogger(__name__)
@@ -94,8 +95,12 @@ def collect_runs(paths: list[Path]) -> list[RunResult]:
         dirs += [d for d in found if d not in dirs]
     runs = []
     for d in dirs:
-        metrics = json.loads((d / "metrics.json").read_text())
-        if "errors" in metrics:  # shard-only jobs have no results
+        try:
+            metrics = read_metrics(d)
+        except DataError as exc:  # a damaged or foreign folder: left out, named, never a traceback
+            log.warning("left out of the report: %s", exc)
+            continue
+        if isinstance(metrics.get("errors"), dict):  # shard-only jobs have no results
             runs.append(RunResult(d, metrics, _overrides(d)))
     keys = sorted({k for r in runs for k in r.overrides})
     varying = [k for k in keys if len({r.overrides.get(k) for r in runs}) > 1]

@@ -6,8 +6,11 @@ A received run folder supplies data only. The tracker is always the uploader's o
 its interpolations (``${oc.env:…}``) is resolved. From the folder only plain strings are taken: the
 MLflow experiment name, and the tracking URI it was meant for, which is used only where it is a
 local SQLite store or matches ``--tracking-uri``; otherwise ``--tracking-uri`` must say where to
-send it (default: the local store ``outputs/mlflow.db``). A folder that was uploaded remembers its
-MLflow run id (``TRACKED.json``) and is skipped the next time.
+send it (default: the uploader's local store ``<--store-dir>/mlflow.db``, ``outputs/mlflow.db``;
+the folder's own ``paths.outputs_dir`` is never used). Only regular files inside the folder are
+uploaded (a symbolic link could point anywhere on the uploading machine), and a malformed
+``metrics.json`` is refused in one line. A folder that was uploaded remembers its MLflow run id
+(``TRACKED.json``) and is skipped the next time.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from omegaconf import OmegaConf
 
 from acoustlab.core.contracts import declared
 from acoustlab.core.errors import AcoustlabError, ConfigError
-from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
+from acoustlab.reporting.experiment_log import PENDING_FILE, REQUIRED_METRICS_KEYS, log_run_dir, read_metrics
 from acoustlab.run.registry import CONF_DIR, build
 
 log = logging.getLogger(__name__)
@@ -39,7 +42,7 @@ def _plain_string(value: Any) -> str | None:
     return value if isinstance(value, str) and "${" not in value else None
 
 
-def tracker_for(run_dir: Path, tracking_uri: str | None, experiment: str | None) -> Any:
+def tracker_for(run_dir: Path, tracking_uri: str | None, experiment: str | None, store_dir: str = "outputs") -> Any:
     """The uploader's MLflow tracker for ``run_dir``, with only plain strings taken from the folder (module docstring)."""
     config_file = run_dir / "config_resolved.yaml"
     if not config_file.exists():
@@ -50,8 +53,7 @@ def tracker_for(run_dir: Path, tracking_uri: str | None, experiment: str | None)
         raise ConfigError(f"{config_file} is not readable YAML: {exc}") from exc
     tracking = received.get("tracking") if isinstance(received.get("tracking"), dict) else {}
     node = OmegaConf.load(CONF_DIR / "tracking" / f"{DEFAULT_TRACKING_OPTION}.yaml")
-    paths = received.get("paths") if isinstance(received.get("paths"), dict) else {}
-    node.store_dir = _plain_string(paths.get("outputs_dir")) or "outputs"
+    node.store_dir = store_dir  # the uploader's, never the received folder's paths.outputs_dir
     node.tracking_uri = tracking_uri
     if tracking_uri is None:
         meant_for = _plain_string(tracking.get("tracking_uri"))
@@ -67,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run_dirs", nargs="+", type=Path, help="run directories (holding metrics.json), or folders searched for them")
     parser.add_argument("--tracking-uri", help="MLflow tracking URI; default: the local store <outputs_dir>/mlflow.db")
     parser.add_argument("--experiment", help="MLflow experiment name; default: the run's own")
+    parser.add_argument("--store-dir", default="outputs", help="folder of the local MLflow store (mlflow.db, artifacts) when no --tracking-uri is given; default: outputs")
     parser.add_argument("--only-pending", action="store_true", help=f"upload only runs marked with {PENDING_FILE}")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -83,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     failed = 0
     for run_dir in run_dirs:
         try:
-            tracker = tracker_for(run_dir, args.tracking_uri, args.experiment)
+            read_metrics(run_dir, REQUIRED_METRICS_KEYS)
+            tracker = tracker_for(run_dir, args.tracking_uri, args.experiment, args.store_dir)
         except AcoustlabError as exc:
             print(f"acoustlab.upload: error: {exc}", file=sys.stderr)
             return 2

@@ -111,8 +111,23 @@ def _existing_parent(path: Path) -> Path:
     return path
 
 
+def _default_file_mode() -> int:
+    """The mode a plain ``open()`` would give a new file: 0666 less the process's umask (0644 under the usual 022)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+#: Read once at import (reading the umask briefly sets it, which is not safe while other threads create files).
+NEW_FILE_MODE = _default_file_mode()
+
+
 def _atomic_write(path: Path, write: Callable[[Any], None]) -> None:
-    """Run ``write(handle)`` into a temporary file beside ``path`` and rename it into place; a failed write leaves no file."""
+    """Run ``write(handle)`` into a temporary file beside ``path`` and rename it into place; a failed write leaves no file.
+
+    The file gets the mode a plain ``open()`` would give it (``tempfile.mkstemp`` makes 0600, which
+    would hide results from the rest of a group sharing a project folder).
+    """
     path = Path(path)
     tmp = None
     try:
@@ -120,6 +135,7 @@ def _atomic_write(path: Path, write: Callable[[Any], None]) -> None:
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
         with os.fdopen(fd, "wb") as fh:
             write(fh)
+        os.chmod(tmp, NEW_FILE_MODE)
         os.replace(tmp, path)
     except OSError as exc:
         if tmp is not None:

@@ -106,14 +106,11 @@ class MlflowTracker:
 
         mlflow.log_table(data=table, artifact_file=artifact_file)
 
-    def log_artifact(self, path: str) -> None:
-        """Upload a file or directory as an artifact."""
+    def log_artifact(self, path: str, artifact_path: str | None = None) -> None:
+        """Upload one file as an artifact, under ``artifact_path`` (None: the artifacts' root)."""
         import mlflow
 
-        if Path(path).is_dir():
-            mlflow.log_artifacts(path, artifact_path=Path(path).name)
-        else:
-            mlflow.log_artifact(path)
+        mlflow.log_artifact(path, artifact_path=artifact_path)
 
     def finish(self, status: str = "FINISHED") -> None:
         """Close the run with ``status`` (FINISHED or FAILED)."""

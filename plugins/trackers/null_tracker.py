@@ -24,7 +24,7 @@ class NullTracker:
     def log_table(self, table: pd.DataFrame, artifact_file: str) -> None:
         """Do nothing."""
 
-    def log_artifact(self, path: str) -> None:
+    def log_artifact(self, path: str, artifact_path: str | None = None) -> None:
         """Do nothing."""
 
     def finish(self, status: str = "FINISHED") -> None:
