@@ -14,7 +14,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from acoustlab.core.errors import AcoustlabError
-from acoustlab.run.preflight import check_argv
+from acoustlab.run.preflight import check_argv, check_output_dirs
 
 log = logging.getLogger("acoustlab")
 
@@ -85,6 +85,7 @@ def main() -> None:
         sys.exit((report.main if command == "report" else upload.main)(sys.argv[2:]))
     try:
         check_argv(sys.argv[1:])
+        check_output_dirs(sys.argv[1:])
     except AcoustlabError as exc:
         _fail(exc)
     _hydra_main()

@@ -1,5 +1,7 @@
 """Every config composes; every YAML of every plugin group instantiates and meets its contract."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
@@ -293,3 +295,40 @@ def test_python_defaults_equal_the_yaml_defaults(compose_cfg, group, option):
         differing = [k for k in vars(from_yaml) if not _same(vars(from_yaml)[k], vars(from_python).get(k))]
         assert not differing, (f"conf/{group}/{option}.yaml ({label}, {node._target_}) differs from the Python defaults in "
                                + ", ".join(f"{k}: YAML {vars(from_yaml)[k]!r} vs Python {vars(from_python).get(k)!r}" for k in differing))
+
+
+@pytest.mark.parametrize("override,message", [
+    ("pipeline.selective.delta=1.5", "pipeline.selective.delta must lie in (0, 1); got 1.5"),
+    ("pipeline.selective.epsilon=0", "pipeline.selective.epsilon must lie in (0, 1); got 0.0"),
+    ("pipeline.selective.gross_m=-1", "pipeline.selective.gross_m must be a positive number"),
+    ("pipeline.selective.delta=0.0001", "need at least 23025 calibration events to certify anything, but data.n_events=120"),
+])
+def test_impossible_selective_settings_stop_in_the_preflight(compose_cfg, override, message):
+    from acoustlab.core.errors import ConfigError
+    from acoustlab.run.app import build_run
+
+    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", "pipeline.selective.enabled=true", override])
+    with pytest.raises(ConfigError) as caught:
+        build_run(cfg)
+    assert message in str(caught.value)
+
+
+def test_an_unwritable_outputs_dir_is_named_before_hydra_starts(tmp_path, monkeypatch):
+    import os
+
+    from acoustlab.core.errors import ConfigError
+    from acoustlab.run import preflight
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(preflight.os, "access", lambda p, mode: False if Path(p) == locked else real_access(p, mode))
+    with pytest.raises(ConfigError, match=r"paths.outputs_dir=.*locked/outputs: its parent .*locked is not writable"):
+        preflight.check_output_dirs(["+site=forest", f"paths.outputs_dir={locked / 'outputs'}"])
+    with pytest.raises(ConfigError, match=r"hydra.run.dir=.*: it is not writable"):
+        preflight.check_output_dirs(["+site=forest", f"paths.outputs_dir={tmp_path}", f"hydra.run.dir={locked}"])
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(ConfigError, match="is a file, not a folder"):
+        preflight.check_output_dirs([f"paths.outputs_dir={tmp_path / 'a_file' / 'x'}"])
+    preflight.check_output_dirs([f"paths.outputs_dir={tmp_path / 'new' / 'deeper'}"])  # creatable: fine
+    preflight.check_output_dirs(["--help", f"paths.outputs_dir={locked}"])  # inspecting writes nothing

@@ -225,3 +225,22 @@ def test_a_model_with_its_own_row_limit_fits_on_whole_positions_within_it(limit)
             assert all((groups[train] == g).sum() == (groups[rows] == g).sum() for g in kept)  # never part of a position
     assert runs[0][1] == runs[1][1]  # the same rows from the same seed
     pd.testing.assert_frame_equal(runs[0][0], runs[1][0])
+
+
+def test_a_neighbours_model_is_clipped_to_the_rows_it_is_fitted_on(caplog):
+    """model=knn (n_neighbors=10) on a calibration fold with 6 rows: clipped with a warning, not a scikit-learn traceback."""
+    import logging
+
+    from sklearn.neighbors import KNeighborsRegressor
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    from acoustlab.method.pipeline import clone_for_rows
+
+    configured = make_pipeline(StandardScaler(), KNeighborsRegressor(n_neighbors=10))
+    caplog.set_level(logging.WARNING)
+    model = clone_for_rows(configured, 6).fit(np.arange(12.0).reshape(6, 2), np.arange(6.0))
+    assert model.predict(np.zeros((3, 2))).shape == (3,)
+    assert configured.get_params()["kneighborsregressor__n_neighbors"] == 10  # the configured model is untouched
+    assert any("kneighborsregressor__n_neighbors=10 > 6 training rows" in r.message for r in caplog.records)
+    assert clone_for_rows(configured, 50).get_params()["kneighborsregressor__n_neighbors"] == 10

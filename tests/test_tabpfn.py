@@ -94,3 +94,28 @@ def test_real_weights_learn_a_simple_function():
     x, y = data(n=300)
     model = TabPFNPointModel(n_estimators=2).fit(x[:250], y[:250])
     assert np.corrcoef(model.predict(x[250:]), y[250:])[0, 1] > 0.8
+
+
+class _Payload:
+    """An object a pickle would rebuild by running code: what a hostile checkpoint carries."""
+
+    def __reduce__(self):
+        return (print, ("code ran while loading",))
+
+
+def test_a_checkpoint_holding_code_is_refused_before_tabpfn_loads_it(tmp_path, capsys):
+    hostile = tmp_path / "hostile.ckpt"
+    torch.save({"state_dict": {}, "config": _Payload()}, hostile)
+    with pytest.raises(ConfigError, match=r"model.model_path: .*hostile.ckpt cannot be loaded as weights only"):
+        TabPFNPointModel(model_path=str(hostile)).preflight()
+    assert "code ran" not in capsys.readouterr().out
+
+
+def test_a_checkpoint_checksum_is_verified(tiny_checkpoint):
+    import hashlib
+    from pathlib import Path
+
+    digest = hashlib.sha256(Path(tiny_checkpoint).read_bytes()).hexdigest()
+    TabPFNPointModel(model_path=tiny_checkpoint, checkpoint_sha256=digest).preflight()  # the real architecture loads as weights only
+    with pytest.raises(ConfigError, match="error_model.checkpoint_sha256: .* expected 00"):
+        TabPFNErrorModel(model_path=tiny_checkpoint, checkpoint_sha256="00" * 32).preflight()

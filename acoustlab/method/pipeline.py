@@ -128,6 +128,24 @@ def positions_needed(level: float) -> int:
     return int(np.ceil(1 / (1 - level) - 1e-9)) - 1
 
 
+def clone_for_rows(estimator: Any, n_rows: int) -> Any:
+    """A fresh clone of a scikit-learn estimator that can be fitted on ``n_rows`` rows.
+
+    A neighbours model asks for more neighbours than there are rows (``n_neighbors=10`` on a
+    small run or a calibration fold) and scikit-learn stops with a traceback at prediction; the
+    clone's ``n_neighbors`` (found through ``get_params``, the estimator contract, also inside a
+    ``Pipeline``) is clipped to the rows, with a warning.
+    """
+    fresh = clone(estimator)
+    too_many = {k: v for k, v in fresh.get_params(deep=True).items()
+                if k.split("__")[-1] == "n_neighbors" and isinstance(v, int) and v > n_rows}
+    if too_many and n_rows >= 1:
+        log.warning("%s: %s > %d training rows; clipped to %d", type(estimator).__name__,
+                    ", ".join(f"{k}={v}" for k, v in too_many.items()), n_rows, n_rows)
+        fresh.set_params(**{k: n_rows for k in too_many})
+    return fresh
+
+
 def error_2d_m(estimate_m: np.ndarray, truth_m: np.ndarray) -> np.ndarray:
     """Euclidean 2-D error in m (inf where the estimate is not finite)."""
     err = np.sqrt(((np.asarray(estimate_m) - np.asarray(truth_m)[:, :2]) ** 2).sum(axis=1))
@@ -262,8 +280,8 @@ class LocalizationPipeline:
     def _fit_point(self, x: pd.DataFrame, truth: np.ndarray, solver_xy: np.ndarray, groups: np.ndarray) -> tuple[Any, Any]:
         keep = self._within_limit(groups, self.c.point_model)
         target = truth[keep, :2] - self._offset(solver_xy[keep])
-        mx = clone(self.c.point_model).fit(x.iloc[keep], target[:, 0])
-        my = clone(self.c.point_model).fit(x.iloc[keep], target[:, 1])
+        mx = clone_for_rows(self.c.point_model, keep.size).fit(x.iloc[keep], target[:, 0])
+        my = clone_for_rows(self.c.point_model, keep.size).fit(x.iloc[keep], target[:, 1])
         return mx, my
 
     def _predict_point(self, models: tuple[Any, Any], x: pd.DataFrame, solver_xy: np.ndarray) -> np.ndarray:
@@ -427,7 +445,7 @@ class LocalizationPipeline:
     def _fit_error_models(self, s: SplitData, cal: CalibrationErrors, t: TestEstimates) -> ErrorPredictions:
         """The error model (out-of-fold for calibration, then on every training row) and the conformal scorers."""
         log.info("error model, out-of-fold (%d folds)", len(s.folds))
-        oof_pred = np.maximum(self._out_of_fold_errors(s, cal, lambda x, y, held: clone(self.c.error_model).fit(x, y).predict(held),
+        oof_pred = np.maximum(self._out_of_fold_errors(s, cal, lambda x, y, held: clone_for_rows(self.c.error_model, len(x)).fit(x, y).predict(held),
                                                        self.c.error_model, desc="error model, out-of-fold"), cal.floor)
         rows, levels = cal.rows, self.c.levels
         positions = s.groups[s.train][rows]  # a scorer may calibrate over positions rather than events
@@ -444,7 +462,7 @@ class LocalizationPipeline:
             else:
                 scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, groups=positions)
         fit_rows = self._error_fit_rows(s, cal, np.arange(s.train.size), self.c.error_model)
-        error_model = clone(self.c.error_model).fit(cal.x_error.iloc[fit_rows], cal.error[fit_rows])
+        error_model = clone_for_rows(self.c.error_model, fit_rows.size).fit(cal.x_error.iloc[fit_rows], cal.error[fit_rows])
         return ErrorPredictions(oof_pred, np.maximum(error_model.predict(t.x_error), cal.floor), scorers, test_quantiles)
 
     def _predictions_table(self, s: SplitData, t: TestEstimates, predicted: np.ndarray) -> pd.DataFrame:

@@ -127,6 +127,28 @@ def check_dropped_groups(feature_sets: dict[str, Any], **drops: list[str]) -> No
             raise ConfigError(f"{name} names feature groups {unknown} that the features= option does not have; available: {', '.join(sorted(available))}")
 
 
+def check_selective(selective: DictConfig, n_events: int) -> None:
+    """``pipeline.selective`` settings a run can use, checked before anything is simulated.
+
+    Raises
+    ------
+    ConfigError
+        For ``gross_m`` not a positive number, ``delta`` or ``epsilon`` outside (0, 1), or (when
+        enabled) a certificate that needs more calibration events than the run simulates
+        (n ≥ log ε / log(1 − δ); see :func:`acoustlab.toolkit.conformal.selective_threshold`).
+    """
+    gross_m, delta, epsilon = float(selective.gross_m), float(selective.delta), float(selective.epsilon)
+    if not (np.isfinite(gross_m) and gross_m > 0):
+        raise ConfigError(f"pipeline.selective.gross_m must be a positive number of metres; got {gross_m}")
+    for name, value in (("delta", delta), ("epsilon", epsilon)):
+        if not 0 < value < 1:
+            raise ConfigError(f"pipeline.selective.{name} must lie in (0, 1); got {value}")
+    needed = int(np.ceil(np.log(epsilon) / np.log1p(-delta)))
+    if selective.enabled and needed > n_events:
+        raise ConfigError(f"pipeline.selective: delta={delta:g}, epsilon={epsilon:g} need at least {needed} calibration events "
+                          f"to certify anything, but data.n_events={n_events}; raise data.n_events or delta")
+
+
 def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRun:
     """Build and check every plugin of a config without running anything expensive (the preflight).
 
@@ -137,6 +159,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
     (:mod:`acoustlab.run.schema`).
     """
     require_site(cfg)
+    check_selective(cfg.pipeline.selective, int(cfg.data.n_events))
     site = site_from_config(cfg.site)
     simulator = build(cfg.simulator, "simulator")
     simulator.validate(site)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import typing
 from pathlib import Path
 from typing import Any
@@ -85,3 +86,36 @@ def check_argv(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
             "no site chosen: pass one with +site=NAME (available: "
             f"{', '.join(group_options('site', conf_dir))}), e.g. python -m acoustlab +site=frozen_lake"
         )
+
+
+#: Command-line keys naming folders a run writes into, and the default of the first.
+OUTPUT_DIR_KEYS = ("paths.outputs_dir", "hydra.run.dir", "hydra.sweep.dir", "cache.dir")
+DEFAULT_OUTPUTS_DIR = "outputs"
+
+
+def check_output_dirs(argv: list[str]) -> None:
+    """Every folder a run will write into is writable (or can be created), before Hydra makes the run directory.
+
+    Raises
+    ------
+    ConfigError
+        Naming the setting and the folder that cannot be written, instead of Hydra's traceback
+        from inside its run-directory set-up.
+    """
+    if any(a in INSPECT_FLAGS or a.split("=")[0] in INSPECT_FLAGS for a in argv):
+        return
+    given = {}
+    for arg in argv:
+        key, _, value = arg.lstrip("+~").partition("=")
+        if key in OUTPUT_DIR_KEYS and value and "${" not in value:
+            given[key] = value
+    given.setdefault("paths.outputs_dir", DEFAULT_OUTPUTS_DIR)
+    for key, value in given.items():
+        path = Path(value).expanduser().absolute()
+        existing = next(p for p in (path, *path.parents) if p.exists())
+        if not existing.is_dir():
+            raise ConfigError(f"{key}={value}: {existing} is a file, not a folder; choose a folder for the run's outputs")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            where = "it" if existing == path else f"its parent {existing}"
+            raise ConfigError(f"{key}={value}: {where} is not writable by this user; choose a folder you can write, "
+                              f"e.g. {key}=$HOME/acoustlab-outputs")

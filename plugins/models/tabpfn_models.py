@@ -8,6 +8,7 @@ checkpoint exists before any simulation runs and otherwise stops with one messag
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,47 @@ WEIGHTS_HELP = (
     "v2 weights are Apache-2.0 with attribution (choose them with model.model_version=v2 or TABPFN_MODEL_VERSION=v2); "
     "v2.5, v2.6, v3 and v3.5 (tabpfn's default) are non-commercial."
 )
+#: Checkpoints already checked in this process: (path, mtime_ns, size, expected sha256) → None.
+_CHECKED: dict[tuple[str, int, int, str | None], None] = {}
+
+
+def check_checkpoint(path: Path, sha256: str | None, setting: str) -> None:
+    """Refuse a checkpoint that does not match ``sha256`` or that holds more than tensors and plain data.
+
+    The tabpfn package loads ``.ckpt`` files with ``torch.load(weights_only=None)``, which on torch
+    before 2.6 unpickles arbitrary objects (code can run while loading a file from someone else).
+    Here every ``.ckpt`` is first loaded with ``weights_only=True`` (torch's restricted unpickler);
+    one that needs more is refused before tabpfn opens it. ``.safetensors`` files hold tensors only.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and the setting, when the digest differs or the safe load fails.
+    """
+    stat = path.stat()
+    key = (str(path), stat.st_mtime_ns, stat.st_size, sha256)
+    if key in _CHECKED:
+        return
+    if sha256 is not None:
+        digest = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(2**20), b""):
+                digest.update(block)
+        if digest.hexdigest() != sha256.lower():
+            raise ConfigError(f"{setting}.checkpoint_sha256: {path} has SHA-256 {digest.hexdigest()}, expected {sha256}; "
+                              "the file is not the checkpoint you named")
+    if path.suffix != ".safetensors":
+        import pickle
+
+        import torch
+
+        try:
+            torch.load(str(path), map_location="cpu", weights_only=True)
+        except (pickle.UnpicklingError, RuntimeError, AttributeError, TypeError, ValueError, EOFError) as exc:
+            reason = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+            raise ConfigError(f"{setting}.model_path: {path} cannot be loaded as weights only (torch.load(weights_only=True): {reason}); "
+                              "it may hold code. Use the .safetensors file of the same model, or a checkpoint from Prior Labs") from None
+    _CHECKED[key] = None
 
 
 def _tabpfn():
@@ -62,6 +104,10 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
         Rows predicted per call (bounds memory).
     random_state : int
         Seed.
+    checkpoint_sha256 : str or None
+        SHA-256 (hex) the checkpoint file must have; checked before it is loaded (for a user's own
+        or a shared checkpoint). Every ``.ckpt`` is also loaded with ``weights_only=True`` first
+        (:func:`check_checkpoint`).
     """
 
     #: the config group its settings live in (named in error messages)
@@ -69,7 +115,7 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
 
     def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
                  ignore_pretraining_limits: bool = False, max_train_rows: int | None = 1000, batch_size: int = 2000,
-                 random_state: int = 0) -> None:
+                 random_state: int = 0, checkpoint_sha256: str | None = None) -> None:
         if max_train_rows is not None and (max_train_rows < 2 or (max_train_rows > 1000 and not ignore_pretraining_limits)):
             raise ConfigError(f"{self.config_group}.max_train_rows must be between 2 and 1000 for TabPFN (its pretraining limit) unless "
                               f"{self.config_group}.ignore_pretraining_limits=true; got {max_train_rows}")
@@ -83,6 +129,7 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
         self.max_train_rows = max_train_rows
         self.batch_size = batch_size
         self.random_state = random_state
+        self.checkpoint_sha256 = checkpoint_sha256
 
     def resolved_path(self) -> Path:
         """The checkpoint file this model will load."""
@@ -94,10 +141,12 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
         return resolve_model_path(path, "regressor", version)[0][0]
 
     def preflight(self) -> None:
-        """Raise one clear :class:`ConfigError` if the weights are missing (called before any simulation)."""
+        """Raise one clear :class:`ConfigError` if the weights are missing, differ from ``checkpoint_sha256`` or
+        hold more than weights (called before any simulation)."""
         path = self.resolved_path()
         if not path.is_file():
             raise ConfigError(WEIGHTS_HELP.format(path=path))
+        check_checkpoint(path, self.checkpoint_sha256, self.config_group)
 
     def _device(self) -> str:
         if self.device != "auto":
@@ -155,8 +204,9 @@ class TabPFNErrorModel(TabPFNPointModel):
 
     def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
                  ignore_pretraining_limits: bool = False, max_train_rows: int | None = 1000, batch_size: int = 2000, random_state: int = 0,
-                 quantile: float = 0.5) -> None:
-        super().__init__(model_path, model_version, n_estimators, device, ignore_pretraining_limits, max_train_rows, batch_size, random_state)
+                 quantile: float = 0.5, checkpoint_sha256: str | None = None) -> None:
+        super().__init__(model_path, model_version, n_estimators, device, ignore_pretraining_limits, max_train_rows, batch_size, random_state,
+                         checkpoint_sha256)
         self.quantile = quantile
 
     def predict(self, X: Any) -> np.ndarray:
