@@ -122,7 +122,6 @@ def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column:
             keep = np.isfinite(radius) & ((radius < floor) == enlarged)
             circles = [Circle((x, y), max(r, floor)) for x, y, r in zip(shown[gate_x][keep], shown[gate_y][keep], radius[keep])]
             ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:orange", lw=0.6, alpha=0.6, linestyle=style))
-        _zoom_inset(ax, shown, radius, floor)
     for _, row in shown.iterrows():
         ax.plot([row[true_x], row[gate_x]], [row[true_y], row[gate_y]], color="0.5", lw=0.5)
     ax.scatter(shown[true_x], shown[true_y], marker="x", color="tab:green", s=25, label="true source", zorder=3)
@@ -137,6 +136,8 @@ def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column:
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
+    if radius_column is not None:  # after the limits: the inset goes to the corner that hides no mic
+        _zoom_inset(ax, shown, radius, floor, mics[:, :2])
     title = f"{site.name}: first {len(shown)} test events"
     if radius_column is not None:
         scorer, level = col.parse_radius(radius_column)
@@ -145,7 +146,22 @@ def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column:
     ax.legend(loc="upper right", fontsize=7)
 
 
-def _zoom_inset(ax: plt.Axes, shown: pd.DataFrame, radius: np.ndarray, floor: float) -> None:
+#: Where an inset may go, in axes fractions (x, y, width, height): lower left, lower right, upper left (the legend is upper right).
+INSET_CORNERS = ((0.02, 0.02, 0.32, 0.32), (0.66, 0.02, 0.32, 0.32), (0.02, 0.66, 0.32, 0.32))
+
+
+def inset_corner(ax: plt.Axes, mics_xy: np.ndarray, points_xy: np.ndarray) -> tuple[float, float, float, float]:
+    """The corner of :data:`INSET_CORNERS` covering no microphone and the fewest other points (call after the limits are set)."""
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+
+    def covered(xy: np.ndarray, box: tuple[float, float, float, float]) -> int:
+        fx, fy = (xy[:, 0] - x0) / (x1 - x0), (xy[:, 1] - y0) / (y1 - y0)
+        return int(((fx >= box[0]) & (fx <= box[0] + box[2]) & (fy >= box[1]) & (fy <= box[1] + box[3])).sum())
+
+    return min(INSET_CORNERS, key=lambda box: (covered(mics_xy, box), covered(points_xy, box)))
+
+
+def _zoom_inset(ax: plt.Axes, shown: pd.DataFrame, radius: np.ndarray, floor: float, mics_xy: np.ndarray) -> None:
     """Where the circles are smaller than ``floor`` (drawn enlarged, dashed), an inset at true scale around a typical one."""
     finite = np.flatnonzero(np.isfinite(radius))
     if finite.size == 0 or np.median(radius[finite]) >= floor:
@@ -154,7 +170,8 @@ def _zoom_inset(ax: plt.Axes, shown: pd.DataFrame, radius: np.ndarray, floor: fl
     (true_x, true_y), (gate_x, gate_y) = col.estimate_xy("true"), col.estimate_xy("gate")
     row = shown.iloc[k]
     half = 2.5 * max(radius[k], abs(row[true_x] - row[gate_x]), abs(row[true_y] - row[gate_y]), 1e-3)
-    inset = ax.inset_axes([0.02, 0.02, 0.32, 0.32])
+    points = np.concatenate([shown[[true_x, true_y]].to_numpy(float), shown[[gate_x, gate_y]].to_numpy(float)])
+    inset = ax.inset_axes(list(inset_corner(ax, mics_xy, points[np.isfinite(points).all(axis=1)])))
     inset.add_patch(Circle((row[gate_x], row[gate_y]), radius[k], facecolor="none", edgecolor="tab:orange", lw=1.0))
     inset.scatter([row[true_x]], [row[true_y]], marker="x", color="tab:green", s=25, zorder=3)
     inset.scatter([row[gate_x]], [row[gate_y]], marker=".", color="tab:orange", s=30, zorder=3)

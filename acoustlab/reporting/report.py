@@ -17,7 +17,7 @@ import html
 import logging
 import shutil
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
@@ -48,12 +48,33 @@ class RunResult:
         Its command-line overrides (``key -> value``), empty outside Hydra.
     label : str
         A short name: the overrides that differ between the reported runs.
+    settings : dict
+        Those overrides, ``key -> value``: the columns that tell the runs apart in every table.
     """
 
     run_dir: Path
     metrics: dict
     overrides: dict[str, str]
     label: str = ""
+    settings: dict[str, str] = field(default_factory=dict)
+
+    def identity(self) -> dict[str, str]:
+        """The leading columns of this run's table rows: the settings that vary, or its label when none does."""
+        return dict(self.settings) if self.settings else {"run": self.label}
+
+    @cached_property
+    def withheld_groups(self) -> str:
+        """Feature groups withheld from the learned models (``features.drop``; ``pipeline.drop_from_*`` per model), from the run's config."""
+        path = self.run_dir / "config_resolved.yaml"
+        config = yaml.safe_load(path.read_text()) if path.exists() else {}
+        config = config if isinstance(config, dict) else {}
+        features = config.get("features") if isinstance(config.get("features"), dict) else {}
+        pipeline = config.get("pipeline") if isinstance(config.get("pipeline"), dict) else {}
+        parts = [", ".join(map(str, features.get("drop") or [])) or "none"]
+        for key, who in (("drop_from_model", "point model"), ("drop_from_error_model", "error model")):
+            if pipeline.get(key):
+                parts.append(f"{who} also: {', '.join(map(str, pipeline[key]))}")
+        return "; ".join(parts)
 
     @cached_property
     def predictions(self) -> pd.DataFrame | None:
@@ -105,8 +126,8 @@ def collect_runs(paths: list[Path]) -> list[RunResult]:
     keys = sorted({k for r in runs for k in r.overrides})
     varying = [k for k in keys if len({r.overrides.get(k) for r in runs}) > 1]
     for r in runs:
-        parts = [f"{k}={r.overrides.get(k, '—')}" for k in varying]
-        r.label = ", ".join(parts) if parts else f"{r.metrics.get('site', '')} {r.run_dir.name}".strip()
+        r.settings = {k: r.overrides.get(k, "—") for k in varying}
+        r.label = ", ".join(f"{k}={v}" for k, v in r.settings.items()) or f"{r.metrics.get('site', '')} {r.run_dir.name}".strip()
     return runs
 
 
@@ -119,7 +140,7 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
             predictions = predictions[predictions[col.IN_SUMMARY].to_numpy(bool)]
         for method in r.metrics["errors"]:  # solver, model, gate, oracle (newer runs) and any extra gates
             stats = r.metrics["errors"][method]
-            row = {"run": r.label, "method": method, "n (detections)": stats["n"],
+            row = {**r.identity(), "method": method, "n (detections)": stats["n"],
                    **{f"{k} (m)": stats[k] for k in ("mean", "p50", "p90", "p95", "p99")}}
             ci = r.metrics.get("ci95", {}).get("errors", {}).get(method, {})
             for q in ("p95", "p99"):
@@ -151,7 +172,13 @@ def conclusion(runs: list[RunResult]) -> str:
     if len(p95) == 1:
         return f"The gated estimate's 95th-percentile error is {best_value:.3g} m{gross_text} ({best.label})."
     worst_value, worst = max(p95, key=lambda t: t[0])
-    return (f"Smallest gated p95 error: {best.label} ({best_value:.3g} m{gross_text}); largest: {worst.label} ({worst_value:.3g} m); "
+    if f"{best_value:.3g}" == f"{worst_value:.3g}":
+        return f"All {len(p95)} runs tie on the gated p95 error: {best_value:.3g} m (to 3 significant digits)."
+    tied_best = [r.label for v, r in p95 if f"{v:.3g}" == f"{best_value:.3g}"]
+    tied_worst = [r.label for v, r in p95 if f"{v:.3g}" == f"{worst_value:.3g}"]
+    best_text = tied_best[0] if len(tied_best) == 1 else "a tie between " + " and ".join(tied_best)
+    worst_text = tied_worst[0] if len(tied_worst) == 1 else "a tie between " + " and ".join(tied_worst)
+    return (f"Smallest gated p95 error: {best_text} ({best_value:.3g} m{gross_text}); largest: {worst_text} ({worst_value:.3g} m); "
             f"see the relative table for paired 95 % intervals before calling a difference real.")
 
 
@@ -198,7 +225,7 @@ def relative_rows(runs: list[RunResult], method: str = "gate") -> pd.DataFrame:
     for r in runs:
         errors = r.metrics["errors"][method]
         predictions = r.predictions
-        row = {"run": r.label}
+        row = r.identity()
         for name, q in (("p50", 50), ("p95", 95), ("p99", 99)):
             row[f"{method} {name} (m)"] = errors[name]
             row[f"{name} / first"] = errors[name] / first[name] if first[name] > 0 else float("nan")
@@ -220,7 +247,7 @@ def coverage_rows(runs: list[RunResult]) -> pd.DataFrame:
     rows = []
     for r in runs:
         for scorer, by_level in r.metrics["coverage"].items():
-            row = {"run": r.label, "scorer": scorer}
+            row = {**r.identity(), "scorer": scorer}
             for level, value in by_level.items():
                 row[f"coverage@{level} (share)"] = value
             for level in by_level:
@@ -238,17 +265,30 @@ def uncertainty_rows(runs: list[RunResult]) -> pd.DataFrame:
         m = r.metrics
         rho = m.get("spearman_rho", {})
         rows.append({
-            "run": r.label,
+            **r.identity(),
             "ρ error model (Spearman)": rho.get("error_model"),
             "ρ GDOP (Spearman)": rho.get("gdop"),
             "AUC error model, > 5 m": m.get("gross_error_auc", {}).get("error_model"),
             "substitution rate (%)": None if m.get("substitution_rate") is None else 100 * m["substitution_rate"],
             "gate": _gate_summary(m),
             "CRB p50 (m)": m.get(col.CRB, {}).get("p50"),
-            "features (columns)": m.get("n_features"),
+            "feature groups withheld": r.withheld_groups,
             "models time (s)": m.get("timings_s", {}).get("models_s"),
         })
     return pd.DataFrame(rows)
+
+
+def format_cell(value: object) -> str:
+    """A table cell as read: numbers to 3 significant digits, ∞ for a failure's infinite error, — where a run has no value."""
+    if value is None or (isinstance(value, float) and np.isnan(value)):
+        return "—"
+    if isinstance(value, (bool, np.bool_)):
+        return "yes" if value else "no"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return ("∞" if value > 0 else "−∞") if np.isinf(value) else f"{float(value):.3g}"
+    return str(value)
 
 
 def _gate_summary(metrics: dict) -> str | None:
@@ -263,7 +303,7 @@ def _gate_summary(metrics: dict) -> str | None:
 def provenance_rows(runs: list[RunResult]) -> pd.DataFrame:
     """Where each run lives and what produced it: run dir, dataset hash, code version, choices."""
     return pd.DataFrame([{
-        "run": r.label,
+        **r.identity(),
         "run dir": str(r.run_dir),
         "dataset hash": r.metrics.get("dataset_hash", "")[:12],
         "code": r.metrics.get("code_version", ""),
@@ -293,9 +333,17 @@ def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
         fig.savefig(out_dir / "sweep_error_cdf.png", dpi=110)
         plt.close(fig)
         paths.append(out_dir / "sweep_error_cdf.png")
-    fig, ax = plt.subplots(figsize=(5.5, 5.5))
-    coverage_calibration(ax, {f"{s}: {r.label}": {float(lv): v for lv, v in by.items()} for r in runs for s, by in r.metrics["coverage"].items()})
-    ax.set_title("coverage calibration across runs", fontsize=9)
+    scorers = list(dict.fromkeys(s for r in runs for s in r.metrics["coverage"]))
+    columns = min(3, len(scorers))
+    rows = -(-len(scorers) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(3.6 * columns, 3.8 * rows), squeeze=False)
+    for ax, scorer in zip(axes.flat, scorers):  # one panel per scorer, one line per run: readable with conformal=all
+        coverage_calibration(ax, {r.label: {float(lv): v for lv, v in r.metrics["coverage"][scorer].items()} for r in runs
+                                  if scorer in r.metrics["coverage"]})
+        ax.set_title(scorer, fontsize=9)
+    for ax in list(axes.flat)[len(scorers):]:
+        ax.set_visible(False)
+    fig.suptitle("coverage calibration across runs", fontsize=10)
     fig.tight_layout()
     fig.savefig(out_dir / "sweep_coverage_calibration.png", dpi=110)
     plt.close(fig)
@@ -361,9 +409,9 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
     for heading, table in tables:
         if table.empty:
             continue
-        table = table.astype(object).where(table.notna(), "—")  # a value a run does not have (e.g. a gate setting) is not "nan"
-        md += [f"## {heading}", "", table.to_markdown(index=False, floatfmt=".3g"), ""]
-        page += [f"<h2>{html.escape(heading)}</h2>", table.to_html(index=False, float_format=lambda v: f"{v:.3g}")]
+        table = table.map(format_cell)  # every number to 3 significant digits, even in a column with gaps
+        md += [f"## {heading}", "", table.to_markdown(index=False, disable_numparse=True), ""]
+        page += [f"<h2>{html.escape(heading)}</h2>", table.to_html(index=False)]
     md += ["## Plots", ""]
     page += ["<h2>Plots</h2>"]
     for p in comparison:
