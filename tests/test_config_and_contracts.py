@@ -332,3 +332,23 @@ def test_an_unwritable_outputs_dir_is_named_before_hydra_starts(tmp_path, monkey
         preflight.check_output_dirs([f"paths.outputs_dir={tmp_path / 'a_file' / 'x'}"])
     preflight.check_output_dirs([f"paths.outputs_dir={tmp_path / 'new' / 'deeper'}"])  # creatable: fine
     preflight.check_output_dirs(["--help", f"paths.outputs_dir={locked}"])  # inspecting writes nothing
+
+
+def test_help_names_every_protocol_and_the_localize_command(compose_cfg):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        header = str(compose(config_name="config", return_hydra_config=True).hydra.help.header)
+    GlobalHydra.instance().clear()
+    assert "python -m acoustlab localize" in header
+    import re
+
+    assert all(re.search(rf"\b{protocol}\s+\(", header) for protocol in group_options("protocol")), header
+
+
+@pytest.mark.parametrize("experiment", ["ablate_features", "cross_fit_gates"])
+def test_long_experiments_say_what_they_cost_before_starting(compose_cfg, experiment):
+    cfg = compose_cfg(["+site=forest", f"+experiment={experiment}"])
+    assert "min" in cfg.expected_duration and "2 cores" in cfg.expected_duration

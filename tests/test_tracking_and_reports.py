@@ -407,3 +407,37 @@ def test_the_true_scale_inset_never_hides_a_microphone():
     mics = np.array([[5.0, 5.0], [95.0, 5.0], [50.0, 90.0]])  # lower left and lower right taken: the upper left is free
     assert inset_corner(ax, mics, np.zeros((0, 2))) == INSET_CORNERS[2]
     plt.close(fig)
+
+
+def test_a_stopped_sweep_closes_its_parent_run_killed(tmp_path, monkeypatch):
+    """scancel / kill (SIGTERM) or Ctrl-C during a sweep: the parent run is closed KILLED at exit, never left RUNNING."""
+    import signal
+
+    from acoustlab.run.sweep import SweepTrackingCallback
+
+    callback = SweepTrackingCallback(report=False, preflight=False)
+    closed = []
+    monkeypatch.setattr(callback, "_finish", lambda config, status: closed.append(status))
+    callback._open = ("config", tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        callback._on_stop_signal(signal.SIGTERM, None)
+    assert stop.value.code == 128 + signal.SIGTERM
+    callback._close_after_failure()  # what atexit runs
+    assert closed == ["KILLED"]
+    failed = SweepTrackingCallback(report=False, preflight=False)
+    monkeypatch.setattr(failed, "_finish", lambda config, status: closed.append(status))
+    failed._open = ("config", tmp_path)
+    failed._close_after_failure()
+    assert closed == ["KILLED", "FAILED"]  # a failed job without a stop request stays FAILED
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def test_a_run_logged_after_it_ended_keeps_its_own_start_and_duration(compose_cfg, tmp_path):
+    cfg = compose_cfg([*SMALL, f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking=none", "plots=false"])
+    metrics = run_experiment(cfg, tmp_path / "run")
+    clock = metrics["run_time"]
+    assert clock["finished_epoch_ms"] - clock["started_epoch_ms"] == pytest.approx(1000 * metrics["timings_s"]["total_before_tracking_s"], abs=50)
+    time.sleep(1.5)
+    assert upload.main([str(tmp_path / "run"), "--store-dir", str(tmp_path / "store")]) == 0
+    (run,) = runs_in(tmp_path / "store" / "mlflow.db")
+    assert run.info.start_time == clock["started_epoch_ms"] and run.info.end_time == clock["finished_epoch_ms"]

@@ -133,9 +133,11 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
     if "field_dataset_hash" in metrics:
         tags["field_dataset_hash"] = metrics["field_dataset_hash"]
     pending = run_dir / PENDING_FILE
+    clock: dict[str, Any] = {}
     try:
         tracker.check_reachable()
-        tracker.start(run_name, run_params(run_dir, metrics), tags, parent_run_id=parent_run_id)
+        clock = metrics.get("run_time") if isinstance(metrics.get("run_time"), dict) else {}
+        tracker.start(run_name, run_params(run_dir, metrics), tags, parent_run_id=parent_run_id, start_time_ms=clock.get("started_epoch_ms"))
         if "errors" in metrics:  # an evaluation; a localization run (no truth) has positions instead
             tracker.log_metrics(flat_metrics(metrics))
             tracker.log_table(error_table(metrics), "tables/errors.json")
@@ -150,7 +152,7 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
             tracker.log_table(pd.DataFrame(metrics["risk_coverage"]), "tables/risk_coverage.json")
         for path in artifact_paths(run_dir):
             tracker.log_artifact(str(path), str(path.parent.relative_to(run_dir)) if path.parent != run_dir else None)
-        tracker.finish("FINISHED")
+        tracker.finish("FINISHED", end_time_ms=clock.get("finished_epoch_ms"))
     except Exception as exc:  # noqa: BLE001 - never lose a finished run to a tracking problem
         destination = getattr(tracker, "destination", None)
         pending.write_text(json.dumps({"destination": destination, "error": f"{type(exc).__name__}: {exc}"}, indent=2))

@@ -290,6 +290,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     choices = {g: str(v) for g, v in (choices or {}).items() if g in (*PLUGIN_GROUPS, "site", "experiment") and v is not None}
 
     built = build_run(cfg, choices)
+    if cfg.get("expected_duration"):
+        log.info("this experiment takes %s", cfg.expected_duration)
     site, components, protocol, tracker, plan = built.site, built.components, built.protocol, built.tracker, built.plan
     timings: dict[str, float] = {"preflight_s": time.perf_counter() - started}
     stage_start = time.perf_counter()
@@ -392,6 +394,8 @@ def plot_and_time(cfg: DictConfig, run_dir: Path, metrics: dict, timings: dict[s
     timings["plots_s"] = time.perf_counter() - stage_start
     timings["total_before_tracking_s"] = time.perf_counter() - started
     metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    now = time.time()  # wall clock, so a tracker shows the job's own start and duration even when it is uploaded later
+    metrics["run_time"] = {"started_epoch_ms": int(1000 * (now - timings["total_before_tracking_s"])), "finished_epoch_ms": int(1000 * now)}
     optional_artefact("timings in metrics.json", lambda: atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode()))
 
 

@@ -154,6 +154,8 @@ class _TypedRoot:
     site: Optional[SiteConfig] = None
     #: the paper's published figures for this experiment (``paper_forest``, ``paper_frozen_lake``): written beside ours
     paper_reference: Optional[dict[str, Any]] = None
+    #: what a long experiment costs, as measured (said before it starts: a run logs it, a sweep with its job count)
+    expected_duration: Optional[str] = None
 
 
 #: The root: the typed nodes above plus one free-form node per plugin group in :data:`FREE_FORM_GROUPS`.

@@ -10,9 +10,11 @@ system) reads that file and logs its run as a child. After the jobs it writes th
 from __future__ import annotations
 
 import atexit
+import contextlib
 import itertools
 import json
 import logging
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -97,6 +99,7 @@ class SweepTrackingCallback(Callback):
         self.report = report
         self.preflight = preflight
         self._open: tuple[DictConfig, Path] | None = None
+        self._stopped = False
 
     @staticmethod
     def _tracker(config: DictConfig) -> Any:
@@ -118,6 +121,8 @@ class SweepTrackingCallback(Callback):
                       "(hydra.callbacks.sweep_tracking.preflight=false runs the others anyway)", file=sys.stderr)
                 sys.exit(2)
             log.info("preflight: all %d jobs of the sweep check out", len(jobs))
+        if config.get("expected_duration"):
+            log.info("this sweep's experiment takes %s", config.expected_duration)
         sweep_dir = Path(str(config.hydra.sweep.dir))
         sweep_dir.mkdir(parents=True, exist_ok=True)
         overrides = [str(o) for o in config.hydra.overrides.task]
@@ -136,12 +141,25 @@ class SweepTrackingCallback(Callback):
         # Hydra skips on_multirun_end when a job failed: report what finished and mark the parent FAILED at exit.
         self._open = (config, sweep_dir)
         atexit.register(self._close_after_failure)
+        for signum in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C, scancel, kill: the parent is closed KILLED, not left RUNNING
+            with contextlib.suppress(ValueError):  # only the main thread may set handlers
+                signal.signal(signum, self._on_stop_signal)
+
+    def _on_stop_signal(self, signum: int, frame: Any) -> None:
+        """A stop request: remember it (the parent run is then closed KILLED at exit) and stop as Python would."""
+        self._stopped = True
+        signal.signal(signum, signal.SIG_DFL)
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise SystemExit(128 + signum)
 
     def _close_after_failure(self) -> None:
         if self._open is not None:
             config, _ = self._open
-            log.warning("the sweep ended with failed jobs: reporting the finished ones and marking the parent run FAILED")
-            self._finish(config, "FAILED")
+            status = "KILLED" if self._stopped else "FAILED"
+            log.warning("the sweep %s: reporting the finished jobs and marking the parent run %s",
+                        "was stopped" if self._stopped else "ended with failed jobs", status)
+            self._finish(config, status)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Write the report and close the parent run with the sweep's summary tables."""

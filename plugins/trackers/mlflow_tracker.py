@@ -74,17 +74,26 @@ class MlflowTracker:
                 mlflow.create_experiment(self.experiment_name, artifact_location=(store.parent / "mlartifacts").resolve().as_uri())
         mlflow.set_experiment(self.experiment_name)
 
-    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None) -> None:
+    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None,
+              start_time_ms: int | None = None) -> None:
         """Open the run (a child of ``parent_run_id`` when given) and log params and tags.
 
         Parameter values longer than MLflow allows are truncated. Without ``parent_run_id`` the
-        environment variable ``ACOUSTLAB_PARENT_RUN_ID`` is used when set.
+        environment variable ``ACOUSTLAB_PARENT_RUN_ID`` is used when set. With ``start_time_ms``
+        the run starts when the job did, so MLflow shows the job's duration, not the upload's.
         """
         import mlflow
 
         self._connect()
         parent = parent_run_id or os.environ.get("ACOUSTLAB_PARENT_RUN_ID") or None
-        self._run = mlflow.start_run(run_name=run_name, tags=tags, parent_run_id=parent)
+        if start_time_ms is None:
+            self._run = mlflow.start_run(run_name=run_name, tags=tags, parent_run_id=parent)
+        else:
+            client = mlflow.MlflowClient(self.tracking_uri)
+            experiment = client.get_experiment_by_name(self.experiment_name)
+            created = client.create_run(experiment.experiment_id, start_time=int(start_time_ms), run_name=run_name,
+                                        tags={**tags, **({"mlflow.parentRunId": parent} if parent else {})})
+            self._run = mlflow.start_run(run_id=created.info.run_id)
         mlflow.log_params(_clean_params(params))
         log.info("MLflow run %s in %s (experiment %r%s)", self._run.info.run_id, self.tracking_uri, self.experiment_name,
                  f", child of {parent}" if parent else "")
@@ -112,13 +121,16 @@ class MlflowTracker:
 
         mlflow.log_artifact(path, artifact_path=artifact_path)
 
-    def finish(self, status: str = "FINISHED") -> None:
-        """Close the run with ``status`` (FINISHED or FAILED)."""
+    def finish(self, status: str = "FINISHED", end_time_ms: int | None = None) -> None:
+        """Close the run with ``status`` (FINISHED, FAILED or KILLED), at ``end_time_ms`` when given (else now)."""
         import mlflow
 
         if self._run is not None:
+            run_id = self._run.info.run_id
             mlflow.end_run(status=status)
-            self.last_run_id = self._run.info.run_id
+            if end_time_ms is not None:
+                mlflow.MlflowClient(self.tracking_uri).set_terminated(run_id, status, end_time=int(end_time_ms))
+            self.last_run_id = run_id
             self._run = None
 
     def open_sweep(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> str:

@@ -15,7 +15,8 @@ class NullTracker:
     def check_reachable(self) -> None:
         """Nothing to reach."""
 
-    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None) -> None:
+    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None,
+              start_time_ms: int | None = None) -> None:
         """Do nothing."""
 
     def log_metrics(self, metrics: dict[str, float]) -> None:
@@ -27,7 +28,7 @@ class NullTracker:
     def log_artifact(self, path: str, artifact_path: str | None = None) -> None:
         """Do nothing."""
 
-    def finish(self, status: str = "FINISHED") -> None:
+    def finish(self, status: str = "FINISHED", end_time_ms: int | None = None) -> None:
         """Do nothing."""
 
     def open_sweep(self, run_name: str, params: dict[str, Any], tags: dict[str, str]) -> None:
