@@ -55,11 +55,37 @@ def machine() -> dict[str, Any]:
     return {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()}
 
 
+def script_sha256(script: Path) -> str:
+    """SHA-256 of a benchmark script's source: a result made by another version of the script is stale."""
+    import hashlib
+
+    return hashlib.sha256(Path(script).read_bytes()).hexdigest()
+
+
+def provenance() -> dict[str, Any]:
+    """What made a result: the commit (and whether the work tree had changes), the benchmark script and its digest."""
+    script = Path(sys.argv[0]).resolve()
+
+    def git(*args: str) -> str:
+        proc = subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True)
+        return proc.stdout.strip() if proc.returncode == 0 else ""
+
+    return {"commit": git("rev-parse", "HEAD"), "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no")),
+            "script": script.relative_to(REPO).as_posix() if script.is_relative_to(REPO) else str(script),
+            "script_sha256": script_sha256(script) if script.is_file() else ""}
+
+
 def write_results(name: str, result: dict[str, Any], markdown: list[str]) -> None:
-    """Write ``results/<name>.json`` and ``results/<name>.md``."""
+    """Write ``results/<name>.json`` and ``results/<name>.md``, both naming the commit and script version that made them.
+
+    ``python benchmarks/check_results.py`` lists results whose script or imported code changed since.
+    """
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2, default=float))
-    (RESULTS / f"{name}.md").write_text("\n".join(markdown) + "\n")
+    made_with = provenance()
+    (RESULTS / f"{name}.json").write_text(json.dumps({**result, "provenance": made_with}, indent=2, default=float))
+    note = (f"Made with commit {made_with['commit'][:10]}{' plus uncommitted changes' if made_with['uncommitted_changes'] else ''} "
+            f"by {made_with['script']} (sha256 {made_with['script_sha256'][:12]}).")
+    (RESULTS / f"{name}.md").write_text("\n".join([*markdown, "", note]) + "\n")
 
 
 def run_in_process(overrides: list[str], keep: Path | None = None) -> dict[str, Any]:

@@ -45,13 +45,17 @@ class HyperbolicSolver:
         (≥ 4 mics; :mod:`acoustlab.toolkit.solve3d`); ``source_height_m`` then reports the
         estimate, with ``height_gdop`` and ``height_ambiguous`` beside it. Where the 3-D fix fails
         or is implausible the 2-D fix replaces it (``dimensions_used``).
+    fallback_2d : bool
+        With ``dimensions=3``: replace a 3-D fix that fails, lies below ground or outside the mics'
+        box grown by the array extent with the 2-D fix (default). False keeps every 3-D fix, e.g.
+        for a bird aloft and far outside a small array, or to check TDOAs by leaving a receiver out.
     """
 
     cache_version = "1"
     required_feature_groups = ("tdoa",)
 
     def __init__(self, source_height_m: float | None = None, box_margin_fraction: float = 0.25, residual_tie_m: float = 0.05, n_iterations: int = 30,
-                 dimensions: int = 2) -> None:
+                 dimensions: int = 2, fallback_2d: bool = True) -> None:
         if n_iterations < 0:
             raise ConfigError(f"solver.n_iterations must be >= 0; got {n_iterations}")
         if dimensions not in (2, 3):
@@ -61,6 +65,7 @@ class HyperbolicSolver:
         self.box_margin_fraction = float(box_margin_fraction)
         self.residual_tie_m = float(residual_tie_m)
         self.n_iterations = int(n_iterations)
+        self.fallback_2d = bool(fallback_2d)
 
     def roots(self, mics: np.ndarray, rd: np.ndarray, height: float) -> tuple[np.ndarray, np.ndarray]:
         """Closed-form candidate positions (B, 2, 2) and their validity (B, 2) for range differences (B, M−1)."""
@@ -102,7 +107,11 @@ class HyperbolicSolver:
         finite = np.isfinite(tdoa).all(axis=1) & np.isfinite(c)
         rd = np.where(finite[:, None], c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]), 0.0)
         if self.dimensions == 3:
-            return self._with_2d_fallback(self._solve_3d(mics, rd, c, finite), inputs, mics)
+            fix3 = self._solve_3d(mics, rd, c, finite)
+            if not self.fallback_2d:
+                fix3.diagnostics["dimensions_used"] = np.where(np.isfinite(fix3.position_m).all(axis=1), 3.0, np.nan)
+                return fix3
+            return self._with_2d_fallback(fix3, inputs, mics)
         cand, valid = self.roots(mics, rd, height)
         n_roots = valid.sum(axis=1)
 

@@ -1,0 +1,76 @@
+"""Which committed benchmark results still describe the code: ``python benchmarks/check_results.py [--strict]``.
+
+Every result written by :func:`common.write_results` names the commit and the benchmark script
+(with its SHA-256) that made it. For each ``results/*.json`` this prints one line:
+
+- ``current``: the script is unchanged and no module it imports (``acoustlab``/``plugins``, followed
+  through their own imports) changed since that commit;
+- ``code changed``: the script is the same but modules it depends on changed since (they are named:
+  re-run it, or say in the results why the change does not matter);
+- ``script changed``: the script differs from the one that made the result (stale: re-run it);
+- ``no provenance``: written before results named their commit (re-run to find out).
+
+``--strict`` exits 1 when any result's script changed (what the test suite checks).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from common import REPO, RESULTS, script_sha256
+
+from acoustlab.core.imports import internal_imports, module_source_path
+
+
+def dependencies(script: Path) -> set[Path]:
+    """Source files of the own modules ``script`` imports, followed transitively."""
+    import ast
+
+    tree = ast.parse(script.read_text())
+    todo = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    todo |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    todo = {m for m in todo if m.split(".")[0] in ("acoustlab", "plugins")}
+    seen: set[str] = set()
+    while todo:
+        module = todo.pop()
+        if module in seen:
+            continue
+        seen.add(module)
+        todo |= set(internal_imports(module)) - seen
+    return {p for m in seen if (p := module_source_path(m)) is not None}
+
+
+def status(result: Path) -> tuple[str, str]:
+    """(status, detail) of one result file (see the module docstring)."""
+    made_with = json.loads(result.read_text()).get("provenance")
+    if not isinstance(made_with, dict):
+        return "no provenance", "re-run its benchmark to record the commit"
+    script = REPO / made_with["script"]
+    if not script.is_file() or script_sha256(script) != made_with["script_sha256"]:
+        return "script changed", f"{made_with['script']} differs from the version that made it: re-run it"
+    files = [p.relative_to(REPO).as_posix() for p in dependencies(script) if p.is_relative_to(REPO)]
+    proc = subprocess.run(["git", "diff", "--name-only", made_with["commit"], "--", *files], cwd=REPO, capture_output=True, text=True)
+    changed = proc.stdout.split()
+    if proc.returncode != 0:
+        return "unknown commit", f"{made_with['commit'][:10]} is not in this repository's history"
+    return ("code changed", ", ".join(changed[:6]) + (" …" if len(changed) > 6 else "")) if changed else ("current", made_with["commit"][:10])
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--strict", action="store_true", help="exit 1 when a result's benchmark script changed since it was made")
+    opts = parser.parse_args()
+    stale = 0
+    for result in sorted(RESULTS.glob("*.json")):
+        state, detail = status(result)
+        stale += state == "script changed"
+        print(f"{result.name:<40} {state:<15} {detail}")
+    return 1 if opts.strict and stale else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,33 @@
+"""Committed benchmark results name what made them, and none was made by a different version of its script."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+RESULTS = REPO / "benchmarks" / "results"
+
+
+def test_no_committed_result_was_made_by_another_version_of_its_script():
+    proc = subprocess.run([sys.executable, "benchmarks/check_results.py", "--strict"], cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 0, "stale benchmark results:\n" + "\n".join(l for l in proc.stdout.splitlines() if "script changed" in l)
+
+
+def test_results_name_their_commit_and_script():
+    made_with = json.loads((RESULTS / "real_array.json").read_text())["provenance"]
+    assert len(made_with["commit"]) == 40 and made_with["script"] == "benchmarks/bench_real_array.py"
+    assert "Made with commit" in (RESULTS / "real_array.md").read_text()
+
+
+def test_the_staleness_check_sees_a_changed_script(tmp_path, monkeypatch):
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import check_results
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    result = tmp_path / "x.json"
+    result.write_text(json.dumps({"provenance": {"commit": "0" * 40, "script": "benchmarks/bench_real_array.py", "script_sha256": "f" * 64}}))
+    assert check_results.status(result)[0] == "script changed"
+    result.write_text(json.dumps({"value": 1}))
+    assert check_results.status(result)[0] == "no provenance"
