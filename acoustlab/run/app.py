@@ -318,7 +318,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     # nor a plotting failure loses them; the pending marker stays until the tracker has them.
     write_results(run_dir, cfg, predictions, metrics)
     if cfg.get("paper_reference"):
-        rows, lines = paper_comparison(OmegaConf.to_container(cfg.paper_reference, resolve=True), metrics)
+        rows, lines = paper_comparison(OmegaConf.to_container(cfg.paper_reference, resolve=True), metrics,
+                                       OmegaConf.to_container(cfg, resolve=True))
         metrics["paper_comparison"] = rows
         atomic_write_bytes(run_dir / "paper_comparison.md", ("\n".join(lines) + "\n").encode())
     def plot() -> None:

@@ -9,8 +9,9 @@ estimate is used.
 τ* is chosen on simulation only: on a grid of τ, the most permissive value (largest τ, fewest
 substitutions) whose gated errors have a p99 at least ``p99_factor`` times lower and a median at
 most ``p50_tolerance`` higher than the *box-gated* solver's (stage 1 alone). Comparing with the
-bare solver instead would let the box meet the rule by itself (its diverged fixes dominate the
-bare p99), so every τ would pass and the most permissive would win. The grid is, by default,
+bare solver instead (the paper's wording; ``tau_reference="solver"``) would let the box meet the
+rule by itself (its diverged fixes dominate the bare p99), so every τ would pass and the most
+permissive would win. The grid is, by default,
 quantiles of the training events' energy residuals (5 %, 10 %, …, 100 %), not a hand list.
 """
 
@@ -81,12 +82,18 @@ class HybridGate:
         energy residuals inside the box.
     p99_factor, p50_tolerance : float
         The selection rule (≥ 3× lower p99, ≤ 20 % higher median by default).
+    tau_reference : {"box", "solver"}
+        What the rule compares with: the box-gated solver (default) or the bare solver (the paper's
+        rule as written; failed fixes count as infinite errors).
     """
 
     required_feature_groups = ("environment",)
 
     def __init__(self, margin_fraction: float = 0.25, tau_db: float | None = None, tau_grid_db=None,
-                 p99_factor: float = 3.0, p50_tolerance: float = 0.2) -> None:
+                 p99_factor: float = 3.0, p50_tolerance: float = 0.2, tau_reference: str = "box") -> None:
+        if tau_reference not in ("box", "solver"):
+            raise ConfigError(f"gate.tau_reference must be 'box' (the box-gated solver) or 'solver' (the bare solver); got {tau_reference!r}")
+        self.tau_reference = tau_reference
         self.margin_fraction = float(margin_fraction)
         self.tau_db = None if tau_db is None else float(tau_db)
         self.tau_grid_db = None if tau_grid_db is None else np.asarray(tau_grid_db, dtype=float)
@@ -130,13 +137,13 @@ class HybridGate:
             taus = np.unique(np.quantile(usable, np.linspace(0.05, 1.0, 20))) if usable.size else np.array([np.inf])
         gated = np.stack([err(np.where((inside & (energy <= t))[:, None], solver_position_m, model_position_m)) for t in taus])
         subs = np.array([np.mean(~(inside & (energy <= t))) for t in taus])
-        box_only = err(np.where(inside[:, None], solver_position_m, model_position_m))
-        tau, grid, met = select_tau(box_only, gated, taus, self.p99_factor, self.p50_tolerance)
+        reference = err(np.where(inside[:, None], solver_position_m, model_position_m)) if self.tau_reference == "box" else err(solver_position_m)
+        tau, grid, met = select_tau(reference, gated, taus, self.p99_factor, self.p50_tolerance)
         grid["substitution_rate"] = subs
         self.tau_, self.tau_grid_, self.tau_rule_met_ = tau, grid, met
         if not met:
-            log.warning("no τ on the grid gives %.0f× lower p99 than the box alone within +%.0f %% median; using τ=%.3g dB (lowest p99)",
-                        self.p99_factor, 100 * self.p50_tolerance, tau)
+            log.warning("no τ on the grid gives %.0f× lower p99 than the %s within +%.0f %% median; using τ=%.3g dB (lowest p99)",
+                        self.p99_factor, "box alone" if self.tau_reference == "box" else "bare solver", 100 * self.p50_tolerance, tau)
         log.info("τ* = %.3g dB (rule met: %s)", tau, met)
         return self
 
@@ -146,7 +153,8 @@ class HybridGate:
             return {}
         if self.tau_grid_ is None:
             return {"tau_star_db": float(self.tau_)}
-        return {"tau_star_db": float(self.tau_), "tau_rule_met": bool(self.tau_rule_met_), "tau_grid": self.tau_grid_.to_dict(orient="records")}
+        return {"tau_star_db": float(self.tau_), "tau_rule_met": bool(self.tau_rule_met_), "tau_reference": self.tau_reference,
+                "tau_grid": self.tau_grid_.to_dict(orient="records")}
 
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
