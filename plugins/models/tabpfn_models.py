@@ -192,12 +192,12 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
 class TabPFNErrorModel(TabPFNPointModel):
     """TabPFN error model: predicts a quantile (default the median) of the hybrid estimate's error, m.
 
+    The other parameters are :class:`TabPFNPointModel`'s.
+
     Parameters
     ----------
     quantile : float
         Quantile of TabPFN's predictive distribution returned by ``predict``.
-
-    The other parameters are :class:`TabPFNPointModel`'s.
     """
 
     config_group = "error_model"

@@ -1,0 +1,1 @@
+"""Metrics, plots, the sweep report, the paper comparison and experiment logging."""

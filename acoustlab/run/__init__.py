@@ -1,0 +1,1 @@
+"""The Hydra app, the typed config schema, the registry, preflight, sweeps, upload, catalog and plugin checks."""

@@ -1,0 +1,1 @@
+"""Pure functions: physics, propagation, DSP, geometry, TDOA maths, conformal maths, audio, scene sampling."""
