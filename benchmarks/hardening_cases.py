@@ -62,10 +62,22 @@ def main() -> None:
             "site.relative_humidity_pct=[70,250]": ["+site=frozen_lake", *SMOKE, "site.relative_humidity_pct=[70,250]"],
             "seed=-1": ["+site=frozen_lake", *SMOKE, "seed=-1"],
             "protocol=field_eval without a field": ["+site=frozen_lake", *SMOKE, "protocol=field_eval", "field=none"],
+            "pipeline.selective.delta=1.5": ["+site=frozen_lake", *SMOKE, "pipeline.selective.enabled=true", "pipeline.selective.delta=1.5"],
+            "selective delta=0.0001 on 120 events": ["+site=frozen_lake", *SMOKE, "pipeline.selective.enabled=true", "pipeline.selective.delta=0.0001"],
+            "run dir under a file": ["+site=frozen_lake", *SMOKE, f"hydra.run.dir={root / 'mics.csv' / 'run'}"],
         }
         for name, args in config_cases.items():
             code, line = cli(args, tmp / "out")
-            rows.append({"case": name, "kind": "config", "exit": code, "user_sees": line})
+            rows.append({"case": name, "kind": "config", "exit": code, "user_sees": line.replace(str(tmp), "<tmp>")})
+        received = tmp / "received"
+        received.mkdir()
+        (received / "config_resolved.yaml").write_text("paths: {outputs_dir: /somewhere/else}\n")
+        (received / "metrics.json").write_text("{not json")
+        for name, command in (("upload: malformed metrics.json", "upload"), ("report: malformed metrics.json", "report")):
+            proc = subprocess.run([sys.executable, "-m", "acoustlab", command, str(received)], cwd=tmp, capture_output=True, text=True)
+            lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip() and "Traceback" not in ln]
+            rows.append({"case": name, "kind": "received folder", "exit": proc.returncode,
+                         "user_sees": " / ".join(lines[-2:]).replace(str(tmp), "<tmp>")})
         table_cases = {
             "non-numeric mic coordinate": ("mics.csv", lambda t: t.assign(x_m=["0", "abc", "20"])),
             "events table with only a header": ("events.csv", lambda t: t.iloc[:0]),
