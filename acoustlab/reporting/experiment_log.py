@@ -18,6 +18,7 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError
 from acoustlab.reporting.metrics import coverage_table, error_table, flat_metrics
 
@@ -138,18 +139,18 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
         tracker.check_reachable()
         clock = metrics.get("run_time") if isinstance(metrics.get("run_time"), dict) else {}
         tracker.start(run_name, run_params(run_dir, metrics), tags, parent_run_id=parent_run_id, start_time_ms=clock.get("started_epoch_ms"))
-        if "errors" in metrics:  # an evaluation; a localization run (no truth) has positions instead
+        if col.METRICS_ERRORS in metrics:  # an evaluation; a localization run (no truth) has positions instead
             tracker.log_metrics(flat_metrics(metrics))
             tracker.log_table(error_table(metrics), "tables/errors.json")
             tracker.log_table(coverage_table(metrics), "tables/coverage.json")
         else:
-            summary = metrics.get("localization", {})
+            summary = metrics.get(col.METRICS_LOCALIZATION, {})
             tracker.log_metrics({f"localization.{k}": float(v) for k, v in summary.items() if isinstance(v, (int, float))})
         tau_grid = metrics.get("gate", {}).get("diagnostics", {}).get("tau_grid")
         if tau_grid:  # the hybrid gate's τ* search
             tracker.log_table(pd.DataFrame(tau_grid), "tables/tau_grid.json")
-        if "risk_coverage" in metrics:
-            tracker.log_table(pd.DataFrame(metrics["risk_coverage"]), "tables/risk_coverage.json")
+        if col.METRICS_RISK_COVERAGE in metrics:
+            tracker.log_table(pd.DataFrame(metrics[col.METRICS_RISK_COVERAGE]), "tables/risk_coverage.json")
         for path in artifact_paths(run_dir):
             tracker.log_artifact(str(path), str(path.parent.relative_to(run_dir)) if path.parent != run_dir else None)
         tracker.finish("FINISHED", end_time_ms=clock.get("finished_epoch_ms"))

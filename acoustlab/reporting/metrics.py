@@ -161,12 +161,12 @@ def position_bootstrap_ci(predictions: pd.DataFrame, levels: list[float], scorer
         for m, e in errors.items():
             sub = e[idx]
             for name, q in ERROR_QUANTILES.items():
-                samples.setdefault(("errors", m, name), []).append(_quantile_with_failures(sub, q))
-            samples.setdefault(("errors", m, "share_gt_5m"), []).append(share_gross(sub))
+                samples.setdefault((col.METRICS_ERRORS, m, name), []).append(_quantile_with_failures(sub, q))
+            samples.setdefault((col.METRICS_ERRORS, m, "share_gt_5m"), []).append(share_gross(sub))
         if gate_err is not None:
             for (s, lv), r in radii.items():
-                samples.setdefault(("coverage", s, col.level_key(lv)), []).append(float(np.mean(gate_err[idx] <= r[idx])))
-    out: dict[str, Any] = {"n_bootstrap": int(n_boot), "n_positions": int(codes.size), "errors": {}, "coverage": {}}
+                samples.setdefault((col.METRICS_COVERAGE, s, col.level_key(lv)), []).append(float(np.mean(gate_err[idx] <= r[idx])))
+    out: dict[str, Any] = {"n_bootstrap": int(n_boot), "n_positions": int(codes.size), col.METRICS_ERRORS: {}, col.METRICS_COVERAGE: {}}
     for (block, key, stat), values in samples.items():
         # an interval end that reaches into the infinite values (failures) is reported as inf
         v = np.asarray(values, dtype=float)
@@ -243,7 +243,7 @@ def ellipse_coverage(predictions: pd.DataFrame, levels: list[float]) -> dict[str
         a, b, angle = (predictions[col.ellipse(level, p)].to_numpy(float) for p in ("a_m", "b_m", "angle_deg"))
         hit = inside_ellipse(np.nan_to_num(d, nan=np.inf), a, b, angle) & np.isfinite(d).all(axis=1)
         by_position = pd.Series(hit).groupby(predictions[col.POSITION_ID].to_numpy()).mean()
-        out[col.level_key(level)] = {"coverage": float(hit.mean()), "worst_position": float(by_position.min()),
+        out[col.level_key(level)] = {col.METRICS_COVERAGE: float(hit.mean()), "worst_position": float(by_position.min()),
                                      "median_area_m2": float(np.median(np.pi * a * b))}
     return out
 
@@ -254,14 +254,14 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
     crb = crb_summary(predictions)
     if crb is not None:
         extra[col.CRB] = crb
-    extra["spearman_rho"] = spearman_rho(predictions)
-    extra["gross_error_auc"] = gross_error_auc(predictions)
-    extra["coverage_by_position"] = coverage_by_position(predictions, levels, scorers)
+    extra[col.METRICS_SPEARMAN] = spearman_rho(predictions)
+    extra[col.METRICS_GROSS_AUC] = gross_error_auc(predictions)
+    extra[col.METRICS_COVERAGE_BY_POSITION] = coverage_by_position(predictions, levels, scorers)
     coverage, width = coverage_and_width(predictions, levels, scorers)
     errors = errors_by_method(predictions)
-    extra["gate_gap"] = gate_gap(errors)
-    extra["ci95"] = position_bootstrap_ci(predictions, levels, scorers)
-    extra["risk_coverage"] = risk_coverage(predictions)
+    extra[col.METRICS_GATE_GAP] = gate_gap(errors)
+    extra[col.METRICS_CI95] = position_bootstrap_ci(predictions, levels, scorers)
+    extra[col.METRICS_RISK_COVERAGE] = risk_coverage(predictions)
     ellipses = ellipse_coverage(predictions, levels)
     if ellipses is not None:
         extra["ellipse"] = ellipses
@@ -270,10 +270,10 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
         extra["selective"] = selective
     return {
         **extra,
-        "errors": errors,
-        "coverage": coverage,
-        "interval_width": width,
-        "substitution_rate": float(predictions[col.SUBSTITUTED].mean()),
+        col.METRICS_ERRORS: errors,
+        col.METRICS_COVERAGE: coverage,
+        col.METRICS_WIDTH: width,
+        col.METRICS_SUBSTITUTION: float(predictions[col.SUBSTITUTED].mean()),
     }
 
 
@@ -327,15 +327,15 @@ def gate_scalars(metrics: dict[str, Any]) -> dict[str, float]:
 
 def error_table(metrics: dict) -> pd.DataFrame:
     """errors block as a table: one row per method."""
-    return pd.DataFrame([{"method": m, **v} for m, v in metrics["errors"].items()])
+    return pd.DataFrame([{"method": m, **v} for m, v in metrics[col.METRICS_ERRORS].items()])
 
 
 def coverage_table(metrics: dict) -> pd.DataFrame:
     """coverage block as a table: one row per (scorer, nominal level)."""
     rows = []
-    for scorer, by_level in metrics["coverage"].items():
+    for scorer, by_level in metrics[col.METRICS_COVERAGE].items():
         for level, empirical in by_level.items():
-            w = metrics["interval_width"][scorer][level]
+            w = metrics[col.METRICS_WIDTH][scorer][level]
             rows.append({"scorer": scorer, "nominal": float(level), "empirical": empirical, **w})
     return pd.DataFrame(rows)
 
@@ -343,32 +343,32 @@ def coverage_table(metrics: dict) -> pd.DataFrame:
 def flat_metrics(metrics: dict) -> dict[str, float]:
     """Scalar metrics for a tracker: ``error.<method>.<stat>``, ``coverage.<scorer>.<level>``…"""
     flat = {}
-    for m, stats in metrics["errors"].items():
+    for m, stats in metrics[col.METRICS_ERRORS].items():
         for k, v in stats.items():
             flat[f"error.{m}.{k}"] = v
-    for s, by_level in metrics["coverage"].items():
+    for s, by_level in metrics[col.METRICS_COVERAGE].items():
         for level, v in by_level.items():
             flat[f"coverage.{s}.{level}"] = v
-            flat[f"width.{s}.{level}.median_m"] = metrics["interval_width"][s][level]["median_m"]
-    flat["substitution_rate"] = metrics["substitution_rate"]
-    for m, stats in metrics.get("ci95", {}).get("errors", {}).items():
+            flat[f"width.{s}.{level}.median_m"] = metrics[col.METRICS_WIDTH][s][level]["median_m"]
+    flat[col.METRICS_SUBSTITUTION] = metrics[col.METRICS_SUBSTITUTION]
+    for m, stats in metrics.get(col.METRICS_CI95, {}).get(col.METRICS_ERRORS, {}).items():
         for k, (low, high) in stats.items():
             flat[f"error.{m}.{k}.ci_low"], flat[f"error.{m}.{k}.ci_high"] = low, high
-    for s, by_level in metrics.get("ci95", {}).get("coverage", {}).items():
+    for s, by_level in metrics.get(col.METRICS_CI95, {}).get(col.METRICS_COVERAGE, {}).items():
         for level, (low, high) in by_level.items():
             flat[f"coverage.{s}.{level}.ci_low"], flat[f"coverage.{s}.{level}.ci_high"] = low, high
-    for k, v in metrics.get("gate_gap", {}).items():
+    for k, v in metrics.get(col.METRICS_GATE_GAP, {}).items():
         flat[f"gate_gap.{k}"] = v
-    for row in metrics.get("risk_coverage", []):
+    for row in metrics.get(col.METRICS_RISK_COVERAGE, []):
         for k in ("p95", "share_gt_5m"):
             flat[f"risk_coverage.{row['share_placed']:.2f}.{k}"] = row[k]
     for level, v in (metrics.get("ellipse") or {}).items():
-        flat[f"ellipse.{level}.coverage"] = v["coverage"]
+        flat[f"ellipse.{level}.coverage"] = v[col.METRICS_COVERAGE]
     for k, v in (metrics.get("selective") or {}).items():
         flat[f"selective.{k}"] = v
     for k, v in metrics.get(col.CRB, {}).items():
         flat[f"crb.{k}_m"] = v
-    for block in ("spearman_rho", "gross_error_auc"):
+    for block in (col.METRICS_SPEARMAN, col.METRICS_GROSS_AUC):
         for k, v in metrics.get(block, {}).items():
             if v is not None:
                 flat[f"{block}.{k}"] = v
@@ -386,13 +386,13 @@ def summary_text(metrics: dict) -> str:
         return "inf" if v == float("inf") else "-" if np.isnan(v) else f"{v:.2f}" if abs(v) < 10 else f"{v:.0f}"
 
     lines = [f"{'method':<14}{'p50 m':>8}{'p95 m':>8}{'p99 m':>8}{'> 5 m':>8}{'failed':>8}"]
-    for method, e in metrics["errors"].items():
+    for method, e in metrics[col.METRICS_ERRORS].items():
         lines.append(f"{method:<14}{num(e['p50']):>8}{num(e['p95']):>8}{num(e['p99']):>8}{100 * e.get('share_gt_5m', float('nan')):>7.1f}%"
                      f"{e['n_failed']:>8}")
-    levels = sorted({lv for by in metrics["coverage"].values() for lv in by}, key=float)
+    levels = sorted({lv for by in metrics[col.METRICS_COVERAGE].values() for lv in by}, key=float)
     lines.append("")
-    lines.append(f"{'coverage':<14}" + "".join(f"{'@' + lv:>10}" for lv in levels) + f"{'radius@' + levels[-1]:>14}" if levels else "")
-    for scorer, by in metrics["coverage"].items():
-        width = metrics["interval_width"][scorer][levels[-1]]["median_m"]
+    lines.append(f"{col.METRICS_COVERAGE:<14}" + "".join(f"{'@' + lv:>10}" for lv in levels) + f"{'radius@' + levels[-1]:>14}" if levels else "")
+    for scorer, by in metrics[col.METRICS_COVERAGE].items():
+        width = metrics[col.METRICS_WIDTH][scorer][levels[-1]]["median_m"]
         lines.append(f"{scorer:<14}" + "".join(f"{by[lv]:>10.3f}" for lv in levels) + f"{num(width) + ' m':>14}")
     return "\n".join(lines)

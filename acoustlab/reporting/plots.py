@@ -222,13 +222,13 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
     paths.append(_save(fig, out_dir / "error_cdf.png"))
 
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
-    coverage_calibration(ax, {s: {float(lv): v for lv, v in by.items()} for s, by in metrics["coverage"].items()}, len(predictions))
+    coverage_calibration(ax, {s: {float(lv): v for lv, v in by.items()} for s, by in metrics[col.METRICS_COVERAGE].items()}, len(predictions))
     ax.set_title("coverage calibration (pooled test detections)", fontsize=9)
     paths.append(_save(fig, out_dir / "coverage_calibration.png"))
 
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
     predicted_vs_actual(ax, predictions[col.PREDICTED_ERROR].to_numpy(float), predictions[col.error_m("gate")].to_numpy(float),
-                        metrics.get("spearman_rho", {}).get("error_model"))
+                        metrics.get(col.METRICS_SPEARMAN, {}).get("error_model"))
     paths.append(_save(fig, out_dir / "predicted_vs_actual_error.png"))
 
     if site is not None:

@@ -121,7 +121,7 @@ def collect_runs(paths: list[Path]) -> list[RunResult]:
         except DataError as exc:  # a damaged or foreign folder: left out, named, never a traceback
             log.warning("left out of the report: %s", exc)
             continue
-        if isinstance(metrics.get("errors"), dict):  # shard-only jobs have no results
+        if isinstance(metrics.get(col.METRICS_ERRORS), dict):  # shard-only jobs have no results
             runs.append(RunResult(d, metrics, _overrides(d)))
     keys = sorted({k for r in runs for k in r.overrides})
     varying = [k for k in keys if len({r.overrides.get(k) for r in runs}) > 1]
@@ -138,11 +138,11 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
         predictions = r.predictions
         if predictions is not None and col.IN_SUMMARY in predictions:
             predictions = predictions[predictions[col.IN_SUMMARY].to_numpy(bool)]
-        for method in r.metrics["errors"]:  # solver, model, gate, oracle (newer runs) and any extra gates
-            stats = r.metrics["errors"][method]
+        for method in r.metrics[col.METRICS_ERRORS]:  # solver, model, gate, oracle (newer runs) and any extra gates
+            stats = r.metrics[col.METRICS_ERRORS][method]
             row = {**r.identity(), "method": method, "n (detections)": stats["n"],
                    **{f"{k} (m)": stats[k] for k in ("mean", "p50", "p90", "p95", "p99")}}
-            ci = r.metrics.get("ci95", {}).get("errors", {}).get(method, {})
+            ci = r.metrics.get(col.METRICS_CI95, {}).get(col.METRICS_ERRORS, {}).get(method, {})
             for q in ("p95", "p99"):
                 if q in ci:
                     row[f"{q} 95 % CI (m)"] = f"{ci[q][0]:.3g}–{ci[q][1]:.3g}"
@@ -163,11 +163,11 @@ def default_title(runs: list[RunResult]) -> str:
 
 def conclusion(runs: list[RunResult]) -> str:
     """One line: which run's gated estimate has the smallest p95 error, its gross-error share, and the spread across runs."""
-    p95 = [(r.metrics["errors"]["gate"]["p95"], r) for r in runs if "gate" in r.metrics.get("errors", {})]
+    p95 = [(r.metrics[col.METRICS_ERRORS]["gate"]["p95"], r) for r in runs if "gate" in r.metrics.get(col.METRICS_ERRORS, {})]
     if not p95:
         return "No run has gated errors to compare."
     best_value, best = min(p95, key=lambda t: t[0])
-    gross = best.metrics["errors"]["gate"].get("share_gt_5m")
+    gross = best.metrics[col.METRICS_ERRORS]["gate"].get("share_gt_5m")
     gross_text = f", {100 * gross:.1f} % of detections > {GROSS_ERROR_M:g} m" if gross is not None else ""
     if len(p95) == 1:
         return f"The gated estimate's 95th-percentile error is {best_value:.3g} m{gross_text} ({best.label})."
@@ -217,13 +217,13 @@ def relative_rows(runs: list[RunResult], method: str = "gate") -> pd.DataFrame:
     """``method``'s p50/p95/p99 error of every run and its ratio to the first run's (e.g. the full
     feature set at the head of an ablation sweep), with a 95 % interval from a paired bootstrap over
     source positions when the runs share their test events. Empty for a single run."""
-    if len(runs) < 2 or any(method not in r.metrics["errors"] for r in runs):
+    if len(runs) < 2 or any(method not in r.metrics[col.METRICS_ERRORS] for r in runs):
         return pd.DataFrame()
-    first = runs[0].metrics["errors"][method]
+    first = runs[0].metrics[col.METRICS_ERRORS][method]
     first_predictions = runs[0].predictions
     rows = []
     for r in runs:
-        errors = r.metrics["errors"][method]
+        errors = r.metrics[col.METRICS_ERRORS][method]
         predictions = r.predictions
         row = r.identity()
         for name, q in (("p50", 50), ("p95", 95), ("p99", 99)):
@@ -246,13 +246,13 @@ def coverage_rows(runs: list[RunResult]) -> pd.DataFrame:
     """Empirical coverage and median interval radius (m) per run, scorer and nominal level."""
     rows = []
     for r in runs:
-        for scorer, by_level in r.metrics["coverage"].items():
+        for scorer, by_level in r.metrics[col.METRICS_COVERAGE].items():
             row = {**r.identity(), "scorer": scorer}
             for level, value in by_level.items():
                 row[f"coverage@{level} (share)"] = value
             for level in by_level:
-                row[f"median radius@{level} (m)"] = r.metrics["interval_width"][scorer][level]["median_m"]
-            for level, stats in r.metrics.get("coverage_by_position", {}).get(scorer, {}).items():
+                row[f"median radius@{level} (m)"] = r.metrics[col.METRICS_WIDTH][scorer][level]["median_m"]
+            for level, stats in r.metrics.get(col.METRICS_COVERAGE_BY_POSITION, {}).get(scorer, {}).items():
                 row[f"worst position@{level} (share)"] = stats["min"]
             rows.append(row)
     return pd.DataFrame(rows)
@@ -263,13 +263,13 @@ def uncertainty_rows(runs: list[RunResult]) -> pd.DataFrame:
     rows = []
     for r in runs:
         m = r.metrics
-        rho = m.get("spearman_rho", {})
+        rho = m.get(col.METRICS_SPEARMAN, {})
         rows.append({
             **r.identity(),
             "ρ error model (Spearman)": rho.get("error_model"),
             "ρ GDOP (Spearman)": rho.get("gdop"),
-            "AUC error model, > 5 m": m.get("gross_error_auc", {}).get("error_model"),
-            "substitution rate (%)": None if m.get("substitution_rate") is None else 100 * m["substitution_rate"],
+            "AUC error model, > 5 m": m.get(col.METRICS_GROSS_AUC, {}).get("error_model"),
+            "substitution rate (%)": None if m.get(col.METRICS_SUBSTITUTION) is None else 100 * m[col.METRICS_SUBSTITUTION],
             "gate": _gate_summary(m),
             "CRB p50 (m)": m.get(col.CRB, {}).get("p50"),
             "feature groups withheld": r.withheld_groups,
@@ -333,13 +333,13 @@ def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
         fig.savefig(out_dir / "sweep_error_cdf.png", dpi=110)
         plt.close(fig)
         paths.append(out_dir / "sweep_error_cdf.png")
-    scorers = list(dict.fromkeys(s for r in runs for s in r.metrics["coverage"]))
+    scorers = list(dict.fromkeys(s for r in runs for s in r.metrics[col.METRICS_COVERAGE]))
     columns = min(3, len(scorers))
     rows = -(-len(scorers) // columns)
     fig, axes = plt.subplots(rows, columns, figsize=(3.6 * columns, 3.8 * rows), squeeze=False)
     for ax, scorer in zip(axes.flat, scorers):  # one panel per scorer, one line per run: readable with conformal=all
-        coverage_calibration(ax, {r.label: {float(lv): v for lv, v in r.metrics["coverage"][scorer].items()} for r in runs
-                                  if scorer in r.metrics["coverage"]})
+        coverage_calibration(ax, {r.label: {float(lv): v for lv, v in r.metrics[col.METRICS_COVERAGE][scorer].items()} for r in runs
+                                  if scorer in r.metrics[col.METRICS_COVERAGE]})
         ax.set_title(scorer, fontsize=9)
     for ax in list(axes.flat)[len(scorers):]:
         ax.set_visible(False)

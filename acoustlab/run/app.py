@@ -329,7 +329,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
 
         write_run_plots(predictions[summary_rows], metrics, site, run_dir / "plots")
     plot_and_time(cfg, run_dir, metrics, timings, started, "plots", plot)
-    log.info("%s test detections; errors (m) and conformal coverage:\n%s", metrics["errors"]["gate"]["n"], summary_text(metrics))
+    log.info("%s test detections; errors (m) and conformal coverage:\n%s", metrics[col.METRICS_ERRORS]["gate"]["n"], summary_text(metrics))
     log.info("timings (s): %s", ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in metrics["timings_s"].items()))
     log.info("run directory: %s", run_dir)
     log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
@@ -416,7 +416,7 @@ def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFram
         table.insert(at + 2, "crs", crs)
     atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
     atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
-    metrics: dict[str, Any] = {"localization": localization_summary(table, components.levels, list(components.scorers))}
+    metrics: dict[str, Any] = {col.METRICS_LOCALIZATION: localization_summary(table, components.levels, list(components.scorers))}
     for split in result.split_diagnostics:
         if "training" in split:  # simulated events and calibration playbacks the method was fitted on
             metrics["training"] = split["training"]
