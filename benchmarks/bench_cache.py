@@ -13,7 +13,7 @@ import logging
 import platform
 import tempfile
 
-from common import REPO, time_cli
+from common import REPO, time_cli, write_results
 
 log = logging.getLogger("bench_cache")
 
@@ -42,9 +42,6 @@ def main() -> None:
         "wall_s": {k: round(v, 2) for k, v in rows.items()},
         "ratio_to_cold": {k: round(v / cold, 3) for k, v in rows.items()},
     }
-    out = REPO / "benchmarks" / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"cache_{opts.site}.json").write_text(json.dumps(result, indent=2))
     lines = [
         f"# End-to-end wall time, site {opts.site}",
         "",
@@ -54,7 +51,7 @@ def main() -> None:
         "|---|---|---|",
     ]
     lines += [f"| {k} | {v:.1f} | {result['ratio_to_cold'][k]:.2f} |" for k, v in rows.items()]
-    (out / f"cache_{opts.site}.md").write_text("\n".join(lines) + "\n")
+    write_results(f"cache_{opts.site}", result, lines)
     log.info("\n".join(lines))
 
 
