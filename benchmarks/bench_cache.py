@@ -8,12 +8,11 @@ Writes benchmarks/results/cache_<site>.json and .md. Each command runs in a fres
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import platform
 import tempfile
 
-from common import REPO, time_cli, write_results
+from common import time_cli, write_results
 
 log = logging.getLogger("bench_cache")
 
