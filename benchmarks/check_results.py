@@ -53,8 +53,8 @@ def status(result: Path) -> tuple[str, str]:
     if not script.is_file() or script_sha256(script) != made_with["script_sha256"]:
         return "script changed", f"{made_with['script']} differs from the version that made it: re-run it"
     files = [p.relative_to(REPO).as_posix() for p in dependencies(script) if p.is_relative_to(REPO)]
-    if not files:  # a script that imports nothing of the package (it runs the command line): only the script itself counts
-        return "current", made_with["commit"][:10]
+    if not files:  # a script that runs the command line instead of importing the package depends on all of it
+        files = ["acoustlab", "plugins", "conf"]
     proc = subprocess.run(["git", "diff", "--name-only", made_with["commit"], "--", *files], cwd=REPO, capture_output=True, text=True)
     changed = proc.stdout.split()
     if proc.returncode != 0:
