@@ -54,7 +54,7 @@ class LocalizeProtocol:
     def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
         """Positions of every field detection (error columns are NaN: there is no truth)."""
         if field_recordings is None:
-            raise ConfigError("protocol=localize needs recordings: choose field=recordings (see the README, 'Localize your recordings')")
+            raise ConfigError("protocol=localize needs recordings: choose field=recordings (see docs/localize.md)")
         features, events, sim_rows, all_field_rows = combine(dataset, field_recordings, need_truth=False)
         groups = events[col.POSITION_ID].to_numpy()
         known = np.isfinite(events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)[all_field_rows]).all(axis=1)
