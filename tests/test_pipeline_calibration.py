@@ -109,7 +109,7 @@ def test_gate_context_lets_the_error_model_rank_gross_fixes(seed):
     rho = {}
     for cues in (False, True):
         error_model = HistGradientBoostingRegressor(loss="quantile", quantile=0.5, max_iter=100, random_state=0)
-        gate = LearnedGate(seed=0, n_threads=1, p50_tolerance=0.0)
+        gate = LearnedGate(seed=0, n_threads=1, p50_tolerance=0.0, stakes_cap_m=None)  # the unweighted gate this scene was built for
         out = LocalizationPipeline(components(gate, error_model, cues)).fit_predict(features, events, train, test).predictions
         rho[cues] = spearmanr(out["predicted_error_m"], out[col.error_m("gate")]).statistic
     assert rho[True] > rho[False] + 0.2, rho
