@@ -23,25 +23,20 @@ from pathlib import Path
 
 from common import REPO, RESULTS, script_sha256
 
-from acoustlab.core.imports import internal_imports, module_source_path
+from acoustlab.core.imports import import_closure, module_source_path
 
 
 def dependencies(script: Path) -> set[Path]:
-    """Source files of the own modules ``script`` imports, followed transitively."""
+    """Source files of the own modules ``script`` imports, followed transitively (:func:`import_closure`)."""
     import ast
 
     tree = ast.parse(script.read_text())
-    todo = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    todo |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
-    todo = {m for m in todo if m.split(".")[0] in ("acoustlab", "plugins")}
-    seen: set[str] = set()
-    while todo:
-        module = todo.pop()
-        if module in seen:
-            continue
-        seen.add(module)
-        todo |= set(internal_imports(module)) - seen
-    return {p for m in seen if (p := module_source_path(m)) is not None}
+    direct = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    for n in ast.walk(tree):  # ``from pkg import name``: pkg, and pkg.name where that is a module
+        if isinstance(n, ast.ImportFrom) and n.module:
+            direct |= {n.module, *(f"{n.module}.{a.name}" for a in n.names)}
+    own = [m for m in direct if m.split(".")[0] in ("acoustlab", "plugins") and module_source_path(m) is not None]
+    return {p for m in own for name in import_closure(m) if (p := module_source_path(name)) is not None}
 
 
 def status(result: Path) -> tuple[str, str]:

@@ -57,9 +57,9 @@ def machine() -> dict[str, Any]:
 
 def script_sha256(script: Path) -> str:
     """SHA-256 of a benchmark script's source: a result made by another version of the script is stale."""
-    import hashlib
+    from acoustlab.stages.cache import file_digest
 
-    return hashlib.sha256(Path(script).read_bytes()).hexdigest()
+    return file_digest(script)
 
 
 def provenance() -> dict[str, Any]:

@@ -16,6 +16,11 @@ from acoustlab.run.schema import AcoustlabConfig
 INSPECT_FLAGS = ("--help", "-h", "--hydra-help", "--info", "-i", "--cfg", "-c", "--shell-completion", "-sc", "--version")
 
 
+def _inspecting(argv: list[str]) -> bool:
+    """True for a command line that only inspects the app (``--help``, ``--cfg`` …): it needs no site and writes nothing."""
+    return any(a in INSPECT_FLAGS or a.split("=")[0] in INSPECT_FLAGS for a in argv)
+
+
 def _values(value: str) -> list[str] | None:
     """Option names in a (possibly swept) override value; None where they cannot be read statically."""
     if any(ch in value for ch in "()[]{}$*"):
@@ -61,7 +66,7 @@ def check_argv(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
         For an unknown option of a group (listing the available ones), ``site=`` without ``+``,
         or no site at all.
     """
-    if any(a in INSPECT_FLAGS or a.split("=")[0] in INSPECT_FLAGS for a in argv):
+    if _inspecting(argv):
         return
     site_given = False
     for arg in argv:
@@ -102,7 +107,7 @@ def check_output_dirs(argv: list[str]) -> None:
         Naming the setting and the folder that cannot be written, instead of Hydra's traceback
         from inside its run-directory set-up.
     """
-    if any(a in INSPECT_FLAGS or a.split("=")[0] in INSPECT_FLAGS for a in argv):
+    if _inspecting(argv):
         return
     given = {}
     for arg in argv:
