@@ -73,10 +73,13 @@ def main() -> None:
     """Console-script entry point: preflight the command line, then hand over to Hydra.
 
     ``acoustlab report ...`` and ``acoustlab upload ...`` run the report and upload commands;
-    ``acoustlab localize ...`` is the main job with ``protocol=localize`` (positions of recordings).
+    ``acoustlab localize ...`` is the main job with ``protocol=localize`` (positions of recordings);
+    ``acoustlab season ...`` is ``protocol=season`` (a season of long recordings from detector tables).
     """
     if len(sys.argv) > 1 and sys.argv[1] == "localize":  # acoustlab localize +site=NAME field=recordings …
         sys.argv = [sys.argv[0], "protocol=localize", *sys.argv[2:]]
+    if len(sys.argv) > 1 and sys.argv[1] == "season":  # acoustlab season +site=NAME protocol.recordings.audio_dir=… …
+        sys.argv = [sys.argv[0], "protocol=season", *sys.argv[2:]]
     if len(sys.argv) > 1 and sys.argv[1] in ("report", "upload"):
         from acoustlab.reporting import report
         from acoustlab.run import upload

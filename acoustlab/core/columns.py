@@ -40,6 +40,8 @@ EMISSION_TIME = "emission_time_s"
 CRB = "crb_m"
 #: A detection's window in its recording (s from the file's start; events tables of recordings, positions.csv).
 START, END = "start_s", "end_s"
+#: A detection's own frequency band (Hz; Raven's Low/High Freq): every GCC of that event uses it where given.
+BAND_LOW, BAND_HIGH = "band_low_hz", "band_high_hz"
 #: Mic tables (a site's ``mics_csv``, a recordings folder's mics.csv): one row per mic.
 MIC_X, MIC_Y, MIC_Z = "x_m", "y_m", "z_m"
 MIC_XYZ = (MIC_X, MIC_Y, MIC_Z)

@@ -29,6 +29,8 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
     "needs_field": False,
     # evaluation protocols: has ground truth and writes error metrics (False: positions only, protocol=localize)
     "evaluates": True,
+    # protocols: runs on its own from the recordings, chunk by chunk (protocol=season), not on in-memory tables
+    "streams": False,
     # simulators and feature sets: bumped by hand to invalidate cached results of an unchanged module
     "cache_version": "0",
     # trackers: the id of the last run sent and where it went (for the upload marker)
@@ -37,7 +39,7 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
 }
 #: Optional hooks a plugin may define; a plugin without one is taken to need nothing there. Get them with :func:`hook`.
 #: ``preflight()`` (models: check what must exist before anything is simulated, e.g. weights), ``validate(site)``
-#: (field sources: check tables and headers), ``input_files()`` (field sources: the files whose contents key the
+#: (field sources and protocol=season: check tables and headers), ``input_files()`` (field sources: the files whose contents key the
 #: cache), ``projection()`` (field sources: the rigid map to projected coordinates, or None).
 OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection")
 

@@ -154,12 +154,11 @@ def error_2d_m(estimate_m: np.ndarray, truth_m: np.ndarray) -> np.ndarray:
 
 @dataclass
 class SplitData:
-    """One split's tables and the arrays every step reads (rows ``train`` and ``test`` index the tables)."""
+    """A training split's tables and the arrays every fitting step reads (rows ``train`` index the tables)."""
 
     features: pd.DataFrame
     events: pd.DataFrame
     train: np.ndarray
-    test: np.ndarray
     #: (N, 2) true horizontal positions, m
     truth: np.ndarray
     #: (N,) source positions (the exchangeable unit)
@@ -167,9 +166,8 @@ class SplitData:
     #: the point model's and the error model's input columns
     mcols: list[str]
     ecols: list[str]
-    #: (N, 2) the solver's fixes, m; (N,) the solver's GDOP
+    #: (N, 2) the solver's fixes, m
     solver_xy: np.ndarray
-    solver_gdop: np.ndarray
     #: (train,) True for the simulated training rows (the ones a gate learns from)
     sim: np.ndarray
     #: calibration folds over the training positions (indices into ``train``)
@@ -211,16 +209,6 @@ class TestEstimates:
     #: (test,) GDOP at the reported estimate
     gdop: np.ndarray
     x_error: pd.DataFrame
-
-
-@dataclass
-class ErrorPredictions:
-    """The error model's predictions (out-of-fold on training, final on test; m) and the fitted conformal scorers."""
-
-    oof_predicted: np.ndarray
-    predicted: np.ndarray
-    scorers: dict[str, ConformalScorer]
-    test_quantiles: dict[str, np.ndarray]
 
 
 class LocalizationPipeline:
@@ -334,14 +322,9 @@ class LocalizationPipeline:
     def fit_predict(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray, test: np.ndarray) -> MethodResult:
         """Fit on rows ``train`` and predict rows ``test`` (integer positions into the tables).
 
-        Every fitted plugin (point and error models, gate, conformal scorers) is a fresh clone of the
-        configured one, so splits never share fitted state. Conformal calibration uses out-of-fold
-        errors over training *positions* (group K-fold): every calibration error comes from point
-        and error models that never saw that position. The steps, in order: the split's arrays;
-        out-of-fold point-model estimates; the gate; out-of-fold (calibration) errors; the test
-        events' estimates, checked against the point model's training support; the error model
-        and conformal scorers; the predictions table; gates compared beside the configured one,
-        selective localization and the radii.
+        The same as :meth:`fit` on the training rows followed by :meth:`FittedMethod.predict` on
+        the test rows (a test row's prediction depends on the fitted method and its own row only,
+        so predicting in chunks gives the same rows). No position may be on both sides.
 
         Returns
         -------
@@ -350,40 +333,59 @@ class LocalizationPipeline:
             (m), GDOP, predicted error (m), substitution flag and ``radius__<scorer>__<level>`` (m);
             ``split_diagnostics``: ``[{"gate": ..., "trust": ..., "calibration": ...}]``.
         """
-        split = self._split(features, events, train, test)
+        groups = events[col.POSITION_ID].to_numpy()
+        if np.intersect1d(groups[train], groups[test]).size:
+            raise DataError("a source position appears in both training and test rows")
+        fitted = self.fit(features, events, train)
+        out, trust = fitted.predict(features.iloc[test], events.iloc[test])
+        return MethodResult(out, [fitted.split_info(trust)])
+
+    def fit(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray) -> FittedMethod:
+        """Fit every learned part of the method on rows ``train`` of the tables.
+
+        Every fitted plugin (point and error models, gate, conformal scorers) is a fresh clone of the
+        configured one, so splits never share fitted state. Conformal calibration uses out-of-fold
+        errors over training *positions* (group K-fold): every calibration error comes from point
+        and error models that never saw that position. The steps, in order: the split's arrays;
+        out-of-fold point-model estimates; the gate; out-of-fold (calibration) errors; the final
+        point model and its training support; the error model and conformal scorers; gates
+        compared beside the configured one; the selective threshold.
+
+        Returns
+        -------
+        FittedMethod
+            What predicting needs, and nothing of the training tables beyond the calibration
+            events' errors (it can be saved and loaded: :mod:`acoustlab.method.saved`).
+        """
+        split = self._split(features, events, train)
         oof_model = self._out_of_fold_point(split)
         # the gate learns what it needs (e.g. τ* on simulation) from the out-of-fold predictions, on simulated rows only
         gate = self._fit_gate(self.c.gate, train, split.sim, split.solver_xy, oof_model, features, split.truth, split.groups)
         cal = self._calibration_errors(split, oof_model)
         log.info("final point and error models on %d training rows", train.size)
-        estimates = self._test_estimates(split, gate)
-        errors = self._fit_error_models(split, cal, estimates)
-        out = self._predictions_table(split, estimates, errors.predicted)
-        split_info: dict[str, Any] = {"gate": gate.diagnostics(), "trust": self._trust_summary(estimates.support, estimates.trusted),
-                                      "calibration": self._calibration_summary(cal.domain, cal.rows, split.groups[train])}
+        models = self._fit_point(features.iloc[train][split.mcols], split.truth[train], split.solver_xy[train], split.groups[train])
+        support = self._support(train, features, split.mcols, events, split.solver_xy, split.groups)
+        fitted = FittedMethod(pipeline=self, mcols=split.mcols, ecols=split.ecols, point_models=models, support=support, gate=gate,
+                              floor=cal.floor, calibrated_on_field=bool(cal.domain.sum() < cal.domain.size),
+                              calibration=self._calibration_summary(cal.domain, cal.rows, split.groups[train]))
+        self._fit_error_models(split, cal, fitted)
         if self.c.ellipse:
-            self._add_ellipses(out, (cal.gate.position_m - split.truth[train])[cal.rows], cal.gate.position_m[cal.rows], errors.oof_predicted[cal.rows],
-                               features.iloc[train[cal.rows]], estimates.trusted.decision.position_m, errors.predicted, features.iloc[test])
+            rows = cal.rows
+            fitted.ellipse_calibration = ((cal.gate.position_m - split.truth[train])[rows], cal.gate.position_m[rows],
+                                          fitted.oof_predicted[rows], source_height_m(features.iloc[train[rows]], self.c.site))
         for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
-            extra = self._fit_gate(configured, train, split.sim, split.solver_xy, oof_model, features, split.truth, split.groups)
-            position = self._decide(extra, test, split.solver_xy, estimates.model_xy, features, estimates.cues).decision.position_m
-            self._add_method(out, col.extra_gate_method(name), position, split.truth[test])
-            split_info.setdefault("extra_gates", {})[name] = extra.diagnostics()
+            fitted.extra_gates[name] = self._fit_gate(configured, train, split.sim, split.solver_xy, oof_model, features, split.truth, split.groups)
         if self.c.selective is not None:
-            split_info["selective"] = self._place_selectively(out, cal, errors, estimates.trusted)
-        self._add_radii(out, split, cal, estimates, errors)
-        return MethodResult(out, [split_info])
+            fitted.selective = self._selective_threshold(cal.error[cal.domain], fitted.oof_predicted[cal.domain])
+        return fitted
 
-    def _split(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray, test: np.ndarray) -> SplitData:
-        """The split's arrays, checked: no position on both sides."""
+    def _split(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray) -> SplitData:
+        """The training split's arrays (rows ``train`` index the tables)."""
         groups = events[col.POSITION_ID].to_numpy()
-        if np.intersect1d(groups[train], groups[test]).size:
-            raise DataError("a source position appears in both training and test rows")
         return SplitData(
-            features=features, events=events, train=train, test=test, truth=events[[col.TRUE_X, col.TRUE_Y]].to_numpy(dtype=float), groups=groups,
+            features=features, events=events, train=train, truth=events[[col.TRUE_X, col.TRUE_Y]].to_numpy(dtype=float), groups=groups,
             mcols=self.model_columns(features), ecols=self.error_columns(features),
             solver_xy=features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(dtype=float),
-            solver_gdop=features[col.SOLVER_GDOP].to_numpy(dtype=float) if col.SOLVER_GDOP in features else np.full(len(features), np.nan),
             # the paper chooses τ* on simulation: field rows never teach a gate
             sim=~events["is_field"].to_numpy(bool)[train] if "is_field" in events else np.ones(train.size, dtype=bool),
             folds=self._folds(groups[train]),
@@ -416,18 +418,6 @@ class LocalizationPipeline:
         x_error = self._error_inputs(s.features.iloc[train][s.ecols], s.solver_xy[train], oof_model, oof_gate, gdop_train)
         return CalibrationErrors(oof_model, oof_gate, error, gdop_train, finite, floor, domain, domain & finite, x_error)
 
-    def _test_estimates(self, s: SplitData, gate: Gate) -> TestEstimates:
-        """The final point model's estimates of the test events, the gate's decision checked against its support, the error inputs."""
-        train, test = s.train, s.test
-        models = self._fit_point(s.features.iloc[train][s.mcols], s.truth[train], s.solver_xy[train], s.groups[train])
-        model_xy = self._predict_point(models, s.features.iloc[test][s.mcols], s.solver_xy[test])
-        support = self._support(train, s.features, s.mcols, s.events, s.solver_xy, s.groups)
-        cues = self._cues(test, s.solver_xy, model_xy, s.features, s.mcols, support)
-        trusted = self._decide(gate, test, s.solver_xy, model_xy, s.features, cues)
-        gdop_test = self._gdop_at(trusted.decision.position_m, s.features.iloc[test])
-        x_error = self._error_inputs(s.features.iloc[test][s.ecols], s.solver_xy[test], model_xy, trusted.decision, gdop_test)
-        return TestEstimates(model_xy, support, cues, trusted, gdop_test, x_error)
-
     def _error_fit_rows(self, s: SplitData, cal: CalibrationErrors, rows: np.ndarray, plugin: Any) -> np.ndarray:
         """The training ``rows`` with a finite error, within ``plugin``'s own row limit."""
         rows = rows[cal.finite[rows]]
@@ -442,87 +432,26 @@ class LocalizationPipeline:
             out[held_idx] = fit_predict(cal.x_error.iloc[fit_idx], cal.error[fit_idx], cal.x_error.iloc[held_idx])
         return out
 
-    def _fit_error_models(self, s: SplitData, cal: CalibrationErrors, t: TestEstimates) -> ErrorPredictions:
-        """The error model (out-of-fold for calibration, then on every training row) and the conformal scorers."""
+    def _fit_error_models(self, s: SplitData, cal: CalibrationErrors, fitted: FittedMethod) -> None:
+        """The error model (out-of-fold for calibration, then on every training row) and the conformal scorers, into ``fitted``."""
         log.info("error model, out-of-fold (%d folds)", len(s.folds))
         oof_pred = np.maximum(self._out_of_fold_errors(s, cal, lambda x, y, held: clone_for_rows(self.c.error_model, len(x)).fit(x, y).predict(held),
                                                        self.c.error_model, desc="error model, out-of-fold"), cal.floor)
         rows, levels = cal.rows, self.c.levels
         positions = s.groups[s.train][rows]  # a scorer may calibrate over positions rather than events
-        scorers, test_quantiles = {}, {}
         for name, configured in self.c.scorers.items():
             scorer = clone(configured, safe=False)
             if declared(scorer, "needs_quantiles"):  # CQR: its own quantile model, out-of-fold like the error model
                 oof_q = self._out_of_fold_errors(s, cal, lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, levels),
                                                  scorer, shape=(len(levels),))
-                scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, quantiles=np.maximum(oof_q[rows], cal.floor),
-                                           groups=positions)
-                test_quantiles[name] = np.maximum(scorer.fit_predict_quantiles(
-                    cal.x_error.iloc[cal.finite], cal.error[cal.finite], t.x_error, levels), cal.floor)
+                fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels,
+                                                  quantiles=np.maximum(oof_q[rows], cal.floor), groups=positions)
+                fitted.quantile_training = (cal.x_error.iloc[cal.finite], cal.error[cal.finite])
             else:
-                scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, groups=positions)
+                fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, groups=positions)
         fit_rows = self._error_fit_rows(s, cal, np.arange(s.train.size), self.c.error_model)
-        error_model = clone_for_rows(self.c.error_model, fit_rows.size).fit(cal.x_error.iloc[fit_rows], cal.error[fit_rows])
-        return ErrorPredictions(oof_pred, np.maximum(error_model.predict(t.x_error), cal.floor), scorers, test_quantiles)
-
-    def _predictions_table(self, s: SplitData, t: TestEstimates, predicted: np.ndarray) -> pd.DataFrame:
-        """One row per test event: truth, every estimate and its error, the oracle, the trust check's cues, GDOPs, predicted error."""
-        test, decision = s.test, t.trusted.decision
-        out = pd.DataFrame(
-            {
-                col.EVENT_ID: s.events[col.EVENT_ID].to_numpy()[test],
-                col.POSITION_ID: s.groups[test],
-                **dict(zip(col.estimate_xy("true"), (s.truth[test, 0], s.truth[test, 1]), strict=True)),
-                **{
-                    name: xy[:, k]
-                    for method, xy in zip(col.ESTIMATORS, (s.solver_xy[test], t.model_xy, decision.position_m), strict=True)
-                    for k, name in enumerate(col.estimate_xy(method))
-                },
-                col.SUBSTITUTED: decision.substituted,
-                col.TRUST_REASON: t.trusted.reason,
-                **{col.trust_flag(name): values for name, values in t.trusted.flags.items()},
-                "gdop": t.gdop,
-                "solver_gdop": s.solver_gdop[test],
-                col.PREDICTED_ERROR: predicted,
-            }
-        )
-        crb = crb_from_features(s.features.iloc[test], s.events.iloc[test], self.c.site)
-        if crb is not None:
-            out[col.CRB] = crb
-        for method in col.ESTIMATORS:
-            out[col.error_m(method)] = error_2d_m(out[list(col.estimate_xy(method))].to_numpy(), s.truth[test])
-        # the oracle: the better of solver and model per event (what a perfect gate would reach)
-        solver_better = out[col.error_m("solver")].to_numpy() <= out[col.error_m("model")].to_numpy()
-        for k, name in enumerate(col.estimate_xy("oracle")):
-            out[name] = np.where(solver_better, s.solver_xy[test, k], t.model_xy[:, k])
-        out[col.error_m("oracle")] = np.minimum(out[col.error_m("solver")], out[col.error_m("model")])
-        if t.support is not None:  # the configured gate as it decided before the trust check, side by side on the same predictions
-            self._add_method(out, col.extra_gate_method(col.GATE_WITHOUT_TRUST), t.trusted.gate_position_m, s.truth[test])
-        return out
-
-    def _place_selectively(self, out: pd.DataFrame, cal: CalibrationErrors, errors: ErrorPredictions, trusted: TrustedDecision) -> dict[str, Any]:
-        """``placed`` and ``abstain_reason`` columns from the certified threshold; returns its diagnostics."""
-        threshold, info = self._selective_threshold(cal.error[cal.domain], errors.oof_predicted[cal.domain])
-        has_fix = np.isfinite(trusted.decision.position_m).all(axis=1)
-        out[col.PLACED] = has_fix & (errors.predicted <= threshold)
-        out[col.ABSTAIN_REASON] = np.where(~has_fix, np.where(trusted.reason != "", trusted.reason, "no estimate"),
-                                         np.where(out[col.PLACED], "", "predicted error above the certified threshold"))
-        return info
-
-    def _add_radii(self, out: pd.DataFrame, s: SplitData, cal: CalibrationErrors, t: TestEstimates, errors: ErrorPredictions) -> None:
-        """``radius__<scorer>__<level>`` columns: conformal radii grown by the stated input errors where they apply."""
-        input_sigma = self._input_sigma(t.trusted.decision.position_m, s.features.iloc[s.test], s.events.iloc[s.test],
-                                        calibrated_on_field=cal.domain.sum() < cal.domain.size)
-        out[col.INPUT_SIGMA] = input_sigma
-        allowance = input_sigma[:, None] * np.array([level_factor(level) for level in self.c.levels])[None, :]
-        for name, scorer in errors.scorers.items():
-            if name in errors.test_quantiles:
-                radii = scorer.radius(errors.predicted, t.gdop, quantiles=errors.test_quantiles[name])
-            else:
-                radii = scorer.radius(errors.predicted, t.gdop)
-            radii = np.sqrt(radii**2 + np.nan_to_num(allowance) ** 2)  # independent error sources add in quadrature
-            for k, level in enumerate(self.c.levels):
-                out[col.radius(name, level)] = radii[:, k]
+        fitted.error_model = clone_for_rows(self.c.error_model, fit_rows.size).fit(cal.x_error.iloc[fit_rows], cal.error[fit_rows])
+        fitted.oof_predicted = oof_pred
 
     def _input_sigma(self, position_m: np.ndarray, features: pd.DataFrame, events: pd.DataFrame, calibrated_on_field: bool) -> np.ndarray:
         """(B,) per-axis position error (m) the stated input errors cause at each field detection; 0 where none applies.
@@ -647,20 +576,6 @@ class LocalizationPipeline:
         }, index=x.index)
         return pd.concat([x, context], axis=1)
 
-    def _add_ellipses(self, out: pd.DataFrame, cal_error_xy: np.ndarray, cal_position: np.ndarray, cal_pred: np.ndarray,
-                      cal_features: pd.DataFrame, test_position: np.ndarray, test_pred: np.ndarray, test_features: pd.DataFrame) -> None:
-        """Ellipse columns ``ellipse__<level>__a_m|b_m|angle_deg``: shape from the TDOA geometry, size from conformal on the calibration events."""
-        mics = self.c.site.mic_positions_m
-        ok = np.isfinite(cal_error_xy).all(axis=1)
-        shape = shape_matrices(mics, cal_position[ok], source_height_m(cal_features, self.c.site)[ok])
-        scores = mahalanobis(cal_error_xy[ok], shape) / cal_pred[ok]
-        test_shape = shape_matrices(mics, test_position, source_height_m(test_features, self.c.site))
-        for level in self.c.levels:
-            q = conformal_quantile(scores, level)
-            a, b, angle = ellipse_axes(test_shape, q * test_pred)
-            for name, values in (("a_m", a), ("b_m", b), ("angle_deg", angle)):
-                out[col.ellipse(level, name)] = values
-
     def _selective_threshold(self, oof_err: np.ndarray, oof_pred: np.ndarray) -> tuple[float, dict[str, Any]]:
         """The certified threshold on the predicted error (Learn then Test on the out-of-fold calibration events).
 
@@ -677,3 +592,152 @@ class LocalizationPipeline:
             log.warning("selective localization: no threshold certifies share(error > %g m | placed) <= %g; nothing is placed",
                         sel["gross_m"], sel["delta"])
         return threshold, info
+
+
+@dataclass
+class FittedMethod:
+    """The method fitted once on training events; predicts any number of new events, in any chunks.
+
+    A row's prediction depends on this object and that row alone, so a season predicted chunk by
+    chunk (or shard by shard) gives the rows predicting it at once would give.
+    """
+
+    pipeline: LocalizationPipeline
+    #: the point model's and the error model's input columns
+    mcols: list[str]
+    ecols: list[str]
+    #: fitted point models for x and y (targets relative to :meth:`LocalizationPipeline._offset`)
+    point_models: tuple[Any, Any]
+    support: TrainingSupport | None
+    gate: Gate
+    #: the error model's floor, m
+    floor: float
+    #: radii calibrated on field rows (then no input-error allowance is added)
+    calibrated_on_field: bool
+    calibration: dict[str, Any]
+    error_model: Any = None
+    scorers: dict[str, ConformalScorer] = field(default_factory=dict)
+    #: (x, error) a quantile scorer (CQR) fits its final quantile model on when predicting
+    quantile_training: tuple[pd.DataFrame, np.ndarray] | None = None
+    #: (train,) out-of-fold predicted errors of the training events, m
+    oof_predicted: np.ndarray | None = None
+    extra_gates: dict[str, Gate] = field(default_factory=dict)
+    #: (threshold_m, diagnostics) of selective localization, or None
+    selective: tuple[float, dict[str, Any]] | None = None
+    #: (error_xy, position, predicted error, source height) of the calibration events, for ellipses
+    ellipse_calibration: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def split_info(self, trust: dict[str, Any]) -> dict[str, Any]:
+        """What the fitted plugins report, for ``MethodResult.split_diagnostics``."""
+        info: dict[str, Any] = {"gate": self.gate.diagnostics(), "trust": trust, "calibration": self.calibration}
+        for name, gate in self.extra_gates.items():
+            info.setdefault("extra_gates", {})[name] = gate.diagnostics()
+        if self.selective is not None:
+            info["selective"] = self.selective[1]
+        return info
+
+    def predict(self, features: pd.DataFrame, events: pd.DataFrame) -> tuple[pd.DataFrame, dict[str, Any]]:
+        """Predictions of every row of ``features``/``events`` (same length, same order) and the trust check's summary.
+
+        Truth columns of ``events`` (``x_m, y_m``) may be NaN (field detections): errors are then
+        infinite and mean nothing; the localize protocols blank them.
+        """
+        pipe = self.pipeline
+        if len(features) != len(events):
+            raise ValueError(f"features ({len(features)} rows) and events ({len(events)} rows) must have the same rows")
+        rows = np.arange(len(features))
+        solver_xy = features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(dtype=float)
+        truth = events[[col.TRUE_X, col.TRUE_Y]].to_numpy(dtype=float)
+        model_xy = pipe._predict_point(self.point_models, features[self.mcols], solver_xy)
+        cues = pipe._cues(rows, solver_xy, model_xy, features, self.mcols, self.support)
+        trusted = pipe._decide(self.gate, rows, solver_xy, model_xy, features, cues)
+        gdop_at_estimate = pipe._gdop_at(trusted.decision.position_m, features)
+        estimate = TestEstimates(model_xy, self.support, cues, trusted, gdop_at_estimate,
+                                 pipe._error_inputs(features[self.ecols], solver_xy, model_xy, trusted.decision, gdop_at_estimate))
+        predicted = np.maximum(self.error_model.predict(estimate.x_error), self.floor)
+        out = self._table(features, events, solver_xy, truth, estimate, predicted)
+        if self.ellipse_calibration is not None:
+            self._add_ellipses(out, trusted.decision.position_m, predicted, features)
+        for name, gate in self.extra_gates.items():  # compared on the same predictions
+            position = pipe._decide(gate, rows, solver_xy, model_xy, features, cues).decision.position_m
+            pipe._add_method(out, col.extra_gate_method(name), position, truth)
+        if self.selective is not None:
+            self._place_selectively(out, predicted, trusted)
+        self._add_radii(out, features, events, estimate, predicted)
+        return out, pipe._trust_summary(self.support, trusted)
+
+    def _table(self, features: pd.DataFrame, events: pd.DataFrame, solver_xy: np.ndarray, truth: np.ndarray, t: TestEstimates,
+               predicted: np.ndarray) -> pd.DataFrame:
+        """One row per event: truth, every estimate and its error, the oracle, the trust check's cues, GDOPs, predicted error."""
+        decision = t.trusted.decision
+        solver_gdop = features[col.SOLVER_GDOP].to_numpy(dtype=float) if col.SOLVER_GDOP in features else np.full(len(features), np.nan)
+        out = pd.DataFrame(
+            {
+                col.EVENT_ID: events[col.EVENT_ID].to_numpy(),
+                col.POSITION_ID: events[col.POSITION_ID].to_numpy(),
+                **dict(zip(col.estimate_xy("true"), (truth[:, 0], truth[:, 1]), strict=True)),
+                **{
+                    name: xy[:, k]
+                    for method, xy in zip(col.ESTIMATORS, (solver_xy, t.model_xy, decision.position_m), strict=True)
+                    for k, name in enumerate(col.estimate_xy(method))
+                },
+                col.SUBSTITUTED: decision.substituted,
+                col.TRUST_REASON: t.trusted.reason,
+                **{col.trust_flag(name): values for name, values in t.trusted.flags.items()},
+                "gdop": t.gdop,
+                "solver_gdop": solver_gdop,
+                col.PREDICTED_ERROR: predicted,
+            }
+        )
+        crb = crb_from_features(features, events, self.pipeline.c.site)
+        if crb is not None:
+            out[col.CRB] = crb
+        for method in col.ESTIMATORS:
+            out[col.error_m(method)] = error_2d_m(out[list(col.estimate_xy(method))].to_numpy(), truth)
+        # the oracle: the better of solver and model per event (what a perfect gate would reach)
+        solver_better = out[col.error_m("solver")].to_numpy() <= out[col.error_m("model")].to_numpy()
+        for k, name in enumerate(col.estimate_xy("oracle")):
+            out[name] = np.where(solver_better, solver_xy[:, k], t.model_xy[:, k])
+        out[col.error_m("oracle")] = np.minimum(out[col.error_m("solver")], out[col.error_m("model")])
+        if t.support is not None:  # the configured gate as it decided before the trust check, side by side on the same predictions
+            self.pipeline._add_method(out, col.extra_gate_method(col.GATE_WITHOUT_TRUST), t.trusted.gate_position_m, truth)
+        return out
+
+    def _place_selectively(self, out: pd.DataFrame, predicted: np.ndarray, trusted: TrustedDecision) -> None:
+        """``placed`` and ``abstain_reason`` columns from the certified threshold."""
+        threshold = self.selective[0]
+        has_fix = np.isfinite(trusted.decision.position_m).all(axis=1)
+        out[col.PLACED] = has_fix & (predicted <= threshold)
+        out[col.ABSTAIN_REASON] = np.where(~has_fix, np.where(trusted.reason != "", trusted.reason, "no estimate"),
+                                           np.where(out[col.PLACED], "", "predicted error above the certified threshold"))
+
+    def _add_radii(self, out: pd.DataFrame, features: pd.DataFrame, events: pd.DataFrame, t: TestEstimates, predicted: np.ndarray) -> None:
+        """``radius__<scorer>__<level>`` columns: conformal radii grown by the stated input errors where they apply."""
+        c = self.pipeline.c
+        input_sigma = self.pipeline._input_sigma(t.trusted.decision.position_m, features, events, calibrated_on_field=self.calibrated_on_field)
+        out[col.INPUT_SIGMA] = input_sigma
+        allowance = input_sigma[:, None] * np.array([level_factor(level) for level in c.levels])[None, :]
+        for name, scorer in self.scorers.items():
+            if declared(scorer, "needs_quantiles") and self.quantile_training is not None:
+                x_fit, error_fit = self.quantile_training
+                quantiles = np.maximum(scorer.fit_predict_quantiles(x_fit, error_fit, t.x_error, c.levels), self.floor)
+                radii = scorer.radius(predicted, t.gdop, quantiles=quantiles)
+            else:
+                radii = scorer.radius(predicted, t.gdop)
+            radii = np.sqrt(radii**2 + np.nan_to_num(allowance) ** 2)  # independent error sources add in quadrature
+            for k, level in enumerate(c.levels):
+                out[col.radius(name, level)] = radii[:, k]
+
+    def _add_ellipses(self, out: pd.DataFrame, position: np.ndarray, predicted: np.ndarray, features: pd.DataFrame) -> None:
+        """Ellipse columns ``ellipse__<level>__a_m|b_m|angle_deg``: shape from the TDOA geometry, size from conformal on the calibration events."""
+        site = self.pipeline.c.site
+        cal_error_xy, cal_position, cal_pred, cal_height = self.ellipse_calibration
+        ok = np.isfinite(cal_error_xy).all(axis=1)
+        shape = shape_matrices(site.mic_positions_m, cal_position[ok], cal_height[ok])
+        scores = mahalanobis(cal_error_xy[ok], shape) / cal_pred[ok]
+        test_shape = shape_matrices(site.mic_positions_m, position, source_height_m(features, site))
+        for level in self.pipeline.c.levels:
+            q = conformal_quantile(scores, level)
+            a, b, angle = ellipse_axes(test_shape, q * predicted)
+            for name, values in (("a_m", a), ("b_m", b), ("angle_deg", angle)):
+                out[col.ellipse(level, name)] = values

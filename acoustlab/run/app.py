@@ -208,6 +208,9 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         validate = hook(field_source, "validate")
         if validate is not None:
             validate(site)
+    validate_protocol = hook(protocol, "validate")
+    if validate_protocol is not None:  # e.g. a season's recordings and detector tables, before any simulation
+        validate_protocol(site)
     tracker = build(cfg.tracking, "tracking")
 
     cache = StageCache(cfg.cache.dir, enabled=cfg.cache.enabled, file_mode=cfg.cache.file_mode)
@@ -294,6 +297,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
         log.info("this experiment takes %s", cfg.expected_duration)
     site, components, protocol, tracker, plan = built.site, built.components, built.protocol, built.tracker, built.plan
     timings: dict[str, float] = {"preflight_s": time.perf_counter() - started}
+    if declared(protocol, "streams"):  # a season: fitted once, then chunk by chunk from the recordings (acoustlab.season)
+        return _run_streaming(cfg, run_dir, built, choices, tracker, parent_run_id, run_name)
     stage_start = time.perf_counter()
     data = prepare_data(cfg, built)
     if data is None:
@@ -331,6 +336,17 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     plot_and_time(cfg, run_dir, metrics, timings, started, "plots", plot)
     log.info("%s test detections; errors (m) and conformal coverage:\n%s", metrics[col.METRICS_ERRORS]["gate"]["n"], summary_text(metrics))
     log.info("timings (s): %s", ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in metrics["timings_s"].items()))
+    log.info("run directory: %s", run_dir)
+    log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
+    return metrics
+
+
+def _run_streaming(cfg: DictConfig, run_dir: Path, built: BuiltRun, choices: dict[str, str], tracker: Any, parent_run_id: str | None,
+                   run_name: str | None) -> dict:
+    """A streaming protocol (``protocol=season``): its stages write the positions; metrics.json gets its summary."""
+    metrics = built.protocol.run_season(cfg, built, run_dir, prepare=lambda: prepare_data(cfg, built))
+    metrics.update({"site": built.site.name, "choices": choices, "code_version": code_version(), **({"run_name": run_name} if run_name else {})})
+    atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2, default=str).encode())
     log.info("run directory: %s", run_dir)
     log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
     return metrics

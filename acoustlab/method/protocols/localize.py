@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
@@ -71,23 +72,34 @@ class LocalizeProtocol:
                  f" and {calibration.size} calibration playbacks with known positions" if calibration.size else "", field_rows.size)
         result = pipeline.fit_predict(features, events, np.sort(train), field_rows)
         result.split_diagnostics[0]["training"] = {"n_simulated": int(train.size - calibration.size), "n_calibration_playbacks": int(calibration.size)}
-        predictions = result.predictions
-        for method in col.methods_in(predictions.columns):  # no truth, no errors
-            predictions[col.error_m(method)] = np.nan
-        for name in col.estimate_xy("oracle"):
-            predictions[name] = np.nan
-        for name in QUALITY_COLUMNS:  # why a fix may be weak, from the solver stage
-            if name in features:
-                predictions[name] = features[name].to_numpy()[field_rows]
-        keep = [c for c in field_recordings.events.columns if c not in predictions.columns and c not in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z)]
         placed_events = field_recordings.events.iloc[field_rows - sim_rows.size]
-        for name in keep:  # the detection's own fields (file, start time, …)
-            predictions[name] = placed_events[name].to_numpy()
-        if "quality_ok" in predictions:  # a clip out of its file, dead, truncated, …: no position, and why
-            has_fix = predictions[col.PLACED].to_numpy(bool) if col.PLACED in predictions else np.isfinite(
-                predictions[list(col.estimate_xy("gate"))].to_numpy(float)).all(1)
-            good = predictions["quality_ok"].to_numpy(bool)
-            reason = predictions[col.ABSTAIN_REASON].to_numpy(object) if col.ABSTAIN_REASON in predictions else np.where(has_fix, "", "no estimate")
-            predictions[col.PLACED] = has_fix & good
-            predictions[col.ABSTAIN_REASON] = np.where(good, reason, "quality: " + predictions[col.QUALITY_FLAGS].astype(str))
+        predictions = without_truth(result.predictions, features.iloc[field_rows], placed_events)
         return MethodResult(predictions, result.split_diagnostics)
+
+
+def without_truth(predictions: pd.DataFrame, features: pd.DataFrame, detections: pd.DataFrame) -> pd.DataFrame:
+    """Predictions of field detections as a localization reports them (rows of the three tables alike).
+
+    Error and oracle columns are blanked (there is no truth), the solver stage's quality columns
+    and the detections' own fields (file, times, label, …) are added, and a detection whose clip
+    was flagged (``quality_ok`` false) is not placed, its ``abstain_reason`` naming the flags.
+    """
+    predictions = predictions.copy()
+    for method in col.methods_in(predictions.columns):  # no truth, no errors
+        predictions[col.error_m(method)] = np.nan
+    for name in col.estimate_xy("oracle"):
+        predictions[name] = np.nan
+    for name in QUALITY_COLUMNS:  # why a fix may be weak, from the solver stage
+        if name in features:
+            predictions[name] = features[name].to_numpy()
+    keep = [c for c in detections.columns if c not in predictions.columns and c not in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z)]
+    for name in keep:  # the detection's own fields (file, start time, …)
+        predictions[name] = detections[name].to_numpy()
+    if "quality_ok" in predictions:  # a clip out of its file, dead, truncated, …: no position, and why
+        has_fix = predictions[col.PLACED].to_numpy(bool) if col.PLACED in predictions else np.isfinite(
+            predictions[list(col.estimate_xy("gate"))].to_numpy(float)).all(1)
+        good = predictions["quality_ok"].to_numpy(bool)
+        reason = predictions[col.ABSTAIN_REASON].to_numpy(object) if col.ABSTAIN_REASON in predictions else np.where(has_fix, "", "no estimate")
+        predictions[col.PLACED] = has_fix & good
+        predictions[col.ABSTAIN_REASON] = np.where(good, reason, "quality: " + predictions[col.QUALITY_FLAGS].astype(str))
+    return predictions

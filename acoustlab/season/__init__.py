@@ -1,0 +1,1 @@
+"""Season-scale localization: long multi-file recordings, detector tables, streaming and sharding."""

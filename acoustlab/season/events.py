@@ -1,0 +1,84 @@
+"""Detections on single recorders grouped into events heard by the array.
+
+One call reaches every recorder within the array's largest travel time. Detections of one label
+whose windows lie within that time of each other (single linkage over time) are one event; the
+event's clip spans the earliest start to the latest end, widened by the travel time on both
+sides, so every recorder's clip holds the call whichever recorder heard it first. Events heard by
+fewer than ``min_recorders`` recorders are dropped (they cannot be localized); events longer than
+``max_event_s`` (a chorus merged into one window) are kept but flagged ``too_long`` and not read.
+The detection band (Raven's ``Low/High Freq (Hz)``) of an event is the union of its detections'
+bands, NaN where none was given.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.core import columns as col
+
+log = logging.getLogger(__name__)
+
+#: Columns of the events table, in order.
+EVENT_TABLE_COLUMNS = (col.EVENT_ID, col.START, col.END, "label", "n_recorders", "recorders", "score", col.BAND_LOW, col.BAND_HIGH,
+                       "too_long", "detections")
+
+
+def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: int = 2, max_event_s: float = 10.0) -> pd.DataFrame:
+    """Events from detections (see the module docstring), in time order, ``event_id`` 0, 1, ….
+
+    Parameters
+    ----------
+    detections : pandas.DataFrame
+        :data:`acoustlab.season.detections.DETECTION_COLUMNS`, season seconds.
+    margin_s : float
+        The array's largest travel time (plus a margin), s: the linkage distance and the clip's
+        widening on each side.
+    min_recorders : int
+        Fewest distinct recorders that must have detected an event.
+    max_event_s : float
+        Longest clip read, s.
+    """
+    parts = []
+    for label, group in detections.groupby("label", sort=True):
+        g = group.sort_values("start_s", kind="stable")
+        start, end = g["start_s"].to_numpy(float), g["end_s"].to_numpy(float)
+        reach = np.maximum.accumulate(end)
+        new = np.empty(len(g), bool)
+        new[0] = True
+        new[1:] = start[1:] > reach[:-1] + margin_s  # a gap longer than the travel time starts a new event
+        cluster = np.cumsum(new) - 1
+        g = g.assign(_cluster=cluster)
+        agg = g.groupby("_cluster", sort=True).agg(
+            first=("start_s", "min"), last=("end_s", "max"), n_recorders=("recorder_id", "nunique"),
+            recorders=("recorder_id", lambda r: ";".join(sorted(set(map(str, r))))), score=("score", "max"),
+            low=("low_hz", "min"), high=("high_hz", "max"), detections=("source", lambda s: ";".join(s)),
+        )
+        agg["label"] = label
+        parts.append(agg)
+    if not parts:
+        return pd.DataFrame(columns=list(EVENT_TABLE_COLUMNS))
+    events = pd.concat(parts, ignore_index=True).sort_values(["first", "label"], kind="stable").reset_index(drop=True)
+    heard = events["n_recorders"].to_numpy() >= min_recorders
+    if (~heard).any():
+        log.info("events: %d of %d heard by fewer than %d recorders; not localized", int((~heard).sum()), len(events), min_recorders)
+    events = events[heard].reset_index(drop=True)
+    out = pd.DataFrame({
+        col.EVENT_ID: np.arange(len(events), dtype=np.int64),
+        col.START: events["first"].to_numpy(float) - margin_s,
+        col.END: events["last"].to_numpy(float) + margin_s,
+        "label": events["label"].astype(str).to_numpy(),
+        "n_recorders": events["n_recorders"].to_numpy(int),
+        "recorders": events["recorders"].to_numpy(),
+        "score": events["score"].to_numpy(float),
+        col.BAND_LOW: events["low"].to_numpy(float),
+        col.BAND_HIGH: events["high"].to_numpy(float),
+    })
+    out["too_long"] = (out[col.END] - out[col.START]).to_numpy() > max_event_s
+    out["detections"] = events["detections"].to_numpy()
+    if out["too_long"].any():
+        log.warning("events: %d longer than max_event_s=%g s (overlapping calls merged); flagged too_long and not localized",
+                    int(out["too_long"].sum()), max_event_s)
+    return out

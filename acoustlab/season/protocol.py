@@ -1,0 +1,254 @@
+"""``protocol=season``: localize a season of long recordings from detector tables, streaming and sharded.
+
+``python -m acoustlab season +site=NAME protocol.recordings.audio_dir=… protocol.detections.paths=[…]``
+runs four stages (``protocol.stage``):
+
+``fit``
+    index the recordings (headers only), read the detector tables, group detections into events,
+    fit the method once on the site's simulation and save it with its SHA-256
+    (:mod:`acoustlab.method.saved`);
+``localize``
+    place the events chunk by chunk (:mod:`acoustlab.season.stream`): every chunk with
+    ``protocol.shard``/``protocol.n_shards`` given (a SLURM array task through Hydra's submitit
+    launcher: ``-m protocol.shard=0,1,2,3``), or all of them over ``protocol.n_jobs`` local
+    worker processes; finished chunks are never recomputed (a killed run resumes);
+``merge``
+    join the parts into ``positions.parquet`` (and ``positions.csv``) in the run folder;
+``all`` (default)
+    fit (unless the output folder holds a method fitted from the same config), localize, merge.
+
+Every stage of one season shares ``protocol.output_dir`` (default: ``season`` in the run folder).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig, OmegaConf
+
+from acoustlab.core import columns as col
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.types import Site
+from acoustlab.method.pipeline import LocalizationPipeline
+from acoustlab.method.saved import load_method, save_method, saved_info
+from acoustlab.method.splits import cap_rows
+from acoustlab.reporting.positions import localization_summary
+from acoustlab.season.detections import FORMATS, read_detections
+from acoustlab.season.events import group_detections
+from acoustlab.season.recorder_files import RecorderFiles
+from acoustlab.season.stream import (
+    EVENTS,
+    FILES,
+    ChunkPlan,
+    FittedSeasonMethod,
+    cores_free,
+    localize_chunks,
+    localize_shard,
+    merge_parts,
+    missing_chunks,
+    n_chunks,
+    read_manifest,
+    shard_chunks,
+    write_manifest,
+)
+from acoustlab.stages.cache import atomic_write_bytes
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.quality import QualityThresholds
+
+log = logging.getLogger(__name__)
+
+STAGES = ("all", "fit", "localize", "merge")
+#: Config keys that say how to run a season, not what is fitted (a method is reused across them).
+RUN_KEYS = ("stage", "shard", "n_shards", "n_jobs", "output_dir", "progress_every_s", "write_csv")
+
+
+class SeasonLocalize:
+    """Localize a season (see the module docstring); settings as in ``conf/protocol/season.yaml``."""
+
+    evaluates = False
+    streams = True
+
+    def __init__(self, recordings: dict[str, Any], detections: dict[str, Any], events: dict[str, Any], max_train_rows: int = 1000,
+                 seed: int = 0, chunk_events: int = 256, batch_events: int = 16, temperature_c: float | None = None,
+                 relative_humidity_pct: float | None = None, output_dir: str | None = None, stage: str = "all", shard: int | None = None,
+                 n_shards: int = 1, n_jobs: int = 1, progress_every_s: float = 5.0, write_csv: bool = True,
+                 quality: dict[str, float] | None = None) -> None:
+        if stage not in STAGES:
+            raise ConfigError(f"protocol.stage must be one of {', '.join(STAGES)}; got {stage!r}")
+        if n_shards < 1 or n_jobs < 1:
+            raise ConfigError(f"protocol.n_shards and protocol.n_jobs must be >= 1; got {n_shards}, {n_jobs}")
+        if shard is not None and not 0 <= int(shard) < n_shards:
+            raise ConfigError(f"protocol.shard must be in [0, {n_shards}) (protocol.n_shards={n_shards}); got {shard}")
+        if (detections or {}).get("format") not in FORMATS:
+            raise ConfigError(f"protocol.detections.format must be one of {', '.join(FORMATS)}; got {(detections or {}).get('format')!r}")
+        self.recordings_cfg = dict(recordings or {})
+        self.detections_cfg = dict(detections)
+        self.events_cfg = dict(events or {})
+        self.max_train_rows, self.seed = int(max_train_rows), int(seed)
+        self.chunk_events, self.batch_events = int(chunk_events), int(batch_events)
+        self.temperature_c, self.relative_humidity_pct = temperature_c, relative_humidity_pct
+        self.output_dir, self.stage = output_dir, stage
+        self.shard, self.n_shards, self.n_jobs = (None if shard is None else int(shard)), int(n_shards), int(n_jobs)
+        self.progress_every_s, self.write_csv = float(progress_every_s), bool(write_csv)
+        self.quality = QualityThresholds(**(quality or {}))
+        ChunkPlan(self.chunk_events, self.batch_events)  # checks the sizes now
+
+    # -- inputs -----------------------------------------------------------------------------------
+    def recordings(self) -> RecorderFiles:
+        """The season's files (from ``files_csv`` or from file names under ``audio_dir``)."""
+        files_csv, audio_dir = self.recordings_cfg.get("files_csv"), self.recordings_cfg.get("audio_dir")
+        if files_csv:
+            return RecorderFiles.from_table(files_csv, audio_dir)
+        if audio_dir:
+            return RecorderFiles.from_file_names(audio_dir)
+        raise ConfigError("protocol=season needs protocol.recordings.files_csv (recorder_id, file, start_time) or "
+                          "protocol.recordings.audio_dir (one sub-folder per recorder, start times in the file names)")
+
+    def recorder_order(self, recordings: RecorderFiles, site: Site) -> list[str]:
+        """Recorder ids in the site's mic order (``protocol.recordings.recorders``, or the sorted ids)."""
+        order = [str(r) for r in (self.recordings_cfg.get("recorders") or recordings.recorders)]
+        unknown = sorted(set(order) - set(recordings.recorders))
+        if unknown:
+            raise DataError(f"protocol.recordings.recorders names {unknown}, which have no files; recorders found: {recordings.recorders}")
+        if len(order) != site.n_mics:
+            raise DataError(f"the season has {len(order)} recorders ({', '.join(order)}) but site {site.name} has {site.n_mics} mics; "
+                            "list the recorders in the site's mic order in protocol.recordings.recorders")
+        return order
+
+    def margin_s(self, site: Site) -> float:
+        """Linkage distance and clip widening, s: the array's largest travel time at the slowest sound speed, plus 10 ms."""
+        if self.events_cfg.get("margin_s") is not None:
+            return float(self.events_cfg["margin_s"])
+        mics = site.mic_positions_m
+        largest = max(np.linalg.norm(mics[i] - mics[j]) for i, j in site.mic_pairs)
+        return largest / speed_of_sound_m_s(site.temperature_range_c[0], site.relative_humidity_range_pct[0]) + 0.01
+
+    def events(self, recordings: RecorderFiles, site: Site) -> pd.DataFrame:
+        """The season's events from its detector tables."""
+        d = self.detections_cfg
+        paths = d.get("paths") or []
+        if isinstance(paths, str):
+            paths = [paths]
+        if not paths:
+            raise ConfigError("protocol=season needs detector tables: protocol.detections.paths=[table or folder, ...]")
+        detections = read_detections(paths, d["format"], recordings, d.get("classes"), float(d.get("min_score") or 0.0), d.get("label_column"),
+                                     d.get("recorder_column"))
+        unknown = sorted(set(detections["recorder_id"]) - set(self.recorder_order(recordings, site)))
+        if unknown:
+            log.warning("detections on recorders %s, which are not in the array, are ignored", unknown)
+            detections = detections[~detections["recorder_id"].isin(unknown)]
+        min_recorders = int(self.events_cfg.get("min_recorders", 2))
+        events = group_detections(detections, self.margin_s(site), min_recorders, float(self.events_cfg.get("max_event_s", 10.0)))
+        if events.empty:
+            raise DataError(f"protocol=season: {len(detections)} detections, but no event was detected on {min_recorders} or more recorders "
+                            "(protocol.events.min_recorders); nothing to localize")
+        return events
+
+    def validate(self, site: Site) -> None:
+        """Preflight: index the recordings and read the detector tables (headers and tables only, no audio)."""
+        if self.stage in ("fit", "all"):
+            recordings = self.recordings()
+            self.events(recordings, site)
+
+    def run(self, *args: Any, **kwargs: Any) -> Any:
+        """Not an in-memory protocol: the app runs :meth:`run_season`."""
+        raise ConfigError("protocol=season streams its results; run it with python -m acoustlab season +site=NAME ...")
+
+    # -- stages -----------------------------------------------------------------------------------
+    def folder(self, run_dir: Path) -> Path:
+        """The season's output folder (shared by every stage and shard)."""
+        return Path(self.output_dir) if self.output_dir else run_dir / "season"
+
+    def plan(self, site: Site) -> ChunkPlan:
+        """Chunking and the weather assumed for every detection (the middle of the site's ranges unless given)."""
+        temperature = self.temperature_c if self.temperature_c is not None else float(np.mean(site.temperature_range_c))
+        humidity = self.relative_humidity_pct if self.relative_humidity_pct is not None else float(np.mean(site.relative_humidity_range_pct))
+        return ChunkPlan(self.chunk_events, self.batch_events, float(temperature), float(humidity),
+                         bool(self.events_cfg.get("use_detection_band", True)), self.quality)
+
+    def method_key(self, cfg: DictConfig) -> str:
+        """What the fitted method depends on: the whole config except how the season is run."""
+        plain = OmegaConf.to_container(cfg, resolve=True)
+        plain.pop("hydra", None)
+        for name in ("paths", "tracking", "plots", "cache"):
+            plain.pop(name, None)
+        for name in RUN_KEYS:
+            plain.get("protocol", {}).pop(name, None)
+        return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()
+
+    def fit(self, cfg: DictConfig, built: Any, prepare: Any, folder: Path) -> None:
+        """Index, events, and the method fitted once (reused when the folder holds one fitted from the same config)."""
+        site = built.site
+        recordings = self.recordings()
+        events = self.events(recordings, site)
+        order = self.recorder_order(recordings, site)
+        folder.mkdir(parents=True, exist_ok=True)
+        recordings.save(folder / FILES)
+        atomic_write_bytes(folder / EVENTS, events.to_parquet(index=False))
+        key = self.method_key(cfg)
+        saved = saved_info(folder)
+        if saved is not None and saved["key"] == key:
+            log.info("season: reusing the method fitted earlier in %s", folder)
+            digest = saved["sha256"]
+        else:
+            data = prepare()
+            dataset = data.dataset
+            groups = dataset.events[col.POSITION_ID].to_numpy()
+            train = np.sort(cap_rows(np.arange(len(dataset.events)), groups, self.max_train_rows, np.random.default_rng([self.seed, 1])))
+            log.info("season: fitting the method on %d simulated events (once; every chunk and shard reuses it)", train.size)
+            method = LocalizationPipeline(built.components).fit(dataset.features, dataset.events, train)
+            fitted = FittedSeasonMethod(method, float(cfg.simulator.sample_rate_hz), cfg.pipeline.plausible_margin_fraction,
+                                        list(built.components.levels), list(built.components.scorers))
+            digest = save_method(fitted, folder, key)
+        write_manifest(folder, events, digest, self.plan(site), order,
+                       {"levels": list(built.components.levels), "scorers": list(built.components.scorers)})
+        log.info("season: %d events from %d recorders' files (%d files, %s to %s) in %d chunks", len(events), len(order),
+                 len(recordings.table), recordings.origin, recordings.origin + pd.Timedelta(seconds=float(recordings.table["end_s"].max())),
+                 n_chunks(len(events), self.chunk_events))
+
+    def localize(self, folder: Path) -> int:
+        """This process's chunks: one shard, or every chunk over ``n_jobs`` local workers."""
+        manifest = read_manifest(folder)
+        if self.shard is not None:
+            chunks = shard_chunks(manifest["n_events"], manifest["chunk_events"], self.shard, self.n_shards)
+            return localize_chunks(folder, chunks, progress_every_s=self.progress_every_s, label=f"season shard {self.shard + 1}/{self.n_shards}")
+        if self.n_jobs == 1:
+            load_method(folder, manifest["method_sha256"])  # fail early on a changed file
+            return localize_chunks(folder, range(n_chunks(manifest["n_events"], manifest["chunk_events"])), progress_every_s=self.progress_every_s)
+        from joblib import Parallel, delayed
+
+        threads = max(1, cores_free() // self.n_jobs)  # workers × threads ≤ cores: oversubscribed OpenMP spin-waits
+        log.info("season: %d local workers, %d thread(s) each", self.n_jobs, threads)
+        done = Parallel(n_jobs=self.n_jobs, backend="loky")(delayed(localize_shard)(str(folder), s, self.n_jobs, threads) for s in range(self.n_jobs))
+        return int(sum(done))
+
+    def run_season(self, cfg: DictConfig, built: Any, run_dir: Path, prepare: Any) -> dict[str, Any]:
+        """Run the configured stage(s); returns the run's metrics (positions summary after a merge)."""
+        folder = self.folder(run_dir)
+        started = time.perf_counter()
+        metrics: dict[str, Any] = {"season": {"output_dir": str(folder), "stage": self.stage}}
+        if self.stage in ("fit", "all"):
+            self.fit(cfg, built, prepare, folder)
+        if self.stage in ("localize", "all"):
+            computed = self.localize(folder)
+            metrics["season"]["chunks_computed"] = computed
+            missing = missing_chunks(folder)
+            metrics["season"]["chunks_missing"] = len(missing)
+            log.info("season: %d chunks computed now, %d still missing", computed, len(missing))
+        if self.stage in ("merge", "all"):
+            table = merge_parts(folder)
+            atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
+            if self.write_csv:
+                atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
+            radii = read_manifest(folder)["radii"]
+            metrics[col.METRICS_LOCALIZATION] = localization_summary(table, radii["levels"], radii["scorers"])
+            log.info("season: %d detections, %d placed; positions in %s", len(table), int(table[col.PLACED].sum()), run_dir / "positions.parquet")
+        metrics["season"]["seconds"] = time.perf_counter() - started
+        return metrics

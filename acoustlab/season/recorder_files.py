@@ -1,0 +1,277 @@
+"""Which recorder's file covers which absolute time, and clips cut by absolute time across files.
+
+A season is many files per recorder (an AudioMoth writes one file per hour, a Song Meter one per
+schedule slot), each starting at its own timestamp. :class:`RecorderFiles` indexes them from
+
+- a table ``recorder_id, file, start_time`` (ISO 8601 times, e.g. ``2026-05-01T05:30:00``; a file
+  may also have a ``channel``), or
+- file names holding the start time (``20260501_053000.WAV``, ``S4A01234_20260501_053000.wav``,
+  ``rec_2026-05-01T05-30-00.flac``) in one sub-folder per recorder (the folder name is the
+  recorder id).
+
+Times inside a season are seconds since the season's origin (the earliest file start), a float64
+that keeps a resolution of nanoseconds over years. Only the audio headers are read to index;
+samples are read per clip (:meth:`RecorderFiles.read`), from as many files as the clip crosses: a
+clip across a file boundary is stitched, a stretch no file covers is zeros and flagged (``gap``
+between two files, ``out_of_range`` before the first or after the last).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import soundfile as sf
+
+from acoustlab.core.errors import DataError
+from acoustlab.stages.cache import atomic_write_bytes
+
+log = logging.getLogger(__name__)
+
+#: A timestamp in a file name: date and time of day, separated by ``_``, ``-``, ``T`` or nothing.
+TIMESTAMP_PATTERN = re.compile(r"(?<!\d)(\d{4})-?(\d{2})-?(\d{2})[_T-]?(\d{2})[-:]?(\d{2})[-:]?(\d{2})(?!\d)")
+AUDIO_SUFFIXES = (".wav", ".flac")
+#: Files within this many seconds of each other's end count as contiguous (clock rounding in names).
+CONTIGUOUS_TOLERANCE_S = 0.5
+
+
+def timestamp_from_name(name: str) -> pd.Timestamp:
+    """The start time written in a file name (``YYYYMMDD_HHMMSS`` and the usual variants).
+
+    Raises
+    ------
+    DataError
+        Naming the file, when its name holds no valid date and time.
+    """
+    match = TIMESTAMP_PATTERN.search(Path(name).stem)
+    if match is None:
+        raise DataError(f"recordings: file name {name!r} holds no start time; expected YYYYMMDD_HHMMSS (e.g. 20260501_053000.WAV) "
+                        "or give a files table with recorder_id, file, start_time")
+    try:
+        return pd.Timestamp(*(int(g) for g in match.groups()))
+    except ValueError as exc:
+        raise DataError(f"recordings: file name {name!r}: {exc}") from None
+
+
+@dataclass
+class ClipRead:
+    """Samples of one recorder over one time window and what was wrong with them.
+
+    Attributes
+    ----------
+    samples : numpy.ndarray
+        (S,) float32 samples (zeros where no file covers the time).
+    flags : list of str
+        ``gap`` (between two files), ``out_of_range`` (before the first or after the last file).
+    """
+
+    samples: np.ndarray
+    flags: list[str]
+
+
+class RecorderFiles:
+    """Every recorder's files with their absolute start times, in one season clock.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        One row per file: ``recorder_id`` (str), ``path`` (str), ``start`` (pandas Timestamp),
+        optionally ``channel`` (int, 0 when absent).
+
+    Raises
+    ------
+    DataError
+        For files that cannot be read, differing sample rates, or overlapping files of one recorder.
+    """
+
+    def __init__(self, table: pd.DataFrame) -> None:
+        if table.empty:
+            raise DataError("recordings: no audio files found")
+        table = table.copy()
+        table["recorder_id"] = table["recorder_id"].astype(str)
+        if "channel" not in table:
+            table["channel"] = 0
+        frames, rates = [], []
+        for path in table["path"]:
+            try:
+                info = sf.info(path)
+            except (RuntimeError, OSError, sf.LibsndfileError) as exc:
+                raise DataError(f"recordings: cannot read the header of {path}: {str(exc).splitlines()[0]}") from None
+            frames.append(info.frames)
+            rates.append(info.samplerate)
+        table["n_frames"] = frames
+        rates = np.asarray(rates, dtype=float)
+        if np.unique(rates).size > 1:
+            odd = table["path"].to_numpy()[rates != np.median(rates)][0]
+            raise DataError(f"recordings: files differ in sample rate ({sorted(set(rates.astype(int)))} Hz), e.g. {odd}; "
+                            "resample them to one rate first")
+        self._index(table, float(rates[0]))
+
+    def _index(self, table: pd.DataFrame, sample_rate_hz: float, max_open_files: int = 64) -> None:
+        """Season times of every file, sorted per recorder, checked for overlaps."""
+        self.sample_rate_hz = sample_rate_hz
+        self.origin = table["start"].min()
+        table["start_s"] = (table["start"] - self.origin).dt.total_seconds().to_numpy(float)
+        table["end_s"] = table["start_s"] + table["n_frames"] / self.sample_rate_hz
+        self.table = table.sort_values(["recorder_id", "start_s"], kind="stable").reset_index(drop=True)
+        self._check_overlaps()
+        self.recorders = sorted(self.table["recorder_id"].unique())
+        self._by_recorder = {r: self.table[self.table["recorder_id"] == r] for r in self.recorders}
+        self._by_name: dict[str, list[int]] = {}
+        self._by_path: dict[str, list[int]] = {}
+        for k, path in enumerate(self.table["path"]):
+            self._by_name.setdefault(Path(path).name, []).append(k)
+            self._by_path[str(path)] = [k]
+        self._open: OrderedDict[str, sf.SoundFile] = OrderedDict()
+        self.max_open_files = int(max_open_files)
+
+    def _check_overlaps(self) -> None:
+        t = self.table
+        same = t["recorder_id"].to_numpy()[1:] == t["recorder_id"].to_numpy()[:-1]
+        overlap = t["start_s"].to_numpy()[1:] < t["end_s"].to_numpy()[:-1] - CONTIGUOUS_TOLERANCE_S
+        bad = np.flatnonzero(same & overlap)
+        if bad.size:
+            k = bad[0]
+            raise DataError(f"recordings: recorder {t['recorder_id'].iloc[k]}: {t['path'].iloc[k + 1]} starts at {t['start'].iloc[k + 1]}, "
+                            f"before {t['path'].iloc[k]} ends ({t['end_s'].iloc[k] - t['start_s'].iloc[k + 1]:.3f} s overlap); check the start times")
+
+    # -- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_table(cls, csv_path: str | Path, audio_dir: str | Path | None = None) -> RecorderFiles:
+        """Index from a CSV with ``recorder_id, file, start_time`` (file paths relative to ``audio_dir`` or the CSV's folder)."""
+        path = Path(csv_path)
+        if not path.is_file():
+            raise DataError(f"recordings.files_csv: file {path} does not exist")
+        try:
+            table = pd.read_csv(path, skipinitialspace=True, dtype={"recorder_id": str, "file": str})
+        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+            raise DataError(f"recordings.files_csv: cannot read {path} as a CSV table: {str(exc).splitlines()[0]}") from None
+        table.columns = [str(c).strip() for c in table.columns]
+        missing = [c for c in ("recorder_id", "file", "start_time") if c not in table]
+        if missing:
+            raise DataError(f"recordings.files_csv: {path} lacks columns {missing}; found {list(table.columns)}")
+        start = pd.to_datetime(table["start_time"], errors="coerce", format="ISO8601")
+        if start.isna().any():
+            line = int(np.flatnonzero(start.isna().to_numpy())[0])
+            raise DataError(f"recordings.files_csv: {path} line {line + 2}, column start_time: {table['start_time'].iloc[line]!r} is not "
+                            "an ISO 8601 time (e.g. 2026-05-01T05:30:00)")
+        if start.dt.tz is not None:
+            start = start.dt.tz_convert("UTC").dt.tz_localize(None)
+        base = Path(audio_dir) if audio_dir is not None else path.parent
+        files = [str(f if Path(f).is_absolute() else base / f) for f in table["file"].astype(str)]
+        absent = [f for f in files if not Path(f).is_file()]
+        if absent:
+            raise DataError(f"recordings.files_csv: {path}: {len(absent)} files do not exist, e.g. {absent[0]}")
+        out = pd.DataFrame({"recorder_id": table["recorder_id"].astype(str).str.strip(), "path": files, "start": start})
+        if "channel" in table:
+            out["channel"] = pd.to_numeric(table["channel"], errors="raise").astype(int)
+        return cls(out)
+
+    @classmethod
+    def from_file_names(cls, audio_dir: str | Path) -> RecorderFiles:
+        """Index ``audio_dir/<recorder_id>/<…YYYYMMDD_HHMMSS…>.wav`` (start times from the names)."""
+        root = Path(audio_dir)
+        if not root.is_dir():
+            raise DataError(f"recordings.audio_dir: {root} is not a folder")
+        rows = [{"recorder_id": f.parent.name, "path": str(f), "start": timestamp_from_name(f.name)}
+                for f in sorted(root.glob("*/*")) if f.suffix.lower() in AUDIO_SUFFIXES]
+        if not rows:
+            raise DataError(f"recordings.audio_dir: no .wav/.flac files in sub-folders of {root} (one sub-folder per recorder)")
+        return cls(pd.DataFrame(rows))
+
+    def save(self, path: Path) -> None:
+        """Write the index (files, recorders, start times, lengths) as Parquet; :meth:`load` reads it without opening any audio."""
+        table = self.table.assign(start=self.table["start"].astype("datetime64[ns]"))
+        atomic_write_bytes(path, table.to_parquet(index=False))
+        atomic_write_bytes(path.with_suffix(".json"), json.dumps({"sample_rate_hz": self.sample_rate_hz}).encode())
+
+    @classmethod
+    def load(cls, path: Path) -> RecorderFiles:
+        """The index written by :meth:`save` (headers are not read again)."""
+        self = cls.__new__(cls)
+        self._index(pd.read_parquet(path), float(json.loads(path.with_suffix(".json").read_text())["sample_rate_hz"]))
+        return self
+
+    # -- lookups ------------------------------------------------------------------------------
+    def seconds(self, time: pd.Timestamp | str) -> float:
+        """A wall-clock time as seconds since the season's origin."""
+        return float((pd.Timestamp(time) - self.origin).total_seconds())
+
+    def file_row(self, name: str, recorder_id: str | None = None) -> pd.Series:
+        """The index row of a file given by its path, or its name (with the recorder where names repeat across recorders).
+
+        Raises
+        ------
+        DataError
+            When no indexed file matches, or the name is shared by several recorders and none is given.
+        """
+        text = str(name)
+        rows = self._by_path.get(text)
+        if rows is None:
+            rows = self._by_name.get(Path(text).name, [])
+            if recorder_id is not None:
+                rows = [k for k in rows if self.table["recorder_id"].iloc[k] == str(recorder_id)]
+        if not rows:
+            within = f" of recorder {recorder_id}" if recorder_id is not None else ""
+            raise DataError(f"detections: file {text!r}{within} is not among the season's recordings ({len(self.table)} files indexed)")
+        if len(rows) > 1:
+            owners = sorted(self.table["recorder_id"].iloc[rows])
+            raise DataError(f"detections: file name {Path(text).name!r} is used by recorders {', '.join(owners)}: give the recorder "
+                            "(protocol.detections.recorder_column, one table per recorder named or foldered by its id, or Begin Path)")
+        return self.table.iloc[rows[0]]
+
+    # -- reading ------------------------------------------------------------------------------
+    def _handle(self, path: str) -> sf.SoundFile:
+        handle = self._open.pop(path, None)
+        if handle is None:
+            handle = sf.SoundFile(path)
+            while len(self._open) >= self.max_open_files:
+                self._open.popitem(last=False)[1].close()
+        self._open[path] = handle
+        return handle
+
+    def close(self) -> None:
+        """Close every open file."""
+        while self._open:
+            self._open.popitem()[1].close()
+
+    def read(self, recorder_id: str, start_s: float, n_samples: int) -> ClipRead:
+        """``n_samples`` of one recorder from ``start_s`` (season seconds), stitched across its files.
+
+        Sample k of the clip is the recording at time ``start_s + k / sample_rate_hz``; in file f
+        that is sample ``round((start_s − start_f) · fs) + k``, so a clip across a boundary equals
+        the same clip cut from the files joined end to end.
+        """
+        files = self._by_recorder.get(str(recorder_id))
+        if files is None:
+            raise DataError(f"recordings: no files of recorder {recorder_id!r}; recorders: {', '.join(self.recorders)}")
+        fs = self.sample_rate_hz
+        out = np.zeros(n_samples, dtype=np.float32)
+        covered = np.zeros(n_samples, dtype=bool)
+        end_s = start_s + n_samples / fs
+        hit = files[(files["start_s"].to_numpy() < end_s) & (files["end_s"].to_numpy() > start_s)]
+        for f in hit.itertuples():
+            first = int(round((start_s - f.start_s) * fs))  # file sample of clip sample 0
+            lo, hi = max(0, -first), min(n_samples, f.n_frames - first)
+            if hi <= lo:
+                continue
+            handle = self._handle(f.path)
+            handle.seek(first + lo)
+            data = handle.read(hi - lo, dtype="float32", always_2d=True)
+            out[lo:lo + len(data)] = data[:, int(f.channel)]
+            covered[lo:lo + len(data)] = True
+        flags = []
+        if not covered.all():
+            first_start, last_end = files["start_s"].iloc[0], files["end_s"].max()
+            times = start_s + np.flatnonzero(~covered) / fs
+            if ((times >= first_start) & (times < last_end)).any():
+                flags.append("gap")
+            if ((times < first_start) | (times >= last_end)).any():
+                flags.append("out_of_range")
+        return ClipRead(out, flags)

@@ -1,0 +1,283 @@
+"""Localize a season chunk by chunk: bounded memory, Parquet parts, resumable, sharded.
+
+A season's output folder holds
+
+``files.parquet``
+    the recorders' files and their start times (:class:`~acoustlab.season.recorder_files.RecorderFiles`);
+``events.parquet``
+    the events to place (:func:`~acoustlab.season.events.group_detections`);
+``method.joblib`` + ``method.sha256.json``
+    the method fitted once on the site's simulation (:mod:`acoustlab.method.saved`);
+``season.json``
+    what the parts were made from (digests of the events and the method, chunk sizes);
+``parts/part-NNNNNN.parquet``
+    the positions of chunk N (``chunk_events`` events), written atomically when the chunk is done.
+
+Chunk k is always events ``[k · chunk_events, (k + 1) · chunk_events)`` and is computed in batches
+of ``batch_events`` events, so the same chunk gives the same rows whichever shard or resumed run
+computes it. Shard s of n computes the chunks k with k mod n = s; a finished part is never
+recomputed; :func:`merge_parts` joins the parts in chunk order. Peak memory is one batch's audio
+(``batch_events`` × mics × clip samples × 4 bytes) and its transforms, the rows of one chunk, and
+the fitted method: it does not grow with the season.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import scipy.signal as ss
+
+from acoustlab.core import columns as col
+from acoustlab.core.errors import DataError
+from acoustlab.core.types import RecordingBatch
+from acoustlab.method.protocols.field import FIELD_POSITION_OFFSET
+from acoustlab.method.protocols.localize import without_truth
+from acoustlab.method.saved import load_method
+from acoustlab.reporting.positions import positions_table
+from acoustlab.season.recorder_files import RecorderFiles
+from acoustlab.stages.cache import atomic_write_bytes
+from acoustlab.stages.dataset import extract_features
+from acoustlab.stages.solver_columns import add_solver_columns
+from acoustlab.toolkit.quality import QualityThresholds, clip_quality
+
+log = logging.getLogger(__name__)
+
+FILES, EVENTS, MANIFEST, PARTS = "files.parquet", "events.parquet", "season.json", "parts"
+#: Event fields carried into the positions table beside the positions.
+SEASON_FIELDS = ("time", "label", "n_recorders", "recorders", "score", col.BAND_LOW, col.BAND_HIGH, "detections")
+#: Length of the stand-in clip of an event too long to read, s (it is flagged and not placed).
+TOO_LONG_STAND_IN_S = 0.1
+
+
+@dataclass
+class FittedSeasonMethod:
+    """What every chunk needs besides its audio: the fitted method and the run's solver bound and radii names."""
+
+    method: Any
+    #: the simulator's sample rate, Hz: clips are resampled to it
+    sample_rate_hz: float
+    plausible_margin_fraction: float | None
+    levels: list[float]
+    scorers: list[str]
+
+
+@dataclass
+class ChunkPlan:
+    """How a season's events are cut: ``chunk_events`` per part, ``batch_events`` per computation."""
+
+    chunk_events: int = 256
+    batch_events: int = 16
+    temperature_c: float = 15.0
+    relative_humidity_pct: float = 60.0
+    use_detection_band: bool = True
+    quality: QualityThresholds = field(default_factory=QualityThresholds)
+
+    def __post_init__(self) -> None:
+        if self.chunk_events < 1 or self.batch_events < 1:
+            raise DataError(f"protocol.chunk_events and protocol.batch_events must be >= 1; got {self.chunk_events}, {self.batch_events}")
+
+
+def part_path(directory: Path, k: int) -> Path:
+    """Where chunk ``k``'s positions are written."""
+    return directory / PARTS / f"part-{k:06d}.parquet"
+
+
+def n_chunks(n_events: int, chunk_events: int) -> int:
+    """How many chunks ``n_events`` make."""
+    return -(-n_events // chunk_events)
+
+
+def shard_chunks(n_events: int, chunk_events: int, shard: int, n_shards: int) -> list[int]:
+    """Chunks of shard ``shard`` of ``n_shards`` (every n-th chunk, so shards cover the season evenly in time)."""
+    if not 0 <= shard < n_shards:
+        raise DataError(f"protocol.shard must be in [0, {n_shards}) with protocol.n_shards={n_shards}; got {shard}")
+    return list(range(shard, n_chunks(n_events, chunk_events), n_shards))
+
+
+def frame_sha256(frame: pd.DataFrame) -> str:
+    """SHA-256 of a table's column names and values (stable across writes)."""
+    h = hashlib.sha256(json.dumps([str(c) for c in frame.columns]).encode())
+    h.update(pd.util.hash_pandas_object(frame, index=False).to_numpy().tobytes())
+    return h.hexdigest()
+
+
+def write_manifest(directory: Path, events: pd.DataFrame, method_sha256: str, plan: ChunkPlan, recorders: list[str],
+                   radii: dict[str, list[Any]]) -> dict[str, Any]:
+    """Write (or check) ``season.json``: parts made from other events, another method or other chunks are never mixed.
+
+    Raises
+    ------
+    DataError
+        When the folder already holds parts made from different inputs.
+    """
+    manifest = {"events_sha256": frame_sha256(events), "n_events": len(events), "method_sha256": method_sha256,
+                "chunk_events": plan.chunk_events, "batch_events": plan.batch_events, "recorders": recorders, "radii": radii,
+                "plan": {k: v for k, v in plan.__dict__.items() if k != "quality"} | {"quality": plan.quality.__dict__}}
+    path = directory / MANIFEST
+    if path.is_file():
+        old = json.loads(path.read_text())
+        differs = [k for k in manifest if old.get(k) != manifest[k]]
+        parts = sorted((directory / PARTS).glob("part-*.parquet"))
+        if differs and parts:
+            raise DataError(f"{directory} holds {len(parts)} parts of a season run made with other {', '.join(differs)}; "
+                            "choose another protocol.output_dir, or delete the folder to start again")
+    atomic_write_bytes(path, json.dumps(manifest, indent=2).encode())
+    return manifest
+
+
+def read_manifest(directory: Path) -> dict[str, Any]:
+    """The season run's manifest (what its parts are made from)."""
+    path = directory / MANIFEST
+    if not path.is_file():
+        raise DataError(f"{directory} holds no season run ({MANIFEST} missing): run the fit stage first (protocol.stage=fit)")
+    return json.loads(path.read_text())
+
+
+def _clip(recordings: RecorderFiles, recorder: str, start_s: float, length_s: float, sample_rate_hz: float,
+          thresholds: QualityThresholds) -> tuple[np.ndarray, list[str]]:
+    """One recorder's clip at the method's sample rate, and its quality flags."""
+    n_file = int(round(length_s * recordings.sample_rate_hz))
+    read = recordings.read(recorder, start_s, n_file)
+    samples = read.samples
+    if recordings.sample_rate_hz != sample_rate_hz:  # the method was fitted at the simulator's rate
+        up, down = int(sample_rate_hz), int(recordings.sample_rate_hz)
+        g = np.gcd(up, down)
+        samples = ss.resample_poly(samples, up // g, down // g).astype(np.float32)
+    clip, reasons = clip_quality(samples, 0, samples.size, thresholds)
+    return clip, [*read.flags, *reasons]
+
+
+def read_batch(recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str], sample_rate_hz: float, plan: ChunkPlan) -> RecordingBatch:
+    """The clips of ``events`` on every recorder (in the site's mic order) as a batch, flagged per clip."""
+    lengths_s = np.where(events["too_long"].to_numpy(bool), TOO_LONG_STAND_IN_S, (events[col.END] - events[col.START]).to_numpy(float))
+    n_max = int(round(lengths_s.max() * sample_rate_hz)) + 1
+    audio = np.zeros((len(events), len(recorders), n_max), dtype=np.float32)
+    flags = []
+    for e, (start, length, too_long) in enumerate(zip(events[col.START].to_numpy(float), lengths_s, events["too_long"].to_numpy(bool), strict=True)):
+        if too_long:
+            flags.append("too_long")
+            continue
+        parts = []
+        for m, recorder in enumerate(recorders):
+            clip, reasons = _clip(recordings, recorder, start, length, sample_rate_hz, plan.quality)
+            audio[e, m, : clip.size] = clip[:n_max]
+            if reasons:
+                parts.append(f"mic {recorder}: {', '.join(reasons)}")
+        flags.append("; ".join(parts))
+    rows = pd.DataFrame({
+        col.EVENT_ID: events[col.EVENT_ID].to_numpy(np.int64),
+        col.POSITION_ID: events[col.EVENT_ID].to_numpy(np.int64) + FIELD_POSITION_OFFSET,
+        col.TRUE_X: np.nan, col.TRUE_Y: np.nan, col.TRUE_Z: np.nan,
+        col.TEMPERATURE: plan.temperature_c, col.HUMIDITY: plan.relative_humidity_pct,
+        col.START: events[col.START].to_numpy(float), col.END: events[col.END].to_numpy(float),
+        col.QUALITY_FLAGS: flags, "quality_ok": [not f for f in flags], col.HARDWARE_FAILURE: False, "is_field": True,
+    })
+    if plan.use_detection_band:
+        rows[col.BAND_LOW] = events[col.BAND_LOW].to_numpy(float)
+        rows[col.BAND_HIGH] = events[col.BAND_HIGH].to_numpy(float)
+    return RecordingBatch(audio=audio, sample_rate_hz=sample_rate_hz, events=rows)
+
+
+def localize_events(fitted: FittedSeasonMethod, recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str],
+                    plan: ChunkPlan, origin: pd.Timestamp) -> pd.DataFrame:
+    """Positions of ``events`` (one chunk), computed batch by batch."""
+    c = fitted.method.pipeline.c
+    sample_rate_hz = float(fitted.sample_rate_hz)
+    tables = []
+    for first in range(0, len(events), plan.batch_events):
+        part = events.iloc[first: first + plan.batch_events]
+        batch = read_batch(recordings, part, recorders, sample_rate_hz, plan)
+        features = add_solver_columns(extract_features(batch, c.site, c.feature_sets), batch.events, c.site, c.solver,
+                                      fitted.plausible_margin_fraction)
+        predictions, _ = fitted.method.predict(features, batch.events)
+        detections = batch.events.drop(columns=["is_field"]).assign(label=part["label"].to_numpy())
+        table = positions_table(without_truth(predictions, features, detections), fitted.levels, fitted.scorers)
+        table.insert(1, "time", (origin + pd.to_timedelta(part[col.START].to_numpy(float), unit="s")).strftime("%Y-%m-%dT%H:%M:%S.%f"))
+        for name in SEASON_FIELDS[2:]:
+            table[name] = part[name].to_numpy()
+        tables.append(table)
+    return pd.concat(tables, ignore_index=True)
+
+
+def localize_chunks(directory: Path, chunks: Iterable[int], fitted: FittedSeasonMethod | None = None, progress_every_s: float = 5.0,
+                    label: str = "season") -> int:
+    """Compute the listed chunks whose part is not yet written; return how many were computed.
+
+    Everything is read from ``directory`` (the method verified by its digest), so a shard on
+    another machine computes exactly what the unsharded run would.
+    """
+    manifest = read_manifest(directory)
+    fitted = fitted if fitted is not None else load_method(directory, manifest["method_sha256"])
+    recordings = RecorderFiles.load(directory / FILES)
+    events = pd.read_parquet(directory / EVENTS)
+    plan = ChunkPlan(**{k: v for k, v in manifest["plan"].items() if k != "quality"}, quality=QualityThresholds(**manifest["plan"]["quality"]))
+    todo = [k for k in chunks if not part_path(directory, k).is_file()]
+    total = sum(min(plan.chunk_events, len(events) - k * plan.chunk_events) for k in todo)
+    started = last = time.monotonic()
+    done = 0
+    for k in todo:
+        chunk = events.iloc[k * plan.chunk_events: (k + 1) * plan.chunk_events]
+        table = localize_events(fitted, recordings, chunk, manifest["recorders"], plan, recordings.origin)
+        part_path(directory, k).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(part_path(directory, k), table.to_parquet(index=False))
+        done += len(chunk)
+        now = time.monotonic()
+        if now - last >= progress_every_s or done == total:
+            last = now
+            rate = done / max(now - started, 1e-9)
+            log.info("%s: %d/%d detections, %.0f detections/s, about %.0f s left", label, done, total, rate, (total - done) / max(rate, 1e-9))
+    recordings.close()
+    return len(todo)
+
+
+def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1) -> int:
+    """One local worker's shard (joblib): the chunks k ≡ shard (mod n_shards), with ``threads`` threads for numerics."""
+    from threadpoolctl import threadpool_limits
+
+    directory_path = Path(directory)
+    manifest = read_manifest(directory_path)
+    with threadpool_limits(limits=threads):
+        return localize_chunks(directory_path, shard_chunks(manifest["n_events"], manifest["chunk_events"], shard, n_shards),
+                               label=f"season shard {shard + 1}/{n_shards}")
+
+
+def missing_chunks(directory: Path) -> list[int]:
+    """Chunks whose part is not written yet."""
+    manifest = read_manifest(directory)
+    return [k for k in range(n_chunks(manifest["n_events"], manifest["chunk_events"])) if not part_path(directory, k).is_file()]
+
+
+def merge_parts(directory: Path) -> pd.DataFrame:
+    """Every part in chunk order, as one positions table.
+
+    Raises
+    ------
+    DataError
+        Naming the chunks not computed yet.
+    """
+    missing = missing_chunks(directory)
+    if missing:
+        raise DataError(f"{directory}: {len(missing)} chunks not computed yet (e.g. {missing[:5]}); run the localize stage "
+                        "for every shard first (protocol.stage=localize), then merge")
+    manifest = read_manifest(directory)
+    parts = [pd.read_parquet(part_path(directory, k)) for k in range(n_chunks(manifest["n_events"], manifest["chunk_events"]))]
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+
+
+def cores_free() -> int:
+    """CPU cores this process may use (the affinity mask: a SLURM allocation or a container's share)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
