@@ -65,8 +65,6 @@ from acoustlab.toolkit.quality import QualityThresholds
 log = logging.getLogger(__name__)
 
 STAGES = ("all", "fit", "localize", "merge")
-#: Config keys that say how to run a season, not what is fitted (a method is reused across them).
-RUN_KEYS = ("stage", "shard", "n_shards", "n_jobs", "output_dir", "progress_every_s", "write_csv")
 
 
 class SeasonLocalize:
@@ -174,13 +172,13 @@ class SeasonLocalize:
                          bool(self.events_cfg.get("use_detection_band", True)), self.quality)
 
     def method_key(self, cfg: DictConfig) -> str:
-        """What the fitted method depends on: the whole config except how the season is run."""
+        """What the fitted method depends on: the whole config except the season's inputs and how it is run."""
         plain = OmegaConf.to_container(cfg, resolve=True)
         plain.pop("hydra", None)
         for name in ("paths", "tracking", "plots", "cache"):
             plain.pop(name, None)
-        for name in RUN_KEYS:
-            plain.get("protocol", {}).pop(name, None)
+        protocol = plain.get("protocol", {})  # of the season's own settings, only these shape the fitted method
+        plain["protocol"] = {name: protocol.get(name) for name in ("_target_", "max_train_rows", "seed")}
         return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()
 
     def fit(self, cfg: DictConfig, built: Any, prepare: Any, folder: Path) -> None:
@@ -250,5 +248,9 @@ class SeasonLocalize:
             radii = read_manifest(folder)["radii"]
             metrics[col.METRICS_LOCALIZATION] = localization_summary(table, radii["levels"], radii["scorers"])
             log.info("season: %d detections, %d placed; positions in %s", len(table), int(table[col.PLACED].sum()), run_dir / "positions.parquet")
+        if (folder / "season.json").is_file():
+            manifest = read_manifest(folder)
+            metrics["dataset_hash"] = manifest["events_sha256"]  # what the positions were computed from: the events and the method
+            metrics["season"].update({"n_events": manifest["n_events"], "method_sha256": manifest["method_sha256"]})
         metrics["season"]["seconds"] = time.perf_counter() - started
         return metrics

@@ -156,13 +156,20 @@ class RecorderFiles:
         missing = [c for c in ("recorder_id", "file", "start_time") if c not in table]
         if missing:
             raise DataError(f"recordings.files_csv: {path} lacks columns {missing}; found {list(table.columns)}")
-        start = pd.to_datetime(table["start_time"], errors="coerce", format="ISO8601")
+        text = table["start_time"].astype(str).str.strip()
+        has_offset = text.str.contains(r"(?:Z|[+-]\d{2}:?\d{2})$", regex=True).to_numpy()
+        if has_offset.any() and not has_offset.all():
+            line = int(np.flatnonzero(has_offset != has_offset[0])[0])
+            raise DataError(f"recordings.files_csv: {path} line {line + 2}, column start_time: {text.iloc[line]!r} "
+                            f"{'has' if has_offset[line] else 'lacks'} a UTC offset and line 2 {'does not' if has_offset[line] else 'does'}; "
+                            "give every time with an offset or none")
+        start = pd.to_datetime(text, errors="coerce", format="ISO8601", utc=bool(has_offset.all()))
         if start.isna().any():
             line = int(np.flatnonzero(start.isna().to_numpy())[0])
             raise DataError(f"recordings.files_csv: {path} line {line + 2}, column start_time: {table['start_time'].iloc[line]!r} is not "
                             "an ISO 8601 time (e.g. 2026-05-01T05:30:00)")
-        if start.dt.tz is not None:
-            start = start.dt.tz_convert("UTC").dt.tz_localize(None)
+        if start.dt.tz is not None:  # every time had an offset: all in UTC
+            start = start.dt.tz_localize(None)
         base = Path(audio_dir) if audio_dir is not None else path.parent
         files = [str(f if Path(f).is_absolute() else base / f) for f in table["file"].astype(str)]
         absent = [f for f in files if not Path(f).is_file()]
@@ -267,11 +274,13 @@ class RecorderFiles:
             out[lo:lo + len(data)] = data[:, int(f.channel)]
             covered[lo:lo + len(data)] = True
         flags = []
-        if not covered.all():
-            first_start, last_end = files["start_s"].iloc[0], files["end_s"].max()
-            times = start_s + np.flatnonzero(~covered) / fs
-            if ((times >= first_start) & (times < last_end)).any():
+        if not covered.all():  # in clip samples, with the same rounding as the reads: where the recorder's first file begins, its last ends
+            first_file, last_file = files.iloc[0], files.iloc[files["end_s"].to_numpy().argmax()]
+            lead = -int(round((start_s - first_file["start_s"]) * fs))
+            tail = int(last_file["n_frames"]) - int(round((start_s - last_file["start_s"]) * fs))
+            missing = np.flatnonzero(~covered)
+            if ((missing >= lead) & (missing < tail)).any():
                 flags.append("gap")
-            if ((times < first_start) | (times >= last_end)).any():
+            if ((missing < lead) | (missing >= tail)).any():
                 flags.append("out_of_range")
         return ClipRead(out, flags)

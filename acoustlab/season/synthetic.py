@@ -15,12 +15,15 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 import soundfile as sf
 
+from acoustlab.core.types import Site
 from acoustlab.toolkit.dsp import coloured_noise, delay_and_scale
+from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +68,12 @@ class SyntheticSeason:
     min_spacing_s: float = 1.0
     seed: int = 0
     origin: str = "2026-05-01T05:00:00"
+
+    @classmethod
+    def for_site(cls, site: Site, **settings: Any) -> SyntheticSeason:
+        """A season of ``site``: its mics, its source heights, sound at the middle of its weather ranges (what a season run assumes)."""
+        speed = speed_of_sound_m_s(float(np.mean(site.temperature_range_c)), float(np.mean(site.relative_humidity_range_pct)))
+        return cls(mics_m=site.mic_positions_m, source_height_m=tuple(site.source_height_range_m), speed_of_sound_m_s=float(speed), **settings)
 
 
 def _call(rng: np.random.Generator, sample_rate_hz: float) -> tuple[np.ndarray, float, float]:

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import scipy.fft as sfft
 import scipy.signal as ss
+
+from acoustlab.core import columns as col
 
 
 def next_fast_len(n: int) -> int:
@@ -81,8 +84,9 @@ def gcc(
         PHAT whitening (unit magnitude cross-spectrum), β-PHAT (the cross-spectrum divided by its
         magnitude to the power ``beta``: between plain and PHAT, so bins with little signal are not
         whitened up to the level of the call's bins), or plain cross-correlation.
-    band_hz : tuple of float, optional
-        Keep only this (low, high) band of the cross-spectrum, in Hz.
+    band_hz : tuple of float or numpy.ndarray, optional
+        Keep only this (low, high) band of the cross-spectrum, in Hz; an (E, 2) array gives every
+        event its own band (see :func:`event_band_hz`).
     upsample : int
         Lag-resolution factor: the cross-spectrum is zero-padded so lags are spaced by
         1/(upsample × sample_rate_hz), which shrinks the bias of parabolic peak interpolation.
@@ -113,7 +117,11 @@ def gcc(
         spectra = spectra / (magnitude if weighting == "phat" else magnitude ** float(beta))
     if band_hz is not None:
         freqs = sfft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)
-        spectra = spectra * ((freqs >= band_hz[0]) & (freqs <= band_hz[1]))
+        band = np.asarray(band_hz, dtype=float)
+        if band.ndim == 1:
+            spectra = spectra * ((freqs >= band[0]) & (freqs <= band[1]))
+        else:  # one band per event (a detection's own band)
+            spectra = spectra * ((freqs >= band[:, :1]) & (freqs <= band[:, 1:]))[:, None, :]
     spectra = spectra.astype(np.complex64)
     i_idx = np.array([p[0] for p in pairs])
     j_idx = np.array([p[1] for p in pairs])
@@ -126,6 +134,24 @@ def gcc(
         cc[:, k, half:] = full[:, : half + 1]
     lags_s = np.arange(-half, half + 1) / (sample_rate_hz * upsample)
     return cc, lags_s
+
+
+def event_band_hz(events: pd.DataFrame, default: tuple[float, float] | None, sample_rate_hz: float) -> tuple[float, float] | np.ndarray | None:
+    """The GCC band of every event: its own detection band (``band_low_hz``, ``band_high_hz``) where given, else ``default``.
+
+    Returns ``default`` unchanged when no event has a band of its own (so batches without
+    detection bands compute exactly what they did before); else an (E, 2) array in Hz, each
+    band clipped to [0, Nyquist], ``default`` (or the full band) where an event has none.
+    """
+    if col.BAND_LOW not in events or col.BAND_HIGH not in events:
+        return default
+    own = events[[col.BAND_LOW, col.BAND_HIGH]].to_numpy(float)
+    given = np.isfinite(own).all(axis=1) & (own[:, 1] > own[:, 0])
+    if not given.any():
+        return default
+    fallback = np.array(default if default is not None else (0.0, sample_rate_hz / 2), dtype=float)
+    band = np.where(given[:, None], own, fallback[None, :])
+    return np.clip(band, 0.0, sample_rate_hz / 2)
 
 
 def parabolic_peak(values: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -49,13 +49,14 @@ def pair_candidates(
     site: Site,
     n_candidates: int = 3,
     margin_s: float = 0.002,
-    band_hz: tuple[float, float] | None = None,
+    band_hz: tuple[float, float] | np.ndarray | None = None,
     weighting: str = "phat",
     upsample: int = 4,
     beta: float = 0.8,
 ) -> PairCandidates:
     """The K best GCC peaks of every mic pair of every event (see the module docstring)."""
-    key = ("pair_candidates", n_candidates, margin_s, band_hz, weighting, upsample, beta, site.mic_positions_m.tobytes())
+    band_key = band_hz.tobytes() if isinstance(band_hz, np.ndarray) else band_hz
+    key = ("pair_candidates", n_candidates, margin_s, band_key, weighting, upsample, beta, site.mic_positions_m.tobytes())
     return batch.derived(key, lambda: _compute_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta))
 
 

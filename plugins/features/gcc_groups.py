@@ -11,6 +11,7 @@ import pandas as pd
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
+from acoustlab.toolkit.dsp import event_band_hz
 from acoustlab.toolkit.gcc_candidates import pair_candidates
 
 
@@ -64,7 +65,7 @@ class _GccGroup:
         self.band_hz = None if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
 
     def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
-        band = self.band_hz if band_hz is None else band_hz
+        band = event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz) if band_hz is None else band_hz
         return pair_candidates(batch, site, self.n_candidates, self.max_lag_margin_s, band, self.weighting, self.upsample, self.beta)
 
 

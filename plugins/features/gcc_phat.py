@@ -10,7 +10,7 @@ import pandas as pd
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
-from acoustlab.toolkit.dsp import gcc, parabolic_peak
+from acoustlab.toolkit.dsp import event_band_hz, gcc, parabolic_peak
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 
@@ -52,7 +52,8 @@ class GccPhatTdoa:
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         """One row per event: ``tdoa__lag_i_j_s`` for every pair i < j."""
         pairs = site.mic_pairs
-        cc, lags_s = gcc(batch.audio, pairs, batch.sample_rate_hz, "phat", self.band_hz, self.upsample)
+        band = event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz)
+        cc, lags_s = gcc(batch.audio, pairs, batch.sample_rate_hz, "phat", band, self.upsample)
         c_max = speed_of_sound_m_s(site.temperature_range_c[1], site.relative_humidity_range_pct[1])
         mics = site.mic_positions_m
         out = {}

@@ -14,7 +14,7 @@ from scipy.ndimage import maximum_filter1d
 
 from acoustlab.core import columns as col
 from acoustlab.core.types import RecordingBatch, Site
-from acoustlab.toolkit.dsp import gcc
+from acoustlab.toolkit.dsp import event_band_hz, gcc
 from acoustlab.toolkit.geometry import bounding_box
 from acoustlab.toolkit.event_physics import assumed_source_height_m, event_speed_of_sound_m_s
 
@@ -76,7 +76,7 @@ class SrpPhat:
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         mics = site.mic_positions_m
         pairs = site.mic_pairs
-        cc, lags = gcc(batch.audio, pairs, batch.sample_rate_hz, "phat", self.band_hz, 2)
+        cc, lags = gcc(batch.audio, pairs, batch.sample_rate_hz, "phat", event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz), 2)
         c = event_speed_of_sound_m_s(batch.events)
         height = assumed_source_height_m(site)
         low, high = bounding_box(mics, self.box_margin_fraction)

@@ -1,0 +1,114 @@
+"""protocol=season end to end on a synthetic season: positions near the truth, sharded == unsharded, resumable, verified method."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from acoustlab.core.errors import DataError
+from acoustlab.method.saved import METHOD_FILE, load_method
+from acoustlab.run.app import run_experiment
+from acoustlab.season.stream import localize_chunks, merge_parts, part_path, read_manifest
+from acoustlab.season.synthetic import SyntheticSeason, write_season
+from acoustlab.stages.sites import site_from_config
+
+pytestmark = pytest.mark.slow
+
+N_CALLS = 24
+
+
+def season_overrides(folder, output_dir, *extra):
+    return ["+site=frozen_lake", "+experiment=smoke", "protocol=season", "tracking=none", "model.n_estimators=20",
+            f"protocol.recordings.audio_dir={folder / 'audio'}", f"protocol.detections.paths=[{folder / 'raven'}]",
+            "protocol.chunk_events=5", "protocol.batch_events=3", f"protocol.output_dir={output_dir}", *extra]
+
+
+@pytest.fixture(scope="module")
+def season(tmp_path_factory):
+    """A 60-s synthetic season of the frozen lake in 20-s files (calls cross file boundaries), fitted and localized once."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from acoustlab.run.registry import CONF_DIR
+
+    root = tmp_path_factory.mktemp("season")
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=season_overrides(root, root / "out", f"paths.outputs_dir={root / 'outputs'}"))
+        site = site_from_config(cfg.site)
+        truth = write_season(SyntheticSeason.for_site(site, duration_s=60, file_s=20, n_calls=N_CALLS, min_spacing_s=2.0,
+                                                      sample_rate_hz=float(cfg.simulator.sample_rate_hz)), root)
+        metrics = run_experiment(cfg, root / "run")
+    GlobalHydra.instance().clear()
+    return root, truth, metrics, cfg
+
+
+def test_a_season_is_localized_from_raven_tables_near_the_truth(season):
+    root, truth, metrics, _ = season
+    table = pd.read_parquet(root / "run" / "positions.parquet")
+    assert len(table) == N_CALLS and metrics["localization"]["n_detections"] == N_CALLS
+    assert {"event_id", "time", "label", "n_recorders", "x_m", "y_m", "placed", "radius_fixed_0.95_m", "band_low_hz"} <= set(table.columns)
+    assert table["n_recorders"].eq(3).all() and table["time"].iloc[0].startswith("2026-05-01T05:00:")
+    error = np.hypot(table["x_m"] - truth["x_m"], table["y_m"] - truth["y_m"])
+    assert np.median(error) < 1.0 and (error < 5).mean() >= 0.9, error.describe()
+    assert (root / "run" / "positions.csv").is_file() and json.loads((root / "run" / "metrics.json").read_text())["season"]["n_events"] == N_CALLS
+
+
+def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path):
+    root, _, _, _ = season
+    unsharded = pd.read_parquet(root / "run" / "positions.parquet")
+    fitted = tmp_path / "sharded"
+    shutil.copytree(root / "out", fitted, ignore=shutil.ignore_patterns("parts"))  # the fitted method and events, no positions
+    for shard in range(3):  # as three SLURM array tasks would
+        cfg = compose_cfg(season_overrides(root, fitted, "protocol.stage=localize", f"protocol.shard={shard}", "protocol.n_shards=3",
+                                           f"paths.outputs_dir={tmp_path / 'outputs'}"))
+        run_experiment(cfg, tmp_path / f"shard{shard}")
+    cfg = compose_cfg(season_overrides(root, fitted, "protocol.stage=merge", f"paths.outputs_dir={tmp_path / 'outputs'}"))
+    run_experiment(cfg, tmp_path / "merged")
+    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "merged" / "positions.parquet"), unsharded)
+    local = tmp_path / "local"  # two local worker processes (joblib)
+    shutil.copytree(root / "out", local, ignore=shutil.ignore_patterns("parts"))
+    cfg = compose_cfg(season_overrides(root, local, "protocol.n_jobs=2", f"paths.outputs_dir={tmp_path / 'outputs'}"))
+    run_experiment(cfg, tmp_path / "local_run")
+    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "local_run" / "positions.parquet"), unsharded)
+
+
+def test_a_killed_run_resumes_without_redoing_finished_chunks(season, tmp_path):
+    root, _, _, _ = season
+    folder = tmp_path / "killed"
+    shutil.copytree(root / "out", folder, ignore=shutil.ignore_patterns("parts"))
+    code = f"from pathlib import Path; from acoustlab.season.stream import localize_chunks; localize_chunks(Path({str(folder)!r}), range(5))"
+    proc = subprocess.Popen([sys.executable, "-c", code], env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    deadline = time.monotonic() + 120
+    while not part_path(folder, 0).is_file() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    finished = {k: part_path(folder, k).stat().st_mtime_ns for k in range(5) if part_path(folder, k).is_file()}
+    assert finished, "the run was killed before its first chunk"
+    computed = localize_chunks(folder, range(5))
+    assert computed == 5 - len(finished)
+    assert {k: part_path(folder, k).stat().st_mtime_ns for k in finished} == finished  # finished chunks untouched
+    pd.testing.assert_frame_equal(merge_parts(folder), pd.read_parquet(root / "run" / "positions.parquet"))
+
+
+def test_a_changed_method_file_is_refused_and_other_inputs_never_mix(season, compose_cfg, tmp_path):
+    root, _, _, _ = season
+    folder = tmp_path / "tampered"
+    shutil.copytree(root / "out", folder)
+    with open(folder / METHOD_FILE, "ab") as handle:
+        handle.write(b"\0")
+    with pytest.raises(DataError, match="SHA-256 .* differs from the recorded"):
+        load_method(folder, read_manifest(folder)["method_sha256"])
+    other = tmp_path / "other"
+    shutil.copytree(root / "out", other)
+    cfg = compose_cfg(season_overrides(root, other, "protocol.chunk_events=4", f"paths.outputs_dir={tmp_path / 'outputs'}"))
+    with pytest.raises(DataError, match="holds 5 parts of a season run made with other .*chunk_events"):
+        run_experiment(cfg, tmp_path / "run")

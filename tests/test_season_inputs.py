@@ -1,0 +1,184 @@
+"""Season inputs: recordings indexed by absolute time, clips stitched across files, detector tables, events."""
+
+import numpy as np
+import pandas as pd
+import pytest
+import soundfile as sf
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from acoustlab.core.errors import DataError
+from acoustlab.season.detections import read_detections
+from acoustlab.season.events import group_detections
+from acoustlab.season.recorder_files import RecorderFiles, timestamp_from_name
+
+FS = 8000
+
+
+def write_files(folder, recorder, starts, lengths, rng, gap_after=None):
+    """Files of one recorder named by their start (seconds after 2026-05-01 05:00:00); returns the samples joined end to end."""
+    (folder / recorder).mkdir(parents=True, exist_ok=True)
+    joined = []
+    for start, n in zip(starts, lengths, strict=True):
+        samples = rng.uniform(-0.5, 0.5, n).astype(np.float32)
+        name = f"{pd.Timestamp('2026-05-01 05:00:00') + pd.Timedelta(seconds=start):%Y%m%d_%H%M%S}.wav"
+        sf.write(folder / recorder / name, samples, FS, subtype="FLOAT")
+        joined.append(samples)
+    return np.concatenate(joined)
+
+
+@pytest.fixture(scope="module")
+def season_files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("audio")
+    rng = np.random.default_rng(0)
+    joined = write_files(folder, "A", [0, 10, 20], [10 * FS] * 3, rng)
+    write_files(folder, "B", [0, 30], [10 * FS, 10 * FS], rng)  # B has a gap from 10 s to 30 s
+    return folder, joined
+
+
+@settings(max_examples=40, deadline=None)
+@given(start=st.floats(0.0, 29.0), length=st.floats(0.01, 12.0))
+def test_a_clip_across_file_boundaries_equals_the_clip_from_one_joined_file(season_files, start, length):
+    folder, joined = season_files
+    files = RecorderFiles.from_file_names(folder)
+    n = int(round(length * FS))
+    clip = files.read("A", start, n)
+    first = int(round(start * FS))
+    expected = np.zeros(n, np.float32)
+    available = joined[first:first + n]
+    expected[: available.size] = available
+    np.testing.assert_array_equal(clip.samples, expected)
+    assert clip.flags == ([] if first + n <= joined.size else ["out_of_range"])
+    files.close()
+
+
+def test_gaps_and_times_outside_the_recordings_are_flagged(season_files):
+    files = RecorderFiles.from_file_names(season_files[0])
+    across_gap = files.read("B", 9.5, FS)  # 9.5–10.5 s: the second half is in B's gap
+    assert across_gap.flags == ["gap"] and not across_gap.samples[FS // 2 + 1:].any() and across_gap.samples[: FS // 2].any()
+    assert files.read("B", 45.0, FS).flags == ["out_of_range"]
+    assert files.read("A", 5.0, FS).flags == []
+    assert files.origin == pd.Timestamp("2026-05-01 05:00:00")
+
+
+def test_bad_timestamps_stop_with_one_line_naming_the_file(tmp_path):
+    (tmp_path / "A").mkdir()
+    sf.write(tmp_path / "A" / "morning_take.wav", np.zeros(100, np.float32), FS)
+    with pytest.raises(DataError, match="morning_take.wav.*holds no start time"):
+        RecorderFiles.from_file_names(tmp_path)
+    with pytest.raises(DataError, match="20261341_050000.wav"):
+        timestamp_from_name("20261341_050000.wav")  # month 13
+    table = tmp_path / "files.csv"
+    table.write_text("recorder_id,file,start_time\nA,A/morning_take.wav,yesterday at dawn\n")
+    with pytest.raises(DataError, match="line 2, column start_time: 'yesterday at dawn'"):
+        RecorderFiles.from_table(table)
+
+
+def test_overlapping_files_of_one_recorder_are_refused(tmp_path):
+    rng = np.random.default_rng(1)
+    write_files(tmp_path, "A", [0, 5], [10 * FS, 10 * FS], rng)  # the second starts 5 s into the first
+    with pytest.raises(DataError, match="recorder A: .* starts at .* before .* ends"):
+        RecorderFiles.from_file_names(tmp_path)
+
+
+def test_files_table_with_iso_times_and_the_saved_index(tmp_path, season_files):
+    folder, _ = season_files
+    table = tmp_path / "files.csv"
+    rows = ["recorder_id,file,start_time"] + [f"A,{p},{t}" for p, t in
+                                               ((folder / "A" / "20260501_050000.wav", "2026-05-01T05:00:00"),
+                                                (folder / "A" / "20260501_050010.wav", "2026-05-01T05:00:10+00:00"))]
+    table.write_text("\n".join(rows) + "\n")
+    with pytest.raises(DataError, match="line 3, column start_time: '2026-05-01T05:00:10\\+00:00' has a UTC offset and line 2 does not"):
+        RecorderFiles.from_table(table)
+    table.write_text("\n".join(rows).replace("+00:00", "") + "\n")
+    files = RecorderFiles.from_table(table)
+    assert files.table["start_s"].tolist() == [0.0, 10.0]
+    files.save(tmp_path / "index.parquet")
+    again = RecorderFiles.load(tmp_path / "index.parquet")
+    np.testing.assert_array_equal(again.read("A", 9.0, 2 * FS).samples, files.read("A", 9.0, 2 * FS).samples)
+
+
+@pytest.fixture
+def two_recorders(tmp_path):
+    rng = np.random.default_rng(2)
+    write_files(tmp_path / "audio", "R0", [0, 60], [60 * FS, 60 * FS], rng)
+    write_files(tmp_path / "audio", "R1", [0, 60], [60 * FS, 60 * FS], rng)
+    return tmp_path, RecorderFiles.from_file_names(tmp_path / "audio")
+
+
+def raven_table(path, rows):
+    header = "Selection\tView\tChannel\tBegin Time (s)\tEnd Time (s)\tLow Freq (Hz)\tHigh Freq (Hz)\tBegin File\tFile Offset (s)\tSpecies"
+    lines = [header]
+    for k, (begin_file, offset, duration, species) in enumerate(rows, start=1):
+        for view in ("Spectrogram 1", "Waveform 1"):  # Raven repeats every selection per view
+            lines.append(f"{k}\t{view}\t1\t{offset}\t{offset + duration}\t2000\t6000\t{begin_file}\t{offset}\t{species}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_raven_tables_per_recorder_place_selections_by_file_start_and_offset(two_recorders):
+    folder, files = two_recorders
+    raven_table(folder / "R0.Table.1.selections.txt", [("20260501_050000.wav", 12.0, 0.5, "wren"), ("20260501_050100.wav", 3.0, 0.4, "tit")])
+    raven_table(folder / "R1.Table.1.selections.txt", [("20260501_050000.wav", 12.1, 0.5, "wren")])
+    det = read_detections([folder / "R0.Table.1.selections.txt", folder / "R1.Table.1.selections.txt"], "raven", files)
+    assert det[["recorder_id", "start_s", "label"]].values.tolist() == [["R0", 12.0, "wren"], ["R1", 12.1, "wren"], ["R0", 63.0, "tit"]]
+    assert det["low_hz"].tolist() == [2000.0] * 3 and np.allclose(det["end_s"] - det["start_s"], [0.5, 0.5, 0.4])
+    only = read_detections([folder / "R0.Table.1.selections.txt"], "raven", files, classes=["tit"])
+    assert only["label"].tolist() == ["tit"]
+
+
+def test_one_raven_table_for_all_recorders_needs_a_recorder_column(two_recorders):
+    folder, files = two_recorders
+    raven_table(folder / "all.txt", [("20260501_050000.wav", 12.0, 0.5, "wren")])
+    with pytest.raises(DataError, match="file name '20260501_050000.wav' is used by recorders R0, R1"):
+        read_detections([folder / "all.txt"], "raven", files)
+    table = pd.read_csv(folder / "all.txt", sep="\t").assign(Recorder="R1")
+    table.to_csv(folder / "all.txt", sep="\t", index=False)
+    assert read_detections([folder / "all.txt"], "raven", files, recorder_column="Recorder")["recorder_id"].tolist() == ["R1"]
+
+
+def test_birdnet_and_opensoundscape_tables_with_class_and_score_thresholds(two_recorders):
+    folder, files = two_recorders
+    (folder / "R0").mkdir()
+    pd.DataFrame({"Start (s)": [0.0, 3.0, 6.0], "End (s)": [3.0, 6.0, 9.0], "Scientific name": ["Troglodytes troglodytes"] * 3,
+                  "Common name": ["Eurasian Wren", "Eurasian Wren", "Great Tit"], "Confidence": [0.9, 0.3, 0.8],
+                  "File": ["20260501_050100.wav"] * 3}).to_csv(folder / "R0" / "birdnet.csv", index=False)
+    det = read_detections([folder / "R0" / "birdnet.csv"], "birdnet", files, classes=["Eurasian Wren"], min_score=0.5)
+    assert det[["recorder_id", "start_s", "end_s", "score"]].values.tolist() == [["R0", 60.0, 63.0, 0.9]]
+    pd.DataFrame({"file": ["20260501_050000.wav"] * 2, "start_time": [0.0, 5.0], "end_time": [5.0, 10.0], "wren": [0.2, 4.0],
+                  "tit": [3.0, -1.0]}).to_csv(folder / "R1.scores.csv", index=False)
+    det = read_detections([folder / "R1.scores.csv"], "opensoundscape", files, classes=["wren", "tit"], min_score=1.0)
+    assert sorted(det[["label", "start_s"]].values.tolist()) == [["tit", 0.0], ["wren", 5.0]] and set(det["recorder_id"]) == {"R1"}
+
+
+@pytest.mark.parametrize("content, message", [
+    ("Selection\tBegin Time (s)\n1\t3.0\n", r"lacks columns \['End Time \(s\)'\]"),
+    ("Selection\tBegin Time (s)\tEnd Time (s)\n1\t3.0\t4.0\n", "names no audio file: add the Begin File or Begin Path column"),
+    ("Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\tsoon\t4.0\t20260501_050000.wav\n", r"line 2, column 'Begin Time \(s\)': 'soon'"),
+    ("Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\t5.0\t4.0\t20260501_050000.wav\n", "line 2: the detection ends before it begins"),
+    ("Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\t3.0\t4.0\tother.wav\n", "file 'other.wav' of recorder R0 is not among"),
+])
+def test_malformed_raven_tables_stop_with_one_line(two_recorders, content, message):
+    folder, files = two_recorders
+    (folder / "R0.txt").write_text(content)
+    with pytest.raises(DataError, match=message):
+        read_detections([folder / "R0.txt"], "raven", files)
+
+
+def detections(rows):
+    return pd.DataFrame([{"recorder_id": r, "start_s": s, "end_s": e, "low_hz": lo, "high_hz": hi, "label": lab, "score": np.nan,
+                          "source": f"t:{k}"} for k, (r, s, e, lo, hi, lab) in enumerate(rows)])
+
+
+def test_detections_are_grouped_into_events_heard_by_enough_recorders():
+    det = detections([
+        ("R0", 10.0, 10.5, 2000, 5000, "wren"), ("R1", 10.2, 10.7, 2500, 6000, "wren"), ("R2", 10.25, 10.75, np.nan, np.nan, "wren"),
+        ("R0", 10.1, 10.4, 1000, 2000, "tit"),  # another species at the same time: its own event, heard once
+        ("R1", 20.0, 20.5, 2000, 5000, "wren"), ("R2", 20.1, 20.6, 2000, 5000, "wren"),
+        ("R0", 40.0, 52.0, 2000, 5000, "wren"), ("R1", 40.1, 52.1, 2000, 5000, "wren"),  # too long to read
+    ])
+    events = group_detections(det, margin_s=0.3, min_recorders=2, max_event_s=10.0)
+    assert events["event_id"].tolist() == [0, 1, 2]
+    assert events["n_recorders"].tolist() == [3, 2, 2] and events["recorders"].iloc[0] == "R0;R1;R2"
+    np.testing.assert_allclose(events[["start_s", "end_s"]].iloc[0], [9.7, 11.05])
+    np.testing.assert_allclose(events[["band_low_hz", "band_high_hz"]].iloc[0], [2000, 6000])
+    assert events["too_long"].tolist() == [False, False, True]
