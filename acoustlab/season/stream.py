@@ -48,6 +48,7 @@ from acoustlab.season.recorder_files import RecorderFiles
 from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import extract_features
 from acoustlab.stages.solver_columns import add_solver_columns
+from acoustlab.toolkit.dsp import next_fast_len
 from acoustlab.toolkit.quality import QualityThresholds, clip_quality
 
 log = logging.getLogger(__name__)
@@ -160,7 +161,7 @@ def _clip(recordings: RecorderFiles, recorder: str, start_s: float, length_s: fl
 def read_batch(recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str], sample_rate_hz: float, plan: ChunkPlan) -> RecordingBatch:
     """The clips of ``events`` on every recorder (in the site's mic order) as a batch, flagged per clip."""
     lengths_s = np.where(events["too_long"].to_numpy(bool), TOO_LONG_STAND_IN_S, (events[col.END] - events[col.START]).to_numpy(float))
-    n_max = int(round(lengths_s.max() * sample_rate_hz)) + 1
+    n_max = next_fast_len(int(round(lengths_s.max() * sample_rate_hz)) + 1)  # every transform of the batch at an FFT-friendly length
     audio = np.zeros((len(events), len(recorders), n_max), dtype=np.float32)
     flags = []
     for e, (start, length, too_long) in enumerate(zip(events[col.START].to_numpy(float), lengths_s, events["too_long"].to_numpy(bool), strict=True)):
