@@ -75,6 +75,17 @@ class ClipRead:
     flags: list[str]
 
 
+class _RecorderArrays:
+    """One recorder's files as arrays (a clip read looks them up without pandas)."""
+
+    def __init__(self, table: pd.DataFrame) -> None:
+        self.start_s = table["start_s"].to_numpy(float)
+        self.end_s = table["end_s"].to_numpy(float)
+        self.n_frames = table["n_frames"].to_numpy(np.int64)
+        self.channel = table["channel"].to_numpy(np.int64)
+        self.path = table["path"].astype(str).tolist()
+
+
 class RecorderFiles:
     """Every recorder's files with their absolute start times, in one season clock.
 
@@ -122,7 +133,7 @@ class RecorderFiles:
         self.table = table.sort_values(["recorder_id", "start_s"], kind="stable").reset_index(drop=True)
         self._check_overlaps()
         self.recorders = sorted(self.table["recorder_id"].unique())
-        self._by_recorder = {r: self.table[self.table["recorder_id"] == r] for r in self.recorders}
+        self._by_recorder = {r: _RecorderArrays(self.table[self.table["recorder_id"] == r]) for r in self.recorders}
         self._by_name: dict[str, list[int]] = {}
         self._by_path: dict[str, list[int]] = {}
         for k, path in enumerate(self.table["path"]):
@@ -262,22 +273,21 @@ class RecorderFiles:
         out = np.zeros(n_samples, dtype=np.float32)
         covered = np.zeros(n_samples, dtype=bool)
         end_s = start_s + n_samples / fs
-        hit = files[(files["start_s"].to_numpy() < end_s) & (files["end_s"].to_numpy() > start_s)]
-        for f in hit.itertuples():
-            first = int(round((start_s - f.start_s) * fs))  # file sample of clip sample 0
-            lo, hi = max(0, -first), min(n_samples, f.n_frames - first)
+        for k in np.flatnonzero((files.start_s < end_s) & (files.end_s > start_s)):
+            first = int(round((start_s - files.start_s[k]) * fs))  # file sample of clip sample 0
+            lo, hi = max(0, -first), min(n_samples, int(files.n_frames[k]) - first)
             if hi <= lo:
                 continue
-            handle = self._handle(f.path)
+            handle = self._handle(files.path[k])
             handle.seek(first + lo)
             data = handle.read(hi - lo, dtype="float32", always_2d=True)
-            out[lo:lo + len(data)] = data[:, int(f.channel)]
+            out[lo:lo + len(data)] = data[:, int(files.channel[k])]
             covered[lo:lo + len(data)] = True
         flags = []
         if not covered.all():  # in clip samples, with the same rounding as the reads: where the recorder's first file begins, its last ends
-            first_file, last_file = files.iloc[0], files.iloc[files["end_s"].to_numpy().argmax()]
-            lead = -int(round((start_s - first_file["start_s"]) * fs))
-            tail = int(last_file["n_frames"]) - int(round((start_s - last_file["start_s"]) * fs))
+            first_k, last_k = 0, int(files.end_s.argmax())
+            lead = -int(round((start_s - files.start_s[first_k]) * fs))
+            tail = int(files.n_frames[last_k]) - int(round((start_s - files.start_s[last_k]) * fs))
             missing = np.flatnonzero(~covered)
             if ((missing >= lead) & (missing < tail)).any():
                 flags.append("gap")

@@ -191,23 +191,22 @@ def read_batch(recordings: RecorderFiles, events: pd.DataFrame, recorders: list[
 
 def localize_events(fitted: FittedSeasonMethod, recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str],
                     plan: ChunkPlan, origin: pd.Timestamp) -> pd.DataFrame:
-    """Positions of ``events`` (one chunk), computed batch by batch."""
+    """Positions of ``events`` (one chunk): audio and features batch by batch, the method on the chunk's features at once."""
     c = fitted.method.pipeline.c
-    sample_rate_hz = float(fitted.sample_rate_hz)
-    tables = []
-    for first in range(0, len(events), plan.batch_events):
-        part = events.iloc[first: first + plan.batch_events]
-        batch = read_batch(recordings, part, recorders, sample_rate_hz, plan)
-        features = add_solver_columns(extract_features(batch, c.site, c.feature_sets), batch.events, c.site, c.solver,
-                                      fitted.plausible_margin_fraction)
-        predictions, _ = fitted.method.predict(features, batch.events)
-        detections = batch.events.drop(columns=["is_field"]).assign(label=part["label"].to_numpy())
-        table = positions_table(without_truth(predictions, features, detections), fitted.levels, fitted.scorers)
-        table.insert(1, "time", (origin + pd.to_timedelta(part[col.START].to_numpy(float), unit="s")).strftime("%Y-%m-%dT%H:%M:%S.%f"))
-        for name in SEASON_FIELDS[2:]:
-            table[name] = part[name].to_numpy()
-        tables.append(table)
-    return pd.concat(tables, ignore_index=True)
+    features, rows = [], []
+    for first in range(0, len(events), plan.batch_events):  # peak memory: one batch's audio and its transforms
+        batch = read_batch(recordings, events.iloc[first: first + plan.batch_events], recorders, float(fitted.sample_rate_hz), plan)
+        features.append(extract_features(batch, c.site, c.feature_sets))
+        rows.append(batch.events)
+    table_features, detections = pd.concat(features, ignore_index=True), pd.concat(rows, ignore_index=True)
+    table_features = add_solver_columns(table_features, detections, c.site, c.solver, fitted.plausible_margin_fraction)
+    predictions, _ = fitted.method.predict(table_features, detections)
+    detections = detections.drop(columns=["is_field"]).assign(label=events["label"].to_numpy())
+    table = positions_table(without_truth(predictions, table_features, detections), fitted.levels, fitted.scorers)
+    table.insert(1, "time", (origin + pd.to_timedelta(events[col.START].to_numpy(float), unit="s")).strftime("%Y-%m-%dT%H:%M:%S.%f"))
+    for name in SEASON_FIELDS[2:]:
+        table[name] = events[name].to_numpy()
+    return table
 
 
 def localize_chunks(directory: Path, chunks: Iterable[int], fitted: FittedSeasonMethod | None = None, progress_every_s: float = 5.0,

@@ -60,6 +60,7 @@ def gcc(
     upsample: int = 1,
     beta: float = 0.8,
     max_lag_s: float | None = None,
+    spectra_cache: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Generalised cross-correlation of every listed mic pair, for a batch of events.
 
@@ -94,6 +95,9 @@ def gcc(
         The exponent of β-PHAT, in [0, 1] (0 is plain cross-correlation, 1 is PHAT).
     max_lag_s : float, optional
         Largest |lag| needed, s; None returns every lag of a transform twice the signal length.
+    spectra_cache : dict, optional
+        Where the weighted spectra of ``audio`` are kept between calls on the same audio (several
+        bands of one batch transform the audio once).
 
     Returns
     -------
@@ -110,11 +114,13 @@ def gcc(
     max_lag_samples = n_samples if max_lag_s is None else min(n_samples, int(np.ceil(max_lag_s * sample_rate_hz)) + 2)
     # twice the signal length, always: a (β-)PHAT weighting depends on the spectral resolution
     n_fft = next_fast_len(2 * n_samples)
-    spectra = sfft.rfft(audio, n=n_fft, axis=-1)
-    if weighting != "none":
-        magnitude = np.abs(spectra)
-        magnitude = np.maximum(magnitude, 1e-6 * magnitude.max(axis=-1, keepdims=True) + 1e-30)
-        spectra = spectra / (magnitude if weighting == "phat" else magnitude ** float(beta))
+    key = ("weighted_spectra", weighting, float(beta))
+    if spectra_cache is None:
+        spectra = weighted_spectra(audio, weighting, beta)
+    else:  # never modified below: masking and the cast make new arrays
+        if key not in spectra_cache:
+            spectra_cache[key] = weighted_spectra(audio, weighting, beta)
+        spectra = spectra_cache[key]
     if band_hz is not None:
         freqs = sfft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)
         band = np.asarray(band_hz, dtype=float)
@@ -134,6 +140,16 @@ def gcc(
         cc[:, k, half:] = full[:, : half + 1]
     lags_s = np.arange(-half, half + 1) / (sample_rate_hz * upsample)
     return cc, lags_s
+
+
+def weighted_spectra(audio: np.ndarray, weighting: str, beta: float) -> np.ndarray:
+    """(E, M, F) spectra of ``audio`` over twice its length, (β-)PHAT weighted per mic (see :func:`gcc`)."""
+    spectra = sfft.rfft(audio, n=next_fast_len(2 * audio.shape[-1]), axis=-1)
+    if weighting != "none":
+        magnitude = np.abs(spectra)
+        magnitude = np.maximum(magnitude, 1e-6 * magnitude.max(axis=-1, keepdims=True) + 1e-30)
+        spectra = spectra / (magnitude if weighting == "phat" else magnitude ** float(beta))
+    return spectra
 
 
 def event_band_hz(events: pd.DataFrame, default: tuple[float, float] | None, sample_rate_hz: float) -> tuple[float, float] | np.ndarray | None:

@@ -65,7 +65,9 @@ def _compute_pair_candidates(
     upsample: int, beta: float,
 ) -> PairCandidates:
     windows = lag_windows_s(site, margin_s)
-    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample, beta, max_lag_s=float(windows.max()))
+    shared = batch.derived("gcc_spectra", dict)  # one transform of the audio for every band and candidate count
+    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample, beta, max_lag_s=float(windows.max()),
+                   spectra_cache=shared)
     step = lags[1] - lags[0]
     e, p = cc.shape[:2]
     out_lags = np.full((e, p, n_candidates), np.nan)

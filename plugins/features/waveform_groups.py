@@ -16,13 +16,23 @@ from acoustlab.toolkit.gcc_candidates import lag_windows_s
 FRAME_S = 0.005
 
 
-def envelope(audio: np.ndarray, sample_rate_hz: float, band_hz: tuple[float, float], smooth_s: float = 0.005) -> np.ndarray:
-    """Smoothed Hilbert envelope of band-passed signals, (E, M, S)."""
+def _hilbert_magnitude(audio: np.ndarray, sample_rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:
+    """|analytic signal| of the band-passed signals, (E, M, S)."""
     nyq = sample_rate_hz / 2
     sos = ss.butter(4, [band_hz[0] / nyq, min(band_hz[1] / nyq, 0.99)], btype="bandpass", output="sos")
     x = ss.sosfiltfilt(sos, audio, axis=-1)
-    env = np.abs(ss.hilbert(x, axis=-1))
-    win = max(int(smooth_s * sample_rate_hz), 1)
+    return np.abs(ss.hilbert(x, axis=-1))
+
+
+def envelope(batch: RecordingBatch, band_hz: tuple[float, float], smooth_s: float = 0.005) -> np.ndarray:
+    """Smoothed Hilbert envelope of band-passed signals, (E, M, S).
+
+    The band-passed Hilbert magnitude is computed once per batch and band (the ``ir`` and
+    ``envelope`` groups share it); only the smoothing differs.
+    """
+    fs = batch.sample_rate_hz
+    env = batch.derived(("hilbert_magnitude", band_hz), lambda: _hilbert_magnitude(batch.audio, fs, band_hz))
+    win = max(int(smooth_s * fs), 1)
     return ss.oaconvolve(env, np.ones((1, 1, win)) / win, mode="same", axes=-1)
 
 
@@ -58,7 +68,7 @@ class BlindIrSummaries:
 
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         fs = batch.sample_rate_hz
-        env = envelope(batch.audio, fs, self.band_hz)
+        env = envelope(batch, self.band_hz)
         e, m, n = env.shape
         peak = np.argmax(env, axis=-1)
         peak_val = np.take_along_axis(env, peak[..., None], -1)[..., 0]
@@ -158,7 +168,7 @@ class EnvelopeDelays:
 
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         fs = batch.sample_rate_hz
-        env = envelope(batch.audio, fs, self.band_hz, smooth_s=0.002)
+        env = envelope(batch, self.band_hz, smooth_s=0.002)
         env = env - env.mean(-1, keepdims=True)
         n = env.shape[-1]
         n_fft = 2 * n
