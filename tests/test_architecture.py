@@ -8,8 +8,9 @@ from acoustlab.core.imports import internal_imports
 
 PACKAGE = Path(__file__).resolve().parent.parent / "acoustlab"
 #: Layers from the bottom up; a module may import only from its own layer or the ones before it.
-LAYERS = ("core", "toolkit", "stages", "method", "reporting", "run")
-#: Entry points at the top (``python -m acoustlab``, ``acoustlab.report``, ``acoustlab.upload``, ``acoustlab.catalog``).
+LAYERS = ("core", "toolkit", "stages", "method", "reporting", "season", "run")
+#: Entry points at the top (``python -m acoustlab``, ``acoustlab.report``, ``acoustlab.upload``, ``acoustlab.catalog``,
+#: ``acoustlab.synthetic_season``).
 ENTRY = "entry"
 
 

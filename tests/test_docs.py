@@ -13,7 +13,8 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 #: Placeholders a reader replaces with their own paths: such commands are checked only as far as they can be.
-PLACEHOLDERS = ("…", "...", "/data/", "NAME", "DIR", "outputs/runs/2026", "outputs/multirun/2026")
+PLACEHOLDERS = ("…", "...", "/data/", "NAME", "DIR", "outputs/runs/2026", "outputs/multirun/2026",
+                "outputs/demo_season")  # written by the documented command before it (python -m acoustlab.synthetic_season)
 
 
 def documented_commands() -> list[tuple[str, str]]:
@@ -41,8 +42,8 @@ def _overrides(args: list[str]) -> list[str]:
     for arg in args:
         if arg in ("-m", "--multirun"):
             continue
-        if arg == "localize":
-            out.append("protocol=localize")
+        if arg in ("localize", "season"):
+            out.append(f"protocol={arg}")
             continue
         key, _, value = arg.partition("=")
         if key.startswith(("hydra/", "hydra.")):
@@ -77,7 +78,7 @@ def test_every_documented_command_is_valid(page, command, compose_cfg):
         proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0 and "Configuration groups" in proc.stdout, proc.stderr[-2000:]
         return
-    check_argv([a for a in args if a not in ("-m", "localize")])
+    check_argv([a for a in args if a not in ("-m", "localize", "season")])
     if any(p in command for p in PLACEHOLDERS):
         return  # a reader's own files: the options are checked, the files cannot be
     cfg = compose_cfg(_overrides(args))

@@ -34,12 +34,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError
 from acoustlab.season.recorder_files import RecorderFiles
 
 log = logging.getLogger(__name__)
 
-DETECTION_COLUMNS = ("recorder_id", "start_s", "end_s", "low_hz", "high_hz", "label", "score", "source")
+DETECTION_COLUMNS = ("recorder_id", col.START, col.END, "low_hz", "high_hz", "label", "score", "source")
 FORMATS = ("raven", "birdnet", "opensoundscape")
 RAVEN_TIMES = ("Begin Time (s)", "End Time (s)")
 BIRDNET_TIMES = ("Start (s)", "End (s)")
@@ -93,9 +94,9 @@ def _place(table: pd.DataFrame, files: Sequence[str], offset_s: np.ndarray, dura
         k = int(np.flatnonzero(duration_s <= 0)[0])
         raise DataError(f"detections: {table.attrs['path']} line {k + 2}: the detection ends before it begins ({duration_s[k]:.3f} s)")
     rows = [recordings.file_row(f, r) for f, r in zip(files, recorders, strict=True)]
-    start = np.array([r["start_s"] for r in rows]) + offset_s
+    start = np.array([r[col.START] for r in rows]) + offset_s
     return pd.DataFrame({
-        "recorder_id": [r["recorder_id"] for r in rows], "start_s": start, "end_s": start + duration_s, "low_hz": low, "high_hz": high,
+        "recorder_id": [r["recorder_id"] for r in rows], col.START: start, col.END: start + duration_s, "low_hz": low, "high_hz": high,
         "label": label.astype(str), "score": score, "source": [f"{Path(table.attrs['path']).name}:{k + 2}" for k in range(len(table))],
     })
 
@@ -220,6 +221,6 @@ def read_detections(paths: Sequence[str | Path], fmt: str, recordings: RecorderF
             keep &= part["label"].isin([str(c) for c in classes]).to_numpy()
         keep &= ~(part["score"].to_numpy(float) < min_score)  # NaN scores (no Confidence column) are kept
         parts.append(part[keep])
-    out = pd.concat(parts, ignore_index=True).sort_values(["start_s", "recorder_id"], kind="stable").reset_index(drop=True)
+    out = pd.concat(parts, ignore_index=True).sort_values([col.START, "recorder_id"], kind="stable").reset_index(drop=True)
     log.info("detections: %d from %d %s tables (classes %s, score >= %g)", len(out), len(files), fmt, classes or "all", min_score)
     return out

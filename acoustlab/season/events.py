@@ -43,8 +43,8 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
     """
     parts = []
     for label, group in detections.groupby("label", sort=True):
-        g = group.sort_values("start_s", kind="stable")
-        start, end = g["start_s"].to_numpy(float), g["end_s"].to_numpy(float)
+        g = group.sort_values(col.START, kind="stable")
+        start, end = g[col.START].to_numpy(float), g[col.END].to_numpy(float)
         reach = np.maximum.accumulate(end)
         new = np.empty(len(g), bool)
         new[0] = True
@@ -52,7 +52,7 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
         cluster = np.cumsum(new) - 1
         g = g.assign(_cluster=cluster)
         agg = g.groupby("_cluster", sort=True).agg(
-            first=("start_s", "min"), last=("end_s", "max"), n_recorders=("recorder_id", "nunique"),
+            first=(col.START, "min"), last=(col.END, "max"), n_recorders=("recorder_id", "nunique"),
             recorders=("recorder_id", lambda r: ";".join(sorted(set(map(str, r))))), score=("score", "max"),
             low=("low_hz", "min"), high=("high_hz", "max"), detections=("source", lambda s: ";".join(s)),
         )

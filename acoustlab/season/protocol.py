@@ -208,7 +208,7 @@ class SeasonLocalize:
         write_manifest(folder, events, digest, self.plan(site), order,
                        {"levels": list(built.components.levels), "scorers": list(built.components.scorers)})
         log.info("season: %d events from %d recorders' files (%d files, %s to %s) in %d chunks", len(events), len(order),
-                 len(recordings.table), recordings.origin, recordings.origin + pd.Timedelta(seconds=float(recordings.table["end_s"].max())),
+                 len(recordings.table), recordings.origin, recordings.origin + pd.Timedelta(seconds=float(recordings.table[col.END].max())),
                  n_chunks(len(events), self.chunk_events))
 
     def localize(self, folder: Path) -> int:

@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 import soundfile as sf
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError
 from acoustlab.stages.cache import atomic_write_bytes
 
@@ -79,8 +80,8 @@ class _RecorderArrays:
     """One recorder's files as arrays (a clip read looks them up without pandas)."""
 
     def __init__(self, table: pd.DataFrame) -> None:
-        self.start_s = table["start_s"].to_numpy(float)
-        self.end_s = table["end_s"].to_numpy(float)
+        self.start_s = table[col.START].to_numpy(float)
+        self.end_s = table[col.END].to_numpy(float)
         self.n_frames = table["n_frames"].to_numpy(np.int64)
         self.channel = table["channel"].to_numpy(np.int64)
         self.path = table["path"].astype(str).tolist()
@@ -128,9 +129,9 @@ class RecorderFiles:
         """Season times of every file, sorted per recorder, checked for overlaps."""
         self.sample_rate_hz = sample_rate_hz
         self.origin = table["start"].min()
-        table["start_s"] = (table["start"] - self.origin).dt.total_seconds().to_numpy(float)
-        table["end_s"] = table["start_s"] + table["n_frames"] / self.sample_rate_hz
-        self.table = table.sort_values(["recorder_id", "start_s"], kind="stable").reset_index(drop=True)
+        table[col.START] = (table["start"] - self.origin).dt.total_seconds().to_numpy(float)
+        table[col.END] = table[col.START] + table["n_frames"] / self.sample_rate_hz
+        self.table = table.sort_values(["recorder_id", col.START], kind="stable").reset_index(drop=True)
         self._check_overlaps()
         self.recorders = sorted(self.table["recorder_id"].unique())
         self._by_recorder = {r: _RecorderArrays(self.table[self.table["recorder_id"] == r]) for r in self.recorders}
@@ -145,12 +146,13 @@ class RecorderFiles:
     def _check_overlaps(self) -> None:
         t = self.table
         same = t["recorder_id"].to_numpy()[1:] == t["recorder_id"].to_numpy()[:-1]
-        overlap = t["start_s"].to_numpy()[1:] < t["end_s"].to_numpy()[:-1] - CONTIGUOUS_TOLERANCE_S
+        overlap = t[col.START].to_numpy()[1:] < t[col.END].to_numpy()[:-1] - CONTIGUOUS_TOLERANCE_S
         bad = np.flatnonzero(same & overlap)
         if bad.size:
             k = bad[0]
+            overlap_s = t[col.END].iloc[k] - t[col.START].iloc[k + 1]
             raise DataError(f"recordings: recorder {t['recorder_id'].iloc[k]}: {t['path'].iloc[k + 1]} starts at {t['start'].iloc[k + 1]}, "
-                            f"before {t['path'].iloc[k]} ends ({t['end_s'].iloc[k] - t['start_s'].iloc[k + 1]:.3f} s overlap); check the start times")
+                            f"before {t['path'].iloc[k]} ends ({overlap_s:.3f} s overlap); check the start times")
 
     # -- construction -------------------------------------------------------------------------
     @classmethod

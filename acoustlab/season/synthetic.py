@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 import soundfile as sf
 
+from acoustlab.core import columns as col
 from acoustlab.core.types import Site
 from acoustlab.toolkit.dsp import coloured_noise, delay_and_scale
 from acoustlab.toolkit.physics import speed_of_sound_m_s
@@ -143,5 +144,6 @@ def write_season(settings: SyntheticSeason, directory: Path) -> pd.DataFrame:
             "Begin File": [names[k] for k in file_index], "File Offset (s)": begin - file_index * s.file_s, "Species": "synthetic_sweep",
         })
         table.to_csv(raven / f"R{m}.Table.1.selections.txt", sep="\t", index=False)
-    return pd.DataFrame({"call_id": np.arange(s.n_calls), "emission_s": emission, "x_m": xy[:, 0], "y_m": xy[:, 1], "z_m": z,
+    return pd.DataFrame({"call_id": np.arange(s.n_calls), "emission_s": emission, col.TRUE_X: xy[:, 0], col.TRUE_Y: xy[:, 1], col.TRUE_Z: z,
                          "low_hz": [b[0] for b in bands], "high_hz": [b[1] for b in bands]})
+
