@@ -28,7 +28,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -190,14 +190,19 @@ def read_batch(recordings: RecorderFiles, events: pd.DataFrame, recorders: list[
 
 
 def localize_events(fitted: FittedSeasonMethod, recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str],
-                    plan: ChunkPlan, origin: pd.Timestamp) -> pd.DataFrame:
-    """Positions of ``events`` (one chunk): audio and features batch by batch, the method on the chunk's features at once."""
+                    plan: ChunkPlan, origin: pd.Timestamp, on_batch: Callable[[int], None] | None = None) -> pd.DataFrame:
+    """Positions of ``events`` (one chunk): audio and features batch by batch, the method on the chunk's features at once.
+
+    ``on_batch(n)`` is called after each batch with the number of its events (progress).
+    """
     c = fitted.method.pipeline.c
     features, rows = [], []
     for first in range(0, len(events), plan.batch_events):  # peak memory: one batch's audio and its transforms
         batch = read_batch(recordings, events.iloc[first: first + plan.batch_events], recorders, float(fitted.sample_rate_hz), plan)
         features.append(extract_features(batch, c.site, c.feature_sets))
         rows.append(batch.events)
+        if on_batch is not None:
+            on_batch(batch.n_events)
     table_features, detections = pd.concat(features, ignore_index=True), pd.concat(rows, ignore_index=True)
     table_features = add_solver_columns(table_features, detections, c.site, c.solver, fitted.plausible_margin_fraction)
     predictions, _ = fitted.method.predict(table_features, detections)
@@ -223,21 +228,32 @@ def localize_chunks(directory: Path, chunks: Iterable[int], fitted: FittedSeason
     plan = ChunkPlan(**{k: v for k, v in manifest["plan"].items() if k != "quality"}, quality=QualityThresholds(**manifest["plan"]["quality"]))
     todo = [k for k in chunks if not part_path(directory, k).is_file()]
     total = sum(min(plan.chunk_events, len(events) - k * plan.chunk_events) for k in todo)
-    started = last = time.monotonic()
-    done = 0
+    progress = _RateLog(total, progress_every_s, label)
     for k in todo:
         chunk = events.iloc[k * plan.chunk_events: (k + 1) * plan.chunk_events]
-        table = localize_events(fitted, recordings, chunk, manifest["recorders"], plan, recordings.origin)
+        table = localize_events(fitted, recordings, chunk, manifest["recorders"], plan, recordings.origin, on_batch=progress.add)
         part_path(directory, k).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(part_path(directory, k), table.to_parquet(index=False))
-        done += len(chunk)
-        now = time.monotonic()
-        if now - last >= progress_every_s or done == total:
-            last = now
-            rate = done / max(now - started, 1e-9)
-            log.info("%s: %d/%d detections, %.0f detections/s, about %.0f s left", label, done, total, rate, (total - done) / max(rate, 1e-9))
     recordings.close()
     return len(todo)
+
+
+class _RateLog:
+    """A progress line (done, rate, time left) at most every ``every_s`` seconds, and one at the end."""
+
+    def __init__(self, total: int, every_s: float, label: str) -> None:
+        self.total, self.every_s, self.label = total, every_s, label
+        self.done = 0
+        self.started = self.last = time.monotonic()
+
+    def add(self, n: int) -> None:
+        self.done += n
+        now = time.monotonic()
+        if now - self.last >= self.every_s or self.done >= self.total:
+            self.last = now
+            rate = self.done / max(now - self.started, 1e-9)
+            log.info("%s: %d/%d detections, %.1f detections/s, about %.0f s left", self.label, self.done, self.total, rate,
+                     (self.total - self.done) / max(rate, 1e-9))
 
 
 def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1) -> int:
