@@ -1,0 +1,43 @@
+"""A method fitted once predicts new events in any chunks: the rows equal one prediction of all of them, and survive saving."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from acoustlab.core import columns as col
+from acoustlab.core.errors import DataError
+from acoustlab.method.pipeline import LocalizationPipeline
+from acoustlab.method.saved import load_method, save_method
+from acoustlab.run.app import build_run, prepare_data
+
+pytestmark = pytest.mark.slow
+
+
+def test_predicting_in_chunks_equals_predicting_at_once_with_every_optional_output(compose_cfg, tmp_path):
+    """CQR, ellipses, selective localization and an extra gate: every output is a function of the fitted method and the row."""
+    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", f"paths.outputs_dir={tmp_path}", "tracking=none", "model.n_estimators=20",
+                       "conformal=all", "conformal.ellipse=true", "pipeline.selective.enabled=true", "pipeline.selective.delta=0.2",
+                       "+gate@pipeline.extra_gates.box=bounding_box"])
+    built = build_run(cfg)
+    data = prepare_data(cfg, built).dataset
+    groups = data.events[col.POSITION_ID].to_numpy()
+    test = np.flatnonzero(groups % 5 == 0)
+    train = np.flatnonzero(groups % 5 != 0)
+    pipeline = LocalizationPipeline(built.components)
+    together = pipeline.fit_predict(data.features, data.events, train, test).predictions
+    fitted = pipeline.fit(data.features, data.events, train)
+    save_method(fitted, tmp_path / "method", key="test")
+    loaded = load_method(tmp_path / "method")
+    parts = [loaded.predict(data.features.iloc[rows], data.events.iloc[rows])[0] for rows in np.array_split(test[::-1], 3)]
+    chunked = pd.concat(parts, ignore_index=True).iloc[::-1].reset_index(drop=True)
+    assert {col.PLACED, "ellipse__0.95__a_m", col.radius("cqr", 0.95), col.error_m("gate_box")} <= set(together.columns)
+    pd.testing.assert_frame_equal(chunked, together)
+
+
+def test_a_position_on_both_sides_is_refused(compose_cfg, tmp_path):
+    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", f"paths.outputs_dir={tmp_path}", "tracking=none"])
+    built = build_run(cfg)
+    data = prepare_data(cfg, built).dataset
+    rows = np.arange(len(data.events))
+    with pytest.raises(DataError, match="a source position appears in both training and test rows"):
+        LocalizationPipeline(built.components).fit_predict(data.features, data.events, rows, rows[:5])
