@@ -77,9 +77,9 @@ def main() -> None:
     ``acoustlab season ...`` is ``protocol=season`` (a season of long recordings from detector tables).
     """
     if len(sys.argv) > 1 and sys.argv[1] == "localize":  # acoustlab localize +site=NAME field=recordings …
-        sys.argv = [sys.argv[0], "protocol=localize", *sys.argv[2:]]
+        sys.argv = [sys.argv[0], *sys.argv[2:], "protocol=localize"]  # last: Hydra's flags (-m) may follow the command
     if len(sys.argv) > 1 and sys.argv[1] == "season":  # acoustlab season +site=NAME protocol.recordings.audio_dir=… …
-        sys.argv = [sys.argv[0], "protocol=season", *sys.argv[2:]]
+        sys.argv = [sys.argv[0], *sys.argv[2:], "protocol=season"]
     if len(sys.argv) > 1 and sys.argv[1] in ("report", "upload"):
         from acoustlab.reporting import report
         from acoustlab.run import upload

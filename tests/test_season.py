@@ -112,3 +112,17 @@ def test_a_changed_method_file_is_refused_and_other_inputs_never_mix(season, com
     cfg = compose_cfg(season_overrides(root, other, "protocol.chunk_events=4", f"paths.outputs_dir={tmp_path / 'outputs'}"))
     with pytest.raises(DataError, match="holds 5 parts of a season run made with other .*chunk_events"):
         run_experiment(cfg, tmp_path / "run")
+
+
+def test_shards_as_a_hydra_multirun_then_merge(season, run_cli, tmp_path):
+    """The command-line path a SLURM array takes (here Hydra's basic launcher): one job per shard, then the merge stage."""
+    root, _, _, _ = season
+    folder = tmp_path / "multirun"
+    shutil.copytree(root / "out", folder, ignore=shutil.ignore_patterns("parts"))
+    common = [a for a in season_overrides(root, folder) if a != "protocol=season"]
+    proc = run_cli("season", "-m", *common, "protocol.stage=localize", "protocol.n_shards=2", "protocol.shard=0,1",
+                   f"hydra.sweep.dir={tmp_path / 'sweep'}", timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc = run_cli("season", *common, "protocol.stage=merge", f"hydra.run.dir={tmp_path / 'merged'}", timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "merged" / "positions.parquet"), pd.read_parquet(root / "run" / "positions.parquet"))
