@@ -55,15 +55,24 @@ def season_command(site: str, folder: Path, output_dir: Path, *extra: str) -> li
             f"protocol.output_dir={output_dir}", f"hydra.run.dir={output_dir}_run", *extra]
 
 
+#: Runs a command line as ``python -m acoustlab`` and reports the process' own peak RSS (VmHWM) at exit. The ``ru_maxrss`` of
+#: ``os.wait4`` cannot serve: Linux carries the forking parent's high-water mark (this script renders gigabytes) into the child.
+PEAK_PROBE = ("import atexit, runpy, sys; "
+              "atexit.register(lambda: print('PEAK_RSS_KIB', next(l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')), "
+              "file=sys.stderr)); sys.argv = ['acoustlab', *sys.argv[1:]]; runpy.run_module('acoustlab', run_name='__main__')")
+
+
 def measured(cmd: list[str]) -> dict[str, float]:
-    """Run ``cmd``; its wall time, CPU time (user + system, s) and peak RSS (MiB), from ``os.wait4``."""
+    """Run ``python -m acoustlab …`` (``cmd``); its wall time, CPU time (user + system, s, children included) and own peak RSS (MiB)."""
+    assert cmd[1:3] == ["-m", "acoustlab"], cmd
     start = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen([cmd[0], "-c", PEAK_PROBE, *cmd[3:]], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     output = proc.stdout.read()
     _, status, usage = os.wait4(proc.pid, 0)
     if status != 0:
         raise SystemExit(f"failed: {' '.join(cmd)}\n{output[-3000:]}")
-    return {"wall_s": time.perf_counter() - start, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mib": usage.ru_maxrss / 1024}
+    peak = [line.split()[1] for line in output.splitlines() if line.startswith("PEAK_RSS_KIB")]
+    return {"wall_s": time.perf_counter() - start, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mib": int(peak[-1]) / 1024}
 
 
 def truth_errors(positions: pd.DataFrame, events: pd.DataFrame, truth: pd.DataFrame, margin_s: float) -> dict[str, float]:
@@ -169,6 +178,7 @@ def bench_one(site_name: str, n_calls: int, jobs: int, file_s: float, method_fro
     n_mics = site.n_mics
     clip_samples = ((events["end_s"] - events["start_s"]).max() * float(cfg.simulator.sample_rate_hz))
     batch_audio_mib = manifest["batch_events"] * n_mics * clip_samples * 4 / 2**20
+    chunk_audio_mib = manifest["chunk_events"] * n_mics * clip_samples * 4 / 2**20  # what holding a chunk's clips would take
     from acoustlab.season.protocol import SeasonLocalize  # the margin the run used, for matching events to calls
 
     protocol = SeasonLocalize({}, {"format": "raven"}, {})
@@ -179,6 +189,7 @@ def bench_one(site_name: str, n_calls: int, jobs: int, file_s: float, method_fro
         "detections_per_s_cpu": len(events) / max(unsharded["cpu_s"] - baseline["cpu_s"], 1e-9),
         "detections_per_s_wall": len(events) / unsharded["wall_s"], "detections_per_s_sharded_wall": len(events) / sharded["wall_s"],
         "rss_above_baseline_mib": unsharded["peak_rss_mib"] - baseline["peak_rss_mib"], "batch_audio_mib": batch_audio_mib,
+        "chunk_audio_mib": chunk_audio_mib,
         "chunk_events": manifest["chunk_events"], "batch_events": manifest["batch_events"],
         "accuracy": truth_errors(positions, events, truth, protocol.margin_s(site)),
         "stage_ms_per_event": stage_costs(out, min(len(events), 4 * manifest["batch_events"])),
@@ -204,14 +215,16 @@ def main() -> None:
              f"`python benchmarks/bench_season.py --site {args.site} --calls {' '.join(map(str, args.calls))} --jobs {args.jobs} "
              f"--file-s {args.file_s:g}` ({machine()['cpus']} CPUs). Synthetic season: calls rendered into {args.file_s:g}-s files per "
              "recorder (named by start time), Raven tables per recorder, localized with `python -m acoustlab season`. "
-             "CPU and peak RSS of each localize process from `os.wait4`; baseline = the same command with every chunk done.", "",
+             "CPU time from `os.wait4`, peak RSS from the process' own VmHWM (the shards' workers are not in it); baseline = the same "
+             "command with every chunk done (imports and the fitted method). The audio is read per batch of "
+             f"{runs[0]['batch_events']} events; a chunk ({runs[0]['chunk_events']} events) is never held.", "",
              "| calls | events | audio (GiB) | detections/s (CPU) | detections/s (wall, 1 process) | "
-             f"wall, {args.jobs} local shards | sharded == unsharded | peak RSS (MiB) | above baseline | one batch's audio (MiB) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             f"wall, {args.jobs} local shards | sharded == unsharded | peak RSS (MiB) | baseline | above baseline | one chunk's audio (MiB) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         lines.append(f"| {r['n_calls']} | {r['n_events']} | {r['audio_gib']:.2f} | {r['detections_per_s_cpu']:.1f} | {r['detections_per_s_wall']:.1f} | "
                      f"{r['detections_per_s_sharded_wall']:.1f}/s | {r['sharded_identical']} | {r['localize']['peak_rss_mib']:.0f} | "
-                     f"{r['rss_above_baseline_mib']:.0f} | {r['batch_audio_mib']:.1f} |")
+                     f"{r['baseline']['peak_rss_mib']:.0f} | {r['rss_above_baseline_mib']:.0f} | {r['chunk_audio_mib']:.0f} |")
     lines += ["", "Accuracy against the rendered calls (no position counts as an error):", "",
               "| calls | method median (m) | method > 5 m | solver > 5 m | 0.95 coverage (gdop_scaled) |", "|---|---|---|---|---|"]
     for r in runs:
