@@ -44,7 +44,6 @@ from acoustlab.season.detections import FORMATS, read_detections
 from acoustlab.season.events import group_detections
 from acoustlab.season.recorder_files import RecorderFiles
 from acoustlab.season.stream import (
-    EVENTS,
     FILES,
     ChunkPlan,
     FittedSeasonMethod,
@@ -56,6 +55,7 @@ from acoustlab.season.stream import (
     n_chunks,
     read_manifest,
     shard_chunks,
+    write_events,
     write_manifest,
 )
 from acoustlab.stages.cache import atomic_write_bytes
@@ -189,7 +189,7 @@ class SeasonLocalize:
         order = self.recorder_order(recordings, site)
         folder.mkdir(parents=True, exist_ok=True)
         recordings.save(folder / FILES)
-        atomic_write_bytes(folder / EVENTS, events.to_parquet(index=False))
+        write_events(folder, events, self.chunk_events)
         key = self.method_key(cfg)
         saved = saved_info(folder)
         if saved is not None and saved["key"] == key:

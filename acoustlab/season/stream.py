@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import pyarrow.parquet as pq
 import scipy.signal as ss
 
 from acoustlab.core import columns as col
@@ -224,13 +225,12 @@ def localize_chunks(directory: Path, chunks: Iterable[int], fitted: FittedSeason
     manifest = read_manifest(directory)
     fitted = fitted if fitted is not None else load_method(directory, manifest["method_sha256"])
     recordings = RecorderFiles.load(directory / FILES)
-    events = pd.read_parquet(directory / EVENTS)
     plan = ChunkPlan(**{k: v for k, v in manifest["plan"].items() if k != "quality"}, quality=QualityThresholds(**manifest["plan"]["quality"]))
     todo = [k for k in chunks if not part_path(directory, k).is_file()]
-    total = sum(min(plan.chunk_events, len(events) - k * plan.chunk_events) for k in todo)
+    total = sum(min(plan.chunk_events, manifest["n_events"] - k * plan.chunk_events) for k in todo)
     progress = _RateLog(total, progress_every_s, label)
     for k in todo:
-        chunk = events.iloc[k * plan.chunk_events: (k + 1) * plan.chunk_events]
+        chunk = read_chunk(directory, k, plan.chunk_events)
         table = localize_events(fitted, recordings, chunk, manifest["recorders"], plan, recordings.origin, on_batch=progress.add)
         part_path(directory, k).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(part_path(directory, k), table.to_parquet(index=False))
@@ -254,6 +254,20 @@ class _RateLog:
             rate = self.done / max(now - self.started, 1e-9)
             log.info("%s: %d/%d detections, %.1f detections/s, about %.0f s left", self.label, self.done, self.total, rate,
                      (self.total - self.done) / max(rate, 1e-9))
+
+
+def write_events(directory: Path, events: pd.DataFrame, chunk_events: int) -> None:
+    """``events.parquet`` with one row group per chunk, so a process reads only its chunks' events (not the season's)."""
+    atomic_write_bytes(directory / EVENTS, events.to_parquet(index=False, row_group_size=chunk_events))
+
+
+def read_chunk(directory: Path, k: int, chunk_events: int) -> pd.DataFrame:
+    """The events of chunk ``k`` (its row group; the whole table is read only for a file written otherwise)."""
+    events = pq.ParquetFile(directory / EVENTS)
+    sizes = [events.metadata.row_group(g).num_rows for g in range(events.metadata.num_row_groups)]
+    if all(n == chunk_events for n in sizes[:-1]) and k < len(sizes):
+        return events.read_row_group(k).to_pandas()
+    return pd.read_parquet(directory / EVENTS).iloc[k * chunk_events: (k + 1) * chunk_events].reset_index(drop=True)
 
 
 def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1) -> int:
