@@ -142,6 +142,27 @@ def stage_costs(folder: Path, n_events: int) -> dict[str, float]:
     return {k: 1000 * v / len(events) for k, v in t.items()}
 
 
+def _vm(field: str) -> float:
+    """This process' ``VmRSS`` or ``VmHWM`` in MiB."""
+    return next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith(field)) / 1024
+
+
+def hwm_by_chunk(folder: Path, n: int) -> dict[str, list[float]]:
+    """RSS and high-water mark (MiB) after each of the first ``n`` chunks, computed in this (fresh) process without writing parts."""
+    from acoustlab.season.stream import localize_events, read_chunk
+
+    manifest = read_manifest(folder)
+    fitted = load_method(folder, manifest["method_sha256"])
+    recordings = RecorderFiles.load(folder / FILES)
+    plan = ChunkPlan(manifest["chunk_events"], manifest["batch_events"])
+    out = {"start": [_vm("VmRSS"), _vm("VmHWM")], "rss": [], "hwm": []}
+    for k in range(n):
+        localize_events(fitted, recordings, read_chunk(folder, k, plan.chunk_events), manifest["recorders"], plan, recordings.origin)
+        out["rss"].append(_vm("VmRSS"))
+        out["hwm"].append(_vm("VmHWM"))
+    return out
+
+
 def bench_one(site_name: str, n_calls: int, jobs: int, file_s: float, method_from: Path | None) -> dict:
     cfg = compose_cfg([f"+site={site_name}"])
     site = site_from_config(cfg.site)
@@ -193,6 +214,9 @@ def bench_one(site_name: str, n_calls: int, jobs: int, file_s: float, method_fro
         "chunk_events": manifest["chunk_events"], "batch_events": manifest["batch_events"],
         "accuracy": truth_errors(positions, events, truth, protocol.margin_s(site)),
         "stage_ms_per_event": stage_costs(out, min(len(events), 4 * manifest["batch_events"])),
+        "memory_by_chunk_mib": json.loads(subprocess.run(
+            [sys.executable, __file__, "--hwm-by-chunk", str(out), str(min(8, -(-len(events) // manifest["chunk_events"])))],
+            cwd=REPO, capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1]),
         "output_dir": str(out),
     }
 
@@ -203,7 +227,11 @@ def main() -> None:
     parser.add_argument("--calls", type=int, nargs="+", default=[500, 2000])
     parser.add_argument("--jobs", type=int, default=4, help="local shards compared with the unsharded run")
     parser.add_argument("--file-s", type=float, default=600.0, help="length of each recording file, s")
+    parser.add_argument("--hwm-by-chunk", nargs=2, metavar=("FOLDER", "N"), help=argparse.SUPPRESS)  # internal: one fresh process
     args = parser.parse_args()
+    if args.hwm_by_chunk:
+        print(json.dumps(hwm_by_chunk(Path(args.hwm_by_chunk[0]), int(args.hwm_by_chunk[1]))))
+        return
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     runs, method_from = [], None
     for n in args.calls:
@@ -231,6 +259,10 @@ def main() -> None:
         a = r["accuracy"]
         lines.append(f"| {r['n_calls']} | {fmt(a['method']['median_m'])} | {a['method']['share_over_5m']:.1%} | "
                      f"{a['solver']['share_over_5m']:.1%} | {a['coverage_gdop_scaled_0.95']:.1%} |")
+    for r in runs:
+        m = r["memory_by_chunk_mib"]
+        lines += ["", f"{r['n_calls']} calls, one fresh process chunk by chunk: high-water mark (MiB) after each chunk "
+                  + ", ".join(f"{v:.0f}" for v in m["hwm"]) + f" (RSS {', '.join(f'{v:.0f}' for v in m['rss'])}; {m['start'][0]:.0f} at start)."]
     s = runs[-1]["stage_ms_per_event"]
     lines += ["", f"CPU ms per event by stage ({runs[-1]['n_calls']}-call season, first chunks, one process): "
               + ", ".join(f"{k} {v:.1f}" for k, v in s.items())
