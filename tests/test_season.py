@@ -109,9 +109,11 @@ def test_a_changed_method_file_is_refused_and_other_inputs_never_mix(season, com
         load_method(folder, read_manifest(folder)["method_sha256"])
     other = tmp_path / "other"
     shutil.copytree(root / "out", other)
+    before = {p.name: p.read_bytes() for p in other.iterdir() if p.is_file()}
     cfg = compose_cfg(season_overrides(root, other, "protocol.chunk_events=4", f"paths.outputs_dir={tmp_path / 'outputs'}"))
     with pytest.raises(DataError, match="holds 5 parts of a season run made with other .*chunk_events"):
         run_experiment(cfg, tmp_path / "run")
+    assert {p.name: p.read_bytes() for p in other.iterdir() if p.is_file()} == before  # refused before anything was rewritten
 
 
 def test_shards_as_a_hydra_multirun_then_merge(season, run_cli, tmp_path):

@@ -55,6 +55,8 @@ from acoustlab.season.stream import (
     n_chunks,
     read_manifest,
     shard_chunks,
+    check_manifest,
+    season_manifest,
     write_events,
     write_manifest,
 )
@@ -187,6 +189,8 @@ class SeasonLocalize:
         recordings = self.recordings()
         events = self.events(recordings, site)
         order = self.recorder_order(recordings, site)
+        radii = {"levels": list(built.components.levels), "scorers": list(built.components.scorers)}
+        check_manifest(folder, season_manifest(events, None, self.plan(site), order, radii), unknown=("method_sha256",))  # before writing
         folder.mkdir(parents=True, exist_ok=True)
         recordings.save(folder / FILES)
         write_events(folder, events, self.chunk_events)
@@ -205,8 +209,7 @@ class SeasonLocalize:
             fitted = FittedSeasonMethod(method, float(cfg.simulator.sample_rate_hz), cfg.pipeline.plausible_margin_fraction,
                                         list(built.components.levels), list(built.components.scorers))
             digest = save_method(fitted, folder, key)
-        write_manifest(folder, events, digest, self.plan(site), order,
-                       {"levels": list(built.components.levels), "scorers": list(built.components.scorers)})
+        write_manifest(folder, season_manifest(events, digest, self.plan(site), order, radii))
         log.info("season: %d events from %d recorders' files (%d files, %s to %s) in %d chunks", len(events), len(order),
                  len(recordings.table), recordings.origin, recordings.origin + pd.Timedelta(seconds=float(recordings.table[col.END].max())),
                  n_chunks(len(events), self.chunk_events))

@@ -113,28 +113,37 @@ def frame_sha256(frame: pd.DataFrame) -> str:
     return h.hexdigest()
 
 
-def write_manifest(directory: Path, events: pd.DataFrame, method_sha256: str, plan: ChunkPlan, recorders: list[str],
-                   radii: dict[str, list[Any]]) -> dict[str, Any]:
-    """Write (or check) ``season.json``: parts made from other events, another method or other chunks are never mixed.
+def season_manifest(events: pd.DataFrame, method_sha256: str | None, plan: ChunkPlan, recorders: list[str],
+                    radii: dict[str, list[Any]]) -> dict[str, Any]:
+    """What a season's parts are made from: the events' digest, the method's digest, the chunking, the recorders, the radii."""
+    return {"events_sha256": frame_sha256(events), "n_events": len(events), "method_sha256": method_sha256,
+            "chunk_events": plan.chunk_events, "batch_events": plan.batch_events, "recorders": recorders, "radii": radii,
+            "plan": {k: v for k, v in plan.__dict__.items() if k != "quality"} | {"quality": plan.quality.__dict__}}
+
+
+def check_manifest(directory: Path, manifest: dict[str, Any], unknown: tuple[str, ...] = ()) -> None:
+    """Refuse to add to a folder whose parts were made from other inputs (keys in ``unknown`` are not compared yet).
 
     Raises
     ------
     DataError
         When the folder already holds parts made from different inputs.
     """
-    manifest = {"events_sha256": frame_sha256(events), "n_events": len(events), "method_sha256": method_sha256,
-                "chunk_events": plan.chunk_events, "batch_events": plan.batch_events, "recorders": recorders, "radii": radii,
-                "plan": {k: v for k, v in plan.__dict__.items() if k != "quality"} | {"quality": plan.quality.__dict__}}
     path = directory / MANIFEST
-    if path.is_file():
-        old = json.loads(path.read_text())
-        differs = [k for k in manifest if old.get(k) != manifest[k]]
-        parts = sorted((directory / PARTS).glob("part-*.parquet"))
-        if differs and parts:
-            raise DataError(f"{directory} holds {len(parts)} parts of a season run made with other {', '.join(differs)}; "
-                            "choose another protocol.output_dir, or delete the folder to start again")
-    atomic_write_bytes(path, json.dumps(manifest, indent=2).encode())
-    return manifest
+    if not path.is_file():
+        return
+    old = json.loads(path.read_text())
+    differs = [k for k in manifest if k not in unknown and old.get(k) != manifest[k]]
+    parts = sorted((directory / PARTS).glob("part-*.parquet"))
+    if differs and parts:
+        raise DataError(f"{directory} holds {len(parts)} parts of a season run made with other {', '.join(differs)}; "
+                        "choose another protocol.output_dir, or delete the folder to start again")
+
+
+def write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
+    """Write ``season.json`` after :func:`check_manifest` (parts of other inputs are never mixed)."""
+    check_manifest(directory, manifest)
+    atomic_write_bytes(directory / MANIFEST, json.dumps(manifest, indent=2).encode())
 
 
 def read_manifest(directory: Path) -> dict[str, Any]:
