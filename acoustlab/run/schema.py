@@ -12,7 +12,6 @@ OmegaConf 2.3 has no ``typing.Literal``; closed choices are ``str`` enums instea
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, make_dataclass
 from dataclasses import field as dc_field
 from enum import Enum
@@ -21,6 +20,7 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
+from acoustlab.core.cores import free_cores
 from acoustlab.method.trust import TrustSettings
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
 
@@ -160,20 +160,6 @@ class _TypedRoot:
 
 #: The root: the typed nodes above plus one free-form node per plugin group in :data:`FREE_FORM_GROUPS`.
 AcoustlabConfig = make_dataclass("AcoustlabConfig", [(g, Any, None) for g in FREE_FORM_GROUPS], bases=(_TypedRoot,))
-
-
-def free_cores() -> int:
-    """Cores this process may use that other work is not already using: the CPU affinity minus the 1-minute load, ≥ 1.
-
-    Oversubscribed OpenMP threads spin-wait (a minute of work can take twenty), so model threads
-    are sized from what is free, not from what the machine has: the config's ``${threads:}``.
-    """
-    available = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    try:
-        busy = int(round(os.getloadavg()[0]))
-    except OSError:  # not available on this platform
-        busy = 0
-    return max(1, min(available, available - busy))
 
 
 def register() -> None:

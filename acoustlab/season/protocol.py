@@ -34,10 +34,11 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from acoustlab.core import columns as col
+from acoustlab.core.cores import free_cores
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
 from acoustlab.method.pipeline import LocalizationPipeline
-from acoustlab.method.saved import load_method, save_method, saved_info
+from acoustlab.method.saved import save_method, saved_info
 from acoustlab.method.splits import cap_rows
 from acoustlab.reporting.positions import localization_summary
 from acoustlab.season.detections import FORMATS, read_detections
@@ -47,7 +48,6 @@ from acoustlab.season.stream import (
     FILES,
     ChunkPlan,
     FittedSeasonMethod,
-    cores_free,
     localize_chunks,
     localize_shard,
     merge_parts,
@@ -221,11 +221,10 @@ class SeasonLocalize:
             chunks = shard_chunks(manifest["n_events"], manifest["chunk_events"], self.shard, self.n_shards)
             return localize_chunks(folder, chunks, progress_every_s=self.progress_every_s, label=f"season shard {self.shard + 1}/{self.n_shards}")
         if self.n_jobs == 1:
-            load_method(folder, manifest["method_sha256"])  # fail early on a changed file
             return localize_chunks(folder, range(n_chunks(manifest["n_events"], manifest["chunk_events"])), progress_every_s=self.progress_every_s)
         from joblib import Parallel, delayed
 
-        threads = max(1, cores_free() // self.n_jobs)  # workers × threads ≤ cores: oversubscribed OpenMP spin-waits
+        threads = max(1, free_cores() // self.n_jobs)  # workers × threads ≤ cores: oversubscribed OpenMP spin-waits
         log.info("season: %d local workers, %d thread(s) each", self.n_jobs, threads)
         done = Parallel(n_jobs=self.n_jobs, backend="loky")(delayed(localize_shard)(str(folder), s, self.n_jobs, threads) for s in range(self.n_jobs))
         return int(sum(done))

@@ -26,7 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -311,12 +310,3 @@ def merge_parts(directory: Path) -> pd.DataFrame:
     manifest = read_manifest(directory)
     parts = [pd.read_parquet(part_path(directory, k)) for k in range(n_chunks(manifest["n_events"], manifest["chunk_events"]))]
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
-
-
-def cores_free() -> int:
-    """CPU cores this process may use (the affinity mask: a SLURM allocation or a container's share)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
