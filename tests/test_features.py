@@ -108,3 +108,69 @@ def test_documented_feature_counts_match_the_catalog():
     found = re.search(r"\((\d+) columns on the 3-mic frozen lake, (\d+) on the 6-mic forest", status)
     assert found, "docs/status.md no longer states the feature counts"
     assert (int(found[1]), int(found[2])) == (len(feature_catalog("frozen_lake")), len(feature_catalog("forest")))
+
+
+def test_windowed_reverberation_summaries_equal_their_full_length_definitions(clean_batches):
+    """The ``ir`` group computes on the 100 / 300 ms after each peak / onset only; every summary equals the definition
+    on the full envelope (masks over every sample), to rounding, including a silent channel."""
+    import pandas as pd
+    import scipy.signal as ss
+
+    from acoustlab.core.types import RecordingBatch
+    from plugins.features.waveform_groups import BlindIrSummaries, envelope
+
+    site, batch, _ = clean_batches["forest"]
+    audio = batch.audio.copy()
+    audio[0, 1] = 0.0
+    fresh = RecordingBatch(audio, batch.sample_rate_hz, batch.events)
+    group = BlindIrSummaries()
+    ours = group.transform(fresh, site)
+    fs = batch.sample_rate_hz
+    env = envelope(fresh, group.band_hz)
+    win = int(0.005 * fs)
+    raw = fresh.derived(("hilbert_magnitude", group.band_hz), lambda: None)
+    np.testing.assert_allclose(env, ss.oaconvolve(raw, np.ones((1, 1, win)) / win, mode="same", axes=-1), rtol=1e-9, atol=1e-12)
+    peak = np.argmax(env, axis=-1)
+    peak_val = np.take_along_axis(env, peak[..., None], -1)[..., 0]
+    t = np.arange(env.shape[-1]) / fs
+    env_db = 20 * np.log10(np.maximum(env, 1e-12) / np.maximum(peak_val, 1e-12)[..., None])
+    rel = t[None, None, :] - t[peak][..., None]
+    w = ((rel >= 0) & (rel <= 0.1)).astype(float)
+    cnt = np.maximum(w.sum(-1), 2)
+    mt, my = (w * rel).sum(-1) / cnt, (w * env_db).sum(-1) / cnt
+    slope = (w * (rel - mt[..., None]) * (env_db - my[..., None])).sum(-1) / np.maximum((w * (rel - mt[..., None]) ** 2).sum(-1), 1e-12)
+    onset = np.argmax(env >= 0.1 * peak_val[..., None], axis=-1)
+    rise = np.maximum(np.argmax(env >= 0.9 * peak_val[..., None], axis=-1) - onset, 0) / fs
+    rel_on = t[None, None, :] - t[onset][..., None]
+    early = (env**2 * ((rel_on >= 0) & (rel_on < 0.05))).sum(-1)
+    late = (env**2 * ((rel_on >= 0.05) & (rel_on < 0.3))).sum(-1)
+    early_late = 10 * np.log10(np.maximum(early, 1e-20) / np.maximum(late, 1e-20))
+    spread = (env_db > -10).sum(-1) / fs
+    for k in range(site.n_mics):
+        reference = pd.DataFrame({f"ir__decay_{k}_db_s": slope[:, k], f"ir__early_late_{k}_db": early_late[:, k],
+                                  f"ir__rise_time_{k}_s": rise[:, k], f"ir__spread_{k}_s": spread[:, k]})
+        for name in reference:
+            np.testing.assert_allclose(ours[name], reference[name], rtol=1e-9, atol=1e-9, err_msg=name)
+    assert ours["ir__spread_1_s"][0] == env.shape[-1] / fs  # a silent channel is "within 10 dB" everywhere, as defined
+
+
+def test_envelope_lags_equal_the_full_length_correlation(clean_batches):
+    """Transforms only as long as the lag window needs give the lags of the correlation over twice the signal length."""
+    from acoustlab.core.types import RecordingBatch
+    from acoustlab.toolkit.gcc_candidates import lag_windows_s
+    from plugins.features.waveform_groups import EnvelopeDelays, envelope
+
+    for site_name in ("frozen_lake", "forest"):
+        site, batch, _ = clean_batches[site_name]
+        fresh = RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events)
+        group = EnvelopeDelays()
+        ours = group.transform(fresh, site)
+        env = envelope(fresh, group.band_hz, smooth_s=0.002)
+        env = env - env.mean(-1, keepdims=True)
+        n_fft = 2 * env.shape[-1]
+        spec = np.fft.rfft(env, n=n_fft, axis=-1)
+        lags = (np.arange(n_fft) - n_fft // 2) / batch.sample_rate_hz
+        for (i, j), max_lag in zip(site.mic_pairs, lag_windows_s(site, group.max_lag_margin_s), strict=True):
+            cc = np.fft.fftshift(np.fft.irfft(np.conj(spec[:, i]) * spec[:, j], n=n_fft, axis=-1), axes=-1)
+            window = np.abs(lags) <= max_lag
+            np.testing.assert_array_equal(ours[f"envelope__lag_{i}_{j}_s"], lags[window][np.argmax(cc[:, window], axis=-1)])

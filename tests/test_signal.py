@@ -44,3 +44,24 @@ def test_coloured_noise_is_unit_variance_and_shaped(kind):
     else:
         in_band = spec[(f > 500) & (f < 2500)].mean()
         assert in_band > 100 * high
+
+
+def test_band_limited_gcc_samples_the_same_correlation():
+    """With ``band_limited`` the correlation of a 1–4 kHz band is sampled at 2 × 2 × 4 kHz instead of 2 × 24 kHz: on
+    the lags both grids share its values are the full-rate values, and the lags lie on its own grid."""
+    rng = np.random.default_rng(0)
+    fs = 24000.0
+    audio = rng.standard_normal((3, 3, 2400)).astype(np.float32)
+    audio[:, 1] = np.roll(audio[:, 0], 7, axis=-1) + 0.3 * audio[:, 1]
+    pairs = [(0, 1), (0, 2), (1, 2)]
+    full, full_lags = gcc(audio, pairs, fs, "beta_phat", (1000.0, 4000.0), upsample=2, max_lag_s=0.01)
+    coarse, coarse_lags = gcc(audio, pairs, fs, "beta_phat", (1000.0, 4000.0), upsample=2, max_lag_s=0.01, band_limited=True)
+    step = np.diff(coarse_lags)[0]
+    assert step > 2 * np.diff(full_lags)[0]  # a coarser grid: fewer lags to transform
+    assert coarse_lags.max() >= 0.01
+    shared = np.isclose(np.mod(coarse_lags * 48000.0 + 1e-9, 1.0), 0.0, atol=1e-6) & (np.abs(coarse_lags) <= full_lags.max())
+    assert shared.sum() > 10
+    index = np.rint(coarse_lags[shared] * 48000.0).astype(int) + len(full_lags) // 2
+    np.testing.assert_allclose(coarse[..., shared], full[..., index], rtol=1e-4, atol=1e-5 * np.abs(full).max())
+    np.testing.assert_array_equal(gcc(audio, pairs, fs, "beta_phat", None, 2, max_lag_s=0.01, band_limited=True)[0],
+                                  gcc(audio, pairs, fs, "beta_phat", None, 2, max_lag_s=0.01)[0])  # no band: nothing changes

@@ -53,21 +53,27 @@ def pair_candidates(
     weighting: str = "phat",
     upsample: int = 4,
     beta: float = 0.8,
+    band_limited: bool = False,
 ) -> PairCandidates:
-    """The K best GCC peaks of every mic pair of every event (see the module docstring)."""
+    """The K best GCC peaks of every mic pair of every event (see the module docstring).
+
+    ``band_limited`` samples the correlation at ``upsample`` × twice the band's upper edge (see
+    :func:`acoustlab.toolkit.dsp.gcc`).
+    """
     band_key = band_hz.tobytes() if isinstance(band_hz, np.ndarray) else band_hz
-    key = ("pair_candidates", n_candidates, margin_s, band_key, weighting, upsample, beta, site.mic_positions_m.tobytes())
-    return batch.derived(key, lambda: _compute_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta))
+    key = ("pair_candidates", n_candidates, margin_s, band_key, weighting, upsample, beta, band_limited, site.mic_positions_m.tobytes())
+    return batch.derived(key, lambda: _compute_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta,
+                                                               band_limited))
 
 
 def _compute_pair_candidates(
     batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz: tuple[float, float] | None, weighting: str,
-    upsample: int, beta: float,
+    upsample: int, beta: float, band_limited: bool = False,
 ) -> PairCandidates:
     windows = lag_windows_s(site, margin_s)
     shared = batch.derived("gcc_spectra", dict)  # one transform of the audio for every band and candidate count
     cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample, beta, max_lag_s=float(windows.max()),
-                   spectra_cache=shared)
+                   spectra_cache=shared, band_limited=band_limited)
     step = lags[1] - lags[0]
     e, p = cc.shape[:2]
     out_lags = np.full((e, p, n_candidates), np.nan)

@@ -92,9 +92,13 @@ class XcorrConfidence(_GccGroup):
 
     group = "xcorr"
 
-    def __init__(self, gcc: Mapping[str, Any] | None = None, extra_bands_hz: Sequence[Sequence[float]] = ((1000.0, 4000.0),), **settings: Any) -> None:
+    cache_version = "2"  # 2: extra bands sampled at their own rate (band_limited)
+
+    def __init__(self, gcc: Mapping[str, Any] | None = None, extra_bands_hz: Sequence[Sequence[float]] = ((1000.0, 4000.0),),
+                 extra_bands_band_limited: bool = True, **settings: Any) -> None:
         super().__init__(gcc, **settings)
         self.extra_bands_hz = [(float(lo), float(hi)) for lo, hi in extra_bands_hz]
+        self.extra_bands_band_limited = bool(extra_bands_band_limited)
 
     def catalog(self, site: Site) -> list[tuple[str, str, str]]:
         rows = []
@@ -108,7 +112,8 @@ class XcorrConfidence(_GccGroup):
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         cand = self._candidates(batch, site)
         cols = {}
-        banded = [pair_candidates(batch, site, 1, self.max_lag_margin_s, b, self.weighting, self.upsample, self.beta) for b in self.extra_bands_hz]
+        banded = [pair_candidates(batch, site, 1, self.max_lag_margin_s, b, self.weighting, self.upsample, self.beta, self.extra_bands_band_limited)
+                  for b in self.extra_bands_hz]
         for p, (i, j) in enumerate(site.mic_pairs):
             for k in range(self.n_candidates):
                 cols[col.xcorr_peak(i, j, k + 1)] = cand.heights[:, p, k]

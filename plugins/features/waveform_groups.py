@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import scipy.fft as sfft
 import scipy.signal as ss
+from scipy import ndimage
 
 from acoustlab.core import columns as col
 from acoustlab.core.types import RecordingBatch, Site
@@ -33,7 +35,21 @@ def envelope(batch: RecordingBatch, band_hz: tuple[float, float], smooth_s: floa
     fs = batch.sample_rate_hz
     env = batch.derived(("hilbert_magnitude", band_hz), lambda: _hilbert_magnitude(batch.audio, fs, band_hz))
     win = max(int(smooth_s * fs), 1)
-    return ss.oaconvolve(env, np.ones((1, 1, win)) / win, mode="same", axes=-1)
+    # moving average over samples i − win//2 … i + win − win//2 − 1, zeros beyond the ends: the centred
+    # ("same") convolution with a boxcar of win samples, as a running sum (O(S) instead of an FFT)
+    return ndimage.uniform_filter1d(env, win, axis=-1, mode="constant", cval=0.0)
+
+
+def _after(values: np.ndarray, start: np.ndarray, span_s: float, fs: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The samples of ``values`` (E, M, S) from ``start`` (E, M) on, long enough to hold ``span_s``: (E, M, L) values,
+    time after ``start`` in s (as ``t[i] − t[start]`` with ``t = arange(S) / fs``, so masks on it select the same
+    samples as masks on full-length arrays) and whether the sample exists."""
+    n = values.shape[-1]
+    index = start[..., None] + np.arange(int(np.ceil(span_s * fs)) + 2)
+    exists = index < n
+    index = np.minimum(index, n - 1)
+    t = np.arange(n) / fs
+    return np.take_along_axis(values, index, -1), t[index] - t[start][..., None], exists
 
 
 class BlindIrSummaries:
@@ -72,27 +88,29 @@ class BlindIrSummaries:
         e, m, n = env.shape
         peak = np.argmax(env, axis=-1)
         peak_val = np.take_along_axis(env, peak[..., None], -1)[..., 0]
-        t = np.arange(n) / fs
-        env_db = 20 * np.log10(np.maximum(env, 1e-12) / np.maximum(peak_val, 1e-12)[..., None])
-        rel = t[None, None, :] - t[peak][..., None]
-        decay_sel = (rel >= 0) & (rel <= 0.1)
-        # least-squares slope over the masked window, vectorised
-        w = decay_sel.astype(float)
+        floor_peak = np.maximum(peak_val, 1e-12)[..., None]
+        # decay: least-squares slope of the envelope (dB) over 0–100 ms after the peak, computed on that window only
+        after_peak, rel, exists = _after(env, peak, 0.1, fs)
+        env_db = 20 * np.log10(np.maximum(after_peak, 1e-12) / floor_peak)
+        w = (exists & (rel >= 0) & (rel <= 0.1)).astype(float)
         cnt = np.maximum(w.sum(-1), 2)
         mt = (w * rel).sum(-1) / cnt
         my = (w * env_db).sum(-1) / cnt
         slope = (w * (rel - mt[..., None]) * (env_db - my[..., None])).sum(-1) / np.maximum((w * (rel - mt[..., None]) ** 2).sum(-1), 1e-12)
-        above10 = env >= 0.1 * peak_val[..., None]
-        onset = np.argmax(above10, axis=-1)  # first sample at 10 % of the peak
-        above90 = env >= 0.9 * peak_val[..., None]
-        first90 = np.argmax(above90, axis=-1)
+        onset = np.argmax(env >= 0.1 * peak_val[..., None], axis=-1)  # first sample at 10 % of the peak
+        first90 = np.argmax(env >= 0.9 * peak_val[..., None], axis=-1)
         rise = np.maximum(first90 - onset, 0) / fs
-        energy = env**2
-        rel_on = t[None, None, :] - t[onset][..., None]
+        # early (0–50 ms after the onset) and late (50–300 ms) energy, on the 300 ms after the onset only
+        after_onset, rel_on, exists = _after(env, onset, 0.3, fs)
+        energy = after_onset**2 * exists
         early = (energy * ((rel_on >= 0) & (rel_on < 0.05))).sum(-1)
         late = (energy * ((rel_on >= 0.05) & (rel_on < 0.3))).sum(-1)
         early_late = 10 * np.log10(np.maximum(early, 1e-20) / np.maximum(late, 1e-20))
-        spread = (env_db > -10).sum(-1) / fs
+        # time within 10 dB of the peak, the comparison in dB on the samples above 0.3 × the peak (−10 dB is 0.316 ×)
+        near = (env >= 0.3 * peak_val[..., None]) | (peak_val < 1e-12)[..., None]
+        channel, sample = np.nonzero(near.reshape(e * m, n))
+        within = 20 * np.log10(np.maximum(env.reshape(e * m, n)[channel, sample], 1e-12) / floor_peak.reshape(-1)[channel]) > -10
+        spread = np.bincount(channel[within], minlength=e * m).reshape(e, m) / fs
         cols = {}
         for k in range(m):
             cols[f"ir__decay_{k}_db_s"] = slope[:, k]
@@ -171,12 +189,15 @@ class EnvelopeDelays:
         env = envelope(batch, self.band_hz, smooth_s=0.002)
         env = env - env.mean(-1, keepdims=True)
         n = env.shape[-1]
-        n_fft = 2 * n
-        spec = np.fft.rfft(env, n=n_fft, axis=-1)
+        windows = lag_windows_s(site, self.max_lag_margin_s)
+        max_lag = min(int(np.ceil(windows.max() * fs)) + 1, n - 1)
+        n_fft = sfft.next_fast_len(n + max_lag, real=True)  # no circular wrap-around within ±max_lag
+        spec = sfft.rfft(env, n=n_fft, axis=-1)
+        lags = np.arange(-max_lag, max_lag + 1) / fs
         cols = {}
-        for (i, j), max_lag in zip(site.mic_pairs, lag_windows_s(site, self.max_lag_margin_s), strict=True):
-            cc = np.fft.fftshift(np.fft.irfft(np.conj(spec[:, i]) * spec[:, j], n=n_fft, axis=-1), axes=-1)
-            lags = (np.arange(n_fft) - n_fft // 2) / fs
-            window = np.abs(lags) <= max_lag
+        for (i, j), window_s in zip(site.mic_pairs, windows, strict=True):
+            full = sfft.irfft(np.conj(spec[:, i]) * spec[:, j], n=n_fft, axis=-1)
+            cc = np.concatenate([full[:, n_fft - max_lag:], full[:, : max_lag + 1]], axis=-1)
+            window = np.abs(lags) <= window_s
             cols[f"envelope__lag_{i}_{j}_s"] = lags[window][np.argmax(cc[:, window], axis=-1)]
         return pd.DataFrame(cols)
