@@ -13,7 +13,7 @@ from acoustlab.run.app import build_run, prepare_data
 pytestmark = pytest.mark.slow
 
 
-def test_predicting_in_chunks_equals_predicting_at_once_with_every_optional_output(compose_cfg, tmp_path):
+def test_predicting_in_chunks_equals_predicting_at_once_with_every_optional_output(compose_cfg, tmp_path, monkeypatch):
     """CQR, ellipses, selective localization and an extra gate: every output is a function of the fitted method and the row."""
     cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", f"paths.outputs_dir={tmp_path}", "tracking=none", "model.n_estimators=20",
                        "conformal=all", "conformal.ellipse=true", "pipeline.selective.enabled=true", "pipeline.selective.delta=0.2",
@@ -28,6 +28,12 @@ def test_predicting_in_chunks_equals_predicting_at_once_with_every_optional_outp
     fitted = pipeline.fit(data.features, data.events, train)
     save_method(fitted, tmp_path / "method", key="test")
     loaded = load_method(tmp_path / "method")
+    assert set(loaded.quantile_models) == {"cqr"} and loaded.quantile_training is None  # CQR's quantile model fitted once, kept
+
+    def refit(*args, **kwargs):
+        raise AssertionError("CQR's quantile model refitted while predicting")
+
+    monkeypatch.setattr(type(loaded.scorers["cqr"]), "fit_quantiles", refit)
     parts = [loaded.predict(data.features.iloc[rows], data.events.iloc[rows])[0] for rows in np.array_split(test[::-1], 3)]
     chunked = pd.concat(parts, ignore_index=True).iloc[::-1].reset_index(drop=True)
     assert {col.PLACED, "ellipse__0.95__a_m", col.radius("cqr", 0.95), col.error_m("gate_box")} <= set(together.columns)

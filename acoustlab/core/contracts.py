@@ -23,7 +23,8 @@ from acoustlab.core.types import RecordingBatch, Site
 OPTIONAL_PROPERTIES: dict[str, Any] = {
     # learned plugins (point and error models, CQR): fit on whole source positions up to this many rows (None: every row)
     "max_train_rows": None,
-    # conformal scorers: needs per-level quantile predictions from its own fit_predict_quantiles (CQR)
+    # conformal scorers: needs per-level quantile predictions from its own fit_predict_quantiles (CQR); with
+    # fit_quantiles / predict_quantiles as well, its final quantile model is fitted once and kept with the method
     "needs_quantiles": False,
     # evaluation protocols: needs field recordings (checked in the preflight)
     "needs_field": False,

@@ -446,7 +446,11 @@ class LocalizationPipeline:
                                                  scorer, shape=(len(levels),))
                 fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels,
                                                   quantiles=np.maximum(oof_q[rows], cal.floor), groups=positions)
-                fitted.quantile_training = (cal.x_error.iloc[cal.finite], cal.error[cal.finite])
+                x_fit, error_fit = cal.x_error.iloc[cal.finite], cal.error[cal.finite]
+                if hasattr(scorer, "fit_quantiles"):  # fitted once here, applied to every chunk a season predicts
+                    fitted.quantile_models[name] = scorer.fit_quantiles(x_fit, error_fit, levels)
+                else:  # a scorer with fit_predict_quantiles only: refitted (deterministically) at every predict
+                    fitted.quantile_training = (x_fit, error_fit)
             else:
                 fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, groups=positions)
         fit_rows = self._error_fit_rows(s, cal, np.arange(s.train.size), self.c.error_model)
@@ -617,7 +621,9 @@ class FittedMethod:
     calibration: dict[str, Any]
     error_model: Any = None
     scorers: dict[str, ConformalScorer] = field(default_factory=dict)
-    #: (x, error) a quantile scorer (CQR) fits its final quantile model on when predicting
+    #: final quantile model(s) of quantile scorers (CQR) with ``fit_quantiles``, by scorer name
+    quantile_models: dict[str, Any] = field(default_factory=dict)
+    #: (x, error) a quantile scorer with only ``fit_predict_quantiles`` fits its final model on when predicting
     quantile_training: tuple[pd.DataFrame, np.ndarray] | None = None
     #: (train,) out-of-fold predicted errors of the training events, m
     oof_predicted: np.ndarray | None = None
@@ -718,7 +724,10 @@ class FittedMethod:
         out[col.INPUT_SIGMA] = input_sigma
         allowance = input_sigma[:, None] * np.array([level_factor(level) for level in c.levels])[None, :]
         for name, scorer in self.scorers.items():
-            if declared(scorer, "needs_quantiles") and self.quantile_training is not None:
+            if name in self.quantile_models:
+                quantiles = np.maximum(scorer.predict_quantiles(self.quantile_models[name], t.x_error, c.levels), self.floor)
+                radii = scorer.radius(predicted, t.gdop, quantiles=quantiles)
+            elif declared(scorer, "needs_quantiles") and self.quantile_training is not None:
                 x_fit, error_fit = self.quantile_training
                 quantiles = np.maximum(scorer.fit_predict_quantiles(x_fit, error_fit, t.x_error, c.levels), self.floor)
                 radii = scorer.radius(predicted, t.gdop, quantiles=quantiles)

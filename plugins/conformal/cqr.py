@@ -58,14 +58,23 @@ class ConformalizedQuantile:
             return "quantile_alpha"
         return next((k for k in ("quantile", "alpha") if k in params), None)
 
+    def fit_quantiles(self, x_fit: pd.DataFrame, error_m: np.ndarray, levels: list[float]) -> Any:
+        """The quantile model(s) fitted on (x_fit, error): one XGBoost model for every level, else one per level."""
+        key = self._quantile_key()
+        if key == "quantile_alpha":
+            return clone(self.model).set_params(quantile_alpha=np.asarray(levels, dtype=float)).fit(x_fit, error_m)
+        return [clone(self.model).set_params(**{key: float(level)}).fit(x_fit, error_m) for level in levels]
+
+    @staticmethod
+    def predict_quantiles(fitted: Any, x_predict: pd.DataFrame, levels: list[float]) -> np.ndarray:
+        """(n_predict, L) error quantiles, m, from :meth:`fit_quantiles`' model(s)."""
+        if isinstance(fitted, list):
+            return np.column_stack([model.predict(x_predict) for model in fitted]).astype(float)
+        return np.asarray(fitted.predict(x_predict), dtype=float).reshape(len(x_predict), len(levels))
+
     def fit_predict_quantiles(self, x_fit: pd.DataFrame, error_m: np.ndarray, x_predict: pd.DataFrame, levels: list[float]) -> np.ndarray:
         """Fit the quantile model(s) on (x_fit, error) and return (n_predict, L) predicted error quantiles, m."""
-        key = self._quantile_key()
-        if key == "quantile_alpha":  # one XGBoost model for every level
-            fitted = clone(self.model).set_params(quantile_alpha=np.asarray(levels, dtype=float)).fit(x_fit, error_m)
-            return np.asarray(fitted.predict(x_predict), dtype=float).reshape(len(x_predict), len(levels))
-        return np.column_stack([clone(self.model).set_params(**{key: float(level)}).fit(x_fit, error_m).predict(x_predict)
-                                for level in levels]).astype(float)
+        return self.predict_quantiles(self.fit_quantiles(x_fit, error_m, levels), x_predict, levels)
 
     def _quantiles(self, predicted_m: np.ndarray, quantiles: np.ndarray | None) -> np.ndarray:
         if quantiles is None:  # no quantile predictions: the error model's prediction for every level (= fixed)
