@@ -45,7 +45,11 @@ VOLATILE = ("timings_s", "code_version", "run_time")
 
 
 def frame_digest(frame: pd.DataFrame) -> str:
-    """SHA-256 over column names, dtypes and the exact bytes of every value."""
+    """SHA-256 over column names, dtypes and the exact bytes of every value.
+
+    ``acoustlab.core.digests.frame_sha256(frame, with_dtypes=True)`` computes the same; this script
+    keeps its own copy because it must run on old versions of the package to make a reference.
+    """
     h = hashlib.sha256()
     h.update(json.dumps([(str(c), str(t)) for c, t in frame.dtypes.items()]).encode())
     h.update(pd.util.hash_pandas_object(frame, index=False).to_numpy().tobytes())

@@ -57,9 +57,9 @@ def machine() -> dict[str, Any]:
 
 def script_sha256(script: Path) -> str:
     """SHA-256 of a benchmark script's source: a result made by another version of the script is stale."""
-    from acoustlab.stages.cache import file_digest
+    from acoustlab.core.digests import file_sha256
 
-    return file_digest(script)
+    return file_sha256(script)
 
 
 def provenance() -> dict[str, Any]:

@@ -16,8 +16,9 @@ from typing import Any
 
 import joblib
 
+from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import DataError
-from acoustlab.stages.cache import atomic_write_bytes, file_digest
+from acoustlab.stages.cache import atomic_write_bytes
 
 METHOD_FILE = "method.joblib"
 DIGEST_FILE = "method.sha256.json"
@@ -29,7 +30,7 @@ def save_method(method: Any, directory: Path, key: str) -> str:
     buffer = io.BytesIO()
     joblib.dump(method, buffer, compress=3)
     atomic_write_bytes(directory / METHOD_FILE, buffer.getvalue())
-    digest = file_digest(directory / METHOD_FILE)
+    digest = file_sha256(directory / METHOD_FILE)
     atomic_write_bytes(directory / DIGEST_FILE, json.dumps({"sha256": digest, "key": key}, indent=2).encode())
     return digest
 
@@ -61,7 +62,7 @@ def load_method(directory: Path, expected_sha256: str | None = None) -> Any:
         recorded = json.loads((directory / DIGEST_FILE).read_text())["sha256"]
     except (OSError, ValueError, KeyError, TypeError):
         raise DataError(f"{directory / DIGEST_FILE} is missing or unreadable: the fitted method {path} cannot be verified; fit again") from None
-    actual = file_digest(path)
+    actual = file_sha256(path)
     for wanted in {recorded, expected_sha256} - {None}:
         if actual != wanted:
             raise DataError(f"{path}: SHA-256 {actual[:12]}… differs from the {'recorded' if wanted == recorded else 'expected'} "

@@ -23,7 +23,6 @@ the fitted method: it does not grow with the season.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import time
@@ -38,6 +37,7 @@ import pyarrow.parquet as pq
 import scipy.signal as ss
 
 from acoustlab.core import columns as col
+from acoustlab.core.digests import frame_sha256
 from acoustlab.core.errors import DataError
 from acoustlab.core.types import RecordingBatch
 from acoustlab.method.protocols.field import FIELD_POSITION_OFFSET
@@ -103,13 +103,6 @@ def shard_chunks(n_events: int, chunk_events: int, shard: int, n_shards: int) ->
     if not 0 <= shard < n_shards:
         raise DataError(f"protocol.shard must be in [0, {n_shards}) with protocol.n_shards={n_shards}; got {shard}")
     return list(range(shard, n_chunks(n_events, chunk_events), n_shards))
-
-
-def frame_sha256(frame: pd.DataFrame) -> str:
-    """SHA-256 of a table's column names and values (stable across writes)."""
-    h = hashlib.sha256(json.dumps([str(c) for c in frame.columns]).encode())
-    h.update(pd.util.hash_pandas_object(frame, index=False).to_numpy().tobytes())
-    return h.hexdigest()
 
 
 def season_manifest(events: pd.DataFrame, method_sha256: str | None, plan: ChunkPlan, recorders: list[str],

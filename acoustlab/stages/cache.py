@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from acoustlab.core.contracts import declared
+from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import AcoustlabError, ConfigError
 from acoustlab.core.imports import import_closure, module_source_path
 from acoustlab.core.types import stable_hash
@@ -157,19 +158,10 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     _atomic_write(path, lambda fh: fh.write(data))
 
 
-def file_digest(path: str | Path) -> str:
-    """SHA-256 (hex) of a file's contents, read in 1 MiB blocks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(2**20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def write_manifest(entry: Path, manifest: dict[str, Any]) -> None:
     """Write ``manifest.json`` with the SHA-256 of every other file of the entry (what a lookup verifies)."""
     files = sorted(p for p in Path(entry).iterdir() if p.is_file() and p.name != MANIFEST and not p.name.endswith(".tmp"))
-    manifest = {**manifest, "files": {p.name: file_digest(p) for p in files}}
+    manifest = {**manifest, "files": {p.name: file_sha256(p) for p in files}}
     atomic_write_bytes(Path(entry) / MANIFEST, json.dumps(manifest, indent=2).encode())
 
 
@@ -184,7 +176,7 @@ def verify_entry(entry: Path) -> str | None:
         return f"its manifest is unreadable ({type(exc).__name__})"
     for name, expected in files.items():
         try:
-            actual = file_digest(entry / name)
+            actual = file_sha256(entry / name)
         except OSError:
             return f"{name} is missing"
         if actual != expected:

@@ -22,6 +22,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 from acoustlab.core.contracts import FeatureSet, Simulator, hook
+from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
 from acoustlab.core.types import RecordingBatch, Site
@@ -31,7 +32,6 @@ from acoustlab.stages.cache import (
     atomic_save_npy,
     atomic_write_bytes,
     code_digest,
-    file_digest,
     plugin_version,
     write_manifest,
 )
@@ -342,7 +342,7 @@ def load_or_build_field(
             "stage_code": code_digest(__name__, follow_imports=False),
             "site": site.fingerprint(),
             "field": field_cfg,
-            "inputs": {str(path): file_digest(path) for path in inputs},  # an edited table or replaced WAV is a new entry
+            "inputs": {str(path): file_sha256(path) for path in inputs},  # an edited table or replaced WAV is a new entry
             "field_plugin": plugin_version(field_source),
             "features": features_cfg,
             "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},

@@ -8,7 +8,6 @@ checkpoint exists before any simulation runs and otherwise stops with one messag
 
 from __future__ import annotations
 
-import hashlib
 import os
 from pathlib import Path
 from typing import Any
@@ -17,6 +16,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.utils.validation import check_is_fitted
 
+from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import ConfigError
 
 WEIGHTS_HELP = (
@@ -49,12 +49,9 @@ def check_checkpoint(path: Path, sha256: str | None, setting: str) -> None:
     if key in _CHECKED:
         return
     if sha256 is not None:
-        digest = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(2**20), b""):
-                digest.update(block)
-        if digest.hexdigest() != sha256.lower():
-            raise ConfigError(f"{setting}.checkpoint_sha256: {path} has SHA-256 {digest.hexdigest()}, expected {sha256}; "
+        actual = file_sha256(path)
+        if actual != sha256.lower():
+            raise ConfigError(f"{setting}.checkpoint_sha256: {path} has SHA-256 {actual}, expected {sha256}; "
                               "the file is not the checkpoint you named")
     if path.suffix != ".safetensors":
         import pickle
