@@ -97,7 +97,7 @@ def search_on_large_arrays(n_events: int) -> dict:
                 continue  # its design (2.1 million hypotheses x 66 pairs) does not fit in memory
             solver = ConsistentSetSolver(search=search)
             solver.select(cands[:2], weights[:2])  # warm-up: the exhaustive design is built once
-            seconds, parts = timed(lambda s=solver: [s.select(cands[i:i + 16], weights[i:i + 16]) for i in range(0, n_events, 16)])
+            seconds, parts = timed(lambda s=solver, c=cands, w=weights: [s.select(c[i:i + 16], w[i:i + 16]) for i in range(0, n_events, 16)])
             chosen[search] = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
             times = chosen[search]["times_s"]
             row[search] = {"ms_per_event": 1e3 * seconds / n_events,
