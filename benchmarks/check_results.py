@@ -4,7 +4,9 @@ Every result written by :func:`common.write_results` names the commit and the be
 (with its SHA-256) that made it. For each ``results/*.json`` this prints one line:
 
 - ``current``: the script is unchanged and no module it imports (``acoustlab``/``plugins``, followed
-  through their own imports) changed since that commit;
+  through their own imports) changed what it does since that commit (docstrings, comments and
+  formatting do not count: Python files are compared as syntax trees without docstrings, YAML
+  files by their parsed values);
 - ``code changed``: the script is the same but modules it depends on changed since (they are named:
   re-run it, or say in the results why the change does not matter);
 - ``script changed``: the script differs from the one that made the result (stale: re-run it);
@@ -24,6 +26,7 @@ from pathlib import Path
 from common import REPO, RESULTS, script_sha256
 
 from acoustlab.core.imports import import_closure, module_source_path
+from acoustlab.stages.cache import _code_text_of  # what the cache keys hash: the syntax tree without docstrings
 
 
 def dependencies(script: Path) -> set[Path]:
@@ -39,6 +42,27 @@ def dependencies(script: Path) -> set[Path]:
     return {p for m in own for name in import_closure(m) if (p := module_source_path(name)) is not None}
 
 
+def same_code(old: bytes, new: bytes, name: str) -> bool:
+    """Whether two versions of a file do the same: Python without docstrings and comments, YAML by value, else byte for byte."""
+    import yaml
+
+    try:
+        if name.endswith(".py"):
+            return _code_text_of(old) == _code_text_of(new)
+        if name.endswith((".yaml", ".yml")):
+            return yaml.safe_load(old) == yaml.safe_load(new)
+    except (SyntaxError, ValueError, yaml.YAMLError):
+        return False
+    return old == new
+
+
+def changed_since(commit: str, path: str) -> bool:
+    """Whether ``path`` (relative to the repository) does something else now than at ``commit``."""
+    before = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=REPO, capture_output=True)
+    now = REPO / path
+    return before.returncode != 0 or not now.is_file() or not same_code(before.stdout, now.read_bytes(), path)
+
+
 def status(result: Path) -> tuple[str, str]:
     """(status, detail) of one result file (see the module docstring)."""
     made_with = json.loads(result.read_text()).get("provenance")
@@ -51,9 +75,9 @@ def status(result: Path) -> tuple[str, str]:
     if not files:  # a script that runs the command line instead of importing the package depends on all of it
         files = ["acoustlab", "plugins", "conf"]
     proc = subprocess.run(["git", "diff", "--name-only", made_with["commit"], "--", *files], cwd=REPO, capture_output=True, text=True)
-    changed = proc.stdout.split()
     if proc.returncode != 0:
         return "unknown commit", f"{made_with['commit'][:10]} is not in this repository's history"
+    changed = [path for path in proc.stdout.split() if changed_since(made_with["commit"], path)]
     return ("code changed", ", ".join(changed[:6]) + (" …" if len(changed) > 6 else "")) if changed else ("current", made_with["commit"][:10])
 
 

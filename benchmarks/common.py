@@ -70,7 +70,9 @@ def provenance() -> dict[str, Any]:
         proc = subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True)
         return proc.stdout.strip() if proc.returncode == 0 else ""
 
-    return {"commit": git("rev-parse", "HEAD"), "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no")),
+    # results written by earlier benchmarks of the same session are not changes to what made this one
+    changes = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)benchmarks/results")
+    return {"commit": git("rev-parse", "HEAD"), "uncommitted_changes": bool(changes),
             "script": script.relative_to(REPO).as_posix() if script.is_relative_to(REPO) else str(script),
             "script_sha256": script_sha256(script) if script.is_file() else ""}
 

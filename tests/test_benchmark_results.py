@@ -31,3 +31,18 @@ def test_the_staleness_check_sees_a_changed_script(tmp_path, monkeypatch):
     assert check_results.status(result)[0] == "script changed"
     result.write_text(json.dumps({"value": 1}))
     assert check_results.status(result)[0] == "no provenance"
+
+
+def test_a_docstring_or_comment_is_not_a_code_change():
+    """The staleness check compares what code does: docstrings, comments and YAML formatting do not make a result stale."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import check_results
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    old = b'def f(x):\n    """Old words."""\n    return x + 1  # one\n'
+    assert check_results.same_code(old, b'def f(x):\n    """New words, longer."""\n    # a comment\n    return x + 1\n', "m.py")
+    assert not check_results.same_code(old, b'def f(x):\n    """Old words."""\n    return x + 2\n', "m.py")
+    assert check_results.same_code(b"a: 1  # note\nb: [1, 2]\n", b"a: 1\nb:\n  - 1\n  - 2\n", "c.yaml")
+    assert not check_results.same_code(b"a: 1\n", b"a: 2\n", "c.yaml")
+    assert not check_results.same_code(b"x", b"y", "data.csv")

@@ -37,9 +37,9 @@ from acoustlab.toolkit.tdoa import solver_inputs
 from plugins.solvers.hyperbolic import HyperbolicSolver
 from plugins.solvers.hypothesis_search import exhaustive_best, hypothesis_design, pair_layout, pairs_of, pruned_best
 
-#: Largest number of hypotheses per event that ``search="auto"`` scores exhaustively. Measured (2 cores, numpy):
-#: 8 mics × 3 candidates (17,496) 0.40 ms per event exhaustive vs 1.3 ms pruned; 10 mics (196,830) 6.5 vs 5.1 ms;
-#: 12 mics (2.1 million) pruned only, 1.5–5.3 ms.
+#: Largest number of hypotheses per event that ``search="auto"`` scores exhaustively: in numpy the
+#: exhaustive search is the faster up to 8 mics × 3 candidates (17,496), the branch and bound from
+#: 10 mics (196,830) on (``benchmarks/results/solver_speed.md``).
 EXHAUSTIVE_UP_TO = 20_000
 
 #: Diagnostics this solver adds to the hyperbolic solver's (catalogued in :data:`acoustlab.core.columns.SOLVER_CATALOG`).
@@ -78,7 +78,8 @@ class ConsistentSetSolver:
         that scores a few dozen; both give the same choice, bit for bit
         (:mod:`plugins.solvers.hypothesis_search`). "auto" scores every one up to
         :data:`EXHAUSTIVE_UP_TO` hypotheses per event (up to 8 mics with 3 candidates, where that
-        is faster in numpy) and prunes above, where the exhaustive design no longer fits in memory.
+        is faster in numpy) and prunes above, where the exhaustive search's index arrays grow to
+        gigabytes (12 mics: 2.1 million hypotheses × 66 pairs).
     """
 
     cache_version = "1"
