@@ -3,8 +3,8 @@
 Every result written by :func:`common.write_results` names the commit and the benchmark script
 (with its SHA-256) that made it. For each ``results/*.json`` this prints one line:
 
-- ``current``: the script is unchanged and no module it imports (``acoustlab``/``plugins``, followed
-  through their own imports) changed what it does since that commit (docstrings, comments and
+- ``current``: the script is unchanged and no module it imports (``acoustlab``, followed through
+  its own imports), no plugin and no config changed what it does since that commit (docstrings, comments and
   formatting do not count: Python files are compared as syntax trees without docstrings, YAML
   files by their parsed values);
 - ``code changed``: the script is the same but modules it depends on changed since (they are named:
@@ -73,7 +73,8 @@ def status(result: Path) -> tuple[str, str]:
         return "script changed", f"{made_with['script']} differs from the version that made it: re-run it"
     files = [p.relative_to(REPO).as_posix() for p in dependencies(script) if p.is_relative_to(REPO)]
     if not files:  # a script that runs the command line instead of importing the package depends on all of it
-        files = ["acoustlab", "plugins", "conf"]
+        files = ["acoustlab"]
+    files += ["plugins", "conf"]  # plugins are built from the configs by name (Hydra), never imported: every benchmark may use any
     proc = subprocess.run(["git", "diff", "--name-only", made_with["commit"], "--", *files], cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
         return "unknown commit", f"{made_with['commit'][:10]} is not in this repository's history"
