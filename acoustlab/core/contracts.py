@@ -41,8 +41,9 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
 #: Optional hooks a plugin may define; a plugin without one is taken to need nothing there. Get them with :func:`hook`.
 #: ``preflight()`` (models: check what must exist before anything is simulated, e.g. weights), ``validate(site)``
 #: (field sources and protocol=season: check tables and headers), ``input_files()`` (field sources: the files whose contents key the
-#: cache), ``projection()`` (field sources: the rigid map to projected coordinates, or None).
-OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection")
+#: cache), ``projection()`` (field sources: the rigid map to projected coordinates, or None), ``fit_quantiles(x, error, levels)``
+#: (conformal scorers with ``needs_quantiles``: fit the final quantile model once, applied by their ``predict_quantiles``).
+OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection", "fit_quantiles")
 
 
 def declared(plugin: Any, name: str) -> Any:

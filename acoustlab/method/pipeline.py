@@ -26,6 +26,7 @@ from acoustlab.core.contracts import (
     PointModel,
     Solver,
     declared,
+    hook,
 )
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
@@ -447,8 +448,9 @@ class LocalizationPipeline:
                 fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels,
                                                   quantiles=np.maximum(oof_q[rows], cal.floor), groups=positions)
                 x_fit, error_fit = cal.x_error.iloc[cal.finite], cal.error[cal.finite]
-                if hasattr(scorer, "fit_quantiles"):  # fitted once here, applied to every chunk a season predicts
-                    fitted.quantile_models[name] = scorer.fit_quantiles(x_fit, error_fit, levels)
+                fit_quantiles = hook(scorer, "fit_quantiles")
+                if fit_quantiles is not None:  # fitted once here, applied to every chunk a season predicts
+                    fitted.quantile_models[name] = fit_quantiles(x_fit, error_fit, levels)
                 else:  # a scorer with fit_predict_quantiles only: refitted (deterministically) at every predict
                     fitted.quantile_training = (x_fit, error_fit)
             else:
