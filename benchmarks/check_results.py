@@ -75,6 +75,8 @@ def status(result: Path) -> tuple[str, str]:
     if not files:  # a script that runs the command line instead of importing the package depends on all of it
         files = ["acoustlab"]
     files += ["plugins", "conf"]  # plugins are built from the configs by name (Hydra), never imported: every benchmark may use any
+    if "run_in_process" in script.read_text():  # runs whole jobs through common.run_in_process: depends on all of acoustlab
+        files.append("acoustlab")
     proc = subprocess.run(["git", "diff", "--name-only", made_with["commit"], "--", *files], cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
         return "unknown commit", f"{made_with['commit'][:10]} is not in this repository's history"
