@@ -174,3 +174,20 @@ def test_envelope_lags_equal_the_full_length_correlation(clean_batches):
             cc = np.fft.fftshift(np.fft.irfft(np.conj(spec[:, i]) * spec[:, j], n=n_fft, axis=-1), axes=-1)
             window = np.abs(lags) <= max_lag
             np.testing.assert_array_equal(ours[f"envelope__lag_{i}_{j}_s"], lags[window][np.argmax(cc[:, window], axis=-1)])
+
+
+def test_peak_to_sidelobe_rms_is_that_of_the_lag_window_bit_for_bit(clean_batches):
+    """The candidates' sidelobe RMS equals the RMS over each pair's lag window as boolean indexing selects it
+    (float32 sums depend on the memory layout; a change there would silently change cached features)."""
+    from acoustlab.core.types import RecordingBatch
+    from acoustlab.toolkit.dsp import gcc
+    from acoustlab.toolkit.gcc_candidates import lag_windows_s, pair_candidates
+
+    site, batch, _ = clean_batches["forest"]
+    windows = lag_windows_s(site, 0.002)
+    ours = pair_candidates(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, (300.0, 10000.0),
+                           "beta_phat", 2, 0.8)
+    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, "beta_phat", (300.0, 10000.0), 2, 0.8,
+                   max_lag_s=float(windows.max()))
+    for k, max_lag in enumerate(windows):
+        np.testing.assert_array_equal(ours.sidelobe[:, k], np.sqrt(np.mean(cc[:, k, np.abs(lags) <= max_lag] ** 2, axis=-1)))

@@ -65,3 +65,29 @@ def test_band_limited_gcc_samples_the_same_correlation():
     np.testing.assert_allclose(coarse[..., shared], full[..., index], rtol=1e-4, atol=1e-5 * np.abs(full).max())
     np.testing.assert_array_equal(gcc(audio, pairs, fs, "beta_phat", None, 2, max_lag_s=0.01, band_limited=True)[0],
                                   gcc(audio, pairs, fs, "beta_phat", None, 2, max_lag_s=0.01)[0])  # no band: nothing changes
+
+
+@pytest.mark.parametrize("weighting", ["phat", "beta_phat", "none"])
+def test_weighted_spectra_in_place_equals_the_textbook_weighting_bit_for_bit(weighting):
+    """The in-place weighting computes exactly |X|-floored (β-)PHAT as written out here (cached features stay valid)."""
+    import scipy.fft as sfft
+
+    from acoustlab.toolkit.dsp import next_fast_len, weighted_spectra
+
+    audio = np.random.default_rng(3).standard_normal((4, 3, 1000)).astype(np.float32)
+    audio[1, 2] = 0.0  # a silent channel: the floor decides
+    spectra = sfft.rfft(audio, n=next_fast_len(2 * audio.shape[-1]), axis=-1)
+    expected = spectra
+    if weighting != "none":
+        magnitude = np.maximum(np.abs(spectra), 1e-6 * np.abs(spectra).max(axis=-1, keepdims=True) + 1e-30)
+        expected = spectra / (magnitude if weighting == "phat" else magnitude ** 0.8)
+    np.testing.assert_array_equal(weighted_spectra(audio, weighting, 0.8), expected)
+
+
+def test_parabolic_peak_broadcasts_one_curve_over_several_peaks():
+    curve = np.random.default_rng(4).standard_normal((5, 50))
+    index = np.array([[3, 17, 49], [0, 20, 33], [1, 2, 3], [10, 11, 12], [48, 25, 6]])
+    offset, height = parabolic_peak(curve[:, None, :], index)
+    offset_r, height_r = parabolic_peak(curve[:, None, :].repeat(3, 1), index)
+    np.testing.assert_array_equal(offset, offset_r)
+    np.testing.assert_array_equal(height, height_r)

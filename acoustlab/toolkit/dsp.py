@@ -163,10 +163,12 @@ def gcc(
 def weighted_spectra(audio: np.ndarray, weighting: str, beta: float) -> np.ndarray:
     """(E, M, F) spectra of ``audio`` over twice its length, (β-)PHAT weighted per mic (see :func:`gcc`)."""
     spectra = sfft.rfft(audio, n=next_fast_len(2 * audio.shape[-1]), axis=-1)
-    if weighting != "none":
+    if weighting != "none":  # in place: the same operations as out-of-place ones, without three spectrum-sized temporaries
         magnitude = np.abs(spectra)
-        magnitude = np.maximum(magnitude, 1e-6 * magnitude.max(axis=-1, keepdims=True) + 1e-30)
-        spectra = spectra / (magnitude if weighting == "phat" else magnitude ** float(beta))
+        np.maximum(magnitude, 1e-6 * magnitude.max(axis=-1, keepdims=True) + 1e-30, out=magnitude)
+        if weighting != "phat":
+            np.power(magnitude, float(beta), out=magnitude)
+        np.divide(spectra, magnitude, out=spectra)
     return spectra
 
 
@@ -194,7 +196,7 @@ def parabolic_peak(values: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, n
     Parameters
     ----------
     values : numpy.ndarray
-        (..., L) sampled curve.
+        (..., L) sampled curve; its leading axes broadcast against ``index`` (one curve, several peaks).
     index : numpy.ndarray
         (...) integer index of the peak along the last axis (interior or at an edge).
 

@@ -80,9 +80,11 @@ def _compute_pair_candidates(
     out_heights = np.full((e, p, n_candidates), np.nan)
     sidelobe = np.empty((e, p))
     for k, max_lag in enumerate(windows):
-        window = np.abs(lags) <= max_lag
-        seg = cc[:, k, window]
-        first_lag = lags[window][0]
+        inside = np.flatnonzero(np.abs(lags) <= max_lag)  # one contiguous run of lags
+        # events along the fast axis, as boolean indexing laid it out before: float32 sums depend on the layout,
+        # and the features stay bit-identical to those already cached
+        seg = np.asfortranarray(cc[:, k, inside[0]:inside[-1] + 1])
+        first_lag = lags[inside[0]]
         sidelobe[:, k] = np.sqrt(np.mean(seg**2, axis=-1))
         # local maxima (with edges allowed), then the K highest
         is_peak = np.ones_like(seg, dtype=bool)
@@ -92,7 +94,7 @@ def _compute_pair_candidates(
         top = np.argpartition(-masked, min(n_candidates, masked.shape[-1] - 1), axis=-1)[:, :n_candidates]
         order = np.take_along_axis(top, np.argsort(-np.take_along_axis(masked, top, -1), axis=-1), -1)
         valid = np.take_along_axis(masked, order, -1) > -np.inf
-        offset, height = parabolic_peak(seg[:, None, :].repeat(n_candidates, 1), order)
+        offset, height = parabolic_peak(seg[:, None, :], order)  # broadcast over the K candidates, no copies
         out_lags[:, k] = np.where(valid, first_lag + (order + offset) * step, np.nan)
         out_heights[:, k] = np.where(valid, height, np.nan)
     return PairCandidates(out_lags, out_heights, sidelobe)
