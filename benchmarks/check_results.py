@@ -10,7 +10,10 @@ Every result written by :func:`common.write_results` names the commit and the be
 - ``code changed``: the script is the same but modules it depends on changed since (they are named:
   re-run it, or say in the results why the change does not matter);
 - ``script changed``: the script differs from the one that made the result (stale: re-run it);
-- ``no provenance``: written before results named their commit (re-run to find out).
+- ``no provenance``: written before results named their commit (re-run to find out); the detail
+  names the commit that last wrote the file, from git history;
+- ``reference``: hashes that ``bench_identity.py`` compares a later run against (``identity_*.json``),
+  not a measurement of the code.
 
 ``--strict`` exits 1 when any result's script changed (what the test suite checks).
 """
@@ -42,6 +45,13 @@ def dependencies(script: Path) -> set[Path]:
     return {p for m in own for name in import_closure(m) if (p := module_source_path(name)) is not None}
 
 
+def plugin_dependencies() -> list[str]:
+    """Source files (relative to the repository) of the own modules that any plugin module imports, transitively."""
+    modules = [".".join(p.relative_to(REPO).with_suffix("").parts) for p in sorted((REPO / "plugins").rglob("*.py"))]
+    return sorted({path.relative_to(REPO).as_posix() for m in modules for name in import_closure(m)
+                   if (path := module_source_path(name)) is not None and path.is_relative_to(REPO)})
+
+
 def same_code(old: bytes, new: bytes, name: str) -> bool:
     """Whether two versions of a file do the same: Python without docstrings and comments, YAML by value, else byte for byte."""
     import yaml
@@ -63,18 +73,30 @@ def changed_since(commit: str, path: str) -> bool:
     return before.returncode != 0 or not now.is_file() or not same_code(before.stdout, now.read_bytes(), path)
 
 
+def last_written(path: Path) -> str:
+    """'last written in <commit> (<date>)' from git history, or 'not committed'."""
+    if not path.resolve().is_relative_to(REPO):
+        return "not committed"
+    proc = subprocess.run(["git", "log", "-1", "--format=%h (%ad)", "--date=short", "--", path.resolve().relative_to(REPO).as_posix()],
+                          cwd=REPO, capture_output=True, text=True)
+    return f"last written in {proc.stdout.strip()}" if proc.returncode == 0 and proc.stdout.strip() else "not committed"
+
+
 def status(result: Path) -> tuple[str, str]:
     """(status, detail) of one result file (see the module docstring)."""
+    if result.name.startswith("identity_"):
+        return "reference", "hashes bench_identity.py compares against, not a measurement"
     made_with = json.loads(result.read_text()).get("provenance")
     if not isinstance(made_with, dict):
-        return "no provenance", "re-run its benchmark to record the commit"
+        return "no provenance", f"{last_written(result)}: re-run its benchmark to record the commit"
     script = REPO / made_with["script"]
     if not script.is_file() or script_sha256(script) != made_with["script_sha256"]:
         return "script changed", f"{made_with['script']} differs from the version that made it: re-run it"
     files = [p.relative_to(REPO).as_posix() for p in dependencies(script) if p.is_relative_to(REPO)]
     if not files:  # a script that runs the command line instead of importing the package depends on all of it
         files = ["acoustlab"]
-    files += ["plugins", "conf"]  # plugins are built from the configs by name (Hydra), never imported: every benchmark may use any
+    # plugins are built from the configs by name (Hydra), never imported: every benchmark may use any, and what they import
+    files += ["plugins", "conf", *plugin_dependencies()]
     if "run_in_process" in script.read_text():  # runs whole jobs through common.run_in_process: depends on all of acoustlab
         files.append("acoustlab")
     proc = subprocess.run(["git", "diff", "--name-only", made_with["commit"], "--", *files], cwd=REPO, capture_output=True, text=True)

@@ -46,3 +46,26 @@ def test_a_docstring_or_comment_is_not_a_code_change():
     assert check_results.same_code(b"a: 1  # note\nb: [1, 2]\n", b"a: 1\nb:\n  - 1\n  - 2\n", "c.yaml")
     assert not check_results.same_code(b"a: 1\n", b"a: 2\n", "c.yaml")
     assert not check_results.same_code(b"x", b"y", "data.csv")
+
+
+def test_what_plugins_import_is_a_dependency_of_every_result():
+    """Plugins are built by name through Hydra, so a benchmark depends on the package modules they import
+    (a change to the GCC toolkit once left results that compute features reading 'current')."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import check_results
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    deps = check_results.plugin_dependencies()
+    assert {"acoustlab/toolkit/gcc_candidates.py", "acoustlab/toolkit/dsp.py", "acoustlab/toolkit/solve3d.py"} <= set(deps)
+    assert all((REPO / d).is_file() for d in deps)
+
+
+def test_identity_hashes_are_references_not_results():
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import check_results
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    for path in RESULTS.glob("identity_*.json"):
+        assert check_results.status(path)[0] == "reference"
