@@ -52,7 +52,9 @@ def machine() -> dict[str, Any]:
     """A short description of the machine the numbers were measured on."""
     import os
 
-    return {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()}
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    # "cpus": the cores this process may run on (a benchmark pinned with taskset reports its share, not the machine's)
+    return {"python": platform.python_version(), "machine": platform.machine(), "cpus": usable, "machine_cpus": os.cpu_count()}
 
 
 def script_sha256(script: Path) -> str:
