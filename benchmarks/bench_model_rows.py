@@ -17,8 +17,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from bench_method_crossfit import fmt, run
-from common import machine, write_results
+from common import fmt, machine, run_in_process, write_results
 
 log = logging.getLogger("bench_model_rows")
 
@@ -32,8 +31,8 @@ def main() -> None:
     opts = parser.parse_args()
     base = [f"+site={opts.site}", f"data.n_events={opts.n_events}", "protocol=cross_fit", "protocol.n_folds=5", "model=xgboost",
             "gate=learned", "gate.stakes_cap_m=null", "error_model=constant", "conformal=fixed"]
-    runs = {f"absolute, ≤ {rows} rows": run([*base, f"protocol.max_train_rows={rows}"]) for rows in opts.rows}
-    runs[f"correction, ≤ {opts.rows[0]} rows"] = run([*base, f"protocol.max_train_rows={opts.rows[0]}", "pipeline.model_target=correction"])
+    runs = {f"absolute, ≤ {rows} rows": run_in_process([*base, f"protocol.max_train_rows={rows}"]) for rows in opts.rows}
+    runs[f"correction, ≤ {opts.rows[0]} rows"] = run_in_process([*base, f"protocol.max_train_rows={opts.rows[0]}", "pipeline.model_target=correction"])
     lines = [f"# Point model against training rows ({opts.site}, cross-fitted)", "",
              f"`python benchmarks/bench_model_rows.py --site {opts.site} --n-events {opts.n_events} --rows {' '.join(map(str, opts.rows))}`: "
              f"{opts.n_events} events, 5 folds over positions, XGBoost, learned gate with equal weights. Failures count as infinite errors.", "",
