@@ -21,6 +21,7 @@ Every result written by :func:`common.write_results` names the commit and the be
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import subprocess
 import sys
@@ -45,11 +46,12 @@ def dependencies(script: Path) -> set[Path]:
     return {p for m in own for name in import_closure(m) if (p := module_source_path(name)) is not None}
 
 
-def plugin_dependencies() -> list[str]:
+@functools.cache  # the same for every result of one check
+def plugin_dependencies() -> tuple[str, ...]:
     """Source files (relative to the repository) of the own modules that any plugin module imports, transitively."""
     modules = [".".join(p.relative_to(REPO).with_suffix("").parts) for p in sorted((REPO / "plugins").rglob("*.py"))]
-    return sorted({path.relative_to(REPO).as_posix() for m in modules for name in import_closure(m)
-                   if (path := module_source_path(name)) is not None and path.is_relative_to(REPO)})
+    return tuple(sorted({path.relative_to(REPO).as_posix() for m in modules for name in import_closure(m)
+                         if (path := module_source_path(name)) is not None and path.is_relative_to(REPO)}))
 
 
 def same_code(old: bytes, new: bytes, name: str) -> bool:
@@ -75,9 +77,10 @@ def changed_since(commit: str, path: str) -> bool:
 
 def last_written(path: Path) -> str:
     """'last written in <commit> (<date>)' from git history, or 'not committed'."""
-    if not path.resolve().is_relative_to(REPO):
+    path = path.resolve()
+    if not path.is_relative_to(REPO):
         return "not committed"
-    proc = subprocess.run(["git", "log", "-1", "--format=%h (%ad)", "--date=short", "--", path.resolve().relative_to(REPO).as_posix()],
+    proc = subprocess.run(["git", "log", "-1", "--format=%h (%ad)", "--date=short", "--", path.relative_to(REPO).as_posix()],
                           cwd=REPO, capture_output=True, text=True)
     return f"last written in {proc.stdout.strip()}" if proc.returncode == 0 and proc.stdout.strip() else "not committed"
 
@@ -93,12 +96,12 @@ def status(result: Path) -> tuple[str, str]:
     if not script.is_file() or script_sha256(script) != made_with["script_sha256"]:
         return "script changed", f"{made_with['script']} differs from the version that made it: re-run it"
     files = [p.relative_to(REPO).as_posix() for p in dependencies(script) if p.is_relative_to(REPO)]
-    if not files:  # a script that runs the command line instead of importing the package depends on all of it
-        files = ["acoustlab"]
+    # a script that runs the command line instead of importing the package, or whole jobs through
+    # common.run_in_process, depends on all of acoustlab
+    if not files or "run_in_process" in script.read_text():
+        files.append("acoustlab")
     # plugins are built from the configs by name (Hydra), never imported: every benchmark may use any, and what they import
     files += ["plugins", "conf", *plugin_dependencies()]
-    if "run_in_process" in script.read_text():  # runs whole jobs through common.run_in_process: depends on all of acoustlab
-        files.append("acoustlab")
     proc = subprocess.run(["git", "diff", "--name-only", made_with["commit"], "--", *files], cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
         return "unknown commit", f"{made_with['commit'][:10]} is not in this repository's history"

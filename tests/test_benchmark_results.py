@@ -9,6 +9,16 @@ REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results"
 
 
+def _check_results():
+    """The benchmarks' staleness check as a module (it lives beside the benchmarks, not in the package)."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import check_results
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    return check_results
+
+
 def test_no_committed_result_was_made_by_another_version_of_its_script():
     proc = subprocess.run([sys.executable, "benchmarks/check_results.py", "--strict"], cwd=REPO, capture_output=True, text=True)
     assert proc.returncode == 0, "stale benchmark results:\n" + "\n".join(l for l in proc.stdout.splitlines() if "script changed" in l)
@@ -21,11 +31,7 @@ def test_results_name_their_commit_and_script():
 
 
 def test_the_staleness_check_sees_a_changed_script(tmp_path, monkeypatch):
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    try:
-        import check_results
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
+    check_results = _check_results()
     result = tmp_path / "x.json"
     result.write_text(json.dumps({"provenance": {"commit": "0" * 40, "script": "benchmarks/bench_real_array.py", "script_sha256": "f" * 64}}))
     assert check_results.status(result)[0] == "script changed"
@@ -35,11 +41,7 @@ def test_the_staleness_check_sees_a_changed_script(tmp_path, monkeypatch):
 
 def test_a_docstring_or_comment_is_not_a_code_change():
     """The staleness check compares what code does: docstrings, comments and YAML formatting do not make a result stale."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    try:
-        import check_results
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
+    check_results = _check_results()
     old = b'def f(x):\n    """Old words."""\n    return x + 1  # one\n'
     assert check_results.same_code(old, b'def f(x):\n    """New words, longer."""\n    # a comment\n    return x + 1\n', "m.py")
     assert not check_results.same_code(old, b'def f(x):\n    """Old words."""\n    return x + 2\n', "m.py")
@@ -51,21 +53,13 @@ def test_a_docstring_or_comment_is_not_a_code_change():
 def test_what_plugins_import_is_a_dependency_of_every_result():
     """Plugins are built by name through Hydra, so a benchmark depends on the package modules they import
     (a change to the GCC toolkit once left results that compute features reading 'current')."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    try:
-        import check_results
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
+    check_results = _check_results()
     deps = check_results.plugin_dependencies()
     assert {"acoustlab/toolkit/gcc_candidates.py", "acoustlab/toolkit/dsp.py", "acoustlab/toolkit/solve3d.py"} <= set(deps)
     assert all((REPO / d).is_file() for d in deps)
 
 
 def test_identity_hashes_are_references_not_results():
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    try:
-        import check_results
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
+    check_results = _check_results()
     for path in RESULTS.glob("identity_*.json"):
         assert check_results.status(path)[0] == "reference"
