@@ -13,7 +13,10 @@ Every result written by :func:`common.write_results` names the commit and the be
 - ``no provenance``: written before results named their commit (re-run to find out); the detail
   names the commit that last wrote the file, from git history;
 - ``reference``: hashes that ``bench_identity.py`` compares a later run against (``identity_*.json``),
-  not a measurement of the code.
+  not a measurement of the code;
+- ``needs a GPU``: made on a lent GPU machine before results named their commit; only a GPU can
+  re-run it (the detail names the command and the commit that last wrote it; ``docs/tabpfn.md``
+  says what changed since).
 
 ``--strict`` exits 1 when any result's script changed (what the test suite checks).
 """
@@ -31,6 +34,11 @@ from common import REPO, RESULTS, script_sha256
 
 from acoustlab.core.imports import import_closure, module_source_path
 from acoustlab.stages.cache import _code_text_of  # what the cache keys hash: the syntax tree without docstrings
+
+
+#: Results only a GPU can re-run, with the command that makes them.
+GPU_ONLY = {"tabpfn_device": "python benchmarks/bench_tabpfn_device.py",
+            "tabpfn_gpu_end_to_end": "bash scripts/gpu_tabpfn_end_to_end.sh OUT"}
 
 
 def dependencies(script: Path) -> set[Path]:
@@ -90,6 +98,8 @@ def status(result: Path) -> tuple[str, str]:
     if result.name.startswith("identity_"):
         return "reference", "hashes bench_identity.py compares against, not a measurement"
     made_with = json.loads(result.read_text()).get("provenance")
+    if not isinstance(made_with, dict) and result.stem in GPU_ONLY:
+        return "needs a GPU", f"{last_written(result)}, before results named their commit: re-run on a GPU with `{GPU_ONLY[result.stem]}`"
     if not isinstance(made_with, dict):
         return "no provenance", f"{last_written(result)}: re-run its benchmark to record the commit"
     script = REPO / made_with["script"]

@@ -63,3 +63,14 @@ def test_identity_hashes_are_references_not_results():
     check_results = _check_results()
     for path in RESULTS.glob("identity_*.json"):
         assert check_results.status(path)[0] == "reference"
+
+
+def test_gpu_only_results_say_so_and_name_their_command():
+    """Results a lent GPU made cannot be re-run here: the check says so instead of a bare 'no provenance'."""
+    check_results = _check_results()
+    for name, command in check_results.GPU_ONLY.items():
+        path = RESULTS / f"{name}.json"
+        assert path.is_file(), name
+        state, detail = check_results.status(path)
+        if "provenance" not in json.loads(path.read_text()):
+            assert state == "needs a GPU" and command in detail and "last written in" in detail
