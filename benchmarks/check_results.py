@@ -98,9 +98,9 @@ def status(result: Path) -> tuple[str, str]:
     if result.name.startswith("identity_"):
         return "reference", "hashes bench_identity.py compares against, not a measurement"
     made_with = json.loads(result.read_text()).get("provenance")
-    if not isinstance(made_with, dict) and result.stem in GPU_ONLY:
-        return "needs a GPU", f"{last_written(result)}, before results named their commit: re-run on a GPU with `{GPU_ONLY[result.stem]}`"
     if not isinstance(made_with, dict):
+        if result.stem in GPU_ONLY:
+            return "needs a GPU", f"{last_written(result)}, before results named their commit: re-run on a GPU with `{GPU_ONLY[result.stem]}`"
         return "no provenance", f"{last_written(result)}: re-run its benchmark to record the commit"
     script = REPO / made_with["script"]
     if not script.is_file() or script_sha256(script) != made_with["script_sha256"]:
