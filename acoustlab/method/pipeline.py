@@ -726,15 +726,16 @@ class FittedMethod:
         out[col.INPUT_SIGMA] = input_sigma
         allowance = input_sigma[:, None] * np.array([level_factor(level) for level in c.levels])[None, :]
         for name, scorer in self.scorers.items():
+            quantiles = None
             if name in self.quantile_models:
-                quantiles = np.maximum(scorer.predict_quantiles(self.quantile_models[name], t.x_error, c.levels), self.floor)
-                radii = scorer.radius(predicted, t.gdop, quantiles=quantiles)
+                quantiles = scorer.predict_quantiles(self.quantile_models[name], t.x_error, c.levels)
             elif declared(scorer, "needs_quantiles") and self.quantile_training is not None:
                 x_fit, error_fit = self.quantile_training
-                quantiles = np.maximum(scorer.fit_predict_quantiles(x_fit, error_fit, t.x_error, c.levels), self.floor)
-                radii = scorer.radius(predicted, t.gdop, quantiles=quantiles)
-            else:
+                quantiles = scorer.fit_predict_quantiles(x_fit, error_fit, t.x_error, c.levels)
+            if quantiles is None:
                 radii = scorer.radius(predicted, t.gdop)
+            else:
+                radii = scorer.radius(predicted, t.gdop, quantiles=np.maximum(quantiles, self.floor))
             radii = np.sqrt(radii**2 + np.nan_to_num(allowance) ** 2)  # independent error sources add in quadrature
             for k, level in enumerate(c.levels):
                 out[col.radius(name, level)] = radii[:, k]

@@ -118,25 +118,19 @@ def gcc(
         raise ValueError(f"gcc upsample must be >= 1; got {upsample}")
     n_samples = audio.shape[-1]
     max_lag_samples = n_samples if max_lag_s is None else min(n_samples, int(np.ceil(max_lag_s * sample_rate_hz)) + 2)
-    # twice the signal length, always: a (β-)PHAT weighting depends on the spectral resolution
+    # twice the signal length, always: a (β-)PHAT weighting depends on the spectral resolution (a transform
+    # only as long as the lags need, signal + largest lag, was tried: more gross first-stage errors on the frozen lake)
     n_fft = next_fast_len(2 * n_samples)
     key = ("weighted_spectra", weighting, float(beta))
     if spectra_cache is None:
         spectra = weighted_spectra(audio, weighting, beta)
-    else:  # never modified below: masking and the cast make new arrays
+    else:  # only read below
         if key not in spectra_cache:
             spectra_cache[key] = weighted_spectra(audio, weighting, beta)
         spectra = spectra_cache[key]
-    if band_hz is not None:
-        freqs = sfft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)
-        band = np.asarray(band_hz, dtype=float)
-        if band.ndim == 1:
-            spectra = spectra * ((freqs >= band[0]) & (freqs <= band[1]))
-        else:  # one band per event (a detection's own band)
-            spectra = spectra * ((freqs >= band[:, :1]) & (freqs <= band[:, 1:]))[:, None, :]
-    spectra = spectra.astype(np.complex64)
-    i_idx = np.array([p[0] for p in pairs])
-    j_idx = np.array([p[1] for p in pairs])
+    n_bins = spectra.shape[-1]
+    in_band = _band_selection(band_hz, n_fft, sample_rate_hz)
+    spectra = spectra.astype(np.complex64, copy=False)  # single precision already when the audio is float32
     n_out = n_fft * int(upsample)
     half = min(max_lag_samples * int(upsample), n_out // 2 - 1)
     rate_hz = sample_rate_hz * upsample
@@ -149,15 +143,51 @@ def gcc(
             n_out = reduced
             rate_hz = sample_rate_hz * n_out / n_fft
             half = min(int(np.ceil(max_lag_samples * n_out / n_fft)), n_out // 2 - 1)
+    n_kept = min(n_bins, n_out // 2 + 1)  # bins the inverse transform reads (the rest are zero or padding)
+    # one zero-padded cross-spectrum buffer for every pair: the products are written into its first bins and
+    # the padding stays zero, so the inverse transform pads nothing (a copy per pair otherwise)
+    cross = np.zeros((audio.shape[0], n_out // 2 + 1), dtype=np.complex64)
     cc = np.empty((audio.shape[0], len(pairs), 2 * half + 1), dtype=np.float32)
-    for k, (i, j) in enumerate(zip(i_idx, j_idx, strict=True)):  # one pair at a time: memory of one (E, n_out) transform
-        full = sfft.irfft(np.conj(spectra[:, i]) * spectra[:, j], n=n_out, axis=-1)
+    for k, (i, j) in enumerate(pairs):  # one pair at a time: memory of one (E, n_out) transform
+        _cross_spectrum(spectra[:, i, :n_kept], spectra[:, j, :n_kept], in_band, cross[:, :n_kept])
+        full = sfft.irfft(cross, n=n_out, axis=-1)
         if scale is not None:
             full *= np.float32(scale)
         cc[:, k, :half] = full[:, n_out - half:]
         cc[:, k, half:] = full[:, : half + 1]
     lags_s = np.arange(-half, half + 1) / rate_hz
     return cc, lags_s
+
+
+def _band_selection(band_hz: tuple[float, float] | np.ndarray | None, n_fft: int, sample_rate_hz: float) -> slice | np.ndarray | None:
+    """Which bins of an ``n_fft``-point real spectrum lie in ``band_hz`` (inclusive edges).
+
+    None for no band, a slice for one band (its bins are contiguous), an (E, F) boolean mask
+    for one band per event.
+    """
+    if band_hz is None:
+        return None
+    freqs = sfft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)
+    band = np.asarray(band_hz, dtype=float)
+    if band.ndim == 1:
+        inside = np.flatnonzero((freqs >= band[0]) & (freqs <= band[1]))
+        return slice(0, 0) if inside.size == 0 else slice(int(inside[0]), int(inside[-1]) + 1)
+    return (freqs >= band[:, :1]) & (freqs <= band[:, 1:])
+
+
+def _cross_spectrum(spec_i: np.ndarray, spec_j: np.ndarray, in_band: slice | np.ndarray | None, out: np.ndarray) -> None:
+    """conj(X_i) X_j into ``out`` (E, F), zero outside ``in_band`` (see :func:`_band_selection`).
+
+    The same products as masking both spectra first, without masked copies of the spectra. A
+    single band writes only its bins: ``out`` must hold zeros outside them already.
+    """
+    if in_band is None:
+        np.multiply(np.conj(spec_i), spec_j, out=out)
+    elif isinstance(in_band, slice):
+        np.multiply(np.conj(spec_i[:, in_band]), spec_j[:, in_band], out=out[:, in_band])
+    else:
+        np.multiply(np.conj(spec_i), spec_j, out=out)
+        out *= in_band[:, : out.shape[-1]]
 
 
 def weighted_spectra(audio: np.ndarray, weighting: str, beta: float) -> np.ndarray:

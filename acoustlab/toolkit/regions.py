@@ -69,9 +69,15 @@ def ellipse_axes(shape: np.ndarray, scale_m: np.ndarray) -> tuple[np.ndarray, np
 
 
 def inside_ellipse(error_vector_m: np.ndarray, a_m: np.ndarray, b_m: np.ndarray, angle_deg: np.ndarray) -> np.ndarray:
-    """(B,) bool: the error vectors (estimate − truth) lie inside the ellipses (a, b, angle) centred on the estimates."""
+    """(B,) bool: the error vectors (estimate − truth) lie inside the ellipses (a, b, angle) centred on the estimates.
+
+    A non-finite error vector (a failed event) is never inside; a degenerate ellipse (a zero axis) holds nothing
+    off its axis.
+    """
+    finite = np.isfinite(error_vector_m).all(axis=1)
+    error = np.where(finite[:, None], error_vector_m, 0.0)
     theta = np.radians(angle_deg)
-    along = error_vector_m[:, 0] * np.cos(theta) + error_vector_m[:, 1] * np.sin(theta)
-    across = -error_vector_m[:, 0] * np.sin(theta) + error_vector_m[:, 1] * np.cos(theta)
+    along = error[:, 0] * np.cos(theta) + error[:, 1] * np.sin(theta)
+    across = -error[:, 0] * np.sin(theta) + error[:, 1] * np.cos(theta)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return (along / a_m) ** 2 + (across / b_m) ** 2 <= 1.0
+        return finite & ((along / a_m) ** 2 + (across / b_m) ** 2 <= 1.0)

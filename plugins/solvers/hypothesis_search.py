@@ -187,6 +187,17 @@ def _seeds(layout: PairLayout, k: int) -> tuple[np.ndarray, np.ndarray]:
     return np.array(refs), np.array(ranks)
 
 
+@functools.lru_cache(maxsize=32)
+def _seed_offsets(n_mics: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Table (S, P) and arrival (S, M) offsets of the seed hypotheses of ``n_mics`` mics and ``k`` candidates (cached, read-only)."""
+    layout = pair_layout(n_mics)
+    ref, ranks = _seeds(layout, k)
+    offsets = _table_offsets(layout, k, ref, ranks), _arrival_offsets(layout, k, ref, ranks)
+    for array in offsets:
+        array.setflags(write=False)
+    return offsets
+
+
 def _table_offsets(layout: PairLayout, k: int, ref: np.ndarray, ranks: np.ndarray) -> np.ndarray:
     """Flat offsets (N, P) into one event's (R, P, K, K) table of hypotheses given by reference (N,) and ranks by mic (N, M)."""
     n_pairs = len(layout.i_idx)
@@ -205,9 +216,9 @@ def _seed_threshold(table_flat: np.ndarray, flat_arrival: np.ndarray, layout: Pa
     their rounding differs from the exact scores by ~10⁻¹⁵, which the search's slack covers.
     """
     bsz = table_flat.shape[0]
-    ref, ranks = _seeds(layout, k)
-    raw = _chain(np.add, np.moveaxis(table_flat[:, _table_offsets(layout, k, ref, ranks)], -1, 0))  # (B, S)
-    times = flat_arrival[:, _arrival_offsets(layout, k, ref, ranks)]  # (B, S, M)
+    table_offsets, arrival_offsets = _seed_offsets(layout.n_mics, k)
+    raw = _chain(np.add, np.moveaxis(table_flat[:, table_offsets], -1, 0))  # (B, S)
+    times = flat_arrival[:, arrival_offsets]  # (B, S, M)
     mic_times = np.moveaxis(times, -1, 0)
     score = raw - LATENESS_WEIGHT * np.nan_to_num(_chain(np.add, mic_times - _chain(np.minimum, mic_times)), nan=1e3)
     rows = np.arange(bsz)
