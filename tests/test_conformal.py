@@ -122,7 +122,6 @@ def test_ellipse_coverage_on_exchangeable_synthetic_data():
     assert np.median(areas) < np.median(circle_areas)
 
 
-
 def test_a_failed_event_is_never_inside_its_ellipse_and_raises_no_warning():
     """Failures carry infinite error vectors: they count as not covered, without NaN arithmetic warnings."""
     import warnings
@@ -134,6 +133,7 @@ def test_a_failed_event_is_never_inside_its_ellipse_and_raises_no_warning():
         warnings.simplefilter("error")
         inside = inside_ellipse(error, np.array([1.0, 1.0, 1.0, 1.0]), np.array([1.0, 1.0, 1.0, 1.0]), np.array([90.0, 0.0, 0.0, 0.0]))
     np.testing.assert_array_equal(inside, [True, False, False, False])
+
 
 def test_selective_threshold_controls_the_gross_share_among_placed_events():
     """Learn then Test: over many exchangeable draws, the share of gross errors among the placed test events

@@ -84,7 +84,6 @@ def test_weighted_spectra_in_place_equals_the_textbook_weighting_bit_for_bit(wei
     np.testing.assert_array_equal(weighted_spectra(audio, weighting, 0.8), expected)
 
 
-
 def _textbook_gcc(audio, pairs, fs, weighting, band, upsample, max_lag_s, band_limited=False):
     """The GCC as written out: mask both weighted spectra, multiply, one zero-padded inverse transform per pair."""
     import scipy.fft as sfft
@@ -132,6 +131,7 @@ def test_gcc_equals_the_textbook_masked_cross_spectra_bit_for_bit(band, band_lim
         expected = _textbook_gcc(audio, pairs, fs, weighting, band_hz, upsample, 0.02, band_limited)
         assert cc.dtype == np.float32
         np.testing.assert_array_equal(cc, expected)
+
 
 def test_parabolic_peak_broadcasts_one_curve_over_several_peaks():
     curve = np.random.default_rng(4).standard_normal((5, 50))
