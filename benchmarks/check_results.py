@@ -6,7 +6,7 @@ Every result written by :func:`common.write_results` names the commit and the be
 - ``current``: the script is unchanged and no module it imports (``acoustlab``, followed through
   its own imports), no plugin and no config changed what it does since that commit (docstrings, comments and
   formatting do not count: Python files are compared as syntax trees without docstrings, YAML
-  files by their parsed values);
+  files by their parsed values; a file added since does not count, see :func:`changed_since`);
 - ``code changed``: the script is the same but modules it depends on changed since (they are named:
   re-run it, or say in the results why the change does not matter);
 - ``script changed``: the script differs from the one that made the result (stale: re-run it);
@@ -77,10 +77,22 @@ def same_code(old: bytes, new: bytes, name: str) -> bool:
 
 
 def changed_since(commit: str, path: str) -> bool:
-    """Whether ``path`` (relative to the repository) does something else now than at ``commit``."""
-    before = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=REPO, capture_output=True)
+    """Whether ``path`` (relative to the repository) does something else now than at ``commit``.
+
+    A file added since ``commit`` is not a change: a new module runs only when an existing one
+    imports it, a new plugin or config only when a config or a benchmark's overrides name it,
+    and each of those is an existing file that changed (or the script itself). Only listings
+    of ``conf/`` read new files unasked: error messages and ``acoustlab.run.plugin_checks``,
+    which no benchmark runs.
+    """
     now = REPO / path
-    return before.returncode != 0 or not now.is_file() or not same_code(before.stdout, now.read_bytes(), path)
+    if not now.is_file():
+        return True  # removed since
+    existed = subprocess.run(["git", "cat-file", "-e", f"{commit}:{path}"], cwd=REPO, capture_output=True).returncode == 0
+    if not existed:
+        return False
+    before = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=REPO, capture_output=True)
+    return before.returncode != 0 or not same_code(before.stdout, now.read_bytes(), path)
 
 
 def last_written(path: Path) -> str:

@@ -74,3 +74,27 @@ def test_gpu_only_results_say_so_and_name_their_command():
         state, detail = check_results.status(path)
         if "provenance" not in json.loads(path.read_text()):
             assert state == "needs a GPU" and command in detail and "last written in" in detail
+
+
+def test_a_file_added_since_a_result_is_not_a_change_but_an_edited_or_removed_one_is(tmp_path, monkeypatch):
+    """A new module or config runs only where an existing file (or the script) names it, and that file's change is caught."""
+    check_results = _check_results()
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True, text=True).stdout.strip()
+
+    git("init", "-q")
+    (tmp_path / "kept.py").write_text("X = 1\n")
+    (tmp_path / "edited.py").write_text("Y = 1\n")
+    (tmp_path / "removed.py").write_text("Z = 1\n")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
+    first = git("rev-parse", "HEAD")
+    (tmp_path / "added.yaml").write_text("lean: true\n")
+    (tmp_path / "edited.py").write_text("Y = 2\n")
+    (tmp_path / "removed.py").unlink()
+    monkeypatch.setattr(check_results, "REPO", tmp_path)
+    assert not check_results.changed_since(first, "added.yaml")
+    assert not check_results.changed_since(first, "kept.py")
+    assert check_results.changed_since(first, "edited.py")
+    assert check_results.changed_since(first, "removed.py")
