@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
@@ -131,6 +132,35 @@ def test_physics_srp_extends_physics(compose_cfg):
     assert OmegaConf.to_container(srp.groups, resolve=True)["tdoa"] == OmegaConf.to_container(physics.groups, resolve=True)["tdoa"]
 
 
+def test_physics_lean_is_physics_without_the_waveform_groups(compose_cfg):
+    """features=physics_lean is written out in full: its GCC settings and kept groups must not drift from physics'."""
+    physics = OmegaConf.to_container(compose_cfg(["+site=frozen_lake", "features=physics"]).features, resolve=True)
+    lean = OmegaConf.to_container(compose_cfg(["+site=frozen_lake", "features=physics_lean"]).features, resolve=True)
+    assert lean["gcc"] == physics["gcc"]
+    assert list(lean["groups"]) == [g for g in physics["groups"] if g not in ("ir", "spectral", "envelope")]
+    assert lean["groups"]["xcorr"] == {**physics["groups"]["xcorr"], "extra_bands_hz": []}
+    for name in ("tdoa", "uncertainty", "geometry", "environment"):
+        assert lean["groups"][name] == physics["groups"][name], name
+
+
+def test_physics_lean_features_are_physics_features_minus_the_waveform_columns(compose_cfg):
+    """On the same audio the lean set gives exactly the full set's GCC and context columns (so the solver's fixes are the same)."""
+    from acoustlab.core.types import RecordingBatch
+    from acoustlab.run.registry import build
+    from acoustlab.stages.dataset import extract_features
+
+    cfg = compose_cfg(["+site=forest"])
+    site = site_from_config(cfg.site)
+    ids = np.arange(4)
+    batch = build(cfg.simulator, "simulator").simulate(site, ids, ids, 0)
+    full = extract_features(batch, site, build_feature_sets(cfg.features))
+    lean_sets = build_feature_sets(compose_cfg(["+site=forest", "features=physics_lean"]).features)
+    lean = extract_features(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, lean_sets)
+    assert not any(c.startswith(("ir__", "spectral__", "envelope__")) or c.endswith("hz") and c.startswith("xcorr__") for c in lean.columns)
+    assert set(lean.columns) < set(full.columns)
+    pd.testing.assert_frame_equal(lean, full[lean.columns], check_exact=True)
+
+
 def test_cache_keys_cover_the_code_a_plugin_imports(tmp_path, monkeypatch):
     from acoustlab.core import imports
     from acoustlab.stages import cache
@@ -171,8 +201,6 @@ def test_a_foreign_plugins_package_is_refused(monkeypatch):
 
 
 def test_batch_cache_computes_once_per_key():
-    import pandas as pd
-
     from acoustlab.core.types import EVENT_COLUMNS, RecordingBatch
 
     events = pd.DataFrame({c: [0.0] for c in EVENT_COLUMNS})
@@ -249,7 +277,8 @@ YAML_VARIANTS: dict[tuple[str, str, str], set[str]] = {
     # every conformal scorer is one SplitConformal variant: what it scales by, whether it uses the error model, its bins, its unit
     **{("conformal", option, label): {"normaliser", "use_error_model", "binning", "n_bins", "calibration_unit"}
        for option in group_options("conformal") for label in ("fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop")},
-    ("field", "recordings", "field"): {"mics_csv", "events_csv"},  # the shipped LOCA 2021 example; a user's own files have no default
+    ("field", "recordings", "field"): {"mics_csv", "events_csv"},
+    ("features", "physics_lean", "xcorr"): {"extra_bands_hz"},  # the lean set's xcorr: main band only  # the shipped LOCA 2021 example; a user's own files have no default
 }
 
 
