@@ -27,7 +27,8 @@ detector would.
   (``time.process_time``) around that call, in a separate interpreter. For each call the table also
   gives the estimate with the lowest residual, the one a user filtering on its residual would keep.
 * **acoustlab**, in this process on the same files: reading the 6 clips of each event
-  (soundfile), features (``features=physics`` and ``features=physics_lean``), and the default solver
+  (soundfile), features (``features=physics`` and ``features=physics_lean``, in batches of 16 events as
+  a season run computes them), and the default solver
   (consistent set, 3-D) with its diagnostics. The fitted method adds about 3 ms per detection
   (``benchmarks/results/season_forest.md``) and is not run here: it needs a method fitted on
   simulation first.
@@ -56,6 +57,8 @@ log = logging.getLogger("bench_opensoundscape")
 CLASS = "call"
 #: Silence before the first and after the last event, s: OpenSoundscape reads each receiver's window widened by the largest delay.
 PAD_S = 1.0
+#: Events per feature batch on acoustlab's side, as a season run computes them (``protocol.batch_events``).
+BATCH_EVENTS = 16
 
 
 def driver(folder: Path, speed_of_sound: float, band_hz: list[float] | None) -> None:
@@ -223,7 +226,9 @@ def main() -> None:
     for name in ("physics", "physics_lean"):
         sets = build_feature_sets(compose_cfg(["+site=forest", f"features={name}"]).features)
         start = time.process_time()
-        ours[name] = extract_features(RecordingBatch(audio, rate, batch.events), site, sets)
+        parts = [extract_features(RecordingBatch(audio[k:k + BATCH_EVENTS], rate, batch.events.iloc[k:k + BATCH_EVENTS].reset_index(drop=True)),
+                                  site, sets) for k in range(0, opts.n_events, BATCH_EVENTS)]
+        ours[name] = pd.concat(parts, ignore_index=True)
         t[f"features ({name})"] = time.process_time() - start
     start = time.process_time()
     table = add_solver_columns(ours["physics_lean"], batch.events, site, build(cfg.solver, "solver"), float(cfg.pipeline.plausible_margin_fraction))
