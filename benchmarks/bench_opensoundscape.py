@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from scipy.spatial.distance import pdist
 
 #: The acoustlab side is imported in :func:`main` only: the driver runs in OpenSoundscape's interpreter.
 log = logging.getLogger("bench_opensoundscape")
@@ -87,7 +88,7 @@ def driver(folder: Path, speed_of_sound: float, band_hz: list[float] | None) -> 
     detections = detections.set_index(["file", "start_time", "end_time", "start_timestamp"])
     array = SynchronizedRecorderArray(coords, speed_of_sound=speed_of_sound)
     # every receiver of the array in each candidate event; its default max_delay is this distance over the speed of sound
-    extent_m = float(np.max(np.hypot(*(coords[["x", "y"]].to_numpy()[:, None, :] - coords[["x", "y"]].to_numpy()[None, :, :]).T)))
+    extent_m = float(pdist(coords[["x", "y"]].to_numpy()).max())
     start = time.process_time()
     wall = time.perf_counter()
     placed, unplaced = array.localize_detections(detections, max_receiver_dist=extent_m + 1.0, min_n_receivers=3, cc_filter="phat",
@@ -163,17 +164,22 @@ def read_clips(folder: Path, n_mics: int, n_events: int, n_samples: int) -> tupl
 
 
 def errors_m(x: np.ndarray, y: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
-    err = np.hypot(x - tx, y - ty)
-    return np.where(np.isfinite(err), err, np.inf)  # no position counts as an error
+    """2-D errors in m, infinite where there is no position (it counts as an error)."""
+    from acoustlab.method.pipeline import error_2d_m
+
+    return error_2d_m(np.column_stack([x, y]), np.column_stack([tx, ty]))
 
 
 def summary(err: np.ndarray, positions: np.ndarray) -> dict[str, float]:
     """Percentiles (failures as infinite errors), the share > 5 m with its 95 % interval by source position, the share unplaced."""
     from bench_first_stage import share_ci
 
+    from acoustlab.reporting.metrics import error_summary
+
     low, high = share_ci(err > 5, positions)
-    return {"n": int(err.size), "p50_m": float(np.median(err)), "p90_m": float(np.quantile(err, 0.9)),
-            "share_over_5m": float(np.mean(err > 5)), "share_over_5m_ci": [low, high], "share_unplaced": float(np.mean(~np.isfinite(err)))}
+    stats = error_summary(err)  # a percentile among the failures is inf (np.quantile would give NaN between two infs)
+    return {"n": stats["n"], "p50_m": stats["p50"], "p90_m": stats["p90"], "share_over_5m": stats["share_gt_5m"],
+            "share_over_5m_ci": [low, high], "share_unplaced": stats["n_failed"] / stats["n"]}
 
 
 def row(label: str, ms: float, ratio: str, n: str, e: dict[str, float]) -> str:
