@@ -8,7 +8,8 @@ Every result written by :func:`common.write_results` names the commit and the be
   formatting do not count: Python files are compared as syntax trees without docstrings, YAML
   files by their parsed values; a file added since does not count, see :func:`changed_since`);
 - ``code changed``: the script is the same but modules it depends on changed since (they are named:
-  re-run it, or say in the results why the change does not matter);
+  re-run it, or say in the results why the change does not matter); the benchmarks' helper modules
+  it imports (``common.py``, ``bench_season.py``, …) are among them;
 - ``script changed``: the script differs from the one that made the result (stale: re-run it);
 - ``no provenance``: written before results named their commit (re-run to find out); the detail
   names the commit that last wrote the file, from git history;
@@ -41,17 +42,39 @@ GPU_ONLY = {"tabpfn_device": "python benchmarks/bench_tabpfn_device.py",
             "tabpfn_gpu_end_to_end": "bash scripts/gpu_tabpfn_end_to_end.sh OUT"}
 
 
-def dependencies(script: Path) -> set[Path]:
-    """Source files of the own modules ``script`` imports, followed transitively (:func:`import_closure`)."""
+def _imported_modules(script: Path) -> set[str]:
+    """Names of the modules ``script`` imports (``from pkg import name`` gives pkg, and pkg.name in case it is a module)."""
     import ast
 
     tree = ast.parse(script.read_text())
-    direct = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    for n in ast.walk(tree):  # ``from pkg import name``: pkg, and pkg.name where that is a module
+    names = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    for n in ast.walk(tree):
         if isinstance(n, ast.ImportFrom) and n.module:
-            direct |= {n.module, *(f"{n.module}.{a.name}" for a in n.names)}
+            names |= {n.module, *(f"{n.module}.{a.name}" for a in n.names)}
+    return names
+
+
+def dependencies(script: Path) -> set[Path]:
+    """Source files of the own modules ``script`` imports, followed transitively (:func:`import_closure`).
+
+    The benchmarks' own helper modules it imports (``common``, ``bench_season``, …: files beside the
+    script) count too, with what they import: a result made through a helper is stale when the helper
+    changed, although the script's own hash is the same.
+    """
+    helpers: set[Path] = set()
+    direct: set[str] = set()
+    todo = [script]
+    while todo:
+        current = todo.pop()
+        names = _imported_modules(current)
+        direct |= names
+        for name in names:
+            helper = script.parent / f"{name}.py"
+            if "." not in name and helper.is_file() and helper != script and helper not in helpers:
+                helpers.add(helper)
+                todo.append(helper)
     own = [m for m in direct if m.split(".")[0] in ("acoustlab", "plugins") and module_source_path(m) is not None]
-    return {p for m in own for name in import_closure(m) if (p := module_source_path(name)) is not None}
+    return helpers | {p for m in own for name in import_closure(m) if (p := module_source_path(name)) is not None}
 
 
 @functools.cache  # the same for every result of one check

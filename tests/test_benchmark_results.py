@@ -98,3 +98,12 @@ def test_a_file_added_since_a_result_is_not_a_change_but_an_edited_or_removed_on
     assert not check_results.changed_since(first, "kept.py")
     assert check_results.changed_since(first, "edited.py")
     assert check_results.changed_since(first, "removed.py")
+
+
+def test_a_benchmark_helper_module_the_script_imports_is_a_dependency():
+    check_results = _check_results()
+    bench = REPO / "benchmarks"
+    deps = check_results.dependencies(bench / "bench_lean_features.py")  # imports bench_season, which imports common
+    assert {bench / "bench_season.py", bench / "common.py"} <= deps
+    assert REPO / "acoustlab" / "season" / "synthetic.py" in deps  # what the helper imports, followed
+    assert bench / "bench_lean_features.py" not in deps
