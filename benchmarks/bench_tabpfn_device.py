@@ -108,6 +108,17 @@ def main() -> None:
         lines += ["", f"GPU vs CPU: predictions differ by at most {c['max_abs_prediction_diff']:.3g} (their spread: std "
                   f"{c['prediction_std']:.3g}); quantiles by at most {c['max_abs_quantile_diff']:.3g}; predict is "
                   f"{c['speedup_predict']:.1f}× faster on the GPU, fit + predict {c['speedup_fit_plus_predict']:.1f}×."]
+    lines += ["", "With random weights the predictions are nearly constant, so the agreement figure checks that both devices run "
+              "the same computation (the GPU runs in mixed precision), not accuracy; the published weights have the same size, "
+              "so the timings carry over. On a lent GPU machine the CPU row is that machine's CPU."]
+    try:  # what made the result (common needs Hydra, which a bare GPU box may lack: then the result names no commit)
+        from common import provenance
+
+        summary["provenance"] = made = provenance()
+        lines += ["", f"Made with commit {made['commit'][:10]}{' plus uncommitted changes' if made['uncommitted_changes'] else ''} "
+                  f"by {made['script']} (sha256 {made['script_sha256'][:12]})."]
+    except ImportError as exc:
+        log.warning("no provenance recorded (%s)", exc)
     opts.out.mkdir(parents=True, exist_ok=True)
     (opts.out / "tabpfn_device.json").write_text(json.dumps(summary, indent=2))
     (opts.out / "tabpfn_device.md").write_text("\n".join(lines) + "\n")

@@ -13,6 +13,7 @@ from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.dsp import event_band_hz
 from acoustlab.toolkit.gcc_candidates import pair_candidates
+from acoustlab.toolkit.gcc_torch import check_device
 
 
 class _GccGroup:
@@ -38,10 +39,15 @@ class _GccGroup:
         Correlation upsampling before parabolic peak refinement.
     band_hz : (float, float), optional
         Band the cross-spectrum is limited to, Hz.
+    device : {"cpu", "cuda", "cuda:N"}
+        Where the GCC runs: the numpy/SciPy path, or torch on a GPU (the same peaks up to
+        single-precision rounding; ``+features.gcc.device=cuda``, see docs/season.md). Not in the
+        default config, so the default cache keys do not name it; set, it is part of the key.
     """
 
     cache_version = "1"
-    DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "beta_phat", "beta": 0.8, "upsample": 2, "band_hz": (300.0, 10000.0)}
+    DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "beta_phat", "beta": 0.8, "upsample": 2, "band_hz": (300.0, 10000.0),
+                "device": "cpu"}
 
     def __init__(self, gcc: Mapping[str, Any] | None = None, **settings: Any) -> None:
         unknown = sorted((set(gcc or {}) | set(settings)) - set(self.DEFAULTS))
@@ -63,10 +69,12 @@ class _GccGroup:
         # PHAT whitens every bin it is given: bins without signal (e.g. above the 11 kHz content
         # of recordings made at 22 kHz) then produce spurious peaks, so restrict it to the calls' band.
         self.band_hz = None if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
+        self.device = check_device(params["device"])
 
     def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
         band = event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz) if band_hz is None else band_hz
-        return pair_candidates(batch, site, self.n_candidates, self.max_lag_margin_s, band, self.weighting, self.upsample, self.beta)
+        return pair_candidates(batch, site, self.n_candidates, self.max_lag_margin_s, band, self.weighting, self.upsample, self.beta,
+                               device=self.device)
 
 
 class TdoaCandidates(_GccGroup):
@@ -112,7 +120,8 @@ class XcorrConfidence(_GccGroup):
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         cand = self._candidates(batch, site)
         cols = {}
-        banded = [pair_candidates(batch, site, 1, self.max_lag_margin_s, b, self.weighting, self.upsample, self.beta, self.extra_bands_band_limited)
+        banded = [pair_candidates(batch, site, 1, self.max_lag_margin_s, b, self.weighting, self.upsample, self.beta, self.extra_bands_band_limited,
+                                  device=self.device)
                   for b in self.extra_bands_hz]
         for p, (i, j) in enumerate(site.mic_pairs):
             for k in range(self.n_candidates):

@@ -1,0 +1,208 @@
+"""GCC peak candidates computed with torch, for a GPU: the CPU path's computation, batched over pairs.
+
+:func:`acoustlab.toolkit.gcc_candidates.pair_candidates` with ``device="cuda"`` lands here. The
+steps are those of :func:`acoustlab.toolkit.dsp.gcc` and the CPU peak picking, written as whole-
+batch tensor operations so that a GPU runs them without a Python loop over pairs:
+
+1. one real FFT per mic over twice the signal length, (β-)PHAT weighted per mic (floor 10⁻⁶ of
+   the mic's largest magnitude);
+2. the cross-spectra of every pair, zero outside the band (one band, or one per event), inverse
+   transformed at ``upsample`` × the sampling rate (or, ``band_limited``, at ``upsample`` × twice
+   the band's upper edge), single precision throughout;
+3. in each pair's lag window ±(d_ij / c_max + margin): the RMS (sidelobe level), local maxima
+   (edges allowed, as on the CPU), the K highest, and parabolic refinement with the neighbours
+   clipped to the window.
+
+Only the peaks (K per pair) and the RMS travel back to the host. The numbers equal the CPU path's
+up to single-precision rounding of a different FFT library (cuFFT): the chosen peaks agree, and
+``benchmarks/bench_gcc_device.py`` measures how often and what the first stage does with them. The
+lags themselves are assembled on the host in double precision exactly as the CPU path does.
+
+torch is an optional dependency (``pip install -e ".[tabpfn]"`` brings it); it is imported only
+when this path is asked for.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from acoustlab.core.errors import ConfigError
+from acoustlab.toolkit.dsp import next_fast_len
+
+#: Devices the GCC runs on: ``cpu`` is the numpy/SciPy path; ``cuda`` (or ``cuda:N``) this module.
+DEVICE_CHOICES = ("cpu", "cuda")
+
+
+def check_device(device: str) -> str:
+    """``device`` if the GCC can run there, else a :class:`ConfigError` that says what is missing.
+
+    ``cpu`` always works; ``cuda`` / ``cuda:N`` need torch with a visible CUDA GPU.
+    """
+    name = str(device)
+    if name == "cpu":
+        return name
+    if not (name == "cuda" or (name.startswith("cuda:") and name[5:].isdigit())):
+        raise ConfigError(f"features.gcc.device must be 'cpu', 'cuda' or 'cuda:N'; got {device!r}")
+    try:
+        import torch
+    except ImportError as exc:
+        raise ConfigError(f"features.gcc.device={name} needs torch (pip install -e \".[tabpfn]\", or torch for your CUDA); "
+                          "it is not installed. Use features.gcc.device=cpu") from exc
+    if not torch.cuda.is_available():
+        raise ConfigError(f"features.gcc.device={name}: torch {torch.__version__} sees no CUDA GPU "
+                          "(a CPU-only build, or no driver). Use features.gcc.device=cpu")
+    index = int(name[5:]) if ":" in name else 0
+    if index >= torch.cuda.device_count():
+        raise ConfigError(f"features.gcc.device={name}: only {torch.cuda.device_count()} CUDA device(s) visible")
+    return name
+
+
+def window_bounds(lags_s: np.ndarray, windows_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and last index (P,) of each pair's run of lags with |lag| ≤ its window (as the CPU path cuts it)."""
+    inside = np.abs(lags_s)[None, :] <= windows_s[:, None]
+    first = inside.argmax(axis=1)
+    last = inside.shape[1] - 1 - inside[:, ::-1].argmax(axis=1)
+    return first, last
+
+
+def pair_candidates_torch(audio: np.ndarray, pairs: list[tuple[int, int]], sample_rate_hz: float, windows_s: np.ndarray,
+                          n_candidates: int, weighting: str, band_hz: Any, upsample: int, beta: float,
+                          band_limited: bool = False, device: str = "cuda") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K best GCC peaks of every pair (module docstring), computed on ``device``.
+
+    Parameters
+    ----------
+    audio : numpy.ndarray
+        (E, M, S) recordings.
+    pairs : list of (int, int)
+        Mic pairs; the peak of pair (i, j) lies at t_j − t_i.
+    sample_rate_hz : float
+        Sampling rate, Hz.
+    windows_s : numpy.ndarray
+        (P,) largest |lag| of each pair, s.
+    n_candidates : int
+        Peaks kept per pair (K).
+    weighting, band_hz, upsample, beta, band_limited
+        As :func:`acoustlab.toolkit.dsp.gcc`.
+    device : str
+        A torch device (``cuda``, ``cuda:1``; ``cpu`` runs this path on the CPU, for tests).
+
+    Returns
+    -------
+    lags_s : numpy.ndarray
+        (E, P, K) candidate lags in s, best first (NaN where fewer peaks exist).
+    heights : numpy.ndarray
+        (E, P, K) interpolated GCC heights (NaN likewise).
+    sidelobe : numpy.ndarray
+        (E, P) RMS of the correlation within each pair's window.
+    """
+    import torch
+
+    if weighting not in ("phat", "beta_phat", "none"):
+        raise ValueError(f"gcc weighting must be 'phat', 'beta_phat' or 'none'; got {weighting!r}")
+    if upsample < 1:
+        raise ValueError(f"gcc upsample must be >= 1; got {upsample}")
+    dev = torch.device(device)
+    n_events, _, n_samples = audio.shape
+    windows_s = np.asarray(windows_s, dtype=float)
+    # the same lengths as the CPU path (acoustlab.toolkit.dsp.gcc)
+    max_lag_samples = min(n_samples, int(np.ceil(float(windows_s.max()) * sample_rate_hz)) + 2)
+    n_fft = next_fast_len(2 * n_samples)
+    n_out = n_fft * int(upsample)
+    half = min(max_lag_samples * int(upsample), n_out // 2 - 1)
+    rate_hz = sample_rate_hz * upsample
+    scale = None
+    if band_limited and band_hz is not None:
+        high_hz = float(np.max(np.asarray(band_hz, dtype=float)[..., 1]))
+        reduced = next_fast_len(2 * int(np.ceil(upsample * high_hz / sample_rate_hz * n_fft)) + 2)
+        if reduced < n_out:
+            scale = reduced / n_out
+            n_out = reduced
+            rate_hz = sample_rate_hz * n_out / n_fft
+            half = min(int(np.ceil(max_lag_samples * n_out / n_fft)), n_out // 2 - 1)
+    n_bins = n_fft // 2 + 1
+    n_kept = min(n_bins, n_out // 2 + 1)
+
+    with torch.no_grad():
+        x = torch.as_tensor(np.ascontiguousarray(audio, dtype=np.float32), device=dev)
+        spectra = torch.fft.rfft(x, n=n_fft, dim=-1)[..., :n_kept]  # (E, M, F) complex64
+        del x
+        if weighting != "none":
+            magnitude = spectra.abs()
+            floor = 1e-6 * magnitude.amax(dim=-1, keepdim=True) + 1e-30
+            magnitude = torch.maximum(magnitude, floor)
+            if weighting != "phat":
+                magnitude = magnitude.pow(float(beta))
+            spectra = spectra / magnitude
+            del magnitude
+        i_idx = torch.as_tensor([p[0] for p in pairs], device=dev)
+        j_idx = torch.as_tensor([p[1] for p in pairs], device=dev)
+        cross = spectra[:, i_idx].conj() * spectra[:, j_idx]  # (E, P, F)
+        del spectra
+        cross = cross * _band_mask(band_hz, n_fft, n_kept, sample_rate_hz, n_events, dev)
+        full = torch.fft.irfft(cross, n=n_out, dim=-1)  # zero-padded to n_out // 2 + 1 bins by irfft
+        del cross
+        if scale is not None:
+            full = full * np.float32(scale)
+        cc = torch.cat([full[..., n_out - half:], full[..., : half + 1]], dim=-1)  # (E, P, L), lag −half … +half
+        del full
+        lags_s = np.arange(-half, half + 1) / rate_hz
+        first, last = window_bounds(lags_s, windows_s)
+        offset, height, order, valid, sidelobe = _peaks(cc, torch.as_tensor(first, device=dev), torch.as_tensor(last, device=dev),
+                                                        n_candidates)
+    step = lags_s[1] - lags_s[0]
+    order_np = order.cpu().numpy()
+    offset_np = offset.cpu().numpy()
+    valid_np = valid.cpu().numpy()
+    rel = order_np - first[None, :, None]
+    out_lags = np.where(valid_np, lags_s[first][None, :, None] + (rel + offset_np) * step, np.nan)
+    out_heights = np.where(valid_np, height.cpu().numpy().astype(float), np.nan)
+    return out_lags, out_heights, sidelobe.cpu().numpy().astype(float)
+
+
+def _band_mask(band_hz: Any, n_fft: int, n_kept: int, sample_rate_hz: float, n_events: int, dev: Any) -> Any:
+    """(1, 1, F) or (E, 1, F) float mask of the bins in the band (inclusive edges), ones without a band."""
+    import torch
+
+    if band_hz is None:
+        return torch.ones((1, 1, n_kept), device=dev)
+    freqs = np.fft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)[:n_kept]
+    band = np.asarray(band_hz, dtype=float)
+    if band.ndim == 1:
+        mask = ((freqs >= band[0]) & (freqs <= band[1]))[None, None, :]
+    else:
+        mask = ((freqs >= band[:, :1]) & (freqs <= band[:, 1:]))[:, None, :]
+    return torch.as_tensor(mask.astype(np.float32), device=dev)
+
+
+def _peaks(cc: Any, first: Any, last: Any, k: int) -> tuple[Any, Any, Any, Any, Any]:
+    """Peak picking inside each pair's window [first, last] of cc (E, P, L): offsets, heights, indices, validity (E, P, K), RMS (E, P)."""
+    import torch
+
+    length = cc.shape[-1]
+    index = torch.arange(length, device=cc.device)
+    inside = (index[None, :] >= first[:, None]) & (index[None, :] <= last[:, None])  # (P, L)
+    count = inside.sum(-1).to(cc.dtype)
+    sidelobe = torch.sqrt((torch.where(inside, cc, 0.0) ** 2).sum(-1) / count)
+    outside = torch.tensor(-torch.inf, device=cc.device, dtype=cc.dtype)
+    seg = torch.where(inside, cc, outside)
+    # local maxima with the CPU path's rule: ≥ the left neighbour, > the right one; a neighbour outside the window is −inf
+    left = torch.cat([torch.full_like(seg[..., :1], -torch.inf), seg[..., :-1]], dim=-1)
+    right = torch.cat([seg[..., 1:], torch.full_like(seg[..., :1], -torch.inf)], dim=-1)
+    is_peak = inside & (seg >= left) & (seg > right)
+    masked = torch.where(is_peak, seg, outside)
+    del left, right, is_peak
+    top_values, order = torch.topk(masked, min(k, length), dim=-1)  # sorted, highest first
+    valid = top_values > -torch.inf
+    lo, hi = first[None, :, None], last[None, :, None]
+    mid = torch.gather(cc, -1, order)
+    left_v = torch.gather(cc, -1, torch.clamp(order - 1, min=lo, max=hi).expand_as(order))
+    right_v = torch.gather(cc, -1, torch.clamp(order + 1, min=lo, max=hi).expand_as(order))
+    denom = left_v - 2 * mid + right_v
+    safe = denom.abs() > 1e-15
+    offset = torch.where(safe, 0.5 * (left_v - right_v) / torch.where(safe, denom, torch.ones_like(denom)), torch.zeros_like(denom))
+    offset = offset.clamp(-0.5, 0.5)
+    height = mid - 0.25 * (left_v - right_v) * offset
+    return offset, height, order, valid, sidelobe

@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# The checks that need a CUDA GPU, in one go (a lent GPU machine has minutes, not hours):
+#   1. the gpu-marked tests (the torch GCC on CUDA gives the CPU path's peaks);
+#   2. benchmarks/bench_gcc_device.py: the GCC and the lean feature stage on the GPU against the CPU, and
+#      the first stage's accuracy on each path's features (writes benchmarks/results/gcc_device.*);
+#   3. benchmarks/bench_tabpfn_device.py: the TabPFN point model on CPU and GPU (benchmarks/results/tabpfn_device.*).
+# Usage: bash scripts/gpu_checks.sh OUT_DIR   (each step's log lands in OUT_DIR; a failing step does not stop the next)
+set -uo pipefail
+out=${1:?output dir}
+mkdir -p "$out"
+export PYTHONUNBUFFERED=1
+status=0
+step() {  # step NAME TIMEOUT_S COMMAND...
+    local name=$1 limit=$2
+    shift 2
+    local start=$SECONDS
+    timeout "$limit" "$@" > "$out/$name.log" 2>&1
+    local rc=$?
+    echo "$name: exit $rc after $((SECONDS - start)) s"
+    tail -n 25 "$out/$name.log"
+    [ $rc -eq 0 ] || status=1
+}
+step gpu_tests 180 python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_gcc_device.py
+step bench_gcc_device 420 python3 benchmarks/bench_gcc_device.py --sites forest frozen_lake --n-events 1100 --batch-sizes 16 64 256
+step bench_tabpfn_device 240 python3 benchmarks/bench_tabpfn_device.py
+cp benchmarks/results/gcc_device.* benchmarks/results/tabpfn_device.* "$out"/ 2>/dev/null
+exit $status
