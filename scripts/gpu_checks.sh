@@ -20,8 +20,8 @@ step() {  # step NAME TIMEOUT_S COMMAND...
     tail -n 25 "$out/$name.log"
     [ $rc -eq 0 ] || status=1
 }
-step gpu_tests 180 python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_gcc_device.py
-step bench_gcc_device 420 python3 benchmarks/bench_gcc_device.py --sites forest frozen_lake --n-events 1100 --batch-sizes 16 64 256
-step bench_tabpfn_device 240 python3 benchmarks/bench_tabpfn_device.py
+step gpu_tests 100 python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_gcc_device.py
+step bench_gcc_device 300 python3 benchmarks/bench_gcc_device.py --sites forest frozen_lake --n-events 1100 --batch-sizes 16 64 256
+step bench_tabpfn_device 160 python3 benchmarks/bench_tabpfn_device.py
 cp benchmarks/results/gcc_device.* benchmarks/results/tabpfn_device.* "$out"/ 2>/dev/null
 exit $status
