@@ -3,7 +3,8 @@
 #   1. the gpu-marked tests (the torch GCC on CUDA gives the CPU path's peaks);
 #   2. benchmarks/bench_gcc_device.py: the GCC and the lean feature stage on the GPU against the CPU, and
 #      the first stage's accuracy on each path's features (writes benchmarks/results/gcc_device.*);
-#   3. benchmarks/bench_tabpfn_device.py: the TabPFN point model on CPU and GPU (benchmarks/results/tabpfn_device.*).
+#   3. benchmarks/bench_tabpfn_device.py: the TabPFN point model on CPU and GPU (benchmarks/results/tabpfn_device.*);
+#   4. benchmarks/bench_season_device.py: a forest season end to end, the GCC on the GPU against the CPU (needs XGBoost there).
 # Usage: bash scripts/gpu_checks.sh OUT_DIR   (each step's log lands in OUT_DIR; a failing step does not stop the next)
 set -uo pipefail
 out=${1:?output dir}
@@ -23,5 +24,6 @@ step() {  # step NAME TIMEOUT_S COMMAND...
 step gpu_tests 100 python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_gcc_device.py
 step bench_gcc_device 300 python3 benchmarks/bench_gcc_device.py --sites forest frozen_lake --n-events 1100 --batch-sizes 16 64 256
 step bench_tabpfn_device 160 python3 benchmarks/bench_tabpfn_device.py
-cp benchmarks/results/gcc_device.* benchmarks/results/tabpfn_device.* "$out"/ 2>/dev/null
+step bench_season_device 420 python3 benchmarks/bench_season_device.py --site forest --calls 1000
+cp benchmarks/results/gcc_device.* benchmarks/results/tabpfn_device.* benchmarks/results/season_device.* "$out"/ 2>/dev/null
 exit $status
