@@ -9,7 +9,10 @@ Every result written by :func:`common.write_results` names the commit and the be
   files by their parsed values; a file added since does not count, see :func:`changed_since`);
 - ``code changed``: the script is the same but modules it depends on changed since (they are named:
   re-run it, or say in the results why the change does not matter); the benchmarks' helper modules
-  it imports (``common.py``, ``bench_season.py``, …) are among them;
+  it imports (``common.py``, ``bench_season.py``, …) are among them. A change listed in
+  ``benchmarks/no_effect.yaml`` (its files' versions before and after, and a ``bench_identity.py``
+  comparison showing that the same jobs give identical predictions and metrics) is not counted: see
+  :func:`waived`;
 - ``script changed``: the script differs from the one that made the result (stale: re-run it);
 - ``no provenance``: written before results named their commit (re-run to find out); the detail
   names the commit that last wrote the file, from git history;
@@ -99,6 +102,38 @@ def same_code(old: bytes, new: bytes, name: str) -> bool:
     return old == new
 
 
+#: Changes shown to leave results as they were (module docstring); read by :func:`waived`.
+NO_EFFECT = Path(__file__).resolve().parent / "no_effect.yaml"
+
+
+def _version(commit: str, path: str) -> bytes | None:
+    """``path`` as it was at ``commit`` (None where it did not exist)."""
+    proc = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=REPO, capture_output=True)
+    return proc.stdout if proc.returncode == 0 else None
+
+
+def waived(old: bytes, new: bytes, path: str) -> bool:
+    """Whether going from ``old`` to ``new`` is a change listed in :data:`NO_EFFECT`.
+
+    An entry names ``before`` and ``after`` commits, the ``files`` it covers and its evidence:
+    ``identity``, the labels of two committed ``bench_identity.py`` measurements, one on each side,
+    whose jobs gave the same predictions and metrics (the test suite checks their hashes). It covers ``path`` when the file did then what
+    it does in ``old`` and ``new``: a result made before the change and a file not changed since
+    are current; any other change to the file still counts.
+    """
+    import yaml
+
+    if not NO_EFFECT.is_file():
+        return False
+    for entry in yaml.safe_load(NO_EFFECT.read_text()) or []:
+        if path not in entry["files"]:
+            continue
+        before, after = _version(entry["before"], path), _version(entry["after"], path)
+        if before is not None and after is not None and same_code(before, old, path) and same_code(after, new, path):
+            return True
+    return False
+
+
 def changed_since(commit: str, path: str) -> bool:
     """Whether ``path`` (relative to the repository) does something else now than at ``commit``.
 
@@ -115,7 +150,9 @@ def changed_since(commit: str, path: str) -> bool:
     if not existed:
         return False
     before = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=REPO, capture_output=True)
-    return before.returncode != 0 or not same_code(before.stdout, now.read_bytes(), path)
+    if before.returncode != 0:
+        return True
+    return not same_code(before.stdout, now.read_bytes(), path) and not waived(before.stdout, now.read_bytes(), path)
 
 
 def last_written(path: Path) -> str:

@@ -109,6 +109,51 @@ def test_a_file_added_since_a_result_is_not_a_change_but_an_edited_or_removed_on
     assert check_results.changed_since(first, "removed.py")
 
 
+def test_a_change_shown_to_have_no_effect_is_waived_but_a_later_one_is_not(tmp_path, monkeypatch):
+    """benchmarks/no_effect.yaml waives exactly the listed change of the listed files; anything beyond it still counts."""
+    check_results = _check_results()
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True, text=True).stdout.strip()
+
+    def commit(message: str) -> str:
+        git("add", ".")
+        git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", message)
+        return git("rev-parse", "HEAD")
+
+    git("init", "-q")
+    (tmp_path / "gcc.py").write_text("def f(x):\n    return x\n")
+    (tmp_path / "other.py").write_text("Y = 1\n")
+    result_made = commit("the result's commit")
+    (tmp_path / "gcc.py").write_text("def f(x, device='cpu'):\n    return x\n")
+    (tmp_path / "other.py").write_text("Y = 2\n")
+    after = commit("the change, shown to have no effect on gcc.py's callers")
+    (tmp_path / "no_effect.yaml").write_text(f"- before: {result_made}\n  after: {after}\n  files: [gcc.py]\n  identity: [a, b]\n")
+    monkeypatch.setattr(check_results, "REPO", tmp_path)
+    monkeypatch.setattr(check_results, "NO_EFFECT", tmp_path / "no_effect.yaml")
+    assert not check_results.changed_since(result_made, "gcc.py")
+    assert check_results.changed_since(result_made, "other.py")  # changed in the same commit, but not listed
+    (tmp_path / "gcc.py").write_text("def f(x, device='cpu'):\n    return 2 * x\n")
+    assert check_results.changed_since(result_made, "gcc.py")  # a later change is a change
+
+
+def test_every_waived_change_names_committed_identity_evidence():
+    """Each no_effect.yaml entry names two committed bench_identity measurements (before and after the change)
+    whose jobs gave the same predictions and metrics, hash for hash."""
+    import yaml
+
+    entries = yaml.safe_load((REPO / "benchmarks" / "no_effect.yaml").read_text()) or []
+    assert entries
+    for entry in entries:
+        assert {"before", "after", "files", "identity", "why"} <= set(entry)
+        before, after = (json.loads((RESULTS / f"identity_{label}.json").read_text()) for label in entry["identity"])
+        assert set(before) == set(after) and len(before) >= 3
+        for job in before:
+            assert before[job]["predictions_sha256"] == after[job]["predictions_sha256"], job
+            assert before[job]["metrics_sha256"] == after[job]["metrics_sha256"], job
+        assert all((REPO / f).is_file() for f in entry["files"])
+
+
 def test_a_benchmark_helper_module_the_script_imports_is_a_dependency():
     check_results = _check_results()
     bench = REPO / "benchmarks"
