@@ -118,6 +118,15 @@ def test_cuda_without_a_gpu_is_a_config_error_at_construction():
         TdoaCandidates(gcc={"device": "cuda"})
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA GPU is visible")
+def test_a_method_fitted_on_a_gpu_and_run_without_one_stops_with_the_setting_named(noisy_batches):
+    """A loaded method does not run its constructors again: the GCC itself checks its device (a shard on a CPU node)."""
+    site, batch = noisy_batches["frozen_lake"]
+    with pytest.raises(ConfigError, match="features.gcc.device=cuda: torch .* sees no CUDA GPU"):
+        pair_candidates(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, (300.0, 10000.0), "beta_phat",
+                        2, 0.8, device="cuda")
+
+
 def test_the_default_config_does_not_name_a_device(compose_cfg):
     """The device is not in the default gcc block: default feature cache keys stay what they were (set, it is part of them)."""
     for features in ("physics", "physics_lean"):

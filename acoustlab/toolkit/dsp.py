@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pandas as pd
 import scipy.fft as sfft
@@ -116,11 +118,8 @@ def gcc(
         raise ValueError(f"gcc weighting must be 'phat', 'beta_phat' or 'none'; got {weighting!r}")
     if upsample < 1:
         raise ValueError(f"gcc upsample must be >= 1; got {upsample}")
-    n_samples = audio.shape[-1]
-    max_lag_samples = n_samples if max_lag_s is None else min(n_samples, int(np.ceil(max_lag_s * sample_rate_hz)) + 2)
-    # twice the signal length, always: a (β-)PHAT weighting depends on the spectral resolution (a transform
-    # only as long as the lags need, signal + largest lag, was tried: more gross first-stage errors on the frozen lake)
-    n_fft = next_fast_len(2 * n_samples)
+    size = gcc_lengths(audio.shape[-1], sample_rate_hz, upsample, max_lag_s, band_hz, band_limited)
+    n_fft = size.n_fft
     key = ("weighted_spectra", weighting, float(beta))
     if spectra_cache is None:
         spectra = weighted_spectra(audio, weighting, beta)
@@ -128,22 +127,10 @@ def gcc(
         if key not in spectra_cache:
             spectra_cache[key] = weighted_spectra(audio, weighting, beta)
         spectra = spectra_cache[key]
-    n_bins = spectra.shape[-1]
     in_band = _band_selection(band_hz, n_fft, sample_rate_hz)
     spectra = spectra.astype(np.complex64, copy=False)  # single precision already when the audio is float32
-    n_out = n_fft * int(upsample)
-    half = min(max_lag_samples * int(upsample), n_out // 2 - 1)
-    rate_hz = sample_rate_hz * upsample
-    scale = None
-    if band_limited and band_hz is not None:
-        high_hz = float(np.max(np.asarray(band_hz, dtype=float)[..., 1]))
-        reduced = next_fast_len(2 * int(np.ceil(upsample * high_hz / sample_rate_hz * n_fft)) + 2)
-        if reduced < n_out:  # bins above n_out/2 are all zero: the shorter inverse transform drops only zeros
-            scale = reduced / n_out  # irfft divides by its length
-            n_out = reduced
-            rate_hz = sample_rate_hz * n_out / n_fft
-            half = min(int(np.ceil(max_lag_samples * n_out / n_fft)), n_out // 2 - 1)
-    n_kept = min(n_bins, n_out // 2 + 1)  # bins the inverse transform reads (the rest are zero or padding)
+    n_out, half, rate_hz, scale = size.n_out, size.half, size.rate_hz, size.scale
+    n_kept = min(spectra.shape[-1], n_out // 2 + 1)  # bins the inverse transform reads (the rest are zero or padding)
     # one zero-padded cross-spectrum buffer for every pair: the products are written into its first bins and
     # the padding stays zero, so the inverse transform pads nothing (a copy per pair otherwise)
     cross = np.zeros((audio.shape[0], n_out // 2 + 1), dtype=np.complex64)
@@ -157,6 +144,53 @@ def gcc(
         cc[:, k, half:] = full[:, : half + 1]
     lags_s = np.arange(-half, half + 1) / rate_hz
     return cc, lags_s
+
+
+@dataclass(frozen=True)
+class GccLengths:
+    """Transform lengths and the lag grid of :func:`gcc` (shared with the GPU path, :mod:`acoustlab.toolkit.gcc_torch`).
+
+    Attributes
+    ----------
+    n_fft : int
+        Forward transform length (twice the signal, FFT-friendly).
+    n_out : int
+        Inverse transform length (``upsample`` × ``n_fft``, or shorter when band-limited).
+    half : int
+        Lags kept on each side of zero (the correlation has ``2 · half + 1`` columns).
+    rate_hz : float
+        Sampling rate of the lag grid, Hz.
+    scale : float or None
+        Factor restoring the amplitude of a shortened inverse transform (None when not shortened).
+    """
+
+    n_fft: int
+    n_out: int
+    half: int
+    rate_hz: float
+    scale: float | None
+
+
+def gcc_lengths(n_samples: int, sample_rate_hz: float, upsample: int, max_lag_s: float | None, band_hz=None,
+                band_limited: bool = False) -> GccLengths:
+    """The lengths :func:`gcc` uses for ``n_samples``-long signals (see its parameters)."""
+    max_lag_samples = n_samples if max_lag_s is None else min(n_samples, int(np.ceil(max_lag_s * sample_rate_hz)) + 2)
+    # twice the signal length, always: a (β-)PHAT weighting depends on the spectral resolution (a transform
+    # only as long as the lags need, signal + largest lag, was tried: more gross first-stage errors on the frozen lake)
+    n_fft = next_fast_len(2 * n_samples)
+    n_out = n_fft * int(upsample)
+    half = min(max_lag_samples * int(upsample), n_out // 2 - 1)
+    rate_hz = sample_rate_hz * upsample
+    scale = None
+    if band_limited and band_hz is not None:
+        high_hz = float(np.max(np.asarray(band_hz, dtype=float)[..., 1]))
+        reduced = next_fast_len(2 * int(np.ceil(upsample * high_hz / sample_rate_hz * n_fft)) + 2)
+        if reduced < n_out:  # bins above n_out/2 are all zero: the shorter inverse transform drops only zeros
+            scale = reduced / n_out  # irfft divides by its length
+            n_out = reduced
+            rate_hz = sample_rate_hz * n_out / n_fft
+            half = min(int(np.ceil(max_lag_samples * n_out / n_fft)), n_out // 2 - 1)
+    return GccLengths(n_fft, n_out, half, rate_hz, scale)
 
 
 def _band_selection(band_hz: tuple[float, float] | np.ndarray | None, n_fft: int, sample_rate_hz: float) -> slice | np.ndarray | None:

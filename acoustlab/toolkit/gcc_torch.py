@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.dsp import next_fast_len
+from acoustlab.toolkit.dsp import GccLengths, gcc_lengths
 
 #: Devices the GCC runs on: ``cpu`` is the numpy/SciPy path; ``cuda`` (or ``cuda:N``) this module.
 DEVICE_CHOICES = ("cpu", "cuda")
@@ -97,6 +97,11 @@ def pair_candidates_torch(audio: np.ndarray, pairs: list[tuple[int, int]], sampl
         (E, P, K) interpolated GCC heights (NaN likewise).
     sidelobe : numpy.ndarray
         (E, P) RMS of the correlation within each pair's window.
+
+    Raises
+    ------
+    ConfigError
+        Where ``device`` is not available (a method fitted on a GPU, loaded on a machine without one).
     """
     import torch
 
@@ -104,65 +109,51 @@ def pair_candidates_torch(audio: np.ndarray, pairs: list[tuple[int, int]], sampl
         raise ValueError(f"gcc weighting must be 'phat', 'beta_phat' or 'none'; got {weighting!r}")
     if upsample < 1:
         raise ValueError(f"gcc upsample must be >= 1; got {upsample}")
-    dev = torch.device(device)
-    n_events, _, n_samples = audio.shape
+    dev = torch.device(check_device(device) if device != "cpu" else device)
     windows_s = np.asarray(windows_s, dtype=float)
-    # the same lengths as the CPU path (acoustlab.toolkit.dsp.gcc)
-    max_lag_samples = min(n_samples, int(np.ceil(float(windows_s.max()) * sample_rate_hz)) + 2)
-    n_fft = next_fast_len(2 * n_samples)
-    n_out = n_fft * int(upsample)
-    half = min(max_lag_samples * int(upsample), n_out // 2 - 1)
-    rate_hz = sample_rate_hz * upsample
-    scale = None
-    if band_limited and band_hz is not None:
-        high_hz = float(np.max(np.asarray(band_hz, dtype=float)[..., 1]))
-        reduced = next_fast_len(2 * int(np.ceil(upsample * high_hz / sample_rate_hz * n_fft)) + 2)
-        if reduced < n_out:
-            scale = reduced / n_out
-            n_out = reduced
-            rate_hz = sample_rate_hz * n_out / n_fft
-            half = min(int(np.ceil(max_lag_samples * n_out / n_fft)), n_out // 2 - 1)
-    n_bins = n_fft // 2 + 1
-    n_kept = min(n_bins, n_out // 2 + 1)
-
+    size = gcc_lengths(audio.shape[-1], sample_rate_hz, upsample, float(windows_s.max()), band_hz, band_limited)
+    lags_s = np.arange(-size.half, size.half + 1) / size.rate_hz
+    first, last = window_bounds(lags_s, windows_s)
     with torch.no_grad():
-        x = torch.as_tensor(np.ascontiguousarray(audio, dtype=np.float32), device=dev)
-        spectra = torch.fft.rfft(x, n=n_fft, dim=-1)[..., :n_kept]  # (E, M, F) complex64
-        del x
-        if weighting != "none":
-            magnitude = spectra.abs()
-            floor = 1e-6 * magnitude.amax(dim=-1, keepdim=True) + 1e-30
-            magnitude = torch.maximum(magnitude, floor)
-            if weighting != "phat":
-                magnitude = magnitude.pow(float(beta))
-            spectra = spectra / magnitude
-            del magnitude
-        i_idx = torch.as_tensor([p[0] for p in pairs], device=dev)
-        j_idx = torch.as_tensor([p[1] for p in pairs], device=dev)
-        cross = spectra[:, i_idx].conj() * spectra[:, j_idx]  # (E, P, F)
-        del spectra
-        cross = cross * _band_mask(band_hz, n_fft, n_kept, sample_rate_hz, n_events, dev)
-        full = torch.fft.irfft(cross, n=n_out, dim=-1)  # zero-padded to n_out // 2 + 1 bins by irfft
-        del cross
-        if scale is not None:
-            full = full * np.float32(scale)
-        cc = torch.cat([full[..., n_out - half:], full[..., : half + 1]], dim=-1)  # (E, P, L), lag −half … +half
-        del full
-        lags_s = np.arange(-half, half + 1) / rate_hz
-        first, last = window_bounds(lags_s, windows_s)
+        cc = _correlation(torch.as_tensor(np.ascontiguousarray(audio, dtype=np.float32), device=dev), pairs, sample_rate_hz, size,
+                          weighting, band_hz, beta)
         offset, height, order, valid, sidelobe = _peaks(cc, torch.as_tensor(first, device=dev), torch.as_tensor(last, device=dev),
                                                         n_candidates)
     step = lags_s[1] - lags_s[0]
-    order_np = order.cpu().numpy()
-    offset_np = offset.cpu().numpy()
     valid_np = valid.cpu().numpy()
-    rel = order_np - first[None, :, None]
-    out_lags = np.where(valid_np, lags_s[first][None, :, None] + (rel + offset_np) * step, np.nan)
+    rel = order.cpu().numpy() - first[None, :, None]
+    out_lags = np.where(valid_np, lags_s[first][None, :, None] + (rel + offset.cpu().numpy()) * step, np.nan)
     out_heights = np.where(valid_np, height.cpu().numpy().astype(float), np.nan)
     return out_lags, out_heights, sidelobe.cpu().numpy().astype(float)
 
 
-def _band_mask(band_hz: Any, n_fft: int, n_kept: int, sample_rate_hz: float, n_events: int, dev: Any) -> Any:
+def _correlation(x: Any, pairs: list[tuple[int, int]], sample_rate_hz: float, size: GccLengths, weighting: str, band_hz: Any,
+                 beta: float) -> Any:
+    """(E, P, 2·half + 1) weighted cross-correlation of every pair over lags −half … +half (steps 1 and 2 of the module docstring)."""
+    import torch
+
+    n_kept = min(size.n_fft // 2 + 1, size.n_out // 2 + 1)
+    spectra = torch.fft.rfft(x, n=size.n_fft, dim=-1)[..., :n_kept]  # (E, M, F) complex64
+    if weighting != "none":
+        magnitude = spectra.abs()
+        magnitude = torch.maximum(magnitude, 1e-6 * magnitude.amax(dim=-1, keepdim=True) + 1e-30)
+        if weighting != "phat":
+            magnitude = magnitude.pow(float(beta))
+        spectra = spectra / magnitude
+        del magnitude
+    i_idx = torch.as_tensor([p[0] for p in pairs], device=x.device)
+    j_idx = torch.as_tensor([p[1] for p in pairs], device=x.device)
+    cross = spectra[:, i_idx].conj() * spectra[:, j_idx]  # (E, P, F)
+    del spectra
+    cross = cross * _band_mask(band_hz, size.n_fft, n_kept, sample_rate_hz, x.device)
+    full = torch.fft.irfft(cross, n=size.n_out, dim=-1)  # zero-padded to n_out // 2 + 1 bins by irfft
+    del cross
+    if size.scale is not None:
+        full = full * np.float32(size.scale)
+    return torch.cat([full[..., size.n_out - size.half:], full[..., : size.half + 1]], dim=-1)
+
+
+def _band_mask(band_hz: Any, n_fft: int, n_kept: int, sample_rate_hz: float, dev: Any) -> Any:
     """(1, 1, F) or (E, 1, F) float mask of the bins in the band (inclusive edges), ones without a band."""
     import torch
 
