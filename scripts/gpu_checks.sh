@@ -6,6 +6,11 @@
 #   3. benchmarks/bench_tabpfn_device.py: the TabPFN point model on CPU and GPU (benchmarks/results/tabpfn_device.*);
 #   4. benchmarks/bench_season_device.py: a forest season end to end, the GCC on the GPU against the CPU (needs XGBoost there).
 # Usage: bash scripts/gpu_checks.sh OUT_DIR   (each step's log lands in OUT_DIR; a failing step does not stop the next)
+# On a lent GPU machine without network, carry what its image lacks as wheels for its Python (3.12 there):
+# hydra-core, omegaconf, antlr4-python3-runtime (built here with pip wheel), soundfile, cffi, pycparser,
+# tabpfn, lightgbm, pydantic, pydantic-core, pydantic-settings, python-dotenv, annotated-types,
+# typing-inspection, typing-extensions, skrub, pydot, tabulate and xgboost-cpu; install them with
+# pip install --no-index --no-deps --target DIR and put DIR and the repository on PYTHONPATH.
 set -uo pipefail
 out=${1:?output dir}
 mkdir -p "$out"
