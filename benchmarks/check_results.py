@@ -112,20 +112,24 @@ def _version(commit: str, path: str) -> bytes | None:
     return proc.stdout if proc.returncode == 0 else None
 
 
+@functools.cache  # the same file for every result of one check
+def _no_effect_entries(listing: Path) -> tuple[dict, ...]:
+    """The entries of a :data:`NO_EFFECT` listing (none where the file does not exist)."""
+    import yaml
+
+    return tuple(yaml.safe_load(listing.read_text()) or []) if listing.is_file() else ()
+
+
 def waived(old: bytes, new: bytes, path: str) -> bool:
     """Whether going from ``old`` to ``new`` is a change listed in :data:`NO_EFFECT`.
 
     An entry names ``before`` and ``after`` commits, the ``files`` it covers and its evidence:
     ``identity``, the labels of two committed ``bench_identity.py`` measurements, one on each side,
-    whose jobs gave the same predictions and metrics (the test suite checks their hashes). It covers ``path`` when the file did then what
-    it does in ``old`` and ``new``: a result made before the change and a file not changed since
-    are current; any other change to the file still counts.
+    whose jobs gave the same predictions and metrics (the test suite checks their hashes). It
+    covers ``path`` when the file did then what it does in ``old`` and ``new``: a result made before
+    the change and a file not changed since are current; any other change to the file still counts.
     """
-    import yaml
-
-    if not NO_EFFECT.is_file():
-        return False
-    for entry in yaml.safe_load(NO_EFFECT.read_text()) or []:
+    for entry in _no_effect_entries(NO_EFFECT):
         if path not in entry["files"]:
             continue
         before, after = _version(entry["before"], path), _version(entry["after"], path)
@@ -146,13 +150,11 @@ def changed_since(commit: str, path: str) -> bool:
     now = REPO / path
     if not now.is_file():
         return True  # removed since
-    existed = subprocess.run(["git", "cat-file", "-e", f"{commit}:{path}"], cwd=REPO, capture_output=True).returncode == 0
-    if not existed:
-        return False
-    before = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=REPO, capture_output=True)
-    if before.returncode != 0:
-        return True
-    return not same_code(before.stdout, now.read_bytes(), path) and not waived(before.stdout, now.read_bytes(), path)
+    before = _version(commit, path)
+    if before is None:
+        return False  # added since
+    current = now.read_bytes()
+    return not same_code(before, current, path) and not waived(before, current, path)
 
 
 def last_written(path: Path) -> str:
