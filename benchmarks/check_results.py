@@ -42,7 +42,7 @@ from acoustlab.stages.cache import _code_text_of  # what the cache keys hash: th
 
 #: Results only a GPU can re-run, with the command that makes them.
 GPU_ONLY = {"tabpfn_device": "python benchmarks/bench_tabpfn_device.py",
-            "tabpfn_gpu_end_to_end": "bash scripts/gpu_tabpfn_end_to_end.sh OUT"}
+            "tabpfn_gpu_end_to_end": "python benchmarks/bench_tabpfn_gpu_end_to_end.py"}
 
 
 def _imported_modules(script: Path) -> set[str]:

@@ -14,7 +14,9 @@ from acoustlab.stages.sites import site_from_config
 from acoustlab.toolkit.gcc_candidates import lag_windows_s, pair_candidates
 
 torch = pytest.importorskip("torch")
-from acoustlab.toolkit.gcc_torch import check_device, pair_candidates_torch, window_bounds  # noqa: E402
+from acoustlab.toolkit import gcc_torch  # noqa: E402
+from acoustlab.toolkit.dsp import gcc_lengths  # noqa: E402
+from acoustlab.toolkit.gcc_torch import check_device, events_per_pass, pair_candidates_torch, window_bounds  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -83,22 +85,22 @@ def test_window_bounds_cut_each_pair_as_boolean_indexing_does():
 
 
 def test_feature_groups_route_the_gcc_to_the_configured_device(noisy_batches, monkeypatch):
-    """``features.gcc.device`` reaches pair_candidates (a stand-in records the device; the result is the CPU path's)."""
-    import acoustlab.toolkit.gcc_torch as gcc_torch
+    """``features.gcc.device`` and its memory bound reach pair_candidates (a stand-in records them; the result is the CPU path's)."""
     import plugins.features.gcc_groups as groups
 
     seen = []
     monkeypatch.setattr(groups, "check_device", lambda device: device)  # pretend a GPU is there
 
-    def on_cpu(audio, pairs, fs, windows, k, weighting, band, upsample, beta, band_limited=False, device="cuda"):
-        seen.append(device)
+    def on_cpu(audio, pairs, fs, windows, k, weighting, band, upsample, beta, band_limited=False, device="cuda", memory_gb=4.0):
+        seen.append((device, memory_gb))
         return pair_candidates_torch(audio, pairs, fs, windows, k, weighting, band, upsample, beta, band_limited, device="cpu")
 
     monkeypatch.setattr(gcc_torch, "pair_candidates_torch", on_cpu)
     site, batch = noisy_batches["frozen_lake"]
-    on_gpu = groups.TdoaCandidates(gcc={"device": "cuda:0"}).transform(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site)
+    on_gpu = groups.TdoaCandidates(gcc={"device": "cuda:0", "device_memory_gb": 1.5}).transform(
+        RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site)
     on_host = groups.TdoaCandidates().transform(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site)
-    assert seen == ["cuda:0"]
+    assert seen == [("cuda:0", 1.5)]
     assert list(on_gpu.columns) == list(on_host.columns)
     np.testing.assert_allclose(on_gpu.to_numpy(), on_host.to_numpy(), rtol=0, atol=1e-7)
 
@@ -108,6 +110,47 @@ def test_an_unknown_device_is_a_config_error_naming_the_setting(device, message)
     with pytest.raises(ConfigError, match="features.gcc.device") as info:
         check_device(device)
     assert message in str(info.value)
+
+
+@pytest.mark.parametrize("band", ["one", "per_event"])
+def test_events_in_several_passes_give_the_peaks_of_one_pass(noisy_batches, band):
+    """A memory bound of one event per pass: the same peaks as the whole batch at once (per-event bands cut with their events)."""
+    site, batch = noisy_batches["frozen_lake"]
+    bands = (300.0, 10000.0) if band == "one" else np.tile([[500.0, 8000.0]], (batch.n_events, 1)) + np.arange(batch.n_events)[:, None] * 100.0
+    args = (batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, 0.002), 3, "beta_phat", bands, 2, 0.8, True)
+    size = gcc_lengths(batch.audio.shape[-1], batch.sample_rate_hz, 2, float(lag_windows_s(site, 0.002).max()), bands, True)
+    tiny = 1.5 / (events_per_pass(1.0, site.n_mics, len(site.mic_pairs), size) + 1)  # GiB of about 1.5 events
+    assert events_per_pass(tiny, site.n_mics, len(site.mic_pairs), size) == 1
+    whole = pair_candidates_torch(*args, device="cpu")
+    split = pair_candidates_torch(*args, device="cpu", memory_gb=tiny)
+    for a, b in zip(whole, split, strict=True):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-9)
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+
+
+def test_events_per_pass_grows_with_the_memory_and_refuses_a_non_positive_bound():
+    size = gcc_lengths(26_400, 24_000.0, 2, 0.2)
+    small, large = events_per_pass(1.0, 6, 15, size), events_per_pass(8.0, 6, 15, size)
+    assert 1 <= small and 8 * small <= large < 8 * (small + 1)  # floors of 1 and 8 GiB over one event's bytes
+    assert events_per_pass(1e-6, 6, 15, size) == 1
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ConfigError, match="features.gcc.device_memory_gb must be > 0"):
+            events_per_pass(bad, 6, 15, size)
+    from plugins.features.gcc_groups import TdoaCandidates
+    with pytest.raises(ConfigError, match="features.gcc.device_memory_gb must be > 0"):
+        TdoaCandidates(gcc={"device_memory_gb": 0})
+
+
+def test_a_gpu_out_of_memory_stops_with_the_setting_named(noisy_batches, monkeypatch):
+    site, batch = noisy_batches["frozen_lake"]
+
+    def out_of_memory(*args, **kwargs):
+        raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 9.00 GiB")
+
+    monkeypatch.setattr(gcc_torch, "_correlation", out_of_memory)
+    with pytest.raises(ConfigError, match=r"ran the GPU out of memory; lower features.gcc.device_memory_gb \(now 4.0 GiB\)"):
+        pair_candidates_torch(batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, 0.002), 3, "beta_phat",
+                              (300.0, 10000.0), 2, 0.8, device="cpu")
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA GPU is visible")

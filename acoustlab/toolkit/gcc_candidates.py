@@ -55,30 +55,31 @@ def pair_candidates(
     beta: float = 0.8,
     band_limited: bool = False,
     device: str = "cpu",
+    device_memory_gb: float = 4.0,
 ) -> PairCandidates:
     """The K best GCC peaks of every mic pair of every event (see the module docstring).
 
     ``band_limited`` samples the correlation at ``upsample`` × twice the band's upper edge (see
     :func:`acoustlab.toolkit.dsp.gcc`). ``device="cuda"`` computes the same on a GPU with torch
     (:mod:`acoustlab.toolkit.gcc_torch`: equal up to single-precision rounding); ``"cpu"`` is the
-    numpy/SciPy path.
+    numpy/SciPy path; ``device_memory_gb`` bounds the GPU memory of one pass of events there.
     """
     band_key = band_hz.tobytes() if isinstance(band_hz, np.ndarray) else band_hz
     key = ("pair_candidates", n_candidates, margin_s, band_key, weighting, upsample, beta, band_limited, site.mic_positions_m.tobytes())
     if device != "cpu":
         key = (*key, device)
         return batch.derived(key, lambda: _torch_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta,
-                                                                 band_limited, device))
+                                                                 band_limited, device, device_memory_gb))
     return batch.derived(key, lambda: _compute_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta,
                                                                band_limited))
 
 
 def _torch_pair_candidates(batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz, weighting: str,
-                           upsample: int, beta: float, band_limited: bool, device: str) -> PairCandidates:
+                           upsample: int, beta: float, band_limited: bool, device: str, memory_gb: float) -> PairCandidates:
     from acoustlab.toolkit.gcc_torch import pair_candidates_torch
 
     lags, heights, sidelobe = pair_candidates_torch(batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, margin_s),
-                                                    n_candidates, weighting, band_hz, upsample, beta, band_limited, device)
+                                                    n_candidates, weighting, band_hz, upsample, beta, band_limited, device, memory_gb)
     return PairCandidates(lags, heights, sidelobe)
 
 

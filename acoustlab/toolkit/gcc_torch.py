@@ -18,6 +18,10 @@ up to single-precision rounding of a different FFT library (cuFFT): the chosen p
 ``benchmarks/bench_gcc_device.py`` measures how often and what the first stage does with them. The
 lags themselves are assembled on the host in double precision exactly as the CPU path does.
 
+The events go through in passes of as many as fit ``memory_gb`` of GPU memory (an estimate of the
+pass' largest tensors, :func:`events_per_pass`), so a large feature chunk does not run a small GPU
+out of memory; a GPU that still runs out stops with a :class:`ConfigError` naming the setting.
+
 torch is an optional dependency (``pip install -e ".[tabpfn]"`` brings it); it is imported only
 when this path is asked for.
 """
@@ -29,10 +33,7 @@ from typing import Any
 import numpy as np
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.dsp import GccLengths, gcc_lengths
-
-#: Devices the GCC runs on: ``cpu`` is the numpy/SciPy path; ``cuda`` (or ``cuda:N``) this module.
-DEVICE_CHOICES = ("cpu", "cuda")
+from acoustlab.toolkit.dsp import GccLengths, _band_selection, gcc_lengths
 
 
 def check_device(device: str) -> str:
@@ -69,7 +70,8 @@ def window_bounds(lags_s: np.ndarray, windows_s: np.ndarray) -> tuple[np.ndarray
 
 def pair_candidates_torch(audio: np.ndarray, pairs: list[tuple[int, int]], sample_rate_hz: float, windows_s: np.ndarray,
                           n_candidates: int, weighting: str, band_hz: Any, upsample: int, beta: float,
-                          band_limited: bool = False, device: str = "cuda") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                          band_limited: bool = False, device: str = "cuda", memory_gb: float = 4.0
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """K best GCC peaks of every pair (module docstring), computed on ``device``.
 
     Parameters
@@ -88,6 +90,8 @@ def pair_candidates_torch(audio: np.ndarray, pairs: list[tuple[int, int]], sampl
         As :func:`acoustlab.toolkit.dsp.gcc`.
     device : str
         A torch device (``cuda``, ``cuda:1``; ``cpu`` runs this path on the CPU, for tests).
+    memory_gb : float
+        GPU memory, GiB, that one pass of events may take (see :func:`events_per_pass`).
 
     Returns
     -------
@@ -101,7 +105,8 @@ def pair_candidates_torch(audio: np.ndarray, pairs: list[tuple[int, int]], sampl
     Raises
     ------
     ConfigError
-        Where ``device`` is not available (a method fitted on a GPU, loaded on a machine without one).
+        Where ``device`` is not available (a method fitted on a GPU, loaded on a machine without
+        one), or where a pass runs the GPU out of memory.
     """
     import torch
 
@@ -114,18 +119,49 @@ def pair_candidates_torch(audio: np.ndarray, pairs: list[tuple[int, int]], sampl
     size = gcc_lengths(audio.shape[-1], sample_rate_hz, upsample, float(windows_s.max()), band_hz, band_limited)
     lags_s = np.arange(-size.half, size.half + 1) / size.rate_hz
     first, last = window_bounds(lags_s, windows_s)
-    with torch.no_grad():
-        cc = _correlation(torch.as_tensor(np.ascontiguousarray(audio, dtype=np.float32), device=dev), pairs, sample_rate_hz, size,
-                          weighting, band_hz, beta)
-        offset, height, order, valid, sidelobe = _peaks(cc, torch.as_tensor(first, device=dev), torch.as_tensor(last, device=dev),
-                                                        n_candidates)
+    per_pass = events_per_pass(memory_gb, audio.shape[1], len(pairs), size)
+    banded = band_hz is not None and np.asarray(band_hz).ndim == 2  # one band per event: cut it with the events
+    parts = []
+    for start in range(0, audio.shape[0], per_pass):
+        stop = start + per_pass
+        parts.append(_one_pass(audio[start:stop], pairs, sample_rate_hz, size, weighting, band_hz[start:stop] if banded else band_hz,
+                               beta, first, last, n_candidates, dev, memory_gb))
+    offset, height, order, valid, sidelobe = (np.concatenate(arrays) for arrays in zip(*parts, strict=True))
     step = lags_s[1] - lags_s[0]
-    valid_np = valid.cpu().numpy()
-    rel = order.cpu().numpy() - first[None, :, None]
-    out_lags = np.where(valid_np, lags_s[first][None, :, None] + (rel + offset.cpu().numpy()) * step, np.nan)
-    out_heights = np.where(valid_np, height.cpu().numpy().astype(float), np.nan)
-    return out_lags, out_heights, sidelobe.cpu().numpy().astype(float)
+    rel = order - first[None, :, None]
+    out_lags = np.where(valid, lags_s[first][None, :, None] + (rel + offset) * step, np.nan)
+    out_heights = np.where(valid, height.astype(float), np.nan)
+    return out_lags, out_heights, sidelobe.astype(float)
 
+
+def events_per_pass(memory_gb: float, n_mics: int, n_pairs: int, size: GccLengths) -> int:
+    """Events whose GCC fits ``memory_gb`` GiB: the spectra, cross-spectra, correlations and peak-picking tensors of one event, summed.
+
+    An estimate (bytes per event: 12 per mic and spectrum bin, 8 per pair and cross-spectrum bin,
+    4 per pair and correlation sample, 28 per pair and lag for the peak picking); torch's caching
+    allocator and cuFFT's work areas come on top. At least one event per pass.
+    """
+    if not memory_gb > 0:
+        raise ConfigError(f"features.gcc.device_memory_gb must be > 0; got {memory_gb}")
+    bins = size.n_out // 2 + 1
+    per_event = 12 * n_mics * min(size.n_fft // 2 + 1, bins) + n_pairs * (8 * bins + 4 * size.n_out + 28 * (2 * size.half + 1))
+    return max(1, int(memory_gb * 2**30 // per_event))
+
+
+def _one_pass(audio: np.ndarray, pairs: list[tuple[int, int]], sample_rate_hz: float, size: GccLengths, weighting: str, band_hz: Any,
+              beta: float, first: np.ndarray, last: np.ndarray, n_candidates: int, dev: Any, memory_gb: float) -> tuple[np.ndarray, ...]:
+    """Peaks of one pass of events on ``dev``, as host arrays: offsets, heights, indices, validity (E, P, K), RMS (E, P)."""
+    import torch
+
+    try:
+        with torch.no_grad():
+            cc = _correlation(torch.as_tensor(np.ascontiguousarray(audio, dtype=np.float32), device=dev), pairs, sample_rate_hz, size,
+                              weighting, band_hz, beta)
+            peaks = _peaks(cc, torch.as_tensor(first, device=dev), torch.as_tensor(last, device=dev), n_candidates)
+            return tuple(t.cpu().numpy() for t in peaks)
+    except torch.OutOfMemoryError as exc:
+        raise ConfigError(f"features.gcc.device={dev}: a pass of {audio.shape[0]} events ran the GPU out of memory; "
+                          f"lower features.gcc.device_memory_gb (now {memory_gb} GiB)") from exc
 
 def _correlation(x: Any, pairs: list[tuple[int, int]], sample_rate_hz: float, size: GccLengths, weighting: str, band_hz: Any,
                  beta: float) -> Any:
@@ -154,19 +190,18 @@ def _correlation(x: Any, pairs: list[tuple[int, int]], sample_rate_hz: float, si
 
 
 def _band_mask(band_hz: Any, n_fft: int, n_kept: int, sample_rate_hz: float, dev: Any) -> Any:
-    """(1, 1, F) or (E, 1, F) float mask of the bins in the band (inclusive edges), ones without a band."""
+    """(1, 1, F) or (E, 1, F) float mask of the bins in the band (the CPU path's :func:`acoustlab.toolkit.dsp._band_selection`)."""
     import torch
 
-    if band_hz is None:
+    selection = _band_selection(band_hz, n_fft, sample_rate_hz)
+    if selection is None:
         return torch.ones((1, 1, n_kept), device=dev)
-    freqs = np.fft.rfftfreq(n_fft, d=1.0 / sample_rate_hz)[:n_kept]
-    band = np.asarray(band_hz, dtype=float)
-    if band.ndim == 1:
-        mask = ((freqs >= band[0]) & (freqs <= band[1]))[None, None, :]
+    if isinstance(selection, slice):
+        mask = np.zeros((1, 1, n_kept), dtype=np.float32)
+        mask[..., selection] = 1.0
     else:
-        mask = ((freqs >= band[:, :1]) & (freqs <= band[:, 1:]))[:, None, :]
-    return torch.as_tensor(mask.astype(np.float32), device=dev)
-
+        mask = selection[:, None, :n_kept].astype(np.float32)
+    return torch.as_tensor(mask, device=dev)
 
 def _peaks(cc: Any, first: Any, last: Any, k: int) -> tuple[Any, Any, Any, Any, Any]:
     """Peak picking inside each pair's window [first, last] of cc (E, P, L): offsets, heights, indices, validity (E, P, K), RMS (E, P)."""

@@ -47,7 +47,7 @@ class _GccGroup:
 
     cache_version = "1"
     DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "beta_phat", "beta": 0.8, "upsample": 2, "band_hz": (300.0, 10000.0),
-                "device": "cpu"}
+                "device": "cpu", "device_memory_gb": 4.0}
 
     def __init__(self, gcc: Mapping[str, Any] | None = None, **settings: Any) -> None:
         unknown = sorted((set(gcc or {}) | set(settings)) - set(self.DEFAULTS))
@@ -70,11 +70,14 @@ class _GccGroup:
         # of recordings made at 22 kHz) then produce spurious peaks, so restrict it to the calls' band.
         self.band_hz = None if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
         self.device = check_device(params["device"])
+        self.device_memory_gb = float(params["device_memory_gb"])
+        if not self.device_memory_gb > 0:
+            raise ConfigError(f"features.gcc.device_memory_gb must be > 0; got {params['device_memory_gb']}")
 
     def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
         band = event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz) if band_hz is None else band_hz
         return pair_candidates(batch, site, self.n_candidates, self.max_lag_margin_s, band, self.weighting, self.upsample, self.beta,
-                               device=self.device)
+                               device=self.device, device_memory_gb=self.device_memory_gb)
 
 
 class TdoaCandidates(_GccGroup):
@@ -121,7 +124,7 @@ class XcorrConfidence(_GccGroup):
         cand = self._candidates(batch, site)
         cols = {}
         banded = [pair_candidates(batch, site, 1, self.max_lag_margin_s, b, self.weighting, self.upsample, self.beta, self.extra_bands_band_limited,
-                                  device=self.device)
+                                  device=self.device, device_memory_gb=self.device_memory_gb)
                   for b in self.extra_bands_hz]
         for p, (i, j) in enumerate(site.mic_pairs):
             for k in range(self.n_candidates):
