@@ -121,21 +121,30 @@ def _no_effect_entries(listing: Path) -> tuple[dict, ...]:
 
 
 def waived(old: bytes, new: bytes, path: str) -> bool:
-    """Whether going from ``old`` to ``new`` is a change listed in :data:`NO_EFFECT`.
+    """Whether going from ``old`` to ``new`` is a change listed in :data:`NO_EFFECT`, or a chain of listed changes.
 
     An entry names ``before`` and ``after`` commits, the ``files`` it covers and its evidence:
     ``identity``, the labels of two committed ``bench_identity.py`` measurements, one on each side,
     whose jobs gave the same predictions and metrics (the test suite checks their hashes). It
     covers ``path`` when the file did then what it does in ``old`` and ``new``: a result made before
     the change and a file not changed since are current; any other change to the file still counts.
+    Entries chain: a result made before one listed change of a file is current after a later listed
+    change too, as long as every step from ``old`` to ``new`` is a listed one.
     """
+    steps = []
     for entry in _no_effect_entries(NO_EFFECT):
-        if path not in entry["files"]:
-            continue
-        before, after = _version(entry["before"], path), _version(entry["after"], path)
-        if before is not None and after is not None and same_code(before, old, path) and same_code(after, new, path):
-            return True
-    return False
+        if path in entry["files"]:
+            before, after = _version(entry["before"], path), _version(entry["after"], path)
+            if before is not None and after is not None:
+                steps.append((before, after))
+    reached, todo = [old], [old]
+    while todo:  # the versions a chain of listed changes leads to from ``old``
+        current = todo.pop()
+        for before, after in steps:
+            if same_code(before, current, path) and not any(same_code(after, seen, path) for seen in reached):
+                reached.append(after)
+                todo.append(after)
+    return any(same_code(version, new, path) for version in reached[1:])
 
 
 def changed_since(commit: str, path: str) -> bool:

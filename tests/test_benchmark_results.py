@@ -133,8 +133,16 @@ def test_a_change_shown_to_have_no_effect_is_waived_but_a_later_one_is_not(tmp_p
     monkeypatch.setattr(check_results, "NO_EFFECT", tmp_path / "no_effect.yaml")
     assert not check_results.changed_since(result_made, "gcc.py")
     assert check_results.changed_since(result_made, "other.py")  # changed in the same commit, but not listed
-    (tmp_path / "gcc.py").write_text("def f(x, device='cpu'):\n    return 2 * x\n")
+    (tmp_path / "gcc.py").write_text("def f(x, device='cpu', memory=4):\n    return x\n")
     assert check_results.changed_since(result_made, "gcc.py")  # a later change is a change
+    later = commit("a second change, shown to have no effect either")
+    check_results._no_effect_entries.cache_clear()
+    (tmp_path / "no_effect.yaml").write_text(f"- before: {result_made}\n  after: {after}\n  files: [gcc.py]\n  identity: [a, b]\n"
+                                             f"- before: {after}\n  after: {later}\n  files: [gcc.py]\n  identity: [c, d]\n")
+    assert not check_results.changed_since(result_made, "gcc.py")  # the two listed changes chain
+    assert not check_results.changed_since(after, "gcc.py")
+    (tmp_path / "gcc.py").write_text("def f(x, device='cpu', memory=4):\n    return 2 * x\n")
+    assert check_results.changed_since(result_made, "gcc.py") and check_results.changed_since(after, "gcc.py")
 
 
 def test_every_waived_change_names_committed_identity_evidence():
