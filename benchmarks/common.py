@@ -64,8 +64,30 @@ def script_sha256(script: Path) -> str:
     return file_sha256(script)
 
 
+#: Distributions whose releases can move a result (numerics, learned models, configs); their versions go into every result.
+PACKAGES = ("numpy", "scipy", "pandas", "pyarrow", "scikit-learn", "xgboost", "xgboost-cpu", "torch", "tabpfn", "soundfile",
+            "hydra-core", "omegaconf")
+
+
+def package_versions() -> dict[str, str]:
+    """Installed versions of :data:`PACKAGES` (those not installed are left out)."""
+    from importlib import metadata
+
+    versions = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return versions
+
+
 def provenance() -> dict[str, Any]:
-    """What made a result: the commit (and whether the work tree had changes), the benchmark script and its digest."""
+    """What made a result: the commit (and whether the work tree had changes), the benchmark script and its digest, the package versions.
+
+    Two runs of the same commit can differ where a package release changed (an XGBoost or scikit-learn
+    update moves the learned models' figures): ``packages`` says which releases made this one.
+    """
     script = Path(sys.argv[0]).resolve()
 
     def git(*args: str) -> str:
@@ -76,7 +98,7 @@ def provenance() -> dict[str, Any]:
     changes = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)benchmarks/results")
     return {"commit": git("rev-parse", "HEAD"), "uncommitted_changes": bool(changes),
             "script": script.relative_to(REPO).as_posix() if script.is_relative_to(REPO) else str(script),
-            "script_sha256": script_sha256(script) if script.is_file() else ""}
+            "script_sha256": script_sha256(script) if script.is_file() else "", "packages": package_versions()}
 
 
 def write_results(name: str, result: dict[str, Any], markdown: list[str]) -> None:

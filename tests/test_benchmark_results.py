@@ -39,6 +39,16 @@ def test_results_name_their_commit_and_script():
     assert "Made with commit" in (RESULTS / "real_array.md").read_text()
 
 
+def test_provenance_records_the_package_releases():
+    """A result names the releases it was made with (two runs of one commit can differ where a release changed)."""
+    import importlib.metadata
+
+    made_with = _benchmark_module("common").provenance()
+    assert made_with["packages"]["numpy"] == np.__version__ and made_with["packages"]["pandas"] == pd.__version__
+    assert made_with["packages"]["scikit-learn"] == importlib.metadata.version("scikit-learn")
+    assert "not-a-package" not in made_with["packages"]
+
+
 def test_the_staleness_check_sees_a_changed_script(tmp_path, monkeypatch):
     check_results = _check_results()
     result = tmp_path / "x.json"
