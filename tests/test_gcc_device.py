@@ -145,7 +145,7 @@ def test_a_gpu_out_of_memory_stops_with_the_setting_named(noisy_batches, monkeyp
     site, batch = noisy_batches["frozen_lake"]
 
     def out_of_memory(*args, **kwargs):
-        raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 9.00 GiB")
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory. Tried to allocate 9.00 GiB")
 
     monkeypatch.setattr(gcc_torch, "_correlation", out_of_memory)
     with pytest.raises(ConfigError, match=r"ran the GPU out of memory; lower features.gcc.device_memory_gb \(now 4.0 GiB\)"):

@@ -159,9 +159,10 @@ def _one_pass(audio: np.ndarray, pairs: list[tuple[int, int]], sample_rate_hz: f
                               weighting, band_hz, beta)
             peaks = _peaks(cc, torch.as_tensor(first, device=dev), torch.as_tensor(last, device=dev), n_candidates)
             return tuple(t.cpu().numpy() for t in peaks)
-    except torch.OutOfMemoryError as exc:
+    except torch.cuda.OutOfMemoryError as exc:  # torch.OutOfMemoryError from torch 2.5; the extra allows 2.3
         raise ConfigError(f"features.gcc.device={dev}: a pass of {audio.shape[0]} events ran the GPU out of memory; "
                           f"lower features.gcc.device_memory_gb (now {memory_gb} GiB)") from exc
+
 
 def _correlation(x: Any, pairs: list[tuple[int, int]], sample_rate_hz: float, size: GccLengths, weighting: str, band_hz: Any,
                  beta: float) -> Any:
@@ -202,6 +203,7 @@ def _band_mask(band_hz: Any, n_fft: int, n_kept: int, sample_rate_hz: float, dev
     else:
         mask = selection[:, None, :n_kept].astype(np.float32)
     return torch.as_tensor(mask, device=dev)
+
 
 def _peaks(cc: Any, first: Any, last: Any, k: int) -> tuple[Any, Any, Any, Any, Any]:
     """Peak picking inside each pair's window [first, last] of cc (E, P, L): offsets, heights, indices, validity (E, P, K), RMS (E, P)."""
