@@ -1,36 +1,24 @@
-"""A cheaper CPU GCC, evaluated before it is built: search the peaks on the 1/fs grid, refine them on the 1/(2 fs) grid.
+"""The GCC's coarse search (``features.gcc.search=coarse``) against the default, on the first-stage inputs.
 
-Usage: python benchmarks/bench_gcc_coarse_search.py [--sites forest frozen_lake] [--n-events 1100] [--taps 32]
+Usage: python benchmarks/bench_gcc_coarse_search.py [--sites forest frozen_lake] [--n-events 1100]
 
 The default GCC (β-PHAT, 300–10,000 Hz, upsample 2, K = 3) inverse-transforms every pair's
 cross-spectrum at twice the sampling rate (108,000 points for a 1.1-s clip at 24 kHz) and picks the
 K highest local maxima of that grid. A 1/fs grid alone is 1.6× cheaper but was rejected
-(docs/solvers.md): its parabolic heights reorder peaks whose band reaches near fs/2. The variant
-measured here, written in this script only:
-
-1. the inverse transforms at fs (half as long), scaled to the default's amplitude;
-2. the M highest local maxima of each pair's lag window on that grid (M > K);
-   with the M highest local maxima of the sums of neighbouring samples (a peak between two
-   coarse samples, neither of them a coarse maximum), centred on the higher of the two;
-3. for each, the two half-sample values beside it by band-limited interpolation (a Kaiser-windowed
-   sinc of ``--taps`` taps: the correlation holds nothing above the band's 10 kHz edge), so that
-   each candidate has the five fine-grid samples around it; the fine-grid local maximum among its
-   three central samples and its parabolic refinement, as the default computes them;
-4. the K candidates with the highest fine-grid sample (the default's ranking), best first, with
-   their parabolic heights; the RMS of the coarse window as the sidelobe level.
-
-Where it can differ from the default: a fine-grid peak whose coarse samples both lie far below it
-(a narrow peak half-way between two coarse samples: a 10 kHz component loses up to 74 % there) can
-rank below the M refined ones and be missed.
+(docs/solvers.md): its parabolic heights reorder peaks whose band reaches near fs/2. The coarse
+search (:mod:`acoustlab.toolkit.gcc_coarse`) transforms at fs, and refines the 16 highest local
+maxima and the 16 highest maxima of two-sample sums of each window on the default's grid by
+band-limited interpolation, ranking them as the default does.
 
 On the same simulated events as the GPU benchmark (default simulator, 5 events per source
-position), batches of 16, one process: ms per event of the TDOA stage for the default and the
-variant; how far the interpolated half-sample values lie from the default's exact ones; the share
-of pairs with the same dominant lag (within 1 % of a fine lag step) and with the same K candidates;
-and the first stage (default consistent-set solver, the pipeline's plausibility bound, failures as
-errors) on each: the share > 5 m with a 95 % interval over source positions and the share of events
-whose fix is the same within 1 mm. The shipped LOCA 2021 recording's TDOAs (its 6–10.5 kHz band,
-where the plain 1/fs grid failed) are compared with the upstream reference too.
+position), batches of 16, one process: ms per event of the TDOA stage for both; how far the
+interpolated half-sample values lie from the default's exact ones; the share of pairs with the
+same dominant lag (within 1 % of a fine lag step) and with the same K candidates; and the first
+stage (default consistent-set solver reading the candidates and their heights only, the
+pipeline's plausibility bound, failures as errors) on each: the share > 5 m with a 95 % interval
+over source positions and the share of events whose fix is the same within 1 mm. The shipped LOCA
+2021 recording's TDOAs (its 6–10.5 kHz band, where the plain 1/fs grid failed) are compared with
+the upstream reference too.
 
 Writes benchmarks/results/gcc_coarse_search.{json,md}.
 """
@@ -44,7 +32,6 @@ import time
 
 import numpy as np
 import pandas as pd
-import scipy.signal as ss
 from bench_first_stage import share_ci
 from bench_gcc_device import GROSS_M, SEASON_BATCH, simulate, slices, sub
 from common import compose_cfg, machine, write_results
@@ -58,94 +45,10 @@ from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import bound_fixes, solver_inputs_for
 from acoustlab.toolkit.dsp import gcc
 from acoustlab.toolkit.gcc_candidates import PairCandidates, lag_windows_s, pair_candidates
+from acoustlab.toolkit.gcc_coarse import SEARCHED, TAPS, half_sample_kernel, half_samples
 
 log = logging.getLogger("bench_gcc_coarse_search")
 UPSTREAM_LOCA_TDOA_S = [0.0, 0.0325, -0.002, 0.0316, -0.0086, 0.024]  # tests/test_recordings.py
-
-
-def half_sample_kernel(taps: int, beta: float = 8.6) -> np.ndarray:
-    """Weights (taps,) of x(m + 1/2) from x(m − taps/2 + 1 … m + taps/2): a Kaiser-windowed sinc."""
-    offsets = np.arange(-taps // 2 + 1, taps // 2 + 1) - 0.5
-    return (np.sinc(offsets) * ss.windows.kaiser(taps, beta)).astype(np.float32)
-
-
-def half_samples(cc: np.ndarray, index: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """Interpolated cc(index + 1/2) along the last axis of cc (E, L) for integer ``index`` (E, C) (edges clamped)."""
-    taps = kernel.size
-    around = index[..., None] + np.arange(-taps // 2 + 1, taps // 2 + 1)
-    values = np.take_along_axis(cc[:, None, :], np.clip(around, 0, cc.shape[-1] - 1), -1)
-    return values @ kernel
-
-
-def coarse_search(batch: RecordingBatch, site, k: int, m: int, margin_s: float, band, weighting: str, beta: float,
-                  kernel: np.ndarray) -> PairCandidates:
-    """The variant of the module docstring: search on the 1/fs grid, refine on the 1/(2 fs) grid."""
-    windows = lag_windows_s(site, margin_s)
-    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band, 1, beta, max_lag_s=float(windows.max()))
-    cc *= np.float32(0.5)  # an inverse transform half as long: the default's amplitude
-    fine_step = (lags[1] - lags[0]) / 2
-    e, p = cc.shape[:2]
-    out_lags, out_heights = np.full((e, p, k), np.nan), np.full((e, p, k), np.nan)
-    sidelobe = np.empty((e, p))
-    for pair, max_lag in enumerate(windows):
-        inside = np.flatnonzero(np.abs(lags) <= max_lag)
-        row = cc[:, pair]
-        seg = row[:, inside[0]:inside[-1] + 1]
-        sidelobe[:, pair] = np.sqrt(np.mean(seg.astype(np.float64) ** 2, axis=-1))
-        is_peak = np.ones_like(seg, dtype=bool)
-        is_peak[:, 1:] &= seg[:, 1:] >= seg[:, :-1]
-        is_peak[:, :-1] &= seg[:, :-1] > seg[:, 1:]
-        top, valid = _top_maxima(seg, is_peak, m)
-        # a peak between two coarse samples, neither a coarse maximum: the maxima of the two-sample sums, centred on the higher sample
-        pair_sum = seg[:, :-1] + seg[:, 1:]
-        sum_peak = np.ones_like(pair_sum, dtype=bool)
-        sum_peak[:, 1:] &= pair_sum[:, 1:] >= pair_sum[:, :-1]
-        sum_peak[:, :-1] &= pair_sum[:, :-1] > pair_sum[:, 1:]
-        top_sum, valid_sum = _top_maxima(pair_sum, sum_peak, m)
-        top_sum = top_sum + (np.take_along_axis(seg, top_sum + 1, -1) > np.take_along_axis(seg, top_sum, -1))
-        top, valid = np.concatenate([top, top_sum], axis=-1), np.concatenate([valid, valid_sum], axis=-1)
-        centre = top + inside[0]  # index into the row
-        # five fine samples per candidate: coarse c−1, half c−½, coarse c, half c+½, coarse c+1 (clamped at the row's ends)
-        coarse = np.take_along_axis(row, np.clip(centre[..., None] + np.array([-1, 0, 1]), 0, row.shape[-1] - 1).reshape(e, -1), -1).reshape(e, -1, 3)
-        halves = np.stack([half_samples(row, centre - 1, kernel), half_samples(row, centre, kernel)], axis=-1)
-        fine = np.stack([coarse[..., 0], halves[..., 0], coarse[..., 1], halves[..., 1], coarse[..., 2]], axis=-1)  # (E, M, 5)
-        # the fine-grid local maximum among the three central samples (≥ left, > right, as the default's rule), highest first
-        central = fine[..., 1:4]
-        peak_ok = (central >= fine[..., 0:3]) & (central > fine[..., 2:5])
-        best = np.argmax(np.where(peak_ok, central, -np.inf), axis=-1)  # 0, 1, 2 → fine offset −1, 0, +1 from the centre
-        left, mid, right = (np.take_along_axis(fine, (best + s)[..., None], -1)[..., 0] for s in (0, 1, 2))
-        denom = left - 2 * mid + right
-        safe = np.abs(denom) > 1e-15
-        offset = np.clip(np.where(safe, 0.5 * (left - right) / np.where(safe, denom, 1.0), 0.0), -0.5, 0.5)
-        height = mid - 0.25 * (left - right) * offset
-        rank_value = np.where(valid & peak_ok.any(-1), mid, -np.inf)  # ranked by the fine-grid sample, as the default ranks
-        fine_peak = 2 * (centre - inside[0]) + (best - 1)  # fine steps from the window's first lag
-        rank_value = np.where(_repeated(fine_peak), -np.inf, rank_value)  # one candidate per fine peak
-        fine_index = fine_peak + offset
-        order = np.argsort(-rank_value, axis=-1, kind="stable")[:, :k]
-        ok = np.take_along_axis(rank_value, order, -1) > -np.inf
-        out_lags[:, pair] = np.where(ok, lags[inside[0]] + np.take_along_axis(fine_index, order, -1) * fine_step, np.nan)
-        out_heights[:, pair] = np.where(ok, np.take_along_axis(height, order, -1), np.nan)
-    return PairCandidates(out_lags, out_heights, sidelobe)
-
-
-def _top_maxima(values: np.ndarray, is_peak: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (E, M) of the M highest marked maxima per row, and whether each is one (rows with fewer)."""
-    masked = np.where(is_peak, values, -np.inf)
-    m = min(m, masked.shape[-1] - 1)
-    top = np.argpartition(-masked, m, axis=-1)[:, :m]
-    return top, np.take_along_axis(masked, top, -1) > -np.inf
-
-
-def _repeated(index: np.ndarray) -> np.ndarray:
-    """(E, C) True where a row's value already occurred earlier in the row."""
-    order = np.argsort(index, axis=-1, kind="stable")
-    ordered = np.take_along_axis(index, order, -1)
-    dup_sorted = np.zeros_like(ordered, dtype=bool)
-    dup_sorted[:, 1:] = ordered[:, 1:] == ordered[:, :-1]
-    out = np.zeros_like(dup_sorted)
-    np.put_along_axis(out, order, dup_sorted, -1)
-    return out
 
 
 def timed(fn, batch: RecordingBatch) -> tuple[float, PairCandidates]:
@@ -178,12 +81,12 @@ def fixes(cands: PairCandidates, batch: RecordingBatch, site, cfg, solver) -> tu
             "share_gross_ci95": share_ci(gross, batch.events["position_id"].to_numpy())}, position
 
 
-def evaluate(site_name: str, n_events: int, m: int, kernel: np.ndarray, n_jobs: int) -> dict:
+def evaluate(site_name: str, n_events: int, n_jobs: int) -> dict:
     site, cfg, batch = simulate(site_name, n_events, n_jobs)
     g = cfg.features.gcc
     k, margin, band, weighting, beta = int(g.n_candidates), float(g.max_lag_margin_s), tuple(g.band_hz), str(g.weighting), float(g.beta)
     default_ms, ref = timed(lambda b: pair_candidates(b, site, k, margin, band, weighting, int(g.upsample), beta), batch)
-    variant_ms, var = timed(lambda b: coarse_search(b, site, k, m, margin, band, weighting, beta, kernel), batch)
+    variant_ms, var = timed(lambda b: pair_candidates(b, site, k, margin, band, weighting, int(g.upsample), beta, search="coarse"), batch)
     step = 1.0 / (batch.sample_rate_hz * int(g.upsample))
     both_nan = np.isnan(ref.lags_s) & np.isnan(var.lags_s)
     same = (np.abs(ref.lags_s - var.lags_s) < 0.01 * step) | both_nan
@@ -193,6 +96,7 @@ def evaluate(site_name: str, n_events: int, m: int, kernel: np.ndarray, n_jobs: 
     fine, _ = gcc(part.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band, 2, beta, max_lag_s=float(windows.max()))
     coarse, _ = gcc(part.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band, 1, beta, max_lag_s=float(windows.max()))
     coarse *= np.float32(0.5)
+    kernel = half_sample_kernel()
     n_coarse = coarse.shape[-1]
     idx = np.arange(kernel.size, n_coarse - kernel.size)
     errors = [np.abs(half_samples(coarse[:, p], np.broadcast_to(idx, (part.n_events, idx.size)), kernel) - fine[:, p, 2 * idx + 1]).max()
@@ -211,16 +115,16 @@ def evaluate(site_name: str, n_events: int, m: int, kernel: np.ndarray, n_jobs: 
             "share_same_fix_1mm": float(same_fix.mean())}
 
 
-def loca_tdoas(m: int, kernel: np.ndarray) -> dict:
-    """Dominant TDOAs to mic 0 of the shipped LOCA 2021 recording (band 6–10.5 kHz), default and variant, against upstream's."""
+def loca_tdoas() -> dict:
+    """Dominant TDOAs to mic 0 of the shipped LOCA 2021 recording (band 6–10.5 kHz), default and coarse search, against upstream's."""
     cfg = compose_cfg(["+site=loca2021", "field=recordings", "features.gcc.band_hz=[6000,10500]"])
     site = site_from_config(cfg.site)
     batch = build(cfg.field, "field").load(site)
     g = cfg.features.gcc
     args = (int(g.n_candidates), float(g.max_lag_margin_s), tuple(g.band_hz), str(g.weighting))
     ref = pair_candidates(batch, site, *args, int(g.upsample), float(g.beta))
-    var = coarse_search(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, args[0], m, args[1], args[2], args[3],
-                        float(g.beta), kernel)
+    var = pair_candidates(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, *args, int(g.upsample), float(g.beta),
+                          search="coarse")
     to_mic0 = [p for p, (i, _) in enumerate(site.mic_pairs) if i == 0]
     out = {"upstream": UPSTREAM_LOCA_TDOA_S}
     for name, c in (("default", ref), ("coarse_search", var)):
@@ -234,22 +138,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sites", nargs="+", default=["forest", "frozen_lake"])
     parser.add_argument("--n-events", type=int, default=1100)
-    parser.add_argument("--candidates-searched", type=int, default=16, help="M: coarse maxima refined per pair")
-    parser.add_argument("--taps", type=int, default=32, help="length of the half-sample interpolation kernel")
     parser.add_argument("--n-jobs", type=int, default=os.cpu_count())
     opts = parser.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    kernel = half_sample_kernel(opts.taps)
-    sites = {s: evaluate(s, opts.n_events, opts.candidates_searched, kernel, opts.n_jobs) for s in opts.sites}
-    loca = loca_tdoas(opts.candidates_searched, kernel)
-    lines = ["# A cheaper CPU GCC, evaluated: peaks searched on the 1/fs grid, refined on the 1/(2 fs) grid", "",
-             f"`python benchmarks/bench_gcc_coarse_search.py --sites {' '.join(opts.sites)} --n-events {opts.n_events} "
-             f"--candidates-searched {opts.candidates_searched} --taps {opts.taps}`: a variant written in the benchmark only "
-             "(see its docstring), against the default GCC (β-PHAT, 300–10,000 Hz, upsample 2, K = 3) on the same simulated events, "
+    sites = {s: evaluate(s, opts.n_events, opts.n_jobs) for s in opts.sites}
+    loca = loca_tdoas()
+    lines = ["# The GCC's coarse search: peaks searched on the 1/fs grid, refined on the 1/(2 fs) grid", "",
+             f"`python benchmarks/bench_gcc_coarse_search.py --sites {' '.join(opts.sites)} --n-events {opts.n_events}`: "
+             f"`+features.gcc.search=coarse` ({SEARCHED} + {SEARCHED} candidates refined per pair window, a {TAPS}-tap interpolation kernel; "
+             "acoustlab/toolkit/gcc_coarse.py) against the default GCC (β-PHAT, 300–10,000 Hz, upsample 2, K = 3) on the same simulated events, "
              f"batches of {SEASON_BATCH}, one process; the first stage is the default consistent-set solver with the pipeline's "
              "plausibility bound, failures counted as errors.", "",
-             "| site | TDOA stage, default (ms / event) | variant (ms / event) | speed-up | same dominant lag | same 3 candidates | "
-             "interpolation error / peak | first stage > 5 m, default | variant | same fix (1 mm) |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "| site | TDOA stage, default (ms / event) | coarse search (ms / event) | speed-up | same dominant lag | same 3 candidates | "
+             "interpolation error / peak | first stage > 5 m, default | coarse search | same fix (1 mm) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in sites.items():
         t, f = r["tdoa_ms_per_event"], r["first_stage"]
         cells = [f"{100 * f[v]['share_gross']:.2f} % ({100 * f[v]['share_gross_ci95'][0]:.1f}–{100 * f[v]['share_gross_ci95'][1]:.1f})"
@@ -260,9 +161,9 @@ def main() -> None:
                      f"{cells[0]} | {cells[1]} | {100 * r['share_same_fix_1mm']:.2f} % |")
     lines += ["", "The shipped LOCA 2021 recording (band 6–10.5 kHz), dominant TDOAs to mic 0, s: upstream "
               f"{loca['upstream']}; default {[round(v, 5) for v in loca['default']]} (largest difference "
-              f"{loca['default_max_diff_from_upstream_s'] * 1e3:.2f} ms); variant {[round(v, 5) for v in loca['coarse_search']]} "
+              f"{loca['default_max_diff_from_upstream_s'] * 1e3:.2f} ms); coarse search {[round(v, 5) for v in loca['coarse_search']]} "
               f"(largest difference {loca['coarse_search_max_diff_from_upstream_s'] * 1e3:.2f} ms)."]
-    write_results("gcc_coarse_search", {"machine": machine(), "candidates_searched": opts.candidates_searched, "taps": opts.taps,
+    write_results("gcc_coarse_search", {"machine": machine(), "candidates_searched": SEARCHED, "taps": TAPS,
                                         "sites": sites, "loca2021": loca}, lines)
     log.info("\n".join(lines))
 

@@ -56,6 +56,7 @@ def pair_candidates(
     band_limited: bool = False,
     device: str = "cpu",
     device_memory_gb: float = 4.0,
+    search: str = "fine",
 ) -> PairCandidates:
     """The K best GCC peaks of every mic pair of every event (see the module docstring).
 
@@ -63,9 +64,15 @@ def pair_candidates(
     :func:`acoustlab.toolkit.dsp.gcc`). ``device="cuda"`` computes the same on a GPU with torch
     (:mod:`acoustlab.toolkit.gcc_torch`: equal up to single-precision rounding); ``"cpu"`` is the
     numpy/SciPy path; ``device_memory_gb`` bounds the GPU memory of one pass of events there.
+    ``search="coarse"`` (CPU, ``upsample=2``, not band-limited) searches the peaks on the 1/fs grid
+    and refines them on the 1/(2 fs) grid (:mod:`acoustlab.toolkit.gcc_coarse`: 1.65× cheaper, the
+    same dominant lag on 99.88 % of forest pairs).
     """
     band_key = band_hz.tobytes() if isinstance(band_hz, np.ndarray) else band_hz
     key = ("pair_candidates", n_candidates, margin_s, band_key, weighting, upsample, beta, band_limited, site.mic_positions_m.tobytes())
+    if search == "coarse":
+        key = (*key, "coarse")
+        return batch.derived(key, lambda: _coarse_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, beta))
     if device != "cpu":
         key = (*key, device)
         return batch.derived(key, lambda: _torch_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta,
@@ -80,6 +87,16 @@ def _torch_pair_candidates(batch: RecordingBatch, site: Site, n_candidates: int,
 
     lags, heights, sidelobe = pair_candidates_torch(batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, margin_s),
                                                     n_candidates, weighting, band_hz, upsample, beta, band_limited, device, memory_gb)
+    return PairCandidates(lags, heights, sidelobe)
+
+
+def _coarse_pair_candidates(batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz, weighting: str,
+                            beta: float) -> PairCandidates:
+    from acoustlab.toolkit.gcc_coarse import coarse_pair_candidates
+
+    shared = batch.derived("gcc_spectra", dict)  # the weighted spectra, shared with the other bands of the batch
+    lags, heights, sidelobe = coarse_pair_candidates(batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, margin_s),
+                                                     n_candidates, weighting, band_hz, beta, spectra_cache=shared)
     return PairCandidates(lags, heights, sidelobe)
 
 

@@ -43,11 +43,19 @@ class _GccGroup:
         Where the GCC runs: the numpy/SciPy path, or torch on a GPU (the same peaks up to
         single-precision rounding; ``+features.gcc.device=cuda``, see docs/season.md). Not in the
         default config, so the default cache keys do not name it; set, it is part of the key.
+    device_memory_gb : float
+        With a GPU device: GPU memory, GiB, one pass of events may take (a feature chunk larger
+        than that runs in several passes; ``+features.gcc.device_memory_gb=2`` for a small GPU).
+    search : {"fine", "coarse"}
+        ``fine``: the peaks of the 1/(2 fs) lag grid (default). ``coarse``: searched on the 1/fs
+        grid and refined on the 1/(2 fs) grid by band-limited interpolation, 1.65× cheaper on the
+        CPU with the same first-stage accuracy (:mod:`acoustlab.toolkit.gcc_coarse`); for the CPU
+        path with ``upsample: 2``. Not in the default config; set, it is part of the key.
     """
 
     cache_version = "1"
     DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "beta_phat", "beta": 0.8, "upsample": 2, "band_hz": (300.0, 10000.0),
-                "device": "cpu", "device_memory_gb": 4.0}
+                "device": "cpu", "device_memory_gb": 4.0, "search": "fine"}
 
     def __init__(self, gcc: Mapping[str, Any] | None = None, **settings: Any) -> None:
         unknown = sorted((set(gcc or {}) | set(settings)) - set(self.DEFAULTS))
@@ -73,11 +81,17 @@ class _GccGroup:
         self.device_memory_gb = float(params["device_memory_gb"])
         if not self.device_memory_gb > 0:
             raise ConfigError(f"features.gcc.device_memory_gb must be > 0; got {params['device_memory_gb']}")
+        self.search = str(params["search"])
+        if self.search not in ("fine", "coarse"):
+            raise ConfigError(f"features.gcc.search must be 'fine' or 'coarse'; got {params['search']!r}")
+        if self.search == "coarse" and (self.device != "cpu" or self.upsample != 2):
+            raise ConfigError(f"features.gcc.search=coarse refines on the grid of upsample=2 with the CPU path; got upsample={self.upsample}, "
+                              f"device={self.device} (use search=fine there)")
 
     def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
         band = event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz) if band_hz is None else band_hz
         return pair_candidates(batch, site, self.n_candidates, self.max_lag_margin_s, band, self.weighting, self.upsample, self.beta,
-                               device=self.device, device_memory_gb=self.device_memory_gb)
+                               device=self.device, device_memory_gb=self.device_memory_gb, search=self.search)
 
 
 class TdoaCandidates(_GccGroup):
