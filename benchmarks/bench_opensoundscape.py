@@ -7,7 +7,8 @@ Usage::
 OpenSoundscape is not a dependency of acoustlab; ``--osl-python`` is an interpreter where
 ``import opensoundscape.localization`` works. Made here with a venv that sees this environment's
 packages (``python -m venv --system-site-packages VENV``) and ``VENV/bin/pip install --no-deps
-opensoundscape==0.13.2 librosa aru-metadata-parser noisereduce PyWavelets pytz``. The package's
+opensoundscape==0.13.2 librosa aru-metadata-parser noisereduce PyWavelets pytz lazy_loader audioread
+soxr numba llvmlite msgpack pooch``. The package's
 ``__init__`` imports its machine-learning modules, whose torchvision and torchaudio have no build for
 torch 2.13; the driver imports ``opensoundscape.localization`` (which needs none of them) from the
 package's folder without running that ``__init__``.
@@ -29,7 +30,8 @@ detector would.
 * **acoustlab**, in this process on the same files: reading the 6 clips of each event
   (soundfile), features (``features=physics`` and ``features=physics_lean``, in batches of 16 events as
   a season run computes them), and the default solver
-  (consistent set, 3-D) with its diagnostics. The fitted method adds about 3 ms per detection
+  (consistent set, 3-D) with its diagnostics; the lean set once more with ``+features.gcc.search=coarse``
+  (the GCC's peaks searched on the 1/fs grid), solved again. The fitted method adds about 3 ms per detection
   (``benchmarks/results/season_forest.md``) and is not run here: it needs a method fitted on
   simulation first.
 
@@ -229,25 +231,32 @@ def main() -> None:
     audio, rate = read_clips(folder, n_mics, opts.n_events, n_samples)
     t["read"] = time.process_time() - start
     ours = {}
-    for name in ("physics", "physics_lean"):
-        sets = build_feature_sets(compose_cfg(["+site=forest", f"features={name}"]).features)
+    feature_configs = {"physics": ["features=physics"], "physics_lean": ["features=physics_lean"],
+                       "physics_lean, coarse search": ["features=physics_lean", "+features.gcc.search=coarse"]}
+    for name, overrides in feature_configs.items():
+        sets = build_feature_sets(compose_cfg(["+site=forest", *overrides]).features)
         start = time.process_time()
         parts = [extract_features(RecordingBatch(audio[k:k + BATCH_EVENTS], rate, batch.events.iloc[k:k + BATCH_EVENTS].reset_index(drop=True)),
                                   site, sets) for k in range(0, opts.n_events, BATCH_EVENTS)]
         ours[name] = pd.concat(parts, ignore_index=True)
         t[f"features ({name})"] = time.process_time() - start
-    start = time.process_time()
-    table = add_solver_columns(ours["physics_lean"], batch.events, site, build(cfg.solver, "solver"), float(cfg.pipeline.plausible_margin_fraction))
-    t["solver"] = time.process_time() - start
     tx, ty = batch.events[col.TRUE_X].to_numpy(float), batch.events[col.TRUE_Y].to_numpy(float)
-    our_err = errors_m(table[col.SOLVER_X].to_numpy(float), table[col.SOLVER_Y].to_numpy(float), tx, ty)
+    errors = {}
+    for name, solver_key in (("physics_lean", "solver"), ("physics_lean, coarse search", "solver (coarse search)")):
+        start = time.process_time()
+        table = add_solver_columns(ours[name], batch.events, site, build(cfg.solver, "solver"), float(cfg.pipeline.plausible_margin_fraction))
+        t[solver_key] = time.process_time() - start
+        errors[name] = summary(errors_m(table[col.SOLVER_X].to_numpy(float), table[col.SOLVER_Y].to_numpy(float), tx, ty),
+                               batch.events[col.POSITION_ID].to_numpy())
     ms = {k: 1000 * v / opts.n_events for k, v in t.items()}
     ours_full = ms["read"] + ms["features (physics)"] + ms["solver"]
     ours_lean = ms["read"] + ms["features (physics_lean)"] + ms["solver"]
-    a = summary(our_err, batch.events[col.POSITION_ID].to_numpy())
+    ours_coarse = ms["read"] + ms["features (physics_lean, coarse search)"] + ms["solver (coarse search)"]
+    a = errors["physics_lean"]
     result = {"machine": machine(), "n_events": opts.n_events, "opensoundscape_version": version, "speed_of_sound_m_s": speed,
-              "opensoundscape": osl, "acoustlab_ms_per_call": ms, "acoustlab_first_stage_ms": {"physics": ours_full, "physics_lean": ours_lean},
-              "acoustlab_solver_errors": a}
+              "opensoundscape": osl, "acoustlab_ms_per_call": ms,
+              "acoustlab_first_stage_ms": {"physics": ours_full, "physics_lean": ours_lean, "physics_lean_coarse_search": ours_coarse},
+              "acoustlab_solver_errors": a, "acoustlab_solver_errors_coarse_search": errors["physics_lean, coarse search"]}
     lines = ["# OpenSoundscape (released) against acoustlab's first stage, same forest detections", "",
              f"`python benchmarks/bench_opensoundscape.py --osl-python PYTHON --n-events {opts.n_events}` (OpenSoundscape {version}; "
              f"{machine()['cpus']} CPUs, one run). {opts.n_events} simulated forest events at {opts.n_events // 5} source positions "
@@ -264,7 +273,11 @@ def main() -> None:
                       str(opts.n_events), o["errors_lowest_residual_per_call"])]
     lines += [row("acoustlab read + features=physics + solver (consistent set)", ours_full, f"{ours_full / ours_lean:.2f}×",
                   str(opts.n_events), a),
-              row("acoustlab read + features=physics_lean + solver (consistent set)", ours_lean, "1.00×", str(opts.n_events), a), "",
+              row("acoustlab read + features=physics_lean + solver (consistent set)", ours_lean, "1.00×", str(opts.n_events), a),
+              row("acoustlab read + features=physics_lean with +features.gcc.search=coarse + solver", ours_coarse,
+                  f"{ours_coarse / ours_lean:.2f}×", str(opts.n_events), errors["physics_lean, coarse search"]), "",
+              "OpenSoundscape's CPU per call over acoustlab's lean first stage with the coarse search: "
+              + ", ".join(f"{o['ms_per_call'] / ours_coarse:.1f}× ({name})" for name, o in osl.items()) + ".", "",
               "acoustlab's stages, CPU ms per call: " + ", ".join(f"{k} {v:.1f}" for k, v in ms.items()) + ". The solver's fixes "
               "are the same with either feature set (it reads only the tdoa and xcorr main-band columns); the fitted method "
               "(gate, radii) adds about 3 ms per detection and is not run here. OpenSoundscape's import: "
