@@ -96,6 +96,16 @@ def test_bad_search_settings_are_config_errors_naming_the_setting(settings, mess
         TdoaCandidates(gcc=settings)
 
 
+def test_pair_candidates_itself_refuses_a_coarse_search_it_cannot_do(batches):
+    """A caller of the toolkit (not only the feature groups) gets the error, never the upsample-2 grid under another name."""
+    site, batch = batches["frozen_lake"]
+    for upsample, band_limited, message in ((4, False, "upsample=4"), (2, True, "band_limited=True")):
+        with pytest.raises(ConfigError, match=f"features.gcc.search=coarse.*{message}"):
+            pair_candidates(_fresh(batch), site, 3, 0.002, (300.0, 10000.0), "beta_phat", upsample, 0.8, band_limited, search="coarse")
+    with pytest.raises(ConfigError, match="must be 'fine' or 'coarse'"):
+        pair_candidates(_fresh(batch), site, 3, 0.002, (300.0, 10000.0), "beta_phat", 2, 0.8, search="medium")
+
+
 def test_the_default_config_does_not_name_the_search(compose_cfg):
     """Not in the default gcc block: the default feature cache keys stay what they were."""
     for features in ("physics", "physics_lean"):

@@ -254,6 +254,14 @@ def event_band_hz(events: pd.DataFrame, default: tuple[float, float] | None, sam
     return np.clip(band, 0.0, sample_rate_hz / 2)
 
 
+def local_maxima(values: np.ndarray) -> np.ndarray:
+    """(E, L) True at the local maxima along the last axis: ≥ the left neighbour, > the right one, edges allowed (the GCC's peak rule)."""
+    is_peak = np.ones_like(values, dtype=bool)
+    is_peak[:, 1:] &= values[:, 1:] >= values[:, :-1]
+    is_peak[:, :-1] &= values[:, :-1] > values[:, 1:]
+    return is_peak
+
+
 def parabolic_peak(values: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Sub-sample peak offset and height by fitting a parabola through a peak and its neighbours.
 

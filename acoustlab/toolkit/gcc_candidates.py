@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from acoustlab.core.types import RecordingBatch, Site
-from acoustlab.toolkit.dsp import gcc, parabolic_peak
+from acoustlab.toolkit.dsp import gcc, local_maxima, parabolic_peak
+from acoustlab.toolkit.gcc_coarse import check_search, coarse_pair_candidates
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 
@@ -68,6 +69,7 @@ def pair_candidates(
     and refines them on the 1/(2 fs) grid (:mod:`acoustlab.toolkit.gcc_coarse`: 1.65× cheaper, the
     same dominant lag on 99.88 % of forest pairs).
     """
+    check_search(search, upsample, band_limited, device)
     band_key = band_hz.tobytes() if isinstance(band_hz, np.ndarray) else band_hz
     key = ("pair_candidates", n_candidates, margin_s, band_key, weighting, upsample, beta, band_limited, site.mic_positions_m.tobytes())
     if search == "coarse":
@@ -92,8 +94,6 @@ def _torch_pair_candidates(batch: RecordingBatch, site: Site, n_candidates: int,
 
 def _coarse_pair_candidates(batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz, weighting: str,
                             beta: float) -> PairCandidates:
-    from acoustlab.toolkit.gcc_coarse import coarse_pair_candidates
-
     shared = batch.derived("gcc_spectra", dict)  # the weighted spectra, shared with the other bands of the batch
     lags, heights, sidelobe = coarse_pair_candidates(batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, margin_s),
                                                      n_candidates, weighting, band_hz, beta, spectra_cache=shared)
@@ -120,11 +120,7 @@ def _compute_pair_candidates(
         seg = np.asfortranarray(cc[:, k, inside[0]:inside[-1] + 1])
         first_lag = lags[inside[0]]
         sidelobe[:, k] = np.sqrt(np.mean(seg**2, axis=-1))
-        # local maxima (with edges allowed), then the K highest
-        is_peak = np.ones_like(seg, dtype=bool)
-        is_peak[:, 1:] &= seg[:, 1:] >= seg[:, :-1]
-        is_peak[:, :-1] &= seg[:, :-1] > seg[:, 1:]
-        masked = np.where(is_peak, seg, -np.inf)
+        masked = np.where(local_maxima(seg), seg, -np.inf)  # local maxima (edges allowed), then the K highest
         top = np.argpartition(-masked, min(n_candidates, masked.shape[-1] - 1), axis=-1)[:, :n_candidates]
         order = np.take_along_axis(top, np.argsort(-np.take_along_axis(masked, top, -1), axis=-1), -1)
         valid = np.take_along_axis(masked, order, -1) > -np.inf

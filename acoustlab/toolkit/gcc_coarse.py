@@ -33,13 +33,28 @@ import functools
 import numpy as np
 import scipy.signal as ss
 
-from acoustlab.toolkit.dsp import gcc
+from acoustlab.core.errors import ConfigError
+from acoustlab.toolkit.dsp import gcc, local_maxima, parabolic_peak
 
 #: Coarse maxima refined per pair window and kind (maxima of the samples, maxima of the two-sample sums).
 SEARCHED = 16
 
 #: Taps of the half-sample interpolation kernel (an error of about 3e-5 of the peak on the forest).
 TAPS = 32
+
+
+def check_search(search: str, upsample: int, band_limited: bool = False, device: str = "cpu") -> str:
+    """``search`` if the GCC can search that way with these settings, else a :class:`ConfigError` naming ``features.gcc.search``.
+
+    ``fine`` always works; ``coarse`` refines on the grid of ``upsample=2``, with the CPU path and
+    the main band (not band-limited).
+    """
+    if search not in ("fine", "coarse"):
+        raise ConfigError(f"features.gcc.search must be 'fine' or 'coarse'; got {search!r}")
+    if search == "coarse" and (device != "cpu" or int(upsample) != 2 or band_limited):
+        raise ConfigError(f"features.gcc.search=coarse refines on the grid of upsample=2 with the CPU path; got upsample={upsample}, "
+                          f"device={device}, band_limited={band_limited} (use search=fine there)")
+    return search
 
 
 @functools.lru_cache(maxsize=4)
@@ -116,14 +131,6 @@ def coarse_pair_candidates(audio: np.ndarray, pairs: list[tuple[int, int]], samp
     return lags_out, heights_out, sidelobe
 
 
-def _local_maxima(values: np.ndarray) -> np.ndarray:
-    """(E, L) True at local maxima along the last axis: ≥ the left neighbour, > the right one, edges allowed."""
-    is_peak = np.ones_like(values, dtype=bool)
-    is_peak[:, 1:] &= values[:, 1:] >= values[:, :-1]
-    is_peak[:, :-1] &= values[:, :-1] > values[:, 1:]
-    return is_peak
-
-
 def _top(values: np.ndarray, marked: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
     """Indices (E, m') of the m highest marked values per row (m' = min(m, L − 1)), and which of them are marked."""
     masked = np.where(marked, values, -np.inf)
@@ -134,11 +141,11 @@ def _top(values: np.ndarray, marked: np.ndarray, m: int) -> tuple[np.ndarray, np
 
 def _centres(seg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Samples (E, C) of a window to refine around: the top local maxima and the top maxima of two-sample sums (on their higher sample)."""
-    top, valid = _top(seg, _local_maxima(seg), SEARCHED)
+    top, valid = _top(seg, local_maxima(seg), SEARCHED)
     if seg.shape[-1] < 2:
         return top, valid
     sums = seg[:, :-1] + seg[:, 1:]
-    top_sum, valid_sum = _top(sums, _local_maxima(sums), SEARCHED)
+    top_sum, valid_sum = _top(sums, local_maxima(sums), SEARCHED)
     top_sum = top_sum + (np.take_along_axis(seg, top_sum + 1, -1) > np.take_along_axis(seg, top_sum, -1))
     return np.concatenate([top, top_sum], axis=-1), np.concatenate([valid, valid_sum], axis=-1)
 
@@ -156,11 +163,8 @@ def _refine(row: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> tuple[np
     central = fine[..., 1:4]
     peak_ok = (central >= fine[..., 0:3]) & (central > fine[..., 2:5])
     best = np.argmax(np.where(peak_ok, central, -np.inf), axis=-1)  # 0, 1, 2: fine offsets −1, 0, +1 from the centre
-    left, mid, right = (np.take_along_axis(fine, (best + s)[..., None], -1)[..., 0] for s in (0, 1, 2))
-    denom = left - 2 * mid + right
-    safe = np.abs(denom) > 1e-15
-    offset = np.clip(np.where(safe, 0.5 * (left - right) / np.where(safe, denom, 1.0), 0.0), -0.5, 0.5)
-    height = mid - 0.25 * (left - right) * offset
+    offset, height = parabolic_peak(fine, best + 1)  # the peak's neighbours are always among the five samples
+    mid = np.take_along_axis(fine, (best + 1)[..., None], -1)[..., 0]
     value = np.where(peak_ok.any(-1), mid, -np.inf)
     return 2 * centre + best - 1, offset, value, height
 

@@ -60,6 +60,14 @@ def check_device(device: str) -> str:
     return name
 
 
+def check_memory_gb(memory_gb: float) -> float:
+    """``memory_gb`` as a float if it is a usable bound (> 0 GiB), else a :class:`ConfigError` naming ``features.gcc.device_memory_gb``."""
+    value = float(memory_gb)
+    if not value > 0:
+        raise ConfigError(f"features.gcc.device_memory_gb must be > 0; got {memory_gb}")
+    return value
+
+
 def window_bounds(lags_s: np.ndarray, windows_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First and last index (P,) of each pair's run of lags with |lag| ≤ its window (as the CPU path cuts it)."""
     inside = np.abs(lags_s)[None, :] <= windows_s[:, None]
@@ -141,8 +149,7 @@ def events_per_pass(memory_gb: float, n_mics: int, n_pairs: int, size: GccLength
     4 per pair and correlation sample, 28 per pair and lag for the peak picking); torch's caching
     allocator and cuFFT's work areas come on top. At least one event per pass.
     """
-    if not memory_gb > 0:
-        raise ConfigError(f"features.gcc.device_memory_gb must be > 0; got {memory_gb}")
+    check_memory_gb(memory_gb)
     bins = size.n_out // 2 + 1
     per_event = 12 * n_mics * min(size.n_fft // 2 + 1, bins) + n_pairs * (8 * bins + 4 * size.n_out + 28 * (2 * size.half + 1))
     return max(1, int(memory_gb * 2**30 // per_event))

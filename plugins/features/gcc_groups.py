@@ -13,7 +13,8 @@ from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.dsp import event_band_hz
 from acoustlab.toolkit.gcc_candidates import pair_candidates
-from acoustlab.toolkit.gcc_torch import check_device
+from acoustlab.toolkit.gcc_coarse import check_search
+from acoustlab.toolkit.gcc_torch import check_device, check_memory_gb
 
 
 class _GccGroup:
@@ -78,15 +79,8 @@ class _GccGroup:
         # of recordings made at 22 kHz) then produce spurious peaks, so restrict it to the calls' band.
         self.band_hz = None if band_hz is None else (float(band_hz[0]), float(band_hz[1]))
         self.device = check_device(params["device"])
-        self.device_memory_gb = float(params["device_memory_gb"])
-        if not self.device_memory_gb > 0:
-            raise ConfigError(f"features.gcc.device_memory_gb must be > 0; got {params['device_memory_gb']}")
-        self.search = str(params["search"])
-        if self.search not in ("fine", "coarse"):
-            raise ConfigError(f"features.gcc.search must be 'fine' or 'coarse'; got {params['search']!r}")
-        if self.search == "coarse" and (self.device != "cpu" or self.upsample != 2):
-            raise ConfigError(f"features.gcc.search=coarse refines on the grid of upsample=2 with the CPU path; got upsample={self.upsample}, "
-                              f"device={self.device} (use search=fine there)")
+        self.device_memory_gb = check_memory_gb(params["device_memory_gb"])
+        self.search = check_search(str(params["search"]), self.upsample, device=self.device)
 
     def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
         band = event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz) if band_hz is None else band_hz
