@@ -112,3 +112,21 @@ def test_the_default_config_does_not_name_the_search(compose_cfg):
         assert "search" not in compose_cfg(["+site=frozen_lake", f"features={features}"]).features.gcc
     cfg = compose_cfg(["+site=forest", "features=physics_lean", "+features.gcc.search=coarse"])
     assert cfg.features.groups.tdoa.gcc.search == "coarse" and cfg.features.groups.uncertainty.gcc.search == "coarse"
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e25])
+def test_top_marked_values_equal_the_masked_argpartition(scale):
+    """``_top`` ranks marked values without np.where's branches; its indices are argpartition's on the −inf-masked values, in the
+    same order (so ties resolve as before), also where values are too large for the finite stand-in (the masked fallback)."""
+    from acoustlab.toolkit.gcc_coarse import _top
+
+    rng = np.random.default_rng(11)
+    values = (scale * np.round(rng.standard_normal((40, 300)), 1)).astype(np.float32)  # rounded: many exact ties
+    marked = rng.random(values.shape) < 0.3
+    marked[0] = False  # a row with nothing marked
+    for m in (1, 5, 16):
+        top, valid = _top(values, marked, m)
+        masked = np.where(marked, values, -np.inf)
+        expected = np.argpartition(-masked, m - 1, axis=-1)[:, :m]
+        np.testing.assert_array_equal(top, expected)
+        np.testing.assert_array_equal(valid, np.take_along_axis(masked, expected, -1) > -np.inf)

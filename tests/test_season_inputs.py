@@ -52,6 +52,25 @@ def test_a_clip_across_file_boundaries_equals_the_clip_from_one_joined_file(seas
     files.close()
 
 
+@pytest.mark.parametrize("subtype", ["PCM_16", "PCM_24", "FLOAT"])
+def test_clips_read_from_any_wav_subtype_equal_libsndfiles_floats(tmp_path, subtype):
+    """16-bit PCM is read as integers and scaled in numpy (the fast path); every subtype gives libsndfile's own floats."""
+    rng = np.random.default_rng(4)
+    for recorder, start in (("A", 0), ("A", 10), ("B", 0)):
+        (tmp_path / recorder).mkdir(exist_ok=True)
+        samples = rng.uniform(-1.0, 1.0, (10 * FS, 2)).astype(np.float32)
+        samples[:5] = [[-1.0, 1.0]]  # full scale both ways
+        name = f"{pd.Timestamp('2026-05-01 05:00:00') + pd.Timedelta(seconds=start):%Y%m%d_%H%M%S}.wav"
+        sf.write(tmp_path / recorder / name, samples, FS, subtype=subtype)
+    files = RecorderFiles.from_file_names(tmp_path)
+    as_float = [sf.read(tmp_path / "A" / f"20260501_0500{s:02d}.wav", dtype="float32")[0] for s in (0, 10)]
+    joined = np.concatenate(as_float)[:, 0]
+    for start_s, n in ((0.0, 100), (9.5, FS), (3.25, 2 * FS)):  # the second clip crosses the file boundary
+        first = int(round(start_s * FS))
+        np.testing.assert_array_equal(files.read("A", start_s, n).samples, joined[first:first + n])
+    files.close()
+
+
 def test_gaps_and_times_outside_the_recordings_are_flagged(season_files):
     files = RecorderFiles.from_file_names(season_files[0])
     across_gap = files.read("B", 9.5, FS)  # 9.5–10.5 s: the second half is in B's gap

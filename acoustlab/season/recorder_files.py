@@ -282,9 +282,8 @@ class RecorderFiles:
                 continue
             handle = self._handle(files.path[k])
             handle.seek(first + lo)
-            data = handle.read(hi - lo, dtype="float32", always_2d=True)
-            out[lo:lo + len(data)] = data[:, int(files.channel[k])]
-            covered[lo:lo + len(data)] = True
+            n_read = _read_into(handle, hi - lo, int(files.channel[k]), out[lo:hi])
+            covered[lo:lo + n_read] = True
         flags = []
         if not covered.all():  # in clip samples, with the same rounding as the reads: where the recorder's first file begins, its last ends
             first_k, last_k = 0, int(files.end_s.argmax())
@@ -296,3 +295,22 @@ class RecorderFiles:
             if ((missing < lead) | (missing >= tail)).any():
                 flags.append("out_of_range")
         return ClipRead(out, flags)
+
+
+#: libsndfile's float scale of 16-bit PCM (full scale = 1): ``sf.read(dtype="float32")`` returns the samples times this.
+PCM16_SCALE = np.float32(1.0 / 0x8000)
+
+
+def _read_into(handle: sf.SoundFile, n_frames: int, channel: int, out: np.ndarray) -> int:
+    """Read up to ``n_frames`` of one channel from the handle's position into ``out`` (float32, full scale = 1); the frames read.
+
+    16-bit PCM (most recorders' WAV files) is read as integers and scaled here: the same floats
+    as libsndfile's own conversion (a product by 2⁻¹⁵), at under half its cost.
+    """
+    if handle.subtype == "PCM_16":
+        data = handle.read(n_frames, dtype="int16", always_2d=True)[:, channel]
+        np.multiply(data, PCM16_SCALE, out=out[:len(data)])
+    else:
+        data = handle.read(n_frames, dtype="float32", always_2d=True)[:, channel]
+        out[:len(data)] = data
+    return len(data)

@@ -39,6 +39,7 @@ import scipy.signal as ss
 from acoustlab.core import columns as col
 from acoustlab.core.digests import frame_sha256
 from acoustlab.core.errors import DataError
+from acoustlab.core.heap import keep_freed_memory
 from acoustlab.core.types import RecordingBatch
 from acoustlab.method.protocols.field import FIELD_POSITION_OFFSET
 from acoustlab.method.protocols.localize import without_truth
@@ -223,6 +224,7 @@ def localize_chunks(directory: Path, chunks: Iterable[int], fitted: FittedSeason
     Everything is read from ``directory`` (the method verified by its digest), so a shard on
     another machine computes exactly what the unsharded run would.
     """
+    keep_freed_memory()  # every batch allocates the same large arrays again
     manifest = read_manifest(directory)
     fitted = fitted if fitted is not None else load_method(directory, manifest["method_sha256"])
     recordings = RecorderFiles.load(directory / FILES)

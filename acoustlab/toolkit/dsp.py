@@ -131,12 +131,14 @@ def gcc(
     spectra = spectra.astype(np.complex64, copy=False)  # single precision already when the audio is float32
     n_out, half, rate_hz, scale = size.n_out, size.half, size.rate_hz, size.scale
     n_kept = min(spectra.shape[-1], n_out // 2 + 1)  # bins the inverse transform reads (the rest are zero or padding)
-    # one zero-padded cross-spectrum buffer for every pair: the products are written into its first bins and
-    # the padding stays zero, so the inverse transform pads nothing (a copy per pair otherwise)
+    span, right = _band_spectra(spectra[:, :, :n_kept], in_band)
+    left = np.conj(right)  # once per mic, not once per pair
+    # one zero-padded cross-spectrum buffer for every pair: the products are written into the band's bins and the
+    # rest stays zero, so the inverse transform pads nothing (a copy per pair otherwise)
     cross = np.zeros((audio.shape[0], n_out // 2 + 1), dtype=np.complex64)
     cc = np.empty((audio.shape[0], len(pairs), 2 * half + 1), dtype=np.float32)
     for k, (i, j) in enumerate(pairs):  # one pair at a time: memory of one (E, n_out) transform
-        _cross_spectrum(spectra[:, i, :n_kept], spectra[:, j, :n_kept], in_band, cross[:, :n_kept])
+        np.multiply(left[:, i], right[:, j], out=cross[:, span])
         full = sfft.irfft(cross, n=n_out, axis=-1)
         if scale is not None:
             full *= np.float32(scale)
@@ -209,19 +211,23 @@ def _band_selection(band_hz: tuple[float, float] | np.ndarray | None, n_fft: int
     return (freqs >= band[:, :1]) & (freqs <= band[:, 1:])
 
 
-def _cross_spectrum(spec_i: np.ndarray, spec_j: np.ndarray, in_band: slice | np.ndarray | None, out: np.ndarray) -> None:
-    """conj(X_i) X_j into ``out`` (E, F), zero outside ``in_band`` (see :func:`_band_selection`).
+def _band_spectra(spectra: np.ndarray, in_band: slice | np.ndarray | None) -> tuple[slice, np.ndarray]:
+    """The bins of (E, M, F) spectra that any event's band holds, as a slice, and the spectra there, zero outside each event's band.
 
-    The same products as masking both spectra first, without masked copies of the spectra. A
-    single band writes only its bins: ``out`` must hold zeros outside them already.
+    ``in_band`` as :func:`_band_selection` gives it. conj(X_i) X_j of these is the cross-spectrum of
+    pair (i, j) on the slice's bins (the same products as the whole spectra's, masked); every other
+    bin of it is zero.
     """
+    n_bins = spectra.shape[-1]
     if in_band is None:
-        np.multiply(np.conj(spec_i), spec_j, out=out)
-    elif isinstance(in_band, slice):
-        np.multiply(np.conj(spec_i[:, in_band]), spec_j[:, in_band], out=out[:, in_band])
-    else:
-        np.multiply(np.conj(spec_i), spec_j, out=out)
-        out *= in_band[:, : out.shape[-1]]
+        return slice(0, n_bins), spectra
+    if isinstance(in_band, slice):
+        span = slice(*in_band.indices(n_bins)[:2])
+        return span, spectra[..., span]
+    mask = in_band[:, :n_bins]
+    inside = np.flatnonzero(mask.any(axis=0))
+    span = slice(0, 0) if inside.size == 0 else slice(int(inside[0]), int(inside[-1]) + 1)
+    return span, np.where(mask[:, None, span], spectra[..., span], np.complex64(0)).astype(spectra.dtype, copy=False)
 
 
 def weighted_spectra(audio: np.ndarray, weighting: str, beta: float) -> np.ndarray:
@@ -232,7 +238,10 @@ def weighted_spectra(audio: np.ndarray, weighting: str, beta: float) -> np.ndarr
         np.maximum(magnitude, 1e-6 * magnitude.max(axis=-1, keepdims=True) + 1e-30, out=magnitude)
         if weighting != "phat":
             np.power(magnitude, float(beta), out=magnitude)
-        np.divide(spectra, magnitude, out=spectra)
+        # the same values as np.divide(spectra, magnitude), at a fifth of its cost: numpy divides a complex by a real
+        # c + 0j as both parts times 1 / c, and this product is (a·s − b·0) + (a·0 + b·s)j with s = 1 / c
+        np.divide(1, magnitude, out=magnitude)
+        np.multiply(spectra, magnitude, out=spectra)
     return spectra
 
 

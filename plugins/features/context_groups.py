@@ -35,7 +35,9 @@ def frame_levels_db(audio: np.ndarray, sample_rate_hz: float) -> np.ndarray:
     frame = max(int(FRAME_S * sample_rate_hz), 1)
     e, m, n = audio.shape
     k = n // frame
-    power = (audio[..., : k * frame].astype(float).reshape(e, m, k, frame) ** 2).mean(-1)
+    samples = audio[..., : k * frame].astype(float)
+    np.square(samples, out=samples)  # in place: one double-precision copy of the audio, not two
+    power = samples.reshape(e, m, k, frame).mean(-1)
     return 10 * np.log10(np.maximum(power, 1e-30))
 
 
