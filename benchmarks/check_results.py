@@ -120,7 +120,7 @@ def _no_effect_entries(listing: Path) -> tuple[dict, ...]:
     return tuple(yaml.safe_load(listing.read_text()) or []) if listing.is_file() else ()
 
 
-def waived(old: bytes, new: bytes, path: str) -> bool:
+def waived(old: bytes, new: bytes, path: str, result: str | None = None) -> bool:
     """Whether going from ``old`` to ``new`` is a change listed in :data:`NO_EFFECT`, or a chain of listed changes.
 
     An entry names ``before`` and ``after`` commits, the ``files`` it covers and its evidence:
@@ -130,10 +130,14 @@ def waived(old: bytes, new: bytes, path: str) -> bool:
     the change and a file not changed since are current; any other change to the file still counts.
     Entries chain: a result made before one listed change of a file is current after a later listed
     change too, as long as every step from ``old`` to ``new`` is a listed one.
+
+    A change made to be faster leaves answers as they were but not timings: its entry lists the
+    results that time the changed code under ``timed_by`` (result names, e.g. ``season_search``),
+    and for those ``result`` the entry waives nothing (re-run them).
     """
     steps = []
     for entry in _no_effect_entries(NO_EFFECT):
-        if path in entry["files"]:
+        if path in entry["files"] and result not in entry.get("timed_by", ()):
             before, after = _version(entry["before"], path), _version(entry["after"], path)
             if before is not None and after is not None:
                 steps.append((before, after))
@@ -147,8 +151,8 @@ def waived(old: bytes, new: bytes, path: str) -> bool:
     return any(same_code(version, new, path) for version in reached[1:])
 
 
-def changed_since(commit: str, path: str) -> bool:
-    """Whether ``path`` (relative to the repository) does something else now than at ``commit``.
+def changed_since(commit: str, path: str, result: str | None = None) -> bool:
+    """Whether ``path`` (relative to the repository) does something else now than at ``commit``, for ``result`` (see :func:`waived`).
 
     A file added since ``commit`` is not a change: a new module runs only when an existing one
     imports it, a new plugin or config only when a config or a benchmark's overrides name it,
@@ -163,7 +167,7 @@ def changed_since(commit: str, path: str) -> bool:
     if before is None:
         return False  # added since
     current = now.read_bytes()
-    return not same_code(before, current, path) and not waived(before, current, path)
+    return not same_code(before, current, path) and not waived(before, current, path, result)
 
 
 def last_written(path: Path) -> str:
@@ -198,7 +202,7 @@ def status(result: Path) -> tuple[str, str]:
     proc = subprocess.run(["git", "diff", "--name-only", made_with["commit"], "--", *files], cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
         return "unknown commit", f"{made_with['commit'][:10]} is not in this repository's history"
-    changed = [path for path in proc.stdout.split() if changed_since(made_with["commit"], path)]
+    changed = [path for path in proc.stdout.split() if changed_since(made_with["commit"], path, result.stem)]
     return ("code changed", ", ".join(changed[:6]) + (" …" if len(changed) > 6 else "")) if changed else ("current", made_with["commit"][:10])
 
 

@@ -155,6 +155,29 @@ def test_a_change_shown_to_have_no_effect_is_waived_but_a_later_one_is_not(tmp_p
     assert check_results.changed_since(result_made, "gcc.py") and check_results.changed_since(after, "gcc.py")
 
 
+def test_a_faster_change_waives_answers_but_not_the_results_that_time_it(tmp_path, monkeypatch):
+    """An entry's ``timed_by`` results are not waived: a change made to be faster re-runs what times it."""
+    check_results = _check_results()
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True, text=True).stdout.strip()
+
+    git("init", "-q")
+    (tmp_path / "gcc.py").write_text("def f(x):\n    return x / 2\n")
+    git("add", "."), git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "result")
+    made = git("rev-parse", "HEAD")
+    (tmp_path / "gcc.py").write_text("def f(x):\n    return x * 0.5\n")
+    git("add", "."), git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "faster, same answers")
+    (tmp_path / "no_effect.yaml").write_text(f"- before: {made}\n  after: {git('rev-parse', 'HEAD')}\n  files: [gcc.py]\n"
+                                             "  identity: [a, b]\n  timed_by: [gcc_speed]\n")
+    monkeypatch.setattr(check_results, "REPO", tmp_path)
+    monkeypatch.setattr(check_results, "NO_EFFECT", tmp_path / "no_effect.yaml")
+    check_results._no_effect_entries.cache_clear()
+    assert not check_results.changed_since(made, "gcc.py", "accuracy")  # its answers are the same
+    assert check_results.changed_since(made, "gcc.py", "gcc_speed")  # its timings are not
+    check_results._no_effect_entries.cache_clear()
+
+
 def test_every_waived_change_names_committed_identity_evidence():
     """Each no_effect.yaml entry names two committed bench_identity measurements (before and after the change)
     whose jobs gave the same predictions and metrics, hash for hash."""
