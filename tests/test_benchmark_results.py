@@ -1,5 +1,6 @@
 """Committed benchmark results name what made them, none was made by a different version of its script, and the benchmarks' own checks hold."""
 
+import functools
 import json
 import subprocess
 import sys
@@ -95,20 +96,29 @@ def test_gpu_only_results_say_so_and_name_their_command():
             assert state == "needs a GPU" and command in detail and "last written in" in detail
 
 
+def _git(repo, *args: str) -> str:
+    """Run git in a scratch repository; its output."""
+    return subprocess.run(["git", *args], cwd=repo, check=True, capture_output=True, text=True).stdout.strip()
+
+
+def _commit(repo, message: str) -> str:
+    """Commit everything in a scratch repository; the new commit."""
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", message)
+    return _git(repo, "rev-parse", "HEAD")
+
+
 def test_a_file_added_since_a_result_is_not_a_change_but_an_edited_or_removed_one_is(tmp_path, monkeypatch):
     """A new module or config runs only where an existing file (or the script) names it, and that file's change is caught."""
     check_results = _check_results()
 
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True, text=True).stdout.strip()
+    git = functools.partial(_git, tmp_path)
 
     git("init", "-q")
     (tmp_path / "kept.py").write_text("X = 1\n")
     (tmp_path / "edited.py").write_text("Y = 1\n")
     (tmp_path / "removed.py").write_text("Z = 1\n")
-    git("add", ".")
-    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
-    first = git("rev-parse", "HEAD")
+    first = _commit(tmp_path, "first")
     (tmp_path / "added.yaml").write_text("lean: true\n")
     (tmp_path / "edited.py").write_text("Y = 2\n")
     (tmp_path / "removed.py").unlink()
@@ -123,13 +133,9 @@ def test_a_change_shown_to_have_no_effect_is_waived_but_a_later_one_is_not(tmp_p
     """benchmarks/no_effect.yaml waives exactly the listed change of the listed files; anything beyond it still counts."""
     check_results = _check_results()
 
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True, text=True).stdout.strip()
+    git = functools.partial(_git, tmp_path)
 
-    def commit(message: str) -> str:
-        git("add", ".")
-        git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", message)
-        return git("rev-parse", "HEAD")
+    commit = functools.partial(_commit, tmp_path)
 
     git("init", "-q")
     (tmp_path / "gcc.py").write_text("def f(x):\n    return x\n")
@@ -159,15 +165,13 @@ def test_a_faster_change_waives_answers_but_not_the_results_that_time_it(tmp_pat
     """An entry's ``timed_by`` results are not waived: a change made to be faster re-runs what times it."""
     check_results = _check_results()
 
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True, text=True).stdout.strip()
+    git = functools.partial(_git, tmp_path)
 
     git("init", "-q")
     (tmp_path / "gcc.py").write_text("def f(x):\n    return x / 2\n")
-    git("add", "."), git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "result")
-    made = git("rev-parse", "HEAD")
+    made = _commit(tmp_path, "result")
     (tmp_path / "gcc.py").write_text("def f(x):\n    return x * 0.5\n")
-    git("add", "."), git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "faster, same answers")
+    _commit(tmp_path, "faster, same answers")
     (tmp_path / "no_effect.yaml").write_text(f"- before: {made}\n  after: {git('rev-parse', 'HEAD')}\n  files: [gcc.py]\n"
                                              "  identity: [a, b]\n  timed_by: [gcc_speed]\n")
     monkeypatch.setattr(check_results, "REPO", tmp_path)
