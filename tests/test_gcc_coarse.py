@@ -18,23 +18,9 @@ UPSTREAM_LOCA_TDOA_S = [0.0, 0.0325, -0.002, 0.0316, -0.0086, 0.024]  # as tests
 
 
 @pytest.fixture(scope="module")
-def batches():
+def batches(simulate_site):
     """Default simulation (noise, trunks, ground) on both sites: several GCC peaks per pair."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from acoustlab.run.registry import CONF_DIR
-
-    out = {}
-    for site_name, n in (("frozen_lake", 16), ("forest", 8)):
-        GlobalHydra.instance().clear()
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=[f"+site={site_name}"])
-        site = site_from_config(cfg.site)
-        ids = np.arange(n)
-        out[site_name] = (site, build(cfg.simulator, "simulator").simulate(site, ids, ids, 5))
-    GlobalHydra.instance().clear()
-    return out
+    return {site_name: simulate_site(site_name, n, 5) for site_name, n in (("frozen_lake", 16), ("forest", 8))}
 
 
 def _fresh(batch):

@@ -9,8 +9,6 @@ import pytest
 
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch
-from acoustlab.run.registry import build
-from acoustlab.stages.sites import site_from_config
 from acoustlab.toolkit.gcc_candidates import lag_windows_s, pair_candidates
 
 torch = pytest.importorskip("torch")
@@ -20,23 +18,9 @@ from acoustlab.toolkit.gcc_torch import check_device, events_per_pass, pair_cand
 
 
 @pytest.fixture(scope="module")
-def noisy_batches():
+def noisy_batches(simulate_site):
     """Default simulation (noise, trunks, ground): several GCC peaks per pair."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from acoustlab.run.registry import CONF_DIR
-
-    out = {}
-    for site_name, n in (("frozen_lake", 8), ("forest", 4)):
-        GlobalHydra.instance().clear()
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=[f"+site={site_name}"])
-        site = site_from_config(cfg.site)
-        ids = np.arange(n)
-        out[site_name] = (site, build(cfg.simulator, "simulator").simulate(site, ids, ids, 3))
-    GlobalHydra.instance().clear()
-    return out
+    return {site_name: simulate_site(site_name, n, 3) for site_name, n in (("frozen_lake", 8), ("forest", 4))}
 
 
 def _assert_same_candidates(ours_lags, ours_heights, ours_sidelobe, reference, sample_rate_hz, upsample):
