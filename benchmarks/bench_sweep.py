@@ -3,7 +3,11 @@ cache, against the models' own fitting time.
 
 Usage: python benchmarks/bench_sweep.py [--site frozen_lake] [--models xgboost,random_forest,knn]
 Writes benchmarks/results/sweep_<site>.json and .md. Every command is a fresh subprocess (imports
-included) in one temporary outputs folder, one after the other in the same session.
+included) in one temporary outputs folder, one after the other in the same session. Each starts only
+once the 1-minute load average has fallen below 0.5 (at most 5 minutes of waiting): the config's
+``${threads:}`` is the free cores at a run's start, so a command started straight after the previous
+one would see that one's load and run with fewer threads than a user on an idle machine gets. The
+free cores each command saw are reported.
 """
 
 from __future__ import annotations
@@ -11,10 +15,14 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import tempfile
+import time
 from pathlib import Path
 
 from common import machine, time_cli, write_results
+
+from acoustlab.core.cores import free_cores
 
 log = logging.getLogger("bench_sweep")
 
@@ -22,6 +30,15 @@ log = logging.getLogger("bench_sweep")
 def job_timings(outputs: Path, pattern: str) -> list[dict]:
     """``timings_s`` of every job whose metrics.json matches ``pattern`` under ``outputs``."""
     return [json.loads(p.read_text())["timings_s"] for p in sorted(outputs.glob(pattern))]
+
+
+def when_idle(limit_s: float = 300.0, below: float = 0.5) -> int:
+    """Wait until the 1-minute load average is below ``below`` (at most ``limit_s``); the free cores a run then sees."""
+    start = time.monotonic()
+    while os.getloadavg()[0] >= below and time.monotonic() - start < limit_s:
+        time.sleep(5.0)
+    log.info("load %.2f after %.0f s of waiting", os.getloadavg()[0], time.monotonic() - start)
+    return free_cores()
 
 
 def main() -> None:
@@ -34,9 +51,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         base = [f"+site={opts.site}", f"paths.outputs_dir={out}"]
+        cores = {"cold": when_idle()}
         cold = time_cli(base)
+        cores["warm"] = when_idle()
         warm = time_cli(base)
         singles = job_timings(out, "runs/*/*/metrics.json")
+        cores["sweep"] = when_idle()
         sweep = time_cli(["-m", *base, f"model={opts.models}"])
         sweep_jobs = job_timings(out, "multirun/*/*/*/metrics.json")
     models_s = sum(t["models_s"] for t in sweep_jobs)
@@ -56,12 +76,15 @@ def main() -> None:
         "sweep_overhead_per_job_s": round((sweep - models_s) / n_models, 2),
         "sweep_wall_over_models": round(sweep / models_s, 3),
         "sweep_job_timings_s": sweep_jobs,
+        "free_cores_at_start": cores,
     }
     lines = [
         f"# Main command and a {n_models}-model sweep ({opts.site})",
         "",
         f"Measured with `python benchmarks/bench_sweep.py --site {opts.site} --models {opts.models}` "
-        f"({result['cpus']} CPUs, Python {result['python']}). Each row is a fresh `python -m acoustlab` process.",
+        f"({result['cpus']} CPUs, Python {result['python']}). Each row is a fresh `python -m acoustlab` process, started once the "
+        f"load average fell below 0.5; free cores at the start (`${{threads:}}`): cold {cores['cold']}, warm {cores['warm']}, "
+        f"sweep {cores['sweep']}.",
         "",
         "| command | wall (s) | notes |",
         "|:--|--:|:--|",
