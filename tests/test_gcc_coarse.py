@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch
@@ -9,9 +11,10 @@ from acoustlab.run.registry import build, build_feature_sets
 from acoustlab.stages.dataset import extract_features
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import tdoa_matrix
-from acoustlab.toolkit.dsp import gcc
+from acoustlab.toolkit.dsp import gcc, local_maxima
 from acoustlab.toolkit.gcc_candidates import lag_windows_s, pair_candidates
 from acoustlab.toolkit.gcc_coarse import half_sample_kernel, half_samples
+from acoustlab.toolkit.window_peaks import window_peaks
 from plugins.features.gcc_groups import TdoaCandidates
 
 UPSTREAM_LOCA_TDOA_S = [0.0, 0.0325, -0.002, 0.0316, -0.0086, 0.024]  # as tests/test_recordings.py
@@ -100,19 +103,71 @@ def test_the_default_config_does_not_name_the_search(compose_cfg):
     assert cfg.features.groups.tdoa.gcc.search == "coarse" and cfg.features.groups.uncertainty.gcc.search == "coarse"
 
 
-@pytest.mark.parametrize("scale", [1.0, 1e25])
-def test_top_marked_values_equal_the_masked_argpartition(scale):
-    """``_top`` ranks marked values without np.where's branches; its indices are argpartition's on the −inf-masked values, in the
-    same order (so ties resolve as before), also where values are too large for the finite stand-in (the masked fallback)."""
-    from acoustlab.toolkit.gcc_coarse import _top
+def _reference_top(values: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """The m highest local maxima of each row by the textbook route (mask, stable sort), highest first, ties by the lower index."""
+    masked = np.where(local_maxima(values), values, -np.inf)
+    masked[np.isnan(masked)] = -np.inf
+    order = np.argsort(-masked, axis=-1, kind="stable")[:, :m]
+    is_peak = np.take_along_axis(masked, order, -1) > -np.inf
+    pad = m - order.shape[-1]  # rows shorter than m: slots that can hold no peak
+    return np.pad(order, ((0, 0), (0, pad))), np.pad(is_peak, ((0, 0), (0, pad)))
 
-    rng = np.random.default_rng(11)
-    values = (scale * np.round(rng.standard_normal((40, 300)), 1)).astype(np.float32)  # rounded: many exact ties
-    marked = rng.random(values.shape) < 0.3
-    marked[0] = False  # a row with nothing marked
-    for m in (1, 5, 16):
-        top, valid = _top(values, marked, m)
-        masked = np.where(marked, values, -np.inf)
-        expected = np.argpartition(-masked, m - 1, axis=-1)[:, :m]
-        np.testing.assert_array_equal(top, expected)
-        np.testing.assert_array_equal(valid, np.take_along_axis(masked, expected, -1) > -np.inf)
+
+def _assert_same_peaks(values: np.ndarray, m: int, m_sum: int) -> None:
+    found = window_peaks(values, m, m_sum)
+    top, is_peak = _reference_top(values, m)
+    assert found.top.shape == (values.shape[0], m) and found.top_sum.shape == (values.shape[0], m_sum)
+    np.testing.assert_array_equal(found.n_top, is_peak.sum(-1))
+    np.testing.assert_array_equal(np.where(is_peak, found.top, -1), np.where(is_peak, top, -1))
+    if m_sum:
+        sums = values[:, :-1] + values[:, 1:]  # in the rows' own precision, as the kernel adds them
+        top_sum, is_peak_sum = _reference_top(sums, m_sum)
+        np.testing.assert_array_equal(found.n_sum, is_peak_sum.sum(-1))
+        np.testing.assert_array_equal(np.where(is_peak_sum, found.top_sum, -1), np.where(is_peak_sum, top_sum, -1))
+    np.testing.assert_allclose(found.sum_of_squares, np.sum(np.square(values, dtype=np.float64), axis=-1), rtol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("n", [1, 2, 3, 17, 300])
+def test_window_peaks_equal_the_sorted_masked_maxima_with_ties_and_plateaus(dtype, n):
+    """One pass gives the m highest local maxima (and of the two-sample sums) that masking and a stable sort give, in the same
+    order: highest first, the lower index among equal values; rows with many exact ties, plateaus, NaN and fewer maxima than m."""
+    rng = np.random.default_rng(n)
+    values = np.round(rng.standard_normal((30, n)), 1).astype(dtype)  # rounded: many exact ties and flat runs
+    values[0] = 0.0  # flat: only the last sample is a maximum
+    values[1, ::3] = np.nan
+    for m, m_sum in ((1, 1), (5, 3), (16, 16), (40, 0)):
+        _assert_same_peaks(values, m, min(m_sum, max(n - 1, 0)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.lists(st.floats(-4, 4, width=32), min_size=4, max_size=60), min_size=1, max_size=4).filter(
+    lambda rows: len({len(r) for r in rows}) == 1), st.integers(1, 20))
+def test_window_peaks_hold_for_any_rows(rows, m):
+    """Arbitrary float32 rows (Hypothesis): the same peaks as the reference, in the same order."""
+    _assert_same_peaks(np.array(rows, dtype=np.float32), m, m)
+
+
+def test_window_peaks_read_strided_windows_and_refuse_bad_input():
+    """A window cut from a wider correlation (a strided view) gives what its copy gives; wrong shapes and types are named."""
+    rng = np.random.default_rng(3)
+    wide = rng.standard_normal((6, 3, 500)).astype(np.float32)
+    view = wide[:, 1, 40:460]
+    for a, b in zip(window_peaks(view, 16, 16), window_peaks(np.ascontiguousarray(view), 16, 16)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="2-D float32 or float64"):
+        window_peaks(wide, 4, 4)
+    with pytest.raises(ValueError, match="2-D float32 or float64"):
+        window_peaks(view.astype(np.int32), 4, 4)
+    with pytest.raises(ValueError, match="m, m_sum >= 0"):
+        window_peaks(view, -1, 4)
+
+
+def test_a_centre_that_is_no_fine_peak_does_not_hide_a_later_one():
+    """Only kept entries count as repeats: an entry ranked out (no fine-grid peak) that lands on the same fine index as a later
+    genuine peak leaves that peak in place."""
+    from acoustlab.toolkit.gcc_coarse import _repeated
+
+    index = np.array([[7, 7, 3, 7, 3]])
+    kept = np.array([[False, True, True, True, True]])
+    np.testing.assert_array_equal(_repeated(index, kept), [[False, False, False, True, True]])

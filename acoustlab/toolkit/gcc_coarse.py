@@ -9,15 +9,16 @@ the neighbourhoods of likely peaks are brought to the finer grid:
    to the default's amplitude (an inverse transform half as long);
 2. per pair window, the M highest local maxima, and the M highest local maxima of the sums of
    neighbouring samples (a peak half-way between two samples, neither of them a maximum), each
-   centred on a sample;
+   centred on a sample, with the window's sum of squares, in one compiled pass
+   (:func:`acoustlab.toolkit.window_peaks.window_peaks`; ties go to the lower lag);
 3. the two half-sample values beside each centre by band-limited interpolation: a Kaiser-windowed
    sinc (the cross-spectrum is zero above the band, so the correlation is a band-limited function
    of lag); with the centre and its two neighbours that gives the five samples of the fine grid
    around it;
 4. the fine-grid local maximum among the three central samples (≥ its left neighbour, > its right
    one, the default's rule) and its parabolic refinement; the K candidates with the highest
-   fine-grid sample, best first (the default's ranking), with their parabolic heights; the RMS of
-   the window on the 1/fs grid as the sidelobe level.
+   fine-grid sample, best first (the default's ranking), with their parabolic heights (all pairs'
+   centres refined together); the RMS of the window on the 1/fs grid as the sidelobe level.
 
 Measured against the default (``benchmarks/results/gcc_coarse_search.md``): 1.94× cheaper per
 6-mic forest event, the same dominant lag on 99.88 % of pairs and the same first-stage accuracy.
@@ -34,16 +35,13 @@ import numpy as np
 import scipy.signal as ss
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.dsp import gcc, local_maxima, parabolic_peak
+from acoustlab.toolkit.dsp import gcc, parabolic_peak
 
 #: Coarse maxima refined per pair window and kind (maxima of the samples, maxima of the two-sample sums).
 SEARCHED = 16
 
 #: Taps of the half-sample interpolation kernel (an error of about 3e-5 of the peak on the forest).
 TAPS = 32
-
-#: What :func:`_top` puts where a value is not marked (above any correlation value, finite in single precision).
-_UNMARKED = 1e30
 
 
 def check_search(search: str, upsample: int, band_limited: bool = False, device: str = "cpu") -> str:
@@ -70,10 +68,11 @@ def half_sample_kernel(taps: int = TAPS, kaiser_beta: float = 8.6) -> np.ndarray
 
 
 def half_samples(values: np.ndarray, index: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """Interpolated values(index + ½) along the last axis of ``values`` (E, L) for integer ``index`` (E, C); samples beyond the ends are clamped."""
+    """Interpolated values(index + ½) along the last axis of ``values`` (..., L) for integer ``index`` (..., C); samples beyond the ends
+    are clamped."""
     taps = kernel.size
     around = index[..., None] + np.arange(-taps // 2 + 1, taps // 2 + 1)
-    gathered = np.take_along_axis(values[:, None, :], np.clip(around, 0, values.shape[-1] - 1), -1)
+    gathered = np.take_along_axis(values[..., None, :], np.clip(around, 0, values.shape[-1] - 1), -1)
     return gathered @ kernel
 
 
@@ -115,60 +114,54 @@ def coarse_pair_candidates(audio: np.ndarray, pairs: list[tuple[int, int]], samp
     e, p = cc.shape[:2]
     lags_out, heights_out = np.full((e, p, n_candidates), np.nan), np.full((e, p, n_candidates), np.nan)
     sidelobe = np.empty((e, p))
-    kernel = half_sample_kernel()
-    for k, max_lag in enumerate(windows_s):
+    centres, valid = np.zeros((e, p, 2 * SEARCHED), dtype=np.int64), np.zeros((e, p, 2 * SEARCHED), dtype=bool)
+    firsts = np.empty(p, dtype=np.int64)
+    for k, max_lag in enumerate(windows_s):  # the peaks of every window, then one refinement for all pairs
         inside = np.flatnonzero(np.abs(lags) <= max_lag)
-        first, row = int(inside[0]), cc[:, k]
-        seg = row[:, first:int(inside[-1]) + 1]
-        sidelobe[:, k] = np.sqrt(np.mean(np.square(seg, dtype=np.float64), axis=-1))
-        centre, valid = _centres(seg)
-        fine_peak, offset, value, height = _refine(row, centre + first, kernel)
-        rank = np.where(valid & np.isfinite(value), value, -np.inf)
-        fine_peak = fine_peak - 2 * first  # fine steps from the window's first lag
-        rank = np.where(_repeated(fine_peak), -np.inf, rank)  # one candidate per fine peak
-        order = np.argsort(-rank, axis=-1, kind="stable")[:, :n_candidates]
-        ok = np.take_along_axis(rank, order, -1) > -np.inf
-        chosen = np.take_along_axis(fine_peak + offset, order, -1)
-        lags_out[:, k, : order.shape[-1]] = np.where(ok, lags[first] + chosen * fine_step, np.nan)
-        heights_out[:, k, : order.shape[-1]] = np.where(ok, np.take_along_axis(height, order, -1), np.nan)
+        firsts[k] = inside[0]
+        seg = cc[:, k, inside[0]:inside[-1] + 1]
+        centre, is_peak, sum_of_squares = _centres(seg)
+        sidelobe[:, k] = np.sqrt(sum_of_squares / seg.shape[-1])
+        centres[:, k, :centre.shape[-1]], valid[:, k, :centre.shape[-1]] = centre + firsts[k], is_peak
+    fine_peak, offset, value, height = _refine(cc, centres, half_sample_kernel())
+    rank = np.where(valid & np.isfinite(value), value, -np.inf)
+    fine_peak = fine_peak - 2 * firsts[:, None]  # fine steps from each window's first lag
+    rank = np.where(_repeated(fine_peak, rank > -np.inf), -np.inf, rank)  # one candidate per fine peak
+    order = np.argsort(-rank, axis=-1, kind="stable")[..., :n_candidates]
+    ok = np.take_along_axis(rank, order, -1) > -np.inf
+    chosen = np.take_along_axis(fine_peak + offset, order, -1)
+    lags_out[..., : order.shape[-1]] = np.where(ok, lags[firsts][:, None] + chosen * fine_step, np.nan)
+    heights_out[..., : order.shape[-1]] = np.where(ok, np.take_along_axis(height, order, -1), np.nan)
     return lags_out, heights_out, sidelobe
 
 
-def _top(values: np.ndarray, marked: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (E, m') of the m highest marked values per row (m' = min(m, L − 1)), and which of them are marked."""
-    # −values where marked and one value above them all elsewhere: argpartition compares as with +inf there (the
-    # unmarked are equal and above every marked value), and a product and a sum cost a fifth of np.where's branches
-    negated = np.negative(values)
-    if np.abs(values).max(initial=0.0) < _UNMARKED * 1e-10:
-        negated += values.dtype.type(_UNMARKED) * ~marked
-    else:
-        negated[~marked] = np.inf
-    m = max(1, min(m, negated.shape[-1] - 1))
-    top = np.argpartition(negated, m - 1, axis=-1)[:, :m] if negated.shape[-1] > 1 else np.zeros((negated.shape[0], 1), dtype=np.intp)
-    return top, np.take_along_axis(marked, top, -1)
+def _centres(seg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Samples (E, C) of a window to refine around (the top local maxima, then the top maxima of two-sample sums on their
+    higher sample), which of them are maxima, and the window's sum of squares (E,) (:func:`window_peaks`)."""
+    from acoustlab.toolkit.window_peaks import window_peaks  # numba: imported by the first coarse search only
+
+    n = seg.shape[-1]
+    m, m_sum = max(1, min(SEARCHED, n - 1)), (max(1, min(SEARCHED, n - 2)) if n >= 2 else 0)
+    found = window_peaks(seg, m, m_sum)
+    valid = np.arange(m) < found.n_top[:, None]
+    if m_sum == 0:
+        return found.top, valid, found.sum_of_squares
+    top_sum = found.top_sum + (np.take_along_axis(seg, found.top_sum + 1, -1) > np.take_along_axis(seg, found.top_sum, -1))
+    valid_sum = np.arange(m_sum) < found.n_sum[:, None]
+    return np.concatenate([found.top, top_sum], axis=-1), np.concatenate([valid, valid_sum], axis=-1), found.sum_of_squares
 
 
-def _centres(seg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Samples (E, C) of a window to refine around: the top local maxima and the top maxima of two-sample sums (on their higher sample)."""
-    top, valid = _top(seg, local_maxima(seg), SEARCHED)
-    if seg.shape[-1] < 2:
-        return top, valid
-    sums = seg[:, :-1] + seg[:, 1:]
-    top_sum, valid_sum = _top(sums, local_maxima(sums), SEARCHED)
-    top_sum = top_sum + (np.take_along_axis(seg, top_sum + 1, -1) > np.take_along_axis(seg, top_sum, -1))
-    return np.concatenate([top, top_sum], axis=-1), np.concatenate([valid, valid_sum], axis=-1)
-
-
-def _refine(row: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Fine-grid peak near each centre of ``row`` (E, L): its fine index (2 × row index ± 1), parabolic offset, sample value and height.
+def _refine(rows: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fine-grid peak near each centre (..., C) of ``rows`` (..., L): its fine index (2 × row index ± 1), parabolic offset, sample value
+    and height.
 
     The value is −inf where none of the three central fine samples is a local maximum.
     """
-    e, c = centre.shape
-    last = row.shape[-1] - 1
-    coarse = np.take_along_axis(row, np.clip(centre[..., None] + np.array([-1, 0, 1]), 0, last).reshape(e, -1), -1).reshape(e, c, 3)
-    halves = np.stack([half_samples(row, centre - 1, kernel), half_samples(row, centre, kernel)], axis=-1)
-    fine = np.stack([coarse[..., 0], halves[..., 0], coarse[..., 1], halves[..., 1], coarse[..., 2]], axis=-1)  # (E, C, 5)
+    last = rows.shape[-1] - 1
+    around = np.clip(centre[..., None] + np.array([-1, 0, 1]), 0, last)
+    coarse = np.take_along_axis(rows, around.reshape(*centre.shape[:-1], -1), -1).reshape(around.shape)
+    halves = np.stack([half_samples(rows, centre - 1, kernel), half_samples(rows, centre, kernel)], axis=-1)
+    fine = np.stack([coarse[..., 0], halves[..., 0], coarse[..., 1], halves[..., 1], coarse[..., 2]], axis=-1)  # (..., C, 5)
     central = fine[..., 1:4]
     peak_ok = (central >= fine[..., 0:3]) & (central > fine[..., 2:5])
     best = np.argmax(np.where(peak_ok, central, -np.inf), axis=-1)  # 0, 1, 2: fine offsets −1, 0, +1 from the centre
@@ -178,12 +171,13 @@ def _refine(row: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> tuple[np
     return 2 * centre + best - 1, offset, value, height
 
 
-def _repeated(index: np.ndarray) -> np.ndarray:
-    """(E, C) True where a row's value already occurred earlier in the row (by position)."""
-    order = np.argsort(index, axis=-1, kind="stable")
-    ordered = np.take_along_axis(index, order, -1)
+def _repeated(index: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """(..., C) True where a kept entry's value already occurred at an earlier kept position of its row (others: False)."""
+    key = np.where(kept, index, np.iinfo(np.int64).min + np.arange(index.shape[-1]))  # entries not kept: unique keys
+    order = np.argsort(key, axis=-1, kind="stable")
+    ordered = np.take_along_axis(key, order, -1)
     repeated = np.zeros(ordered.shape, dtype=bool)
-    repeated[:, 1:] = ordered[:, 1:] == ordered[:, :-1]
+    repeated[..., 1:] = ordered[..., 1:] == ordered[..., :-1]
     out = np.zeros_like(repeated)
     np.put_along_axis(out, order, repeated, -1)
-    return out
+    return out & kept
