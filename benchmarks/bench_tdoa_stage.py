@@ -9,8 +9,8 @@ settings (β-PHAT, band 300–10,000 Hz, upsample 2, K = 3):
   cross-spectra of every pair weighted pair by pair, double precision, transforms twice the
   signal length, every lag kept;
 * ``acoustlab``: :func:`acoustlab.toolkit.gcc_candidates.pair_candidates` (per-mic weighting,
-  transforms only as long as the largest lag needs, single-precision inverse transforms, only
-  the lag window kept);
+  cross-spectra multiplied into one zero-padded buffer, single-precision inverse transforms, only
+  the lag window kept; transforms twice the signal length like the reference's);
 * ``acoustlab, coarse search``: the same with ``search="coarse"`` (``+features.gcc.search=coarse``:
   inverse transforms at the sampling rate, peaks refined on the default's grid;
   :mod:`acoustlab.toolkit.gcc_coarse`);
