@@ -171,3 +171,22 @@ def test_a_centre_that_is_no_fine_peak_does_not_hide_a_later_one():
     index = np.array([[7, 7, 3, 7, 3]])
     kept = np.array([[False, True, True, True, True]])
     np.testing.assert_array_equal(_repeated(index, kept), [[False, False, False, True, True]])
+
+@pytest.mark.parametrize("length", [20, 33, 400])
+def test_fine_samples_from_window_views_equal_the_clamped_gathers(length):
+    """The five fine samples around each centre, gathered as windows of a view, equal the clamped gathers (the samples bit for
+    bit, the half samples to single-precision rounding) with centres at both ends (clamped) and inside, rows shorter than the
+    kernel included."""
+    from acoustlab.toolkit.gcc_coarse import _fine_samples
+
+    rng = np.random.default_rng(length)
+    rows = rng.standard_normal((3, 4, length)).astype(np.float32)
+    centre = rng.integers(0, length, (3, 4, 32))
+    centre[..., :2] = [0, length - 1]  # the ends: windows cross them
+    centre[0, 0] = length // 2  # a row of centres inside only
+    kernel = half_sample_kernel()
+    fine = _fine_samples(rows, centre, kernel)
+    clamp = np.clip(centre[..., None] + np.array([-1, 0, 1]), 0, length - 1)
+    np.testing.assert_array_equal(fine[..., [0, 2, 4]], np.take_along_axis(rows, clamp.reshape(3, 4, -1), -1).reshape(clamp.shape))
+    halves = np.stack([half_samples(rows, centre - 1, kernel), half_samples(rows, centre, kernel)], axis=-1)
+    np.testing.assert_allclose(fine[..., [1, 3]], halves, rtol=1e-6, atol=1e-6)

@@ -33,6 +33,7 @@ import functools
 
 import numpy as np
 import scipy.signal as ss
+from numpy.lib.stride_tricks import sliding_window_view
 
 from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.dsp import gcc, parabolic_peak
@@ -109,7 +110,8 @@ def coarse_pair_candidates(audio: np.ndarray, pairs: list[tuple[int, int]], samp
     """
     windows_s = np.asarray(windows_s, dtype=float)
     cc, lags = gcc(audio, pairs, sample_rate_hz, weighting, band_hz, 1, beta, max_lag_s=float(windows_s.max()), spectra_cache=spectra_cache)
-    cc *= np.float32(0.5)  # an inverse transform half as long as the default's: its amplitude
+    # an inverse transform half as long as the default's has half its amplitude: the heights and the sidelobe level are halved at the
+    # end (exactly: a factor of 2 changes no rounding), not the whole correlation
     fine_step = (lags[1] - lags[0]) / 2
     e, p = cc.shape[:2]
     lags_out, heights_out = np.full((e, p, n_candidates), np.nan), np.full((e, p, n_candidates), np.nan)
@@ -121,7 +123,7 @@ def coarse_pair_candidates(audio: np.ndarray, pairs: list[tuple[int, int]], samp
         firsts[k] = inside[0]
         seg = cc[:, k, inside[0]:inside[-1] + 1]
         centre, is_peak, sum_of_squares = _centres(seg)
-        sidelobe[:, k] = np.sqrt(sum_of_squares / seg.shape[-1])
+        sidelobe[:, k] = np.sqrt(sum_of_squares / seg.shape[-1]) * 0.5
         centres[:, k, :centre.shape[-1]], valid[:, k, :centre.shape[-1]] = centre + firsts[k], is_peak
     fine_peak, offset, value, height = _refine(cc, centres, half_sample_kernel())
     rank = np.where(valid & np.isfinite(value), value, -np.inf)
@@ -131,7 +133,7 @@ def coarse_pair_candidates(audio: np.ndarray, pairs: list[tuple[int, int]], samp
     ok = np.take_along_axis(rank, order, -1) > -np.inf
     chosen = np.take_along_axis(fine_peak + offset, order, -1)
     lags_out[..., : order.shape[-1]] = np.where(ok, lags[firsts][:, None] + chosen * fine_step, np.nan)
-    heights_out[..., : order.shape[-1]] = np.where(ok, np.take_along_axis(height, order, -1), np.nan)
+    heights_out[..., : order.shape[-1]] = np.where(ok, np.take_along_axis(height, order, -1) * height.dtype.type(0.5), np.nan)
     return lags_out, heights_out, sidelobe
 
 
@@ -152,16 +154,12 @@ def _centres(seg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _refine(rows: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Fine-grid peak near each centre (..., C) of ``rows`` (..., L): its fine index (2 × row index ± 1), parabolic offset, sample value
-    and height.
+    """Fine-grid peak near each centre (E, P, C) of ``rows`` (E, P, L): its fine index (2 × row index ± 1), parabolic offset, sample
+    value and height.
 
     The value is −inf where none of the three central fine samples is a local maximum.
     """
-    last = rows.shape[-1] - 1
-    around = np.clip(centre[..., None] + np.array([-1, 0, 1]), 0, last)
-    coarse = np.take_along_axis(rows, around.reshape(*centre.shape[:-1], -1), -1).reshape(around.shape)
-    halves = np.stack([half_samples(rows, centre - 1, kernel), half_samples(rows, centre, kernel)], axis=-1)
-    fine = np.stack([coarse[..., 0], halves[..., 0], coarse[..., 1], halves[..., 1], coarse[..., 2]], axis=-1)  # (..., C, 5)
+    fine = _fine_samples(rows, centre, kernel)  # (E, P, C, 5)
     central = fine[..., 1:4]
     peak_ok = (central >= fine[..., 0:3]) & (central > fine[..., 2:5])
     best = np.argmax(np.where(peak_ok, central, -np.inf), axis=-1)  # 0, 1, 2: fine offsets −1, 0, +1 from the centre
@@ -169,6 +167,40 @@ def _refine(rows: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> tuple[n
     mid = np.take_along_axis(fine, (best + 1)[..., None], -1)[..., 0]
     value = np.where(peak_ok.any(-1), mid, -np.inf)
     return 2 * centre + best - 1, offset, value, height
+
+
+def _fine_samples(rows: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """(E, P, C, 5) the fine grid around each centre of ``rows`` (E, P, L): values at centre − 1, − ½, 0, + ½, + 1 (samples beyond the
+    ends clamped, as :func:`half_samples`).
+
+    Both half samples and the three samples lie in the taps + 1 samples from centre − taps/2 on: one gather of those windows (a view
+    of every window, indexed), not three gathers through index arrays; centres whose window crosses an end are gathered with clamping.
+    """
+    taps, n = kernel.size, rows.shape[-1]
+    if n < taps + 1:
+        return _assemble(_clamped_windows(rows, centre, taps), kernel)
+    start = centre - taps // 2
+    clamped = (start < 0) | (start > n - taps - 1)
+    e, p = np.ogrid[:rows.shape[0], :rows.shape[1]]
+    windows = sliding_window_view(rows, taps + 1, axis=-1)[e[..., None], p[..., None], np.clip(start, 0, n - taps - 1)]
+    fine = _assemble(windows, kernel)
+    if clamped.any():  # whole rows of centres again, clamped: the products then run in the same blocks as everywhere else
+        crossing = clamped.any(-1)
+        fine[crossing] = _assemble(_clamped_windows(rows[crossing], centre[crossing], taps), kernel)
+    return fine
+
+
+def _clamped_windows(rows: np.ndarray, centre: np.ndarray, taps: int) -> np.ndarray:
+    """(..., C, taps + 1) samples centre − taps/2 … centre + taps/2 of ``rows`` (..., L), positions beyond the ends clamped."""
+    around = np.clip(centre[..., None] + np.arange(-(taps // 2), taps // 2 + 1), 0, rows.shape[-1] - 1)
+    return np.take_along_axis(rows[..., None, :], around, -1)
+
+
+def _assemble(windows: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """(..., 5) fine samples from windows (..., taps + 1) of samples centre − taps/2 … centre + taps/2."""
+    taps, mid = kernel.size, kernel.size // 2
+    left, right = windows[..., :taps] @ kernel, windows[..., 1:] @ kernel  # values at centre − ½ and centre + ½
+    return np.stack([windows[..., mid - 1], left, windows[..., mid], right, windows[..., mid + 1]], axis=-1)
 
 
 def _repeated(index: np.ndarray, kept: np.ndarray) -> np.ndarray:
