@@ -1,0 +1,153 @@
+"""The compiled solvers (``solver=consistent_set_compiled``, ``solver=hyperbolic_compiled``) against the numpy ones they replace."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from acoustlab.core.contracts import SolverInputs
+from plugins.solvers.consistent_select import select_compiled
+from plugins.solvers.consistent_set import ConsistentSetSolver
+from plugins.solvers.consistent_set_compiled import CompiledConsistentSetSolver
+from plugins.solvers.hyperbolic import HyperbolicSolver
+from plugins.solvers.hyperbolic_compiled import CompiledHyperbolicSolver
+
+C = 343.0
+HEXAGON = np.array([[0, 0, 1.5], [55, -5, 1.5], [90, 25, 1.5], [75, 70, 1.5], [25, 75, 1.5], [-10, 35, 1.5]], float)
+OFF_PLANE = HEXAGON + np.array([0, 0, 1.0]) * np.array([0.0, 2.0, 0.5, 4.0, 1.0, 3.0])[:, None]
+TRIANGLE = np.array([[0.0, 0.0, 1.2], [50.0, 0.0, 1.2], [24.0, 44.0, 1.2]])
+#: Outputs of the selection that must be equal, bit for bit (the choice); the least-squares times agree to rounding.
+EXACT = ("trusted", "consistent_pairs", "consistency", "score_margin", "n_mics_used")
+
+
+def pairs(m):
+    return [(i, j) for i in range(m) for j in range(i + 1, m)]
+
+
+def assert_same_selection(cands, weights, prior=None, **settings):
+    numpy_choice = ConsistentSetSolver(search="exhaustive", **settings).select(cands, weights, prior)
+    compiled = CompiledConsistentSetSolver(**settings).select(cands, weights, prior)
+    assert compiled.keys() == numpy_choice.keys()
+    for key in EXACT:
+        np.testing.assert_array_equal(compiled[key], numpy_choice[key], err_msg=key)
+    np.testing.assert_array_equal(np.isnan(compiled["times_s"]), np.isnan(numpy_choice["times_s"]))
+    np.testing.assert_allclose(compiled["times_s"], numpy_choice["times_s"], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(compiled["closure_rms_s"], numpy_choice["closure_rms_s"], rtol=1e-9, atol=1e-16, equal_nan=True)
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**31), n_mics=st.sampled_from([3, 4, 5, 6]), k=st.sampled_from([1, 2, 3]),
+       missing=st.sampled_from([0.0, 0.1, 0.5]), ties=st.booleans(), with_prior=st.booleans())
+def test_compiled_selection_chooses_what_the_numpy_search_chooses(seed, n_mics, k, missing, ties, with_prior):
+    """Same winner, runner-up margin (bit for bit), trusted mics and diagnostics: near-duplicate and spurious peaks,
+    equal weights (ties broken by index alike), missing peaks up to whole pairs, SRP priors."""
+    rng = np.random.default_rng(seed)
+    bsz, n_pairs = 24, n_mics * (n_mics - 1) // 2
+    arrival = rng.uniform(0, 0.01, size=(bsz, n_mics))
+    lags = np.stack([arrival[:, j] - arrival[:, i] for i, j in pairs(n_mics)], axis=1)
+    cands = lags[..., None] + rng.choice([0.0, 0.0, 1e-4, 2.4e-4, 3e-3, -4e-3, 9e-3], size=(bsz, n_pairs, k))
+    cands[rng.random(cands.shape) < missing] = np.nan
+    cands[0, 0] = np.nan  # a pair without any peak
+    cands[1] = np.nan  # an event without any peak: every hypothesis misses an arrival
+    weights = rng.choice([0.5, 1.0], size=cands.shape) if ties else rng.uniform(0, 1, size=cands.shape)
+    weights[2, 0, 0] = np.nan  # a NaN height counts as 0
+    prior = lags + rng.normal(0, 1e-3, size=lags.shape) if with_prior else None
+    assert_same_selection(cands, weights, prior, prior_weight=0.05 if with_prior else 0.0)
+
+
+@pytest.mark.parametrize("n_mics", [8, 10])
+def test_compiled_selection_on_larger_arrays(n_mics):
+    """8 and 10 mics, 3 candidates per pair (17,496 and 196,830 hypotheses per event), the true lag at a random rank."""
+    rng = np.random.default_rng(n_mics)
+    mics, src = rng.uniform(0, 100, size=(n_mics, 2)), rng.uniform(0, 100, size=(12, 2))
+    t = np.sqrt(((src[:, None] - mics[None]) ** 2).sum(-1)) / C
+    lags = np.stack([t[:, j] - t[:, i] for i, j in pairs(n_mics)], axis=1)
+    cands = lags[..., None] + rng.choice([-1, 1], size=(*lags.shape, 3)) * rng.uniform(2e-3, 2e-2, size=(*lags.shape, 3))
+    cands[..., 0] = lags + rng.normal(0, 5e-5, lags.shape)
+    cands = np.take_along_axis(cands, rng.permuted(np.tile(np.arange(3), (*lags.shape, 1)), axis=-1), -1)
+    weights = rng.uniform(0.2, 0.6, size=cands.shape)
+    numpy_choice = ConsistentSetSolver(search="pruned").select(cands, weights)
+    compiled = CompiledConsistentSetSolver().select(cands, weights)
+    for key in EXACT:
+        np.testing.assert_array_equal(compiled[key], numpy_choice[key], err_msg=key)
+    np.testing.assert_allclose(compiled["times_s"], numpy_choice["times_s"], rtol=0, atol=1e-14)
+
+
+def test_compiled_selection_names_what_is_wrong():
+    with pytest.raises(ValueError, match="all pairs of M mics"):
+        select_compiled(np.zeros((2, 4, 3)), np.ones((2, 4, 3)), None, k=3, tolerance_s=2.5e-4, prior_weight=0.0, prior_tolerance_s=1e-3)
+    with pytest.raises(ValueError, match="must cover all 15 pairs of 6 mics"):
+        CompiledConsistentSetSolver().select(np.zeros((2, 14, 3)), np.ones((2, 14, 3)))
+
+
+def hyperbolic_inputs(mics, n, noise_s, seed, levels=False):
+    rng = np.random.default_rng(seed)
+    lo, hi = mics[:, :2].min(0) - 20, mics[:, :2].max(0) + 20
+    src = np.column_stack([rng.uniform(lo, hi, size=(n, 2)), rng.uniform(0.5, 8.0, n)])
+    t = np.sqrt(((src[:, None] - mics[None]) ** 2).sum(-1)) / C
+    tdoa = t - t[:, :1] + rng.normal(0, noise_s, t.shape)
+    tdoa[:5, 1] = np.nan  # events without a fix
+    received = -20 * np.log10(np.sqrt(((src[:, None] - mics[None]) ** 2).sum(-1))) + rng.normal(0, 1, t.shape) if levels else None
+    return src, SolverInputs(mics, tdoa, C, received_level_db=received, source_height_m=float(mics[:, 2].mean()) + 1.0)
+
+
+@pytest.mark.parametrize("mics", [HEXAGON, OFF_PLANE, TRIANGLE], ids=["coplanar", "off-plane", "triangle"])
+@pytest.mark.parametrize("dimensions,fallback", [(2, True), (3, True), (3, False)])
+@pytest.mark.parametrize("levels", [False, True])
+def test_compiled_hyperbolic_solver_gives_the_numpy_fixes(mics, dimensions, fallback, levels):
+    """Positions, residuals and every diagnostic as the numpy solver reports them, to rounding; the same keys, the
+    same events without a fix, the same root counts, mirror flags and modes; noisy TDOAs, sources in the mics' plane."""
+    if dimensions == 3 and len(mics) < 4:
+        with pytest.raises(ValueError, match="at least 4 mics"):
+            CompiledHyperbolicSolver(dimensions=3).solve(hyperbolic_inputs(mics, 4, 0.0, 0)[1])
+        return
+    _, inputs = hyperbolic_inputs(mics, 400, 2e-5, seed=len(mics), levels=levels)
+    expected = HyperbolicSolver(dimensions=dimensions, fallback_2d=fallback).solve(inputs)
+    got = CompiledHyperbolicSolver(dimensions=dimensions, fallback_2d=fallback).solve(inputs)
+    assert got.diagnostics.keys() == expected.diagnostics.keys()
+    np.testing.assert_array_equal(got.converged, expected.converged)
+    np.testing.assert_allclose(got.position_m, expected.position_m, rtol=0, atol=1e-5, equal_nan=True)
+    np.testing.assert_allclose(got.residual_m, expected.residual_m, rtol=1e-6, atol=1e-9, equal_nan=True)
+    for name in ("n_roots", "height_ambiguous", "dimensions_used"):
+        if name in expected.diagnostics:
+            np.testing.assert_array_equal(got.diagnostics[name], expected.diagnostics[name], err_msg=name)
+    for name, values in expected.diagnostics.items():
+        ill = (values > 1e4) if name == "height_gdop" else np.zeros(len(values), bool)  # a source in the mics' plane: cond ~ 1e14
+        np.testing.assert_allclose(got.diagnostics[name][~ill], values[~ill], rtol=1e-4, atol=1e-6, equal_nan=True, err_msg=name)
+        assert (got.diagnostics[name][ill] > 1e4).all()
+
+
+def test_compiled_hyperbolic_solver_is_exact_on_noise_free_tdoas():
+    src, inputs = hyperbolic_inputs(HEXAGON, 200, 0.0, seed=1)
+    fix = CompiledHyperbolicSolver(dimensions=3, fallback_2d=False).solve(inputs)
+    ok = np.isfinite(fix.position_m).all(1)
+    assert ok.sum() >= 190
+    np.testing.assert_allclose(fix.position_m[ok], src[ok, :2], atol=1e-6)
+    upper_image = 1.5 + np.abs(src[ok, 2] - 1.5)  # coplanar mics: the mirror above their plane is reported
+    np.testing.assert_allclose(fix.diagnostics["source_height_m"][ok], upper_image, atol=1e-5)
+
+
+def test_compiled_consistent_set_solver_gives_the_numpy_solution():
+    """The whole solver on events with planted reflections and a mic lost to noise (some events then trust 3 mics):
+    the same trusted mics and margins, the same fixes to rounding."""
+    rng = np.random.default_rng(7)
+    xy = rng.uniform([-5, -5], [85, 75], size=(64, 2))
+    src = np.column_stack([xy, np.full(len(xy), 1.5)])
+    t = np.sqrt(((src[:, None] - HEXAGON[None]) ** 2).sum(-1)) / C
+    lags = np.stack([t[:, j] - t[:, i] for i, j in pairs(6)], axis=1)
+    cands = np.concatenate([lags[..., None], lags[..., None] + rng.uniform(3e-3, 2e-2, size=(*lags.shape, 2))], axis=-1)
+    weights = np.concatenate([np.full((*lags.shape, 1), 0.5), np.full((*lags.shape, 2), 0.3)], axis=-1)
+    cands[:16, 3] = cands[:16, 3, ::-1]  # a reflection outranks the direct path of pair (0, 4)
+    for p, (i, j) in enumerate(pairs(6)):
+        if {i, j} & {4, 5}:
+            cands[32:40, p] = rng.uniform(-0.2, 0.2, size=(8, 3))  # mics 4 and 5 hear only noise
+    tdoa = t - t[:, :1]
+    inputs = SolverInputs(HEXAGON, tdoa, C, pair_lag_candidates_s=cands, pair_lag_weights=weights, source_height_m=1.5)
+    expected = ConsistentSetSolver().solve(inputs)
+    got = CompiledConsistentSetSolver().solve(inputs)
+    assert (expected.diagnostics["n_mics_used"][32:40] <= 4).all()
+    assert got.diagnostics.keys() == expected.diagnostics.keys()
+    for name in EXACT[1:] + ("n_roots", "dimensions_used"):
+        np.testing.assert_array_equal(got.diagnostics[name], expected.diagnostics[name], err_msg=name)
+    np.testing.assert_allclose(got.position_m, expected.position_m, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got.position_m, xy, atol=1e-3)
