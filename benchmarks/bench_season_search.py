@@ -1,10 +1,11 @@
-"""A season localized end to end with the GCC's coarse search against the default search: one run, one machine, CPU only.
+"""A season localized end to end with the GCC's coarse search against the default search, and with the compiled solver: one run, one machine, CPU only.
 
 Usage: python benchmarks/bench_season_search.py [--site forest] [--calls 2000]
 
 Renders one synthetic season with ``bench_season.py``'s settings (calls rendered into long noise
-files per recorder, Raven tables per recorder), then for ``features=physics_lean`` and the same
-with ``+features.gcc.search=coarse`` (:mod:`acoustlab.toolkit.gcc_coarse`): fits the method once,
+files per recorder, Raven tables per recorder), then for ``features=physics_lean``, the same
+with ``+features.gcc.search=coarse`` (:mod:`acoustlab.toolkit.gcc_coarse`) and that with
+``solver=consistent_set_compiled`` (:mod:`plugins.solvers.consistent_set_compiled`): fits the method once,
 localizes every detection in one process, runs the same command again with nothing left to do (the
 baseline), merges, and scores the positions against the rendered calls (``bench_season_device``'s
 steps). Detections per second of wall time and of CPU time, above the baseline. Then the same
@@ -21,13 +22,13 @@ import shutil
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 from bench_season import WORK, measured, season_command
 from bench_season_device import run_config
 from common import compose_cfg, machine, write_results
 
 from acoustlab.method.saved import DIGEST_FILE, METHOD_FILE
-
 from acoustlab.season.protocol import SeasonLocalize
 from acoustlab.season.synthetic import SyntheticSeason, write_season
 from acoustlab.stages.sites import site_from_config
@@ -70,16 +71,20 @@ def main() -> None:
     truth = write_season(settings, folder)
     render_s = time.perf_counter() - start
     margin_s = SeasonLocalize({}, {"format": "raven"}, {}).margin_s(site)
-    configs = {"fine": ["features=physics_lean"], "coarse": ["features=physics_lean", "+features.gcc.search=coarse"]}
+    configs = {"fine": ["features=physics_lean"], "coarse": ["features=physics_lean", "+features.gcc.search=coarse"],
+               "coarse_compiled": ["features=physics_lean", "+features.gcc.search=coarse", "solver=consistent_set_compiled"]}
     rows = {name: run_config(opts.site, folder, name, overrides, truth, margin_s) for name, overrides in configs.items()}
     for name, overrides in configs.items():
         rows[name]["sharded"] = sharded(opts.site, folder, name, overrides, opts.jobs, rows[name]["n_events"])
+    numpy_fix, compiled_fix = (pd.read_parquet(Path(f"{folder / f'season_{name}'}_run") / "positions.parquet") for name in ("coarse", "coarse_compiled"))
+    solver_difference_m = float(np.nanmax(np.hypot(numpy_fix["solver_x_m"] - compiled_fix["solver_x_m"], numpy_fix["solver_y_m"] - compiled_fix["solver_y_m"])))
+    same_failures = bool((numpy_fix["solver_x_m"].isna() == compiled_fix["solver_x_m"].isna()).all())
     lines = ["# A season end to end with the GCC's coarse search against the default (one run, one machine, CPU)", "",
              f"`python benchmarks/bench_season_search.py --site {opts.site} --calls {opts.calls} --jobs {opts.jobs}`: a synthetic {opts.site} season of "
              f"{opts.calls} calls ({settings.duration_s / 3600:.2f} h, rendered in {render_s:.0f} s), `python -m acoustlab season` with "
              f"`features=physics_lean`, one localizing process, {machine()['cpus']} CPU cores; the method fitted once per search. "
              "Rates are above the baseline (the same command with every chunk done).", "",
-             "| features.gcc.search | detections | detections/s (wall) | detections/s (CPU) | fit (wall, s) | method > 5 m | solver > 5 m | "
+             "| configuration | detections | detections/s (wall) | detections/s (CPU) | fit (wall, s) | method > 5 m | solver > 5 m | "
              f"GDOP-scaled 0.95 radii cover | {opts.jobs} local shards: detections/s (wall; above baseline) | sharded == unsharded |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in rows.items():
@@ -88,10 +93,15 @@ def main() -> None:
                      f"{r['fit']['wall_s']:.0f} | {100 * acc['method']['share_over_5m']:.1f} % | {100 * acc['solver']['share_over_5m']:.1f} % | "
                      f"{100 * acc['coverage_gdop_scaled_0.95']:.1f} % | {r['sharded']['detections_per_s_wall']:.1f} "
                      f"({r['sharded']['detections_per_s_wall_above_baseline']:.1f}) | {r['sharded']['identical_to_unsharded']} |")
-    fine, coarse = rows["fine"], rows["coarse"]
-    lines += ["", f"CPU per detection: the coarse search's rate is {coarse['detections_per_s_cpu'] / fine['detections_per_s_cpu']:.2f}× "
-              "the default search's."]
-    write_results("season_search", {"machine": machine(), "site": opts.site, "calls": opts.calls, "render_s": render_s, "configs": rows}, lines)
+    fine, coarse, compiled = rows["fine"], rows["coarse"], rows["coarse_compiled"]
+    lines += ["", "Configurations: fine = `features=physics_lean` (the default GCC search and solver); coarse = the same with "
+              "`+features.gcc.search=coarse`; coarse_compiled = coarse with `solver=consistent_set_compiled` (fitted with it too).", "",
+              f"CPU per detection: the coarse search's rate is {coarse['detections_per_s_cpu'] / fine['detections_per_s_cpu']:.2f}× "
+              f"the default search's; the compiled solver's {compiled['detections_per_s_cpu'] / coarse['detections_per_s_cpu']:.2f}× coarse's. "
+              f"Solver positions, coarse against coarse_compiled: largest difference {solver_difference_m:.2g} m, "
+              f"{'the same' if same_failures else 'NOT the same'} detections without a fix."]
+    write_results("season_search", {"machine": machine(), "site": opts.site, "calls": opts.calls, "render_s": render_s, "configs": rows,
+                                    "solver_position_difference_m": solver_difference_m, "same_detections_without_fix": same_failures}, lines)
     log.info("\n".join(lines))
 
 
