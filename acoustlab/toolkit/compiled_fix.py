@@ -13,7 +13,7 @@ compiled loops (``solver=hyperbolic_compiled``, ``solver=consistent_set_compiled
   the plane coordinates and both mirror images; else the quadratic), its polish, the mirror choice,
   the height's GDOP, and the 2-D fix where the 3-D one fails or is implausible.
 
-The answers agree with the numpy solver's to rounding, not bit for bit: least-squares and 3 × 3
+The answers agree with the numpy solver's to within the polish's tolerance, not bit for bit: least-squares and 3 × 3
 systems are solved by Gaussian elimination with partial pivoting instead of LAPACK's
 pseudo-inverse and LU (the polish then converges to the same minimum), and sums run in a different
 order. Written by hand: SciPy solves one problem per call

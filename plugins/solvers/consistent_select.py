@@ -2,26 +2,24 @@
 
 :meth:`plugins.solvers.consistent_set.ConsistentSetSolver.select` in numpy builds each event's
 pair tables, scores the hypotheses with a sparse product and fits the arrival times with batched
-normal equations: some 150 numpy calls per chunk of 16 events, about 73 µs per 6-mic event on one
+normal equations: some 150 numpy calls per chunk of 16 events, about 75 µs per 6-mic event on one
 core, most of it call overhead on small arrays. :func:`select_compiled` does the same work event
-by event in compiled loops (``solver.backend=compiled``):
+by event in compiled loops (``solver=consistent_set_compiled``):
 
-* the pair tables and their −inf entries for missing arrival times, as in numpy;
+* the pair tables and their −inf entries for missing arrival times, as numpy builds them;
 * the same winner and runner-up: each hypothesis' raw score is summed in pair order from 0 and its
-  lateness as numpy's reduction sums it, so the scores are the numpy scores, bit for bit. Only
-  hypotheses that can still win or be the runner-up are scored in full: a reference's subtree is
-  skipped when an upper bound on its raw score (the sum of each pair's largest entry given the
-  ranks fixed so far) lies below a score already certain to be beaten by both the winner and the
-  runner-up (the second-highest final score among hypotheses more than twice the tolerance apart,
-  as in :mod:`plugins.solvers.hypothesis_search`), so nothing that matters is skipped;
+  lateness as numpy's pairwise reduction sums it, so the scores are the numpy scores, bit for bit.
+  They are found by an exact branch and bound (:func:`_search`), once for the winner and once for
+  the runner-up (the best pattern more than the tolerance from the winner's), so only a few dozen
+  hypotheses are scored in full;
 * the trusted mics, the chosen lags and the least-squares arrival times, solved by Gaussian
   elimination with partial pivoting in place of LAPACK: the times agree with numpy's to rounding
-  (~10⁻¹⁸ s), not bit for bit.
+  (~10⁻¹⁶ s), not bit for bit.
 
 Written by hand: the search is a bounded enumeration over a dense pairwise score that no library
 offers, and the per-event linear algebra is 6 × 6, where a LAPACK call costs more than the solve.
-The kernel is cached beside this module (``cache=True``): compiled once per installation (a few
-seconds), loaded in about 0.3 s by the first compiled solve of a process.
+The kernels are cached beside this module (``cache=True``): compiled once per installation (a few
+seconds), loaded by the first compiled solve of a process (about 0.6 s with numba's import).
 """
 
 from __future__ import annotations

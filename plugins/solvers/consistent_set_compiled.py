@@ -5,7 +5,7 @@ parameters. Its candidate selection (:mod:`plugins.solvers.consistent_select`) c
 hypothesis as the numpy search, bit for bit, with the same runner-up margin, trusted mics and
 consistency diagnostics; the least-squares arrival times and the fix
 (:class:`~plugins.solvers.hyperbolic_compiled.CompiledHyperbolicSolver`) agree with the numpy
-solver's to rounding. ``search`` is not used: the compiled branch and bound replaces both numpy
+solver's to within the polish's tolerance. ``search`` is not used: the compiled branch and bound replaces both numpy
 searches. Events that trust only three mics of a larger array are fixed by the numpy 2-D solver
 (:meth:`ConsistentSetSolver._solve_subsets`), as in the numpy solver.
 """

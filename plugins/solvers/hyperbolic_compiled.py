@@ -1,9 +1,9 @@
-"""The closed-form hyperbolic solver compiled per event (``solver=hyperbolic_compiled``): the same fixes to rounding, faster.
+"""The closed-form hyperbolic solver compiled per event (``solver=hyperbolic_compiled``): the same fixes to within the polish's tolerance, faster.
 
 :class:`CompiledHyperbolicSolver` takes :class:`~plugins.solvers.hyperbolic.HyperbolicSolver`'s
 parameters and reports the same positions, residuals and diagnostics; the maths runs in
 :mod:`acoustlab.toolkit.compiled_fix` (numba) instead of batched numpy. The positions agree with
-the numpy solver's to rounding, not bit for bit (``tests/test_compiled_solver.py``;
+the numpy solver's to within the polish's tolerance, not bit for bit (``tests/test_compiled_solver.py``;
 ``benchmarks/results/solver_speed.md`` times both).
 """
 
