@@ -73,6 +73,17 @@ def test_compiled_selection_on_larger_arrays(n_mics):
     np.testing.assert_allclose(compiled["times_s"], numpy_choice["times_s"], rtol=0, atol=1e-14)
 
 
+def test_compiled_selection_with_near_duplicate_peaks_everywhere():
+    """Every pair's three peaks within the tolerance of each other: all 1,458 hypotheses of an event score alike, more
+    than the one-pass search keeps, so the two-pass search decides; the choice is still numpy's, bit for bit."""
+    rng = np.random.default_rng(5)
+    arrival = rng.uniform(0, 0.01, size=(8, 6))
+    lags = np.stack([arrival[:, j] - arrival[:, i] for i, j in pairs(6)], axis=1)
+    cands = lags[..., None] + np.array([0.0, 3e-5, 6e-5])
+    assert_same_selection(cands, np.full(cands.shape, 0.5))
+    assert_same_selection(cands, rng.uniform(0.4, 0.6, size=cands.shape))
+
+
 def test_compiled_selection_names_what_is_wrong():
     with pytest.raises(ValueError, match="all pairs of M mics"):
         select_compiled(np.zeros((2, 4, 3)), np.ones((2, 4, 3)), None, k=3, tolerance_s=2.5e-4, prior_weight=0.0, prior_tolerance_s=1e-3)

@@ -9,9 +9,11 @@ by event in compiled loops (``solver=consistent_set_compiled``):
 * the pair tables and their −inf entries for missing arrival times, as numpy builds them;
 * the same winner and runner-up: each hypothesis' raw score is summed in pair order from 0 and its
   lateness as numpy's pairwise reduction sums it, so the scores are the numpy scores, bit for bit.
-  They are found by an exact branch and bound (:func:`_search`), once for the winner and once for
-  the runner-up (the best pattern more than the tolerance from the winner's), so only a few dozen
-  hypotheses are scored in full;
+  They are found by one exact branch and bound (:func:`_collect`) that keeps every hypothesis
+  scoring at least a certified lower bound on the runner-up's score (the runner-up: the best pattern
+  more than the tolerance from the winner's), so only a few dozen hypotheses are scored in full;
+  where more would have to be kept (many near-ties), by two (:func:`_winner`: the winner, then the
+  runner-up);
 * the trusted mics, the chosen lags and the least-squares arrival times, solved by Gaussian
   elimination with partial pivoting in place of LAPACK: the times agree with numpy's to rounding
   (~10⁻¹⁶ s), not bit for bit.
@@ -35,6 +37,8 @@ from plugins.solvers.hypothesis_search import LATENESS_WEIGHT, pair_layout
 DIAGNOSTICS = ("consistent_pairs", "consistency", "score_margin", "n_mics_used", "closure_rms_s")
 
 _BIG = np.finfo(np.float64).max
+#: Hypotheses the one-pass search may keep per event before it falls back to two passes.
+_KEPT = 256
 
 
 def select_compiled(candidates_s: np.ndarray, weights: np.ndarray, prior_lags_s: np.ndarray | None, *, k: int, tolerance_s: float,
@@ -194,6 +198,45 @@ def _deviation(t, ref_t, m):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _root_bound(best_given_i, best_given_j, best_pair, r, n_pairs, i_idx, j_idx, bound_at, time_sum, time_min):
+    """The bound of reference r's root (only the reference fixed, at rank 0) into depth 0 of the per-depth scratch."""
+    root = 0.0
+    for p in range(n_pairs):
+        if i_idx[p] == r:
+            root += best_given_i[r, p, 0]
+        elif j_idx[p] == r:
+            root += best_given_j[r, p, 0]
+        else:
+            root += best_pair[r, p]
+    bound_at[0], time_sum[0], time_min[0] = root, 0.0, 0.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _child_bound(table, best_given_i, best_given_j, best_pair, arrival, r, rank, depth, m, i_idx, j_idx, pair_index,
+                 bound_at, time_sum, time_min):
+    """The node just reached fixes mic n (slot depth − 1) on top of its parent: its bound is the parent's plus the change
+    in n's pairs, and its fixed mics' time sum and earliest time (for the lateness penalty's floor), into depth ``depth``."""
+    n = depth - 1 + (depth - 1 >= r)  # slot s of reference r is mic s + (s ≥ r)
+    q = rank[n]
+    bound = bound_at[depth - 1]
+    for x in range(m):
+        if x == n:
+            continue
+        p = pair_index[n, x]
+        if x == r or x - (x > r) < depth - 1:  # x fixed: the pair's entry replaces its best given x's rank
+            new = table[r, p, rank[i_idx[p]], rank[j_idx[p]]]
+            old = best_given_i[r, p, rank[x]] if x < n else best_given_j[r, p, rank[x]]
+        else:  # x free: the best given n's rank replaces the pair's best
+            new = best_given_i[r, p, q] if n < x else best_given_j[r, p, q]
+            old = best_pair[r, p]
+        bound += new - old
+    bound_at[depth] = bound
+    v = arrival[r, n, q]
+    time_sum[depth] = time_sum[depth - 1] + v
+    time_min[depth] = min(time_min[depth - 1], v)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _search(table, best_given_i, best_given_j, best_pair, arrival, k, m, n_pairs, i_idx, j_idx, pair_index, mic_of_slot, lateness_weight,
             rank, t, late, win_t, tol, runner_up, start, bound_at, time_sum, time_min):
     """Branch and bound over every reference's slot ranks, depth first in index order.
@@ -219,36 +262,12 @@ def _search(table, best_given_i, best_given_j, best_pair, arrival, k, m, n_pairs
     for r in range(m):
         for n in range(m):
             rank[n] = 0
-        root = 0.0
-        for p in range(n_pairs):
-            if i_idx[p] == r:
-                root += best_given_i[r, p, 0]
-            elif j_idx[p] == r:
-                root += best_given_j[r, p, 0]
-            else:
-                root += best_pair[r, p]
-        bound_at[0], time_sum[0], time_min[0] = root, 0.0, 0.0
+        _root_bound(best_given_i, best_given_j, best_pair, r, n_pairs, i_idx, j_idx, bound_at, time_sum, time_min)
         depth = 0  # the node: slots 0 … depth − 1 fixed at their ranks; free slots hold rank 0
         while True:
-            if depth > 0:  # the node just reached fixes mic n (slot depth − 1) on top of its parent
-                n = mic_of_slot[r, depth - 1]
-                q = rank[n]
-                bound = bound_at[depth - 1]
-                for x in range(m):
-                    if x == n:
-                        continue
-                    p = pair_index[n, x]
-                    if x == r or x - (x > r) < depth - 1:  # x fixed: the pair's entry replaces its best given x's rank
-                        new = table[r, p, rank[i_idx[p]], rank[j_idx[p]]]
-                        old = best_given_i[r, p, rank[x]] if x < n else best_given_j[r, p, rank[x]]
-                    else:  # x free: the best given n's rank replaces the pair's best
-                        new = best_given_i[r, p, q] if n < x else best_given_j[r, p, q]
-                        old = best_pair[r, p]
-                    bound += new - old
-                bound_at[depth] = bound
-                v = arrival[r, n, q]
-                time_sum[depth] = time_sum[depth - 1] + v
-                time_min[depth] = min(time_min[depth - 1], v)
+            if depth > 0:
+                _child_bound(table, best_given_i, best_given_j, best_pair, arrival, r, rank, depth, m, i_idx, j_idx, pair_index,
+                             bound_at, time_sum, time_min)
             bound = bound_at[depth]
             lateness = max(time_sum[depth] - (depth + 1) * time_min[depth], 0.0)
             if bound > -np.inf and bound - lateness_weight * lateness >= best - 1e-12 * (1.0 + abs(best)):
@@ -433,6 +452,105 @@ def _winner(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_i
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _collect(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, lateness_weight, far, theta,
+             rank, scratch, kept_score, kept_times):
+    """Every hypothesis that can be the winner or the runner-up, in one branch and bound, in index order.
+
+    ``theta`` is a certified lower bound on the runner-up's final score (and so on the winner's):
+    the lower score of two scored hypotheses whose patterns lie more than ``far`` (twice the
+    tolerance) apart, one of which is more than the tolerance from the winner's, whichever it is
+    (the pattern distance obeys the triangle inequality). Subtrees whose bound (see :func:`_search`)
+    lies below θ by more than rounding are skipped; every leaf scoring ≥ θ is kept (score and
+    arrival times), and θ rises as kept leaves form new far-apart pairs. Returns the number kept,
+    −1 when more than ``kept_score``'s length would be.
+    """
+    m, n_pairs = table.shape[0], table.shape[1]
+    n_slots = m - 1
+    t, late, bound_at, time_sum, time_min = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4]
+    n_kept = 0
+    for r in range(m):
+        for n in range(m):
+            rank[n] = 0
+        _root_bound(best_given_i, best_given_j, best_pair, r, n_pairs, i_idx, j_idx, bound_at, time_sum, time_min)
+        depth = 0
+        while True:
+            if depth > 0:
+                _child_bound(table, best_given_i, best_given_j, best_pair, arrival, r, rank, depth, m, i_idx, j_idx, pair_index,
+                             bound_at, time_sum, time_min)
+            bound = bound_at[depth]
+            lateness = max(time_sum[depth] - (depth + 1) * time_min[depth], 0.0)
+            floor = theta - 1e-12 * (1.0 + abs(theta))
+            if bound > -np.inf and bound - lateness_weight * lateness >= floor:
+                if depth < n_slots:
+                    depth += 1
+                    continue
+                score = _score(table, arrival, r, rank, m, n_pairs, i_idx, j_idx, t, late, lateness_weight)
+                if score > -np.inf and score >= floor:
+                    if n_kept == kept_score.shape[0]:
+                        return -1, theta
+                    for y in range(n_kept):
+                        if _deviation(t, kept_times[y], m) > far:
+                            theta = max(theta, min(score, kept_score[y]))
+                    kept_score[n_kept] = score
+                    kept_times[n_kept, :] = t
+                    n_kept += 1
+            while depth > 0:
+                mic = depth - 1 + (depth - 1 >= r)
+                if rank[mic] + 1 < k:
+                    rank[mic] += 1
+                    break
+                rank[mic] = 0
+                depth -= 1
+            if depth == 0:
+                break
+    return n_kept, theta
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _winner_one_pass(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, mic_of_slot, lateness_weight,
+                     tol, scratch, rank, win_t, kept_score, kept_times):
+    """:func:`_winner` in one branch and bound (:func:`_collect`) where the hypotheses it keeps fit the buffers, else in two.
+
+    θ starts from reference 0's hypothesis of top-ranked lags and its one-slot variants: the lower
+    score of it and any variant whose pattern lies more than twice the tolerance from it.
+    """
+    m, n_pairs = table.shape[0], table.shape[1]
+    t, late, base = scratch[0], scratch[1], scratch[2]
+    far = 2 * tol * (1 + 1e-9) + 1e-15  # a hair over twice the tolerance, for rounding
+    rank[:] = 0
+    first = _score(table, arrival, 0, rank, m, n_pairs, i_idx, j_idx, t, late, lateness_weight)
+    base[:] = t
+    theta = -np.inf
+    for s in range(m - 1):
+        mic = mic_of_slot[0, s]
+        for q in range(1, k):
+            rank[mic] = q
+            score = _score(table, arrival, 0, rank, m, n_pairs, i_idx, j_idx, t, late, lateness_weight)
+            if _deviation(t, base, m) > far:
+                theta = max(theta, min(first, score))
+        rank[mic] = 0
+    n_kept, theta = _collect(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, lateness_weight, far,
+                             theta, rank, scratch, kept_score, kept_times)
+    if n_kept < 0:  # more candidates than the buffers hold (many near-ties): two passes
+        return _winner(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, mic_of_slot,
+                       lateness_weight, tol, scratch, rank, win_t)
+    win = -1
+    for h in range(n_kept):  # the first highest, in index order
+        if win < 0 or kept_score[h] > kept_score[win]:
+            win = h
+    if win < 0:  # every hypothesis misses an arrival time: the first hypothesis (reference 0, ranks 0)
+        for n in range(m):
+            win_t[n] = arrival[0, n, 0]
+        return np.nan
+    win_t[:] = kept_times[win]
+    runner = -np.inf
+    for h in range(n_kept):
+        if kept_score[h] > runner and _deviation(kept_times[h], win_t, m) > tol:
+            runner = kept_score[h]
+    return kept_score[win] - runner if np.isfinite(runner) else np.nan
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, i_idx, j_idx, pair_index, mic_of_slot, lateness_weight,
             times_out, trusted_out, diag_out):
     bsz, n_pairs, k_all = cands.shape
@@ -445,6 +563,7 @@ def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, i
     best_pair = np.empty((m, n_pairs))
     rank = np.zeros(m, np.int64)
     scratch = np.empty((5, m))
+    kept_score, kept_times = np.empty(_KEPT), np.empty((_KEPT, m))
     win_t = np.empty(m)
     gap_ok = np.empty(n_pairs, np.bool_)
     chosen = np.empty(n_pairs)
@@ -456,6 +575,6 @@ def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, i
                 w[p, rr] = _clean_weight(weights[b, p, rr]) if np.isfinite(cands[b, p, rr]) else 0.0
         _tables(cands[b], w, prior[b], use_prior, prior_weight, prior_tol, tol, k, i_idx, j_idx, pair_index, pair_lag, lag_w,
                 arrival, table, best_given_i, best_given_j, best_pair)
-        diag_out[b, 2] = _winner(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, mic_of_slot,
-                                 lateness_weight, tol, scratch, rank, win_t)
+        diag_out[b, 2] = _winner_one_pass(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, mic_of_slot,
+                                          lateness_weight, tol, scratch, rank, win_t, kept_score, kept_times)
         _trust_and_fit(cands[b], tol, win_t, i_idx, j_idx, gap_ok, chosen, per_mic, normal, rhs, times_out[b], trusted_out[b], diag_out[b])
