@@ -84,6 +84,32 @@ def test_compiled_selection_with_near_duplicate_peaks_everywhere():
     assert_same_selection(cands, rng.uniform(0.4, 0.6, size=cands.shape))
 
 
+@pytest.mark.parametrize("k_all,max_hypotheses", [(4, 10_000), (4, 1_000), (5, 100)])
+def test_compiled_selection_with_more_candidates_than_ranks(k_all, max_hypotheses):
+    """K = 4 or 5 peaks per pair, of which the first k = 4, 2 or 1 form hypotheses (max_hypotheses) while every K count
+    for consistency: the general pair-table path (the default K = 3 has one of its own), the choice numpy's, bit for bit."""
+    rng = np.random.default_rng(k_all + max_hypotheses)
+    arrival = rng.uniform(0, 0.01, size=(16, 6))
+    lags = np.stack([arrival[:, j] - arrival[:, i] for i, j in pairs(6)], axis=1)
+    cands = lags[..., None] + rng.choice([0.0, 1e-4, 3e-3, -4e-3, 9e-3], size=(*lags.shape, k_all))
+    cands[rng.random(cands.shape) < 0.1] = np.nan
+    assert_same_selection(cands, rng.uniform(0, 1, size=cands.shape), max_hypotheses=max_hypotheses)
+
+
+@pytest.mark.parametrize("n_mics", [3, 6, 10, 63])
+@pytest.mark.parametrize("n_events", [0, 1, 500])
+def test_compiled_solver_groups_events_as_numpy_does(n_mics, n_events):
+    """Events grouped by their trusted mics with integer keys: the same groups, rows and order as np.unique on the rows
+    (63 mics: too many bits for a key, numpy's grouping)."""
+    trusted = np.random.default_rng(n_mics).random((n_events, n_mics)) < 0.85
+    expected = ConsistentSetSolver._groups_by_trusted(trusted)
+    got = CompiledConsistentSetSolver._groups_by_trusted(trusted)
+    assert len(got) == len(expected)
+    for (mask, rows), (want_mask, want_rows) in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(mask, want_mask)
+        np.testing.assert_array_equal(rows, want_rows)
+
+
 def test_compiled_selection_names_what_is_wrong():
     with pytest.raises(ValueError, match="all pairs of M mics"):
         select_compiled(np.zeros((2, 4, 3)), np.ones((2, 4, 3)), None, k=3, tolerance_s=2.5e-4, prior_weight=0.0, prior_tolerance_s=1e-3)

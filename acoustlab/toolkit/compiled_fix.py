@@ -101,17 +101,15 @@ def _gdop(j00, j01, j11):
 def _energy_db(px, py, height, mics, levels):
     """:func:`acoustlab.toolkit.tdoa.energy_residual_db` at one candidate (NaN where a level is missing)."""
     m = mics.shape[0]
-    total = 0.0
-    n = 0
+    source_level = np.empty(m)  # each mic's level corrected for spreading, dB
     for i in range(m):
         di = np.sqrt((px - mics[i, 0]) ** 2 + (py - mics[i, 1]) ** 2 + (height - mics[i, 2]) ** 2)
-        ei = levels[i] + 20 * np.log10(max(di, 1e-3))
+        source_level[i] = levels[i] + 20 * np.log10(max(di, 1e-3))
+    total = 0.0
+    for i in range(m):
         for j in range(i + 1, m):
-            dj = np.sqrt((px - mics[j, 0]) ** 2 + (py - mics[j, 1]) ** 2 + (height - mics[j, 2]) ** 2)
-            ej = levels[j] + 20 * np.log10(max(dj, 1e-3))
-            total += (ei - ej) ** 2
-            n += 1
-    return np.sqrt(total / n)
+            total += (source_level[i] - source_level[j]) ** 2
+    return np.sqrt(total / (m * (m - 1) // 2))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

@@ -6,20 +6,25 @@ normal equations: some 150 numpy calls per chunk of 16 events, about 75 µs per 
 core, most of it call overhead on small arrays. :func:`select_compiled` does the same work event
 by event in compiled loops (``solver=consistent_set_compiled``):
 
-* the pair tables and their −inf entries for missing arrival times, as numpy builds them;
+* the pair tables and their −inf entries for missing arrival times, as numpy builds them, but
+  those of the pairs with the reference once per pair (:func:`_tables`; their predicted lag is the
+  candidate itself);
 * the same winner and runner-up: each hypothesis' raw score is summed in pair order from 0 and its
   lateness as numpy's pairwise reduction sums it, so the scores are the numpy scores, bit for bit.
-  They are found by one exact branch and bound (:func:`_collect`) that keeps every hypothesis
-  scoring at least a certified lower bound on the runner-up's score (the runner-up: the best pattern
-  more than the tolerance from the winner's), so only a few dozen hypotheses are scored in full;
-  where more would have to be kept (many near-ties), by two (:func:`_winner`: the winner, then the
-  runner-up);
+  They are found by one exact branch and bound (:func:`_branch_and_bound`) that keeps every
+  hypothesis scoring at least a certified lower bound on the runner-up's score (the runner-up: the
+  best pattern more than the tolerance from the winner's), so only a few dozen hypotheses are
+  scored in full; where more would have to be kept (many near-ties), by two (:func:`_winner`: the
+  winner, then the runner-up). A node's bound takes, for each free mic, its best rank given every
+  fixed mic at once (not pair by pair), which cuts more of the tree than per-pair maxima;
 * the trusted mics, the chosen lags and the least-squares arrival times, solved by Gaussian
   elimination with partial pivoting in place of LAPACK: the times agree with numpy's to rounding
   (~10⁻¹⁶ s), not bit for bit.
 
 Written by hand: the search is a bounded enumeration over a dense pairwise score that no library
 offers, and the per-event linear algebra is 6 × 6, where a LAPACK call costs more than the solve.
+Small helpers are inlined (``inline="always"``): a call between compiled functions passes every
+array as a reference-counted struct, which cost more than the work in them.
 The kernels are cached beside this module (``cache=True``): compiled once per installation (a few
 seconds), loaded by the first compiled solve of a process (about 0.6 s with numba's import).
 """
@@ -72,20 +77,25 @@ def select_compiled(candidates_s: np.ndarray, weights: np.ndarray, prior_lags_s:
     wgt = np.ascontiguousarray(np.broadcast_to(weights, cands.shape), dtype=np.float64)
     use_prior = prior_lags_s is not None and prior_weight > 0
     prior = np.ascontiguousarray(prior_lags_s if use_prior else np.zeros((bsz, n_pairs)), dtype=np.float64)
-    i_idx, j_idx, pair_index, mic_of_slot = _layout(m)
+    i_idx, j_idx, ref_pair, slot_pair = _layout(m)
     times = np.empty((bsz, m))
     trusted = np.empty((bsz, m), dtype=np.bool_)
     diagnostics = np.empty((bsz, len(DIAGNOSTICS)))
-    _select(cands, wgt, prior, use_prior, float(prior_weight), float(prior_tolerance_s), float(tolerance_s), int(k),
-            i_idx, j_idx, pair_index, mic_of_slot, LATENESS_WEIGHT, times, trusted, diagnostics)
+    _select(cands, wgt, prior, use_prior, float(prior_weight), float(prior_tolerance_s), float(tolerance_s), int(k), int(k_all),
+            i_idx, j_idx, ref_pair, slot_pair, LATENESS_WEIGHT, times, trusted, diagnostics)
     return {"times_s": times, "trusted": trusted, **{name: diagnostics[:, n] for n, name in enumerate(DIAGNOSTICS)}}
 
 
 @functools.lru_cache(maxsize=32)
 def _layout(n_mics: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`pair_layout`'s index arrays as int64 (the kernel's types), once per array size."""
+    """The kernel's index arrays (int64), once per array size: :func:`pair_layout`'s ``i_idx`` and ``j_idx`` (P,),
+    the pair of reference r and slot s (R, S) and the pair of slots s and s2 under reference r (R, S, S), where
+    slot s of reference r is mic s + (s ≥ r)."""
     layout = pair_layout(n_mics)
-    arrays = tuple(np.ascontiguousarray(a, dtype=np.int64) for a in (layout.i_idx, layout.j_idx, layout.pair_index, layout.mic_of_slot))
+    slot_mic = layout.mic_of_slot
+    ref_pair = layout.pair_index[np.arange(n_mics)[:, None], slot_mic]
+    slot_pair = layout.pair_index[slot_mic[:, :, None], slot_mic[:, None, :]]
+    arrays = tuple(np.ascontiguousarray(a, dtype=np.int64) for a in (layout.i_idx, layout.j_idx, ref_pair, slot_pair))
     for array in arrays:
         array.setflags(write=False)
     return arrays
@@ -109,7 +119,7 @@ def _clean_weight(w):
     return w
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _lateness(t, m, late):
     """Σ (t − min t) as numpy's reduction over the last axis sums it (its pairwise sum: sequential from −0.0
     below 8 terms, eight accumulators in blocks of 8 up to 128); ``late`` receives the terms."""
@@ -144,7 +154,7 @@ def _lateness(t, m, late):
     return s
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _final(raw, lateness, weight):
     if np.isnan(lateness):
         lateness = 1e3
@@ -177,18 +187,126 @@ def _solve_in_place(a, b, m):
         b[row] = s / a[row, row]
 
 
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _entry(pred, cands, w, p, k_all, tol, use_prior, prior_lag, prior_weight, prior_tol):
+    """One pair-table entry of pair p for a predicted lag, as numpy computes it: the running np.maximum from 0 of
+    close · weight over the pair's candidates (≥ 0 throughout), plus the prior's weight where it agrees."""
+    val = 0.0
+    for rr in range(k_all):
+        val = max(val, w[p, rr] if abs(pred - cands[p, rr]) < tol else 0.0)
+    if use_prior and abs(pred - prior_lag) < prior_tol:
+        val = val + prior_weight
+    return val
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _pair_table(cands, w, p, k_all, first, second, k, tol, use_prior, prior_lag, prior_weight, prior_tol, out):
+    """Pair p's table ``out`` (k, k) for the candidate arrival times of its first and second mic (k,), −inf where one is
+    missing (``x − x == 0`` tests that x is finite); returns its largest entry."""
+    top = -np.inf
+    for a in range(k):
+        ai = first[a]
+        finite = ai - ai == 0.0
+        for c in range(k):
+            aj = second[c]
+            if finite and aj - aj == 0.0:
+                val = _entry(aj - ai, cands, w, p, k_all, tol, use_prior, prior_lag, prior_weight, prior_tol)
+            else:
+                val = -np.inf  # a missing arrival time
+            out[a, c] = val
+            top = max(top, val)
+    return top
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _pair_table_3(l0, l1, l2, w0, w1, w2, first, second, k, tol, use_prior, prior_lag, prior_weight, prior_tol, out):
+    """:func:`_pair_table` for a pair of three candidates (lags l, cleaned weights w), the same entries in the same order."""
+    top = -np.inf
+    for a in range(k):
+        ai = first[a]
+        finite = ai - ai == 0.0
+        for c in range(k):
+            aj = second[c]
+            if finite and aj - aj == 0.0:
+                pred = aj - ai
+                val = max(max(max(0.0, w0 if abs(pred - l0) < tol else 0.0), w1 if abs(pred - l1) < tol else 0.0),
+                          w2 if abs(pred - l2) < tol else 0.0)
+                if use_prior and abs(pred - prior_lag) < prior_tol:
+                    val = val + prior_weight
+            else:
+                val = -np.inf  # a missing arrival time
+            out[a, c] = val
+            top = max(top, val)
+    return top
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _score(table, arrival, r, rank, m, n_pairs, i_idx, j_idx, t, late, lateness_weight):
-    """The final score of hypothesis (r, rank) as the numpy search computes it; its arrival times land in t."""
-    raw = 0.0
+def _tables(cands, w, prior, use_prior, prior_weight, prior_tol, tol, k, k_all, i_idx, ref_pair, slot_pair, own, arrival, unary, table,
+            free_best, root):
+    """One event's tables per reference r, as numpy builds its pair tables; slot s of reference r is mic s + (s ≥ r).
+
+    ``arrival`` (R, S, k): candidate arrival times relative to the reference. ``table`` (R, P, k, k):
+    the pair tables by the ranks of the pair's mics, −inf where an arrival time is missing; those of
+    the pairs with the reference depend on the other mic's rank alone (the predicted lag is the
+    candidate itself: ``own`` (P, k) holds them once per pair), so only the reference's rank 0 is
+    filled, and ``unary`` (R, S, k) holds them by slot too. For the bounds
+    (:func:`_branch_and_bound`): ``free_best`` (R, S + 1), the sum of the largest entries of the
+    pairs of slots d … S − 1, and ``root`` (R,), the bound with every slot free. ``x − x == 0``
+    tests that x is finite (a NaN or infinite x gives NaN).
+    """
+    n_pairs = cands.shape[0]
+    m, n_slots = arrival.shape[0], arrival.shape[1]
     for p in range(n_pairs):
-        raw += table[r, p, rank[i_idx[p]], rank[j_idx[p]]]
-    for n in range(m):
-        t[n] = arrival[r, n, rank[n]]
+        for q in range(k):
+            x = cands[p, q]
+            own[p, q] = _entry(x, cands, w, p, k_all, tol, use_prior, prior[p], prior_weight, prior_tol) if x - x == 0.0 else -np.inf
+    for r in range(m):
+        top_unary = 0.0
+        for s in range(n_slots):
+            p = ref_pair[r, s]
+            first = i_idx[p] == r
+            top = -np.inf
+            for q in range(k):
+                arrival[r, s, q] = cands[p, q] if first else -cands[p, q]
+                unary[r, s, q] = own[p, q]
+                if first:
+                    table[r, p, 0, q] = own[p, q]
+                else:
+                    table[r, p, q, 0] = own[p, q]
+                top = max(top, own[p, q])
+            top_unary += top
+        free_best[r, n_slots] = 0.0
+        for s in range(n_slots - 1, -1, -1):
+            tops = 0.0
+            for s2 in range(s + 1, n_slots):
+                p = slot_pair[r, s, s2]
+                if k_all == 3:  # the default: the pair's candidates held in registers
+                    top = _pair_table_3(cands[p, 0], cands[p, 1], cands[p, 2], w[p, 0], w[p, 1], w[p, 2], arrival[r, s], arrival[r, s2], k,
+                                        tol, use_prior, prior[p], prior_weight, prior_tol, table[r, p])
+                else:
+                    top = _pair_table(cands, w, p, k_all, arrival[r, s], arrival[r, s2], k, tol, use_prior, prior[p], prior_weight,
+                                      prior_tol, table[r, p])
+                tops += top
+            free_best[r, s] = free_best[r, s + 1] + tops
+        root[r] = free_best[r, 0] + top_unary
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _leaf_score(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late):
+    """The final score of hypothesis (reference r, slot ranks; ``mic_rank`` the same by mic, 0 for the reference) as the
+    numpy search computes it: the raw score summed in pair order from 0, less the lateness penalty (:func:`_lateness`);
+    its arrival times (by mic) land in t."""
+    m = t.shape[0]
+    raw = 0.0
+    for p in range(i_idx.shape[0]):
+        raw += table[r, p, mic_rank[i_idx[p]], mic_rank[j_idx[p]]]
+    t[r] = 0.0
+    for s in range(m - 1):
+        t[s + (s >= r)] = arrival[r, s, ranks[s]]
     return _final(raw, _lateness(t, m, late), lateness_weight)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _deviation(t, ref_t, m):
     """Largest |(t_n − t_0) − (ref_n − ref_0)|, s (NaN where a time is NaN, as numpy's max)."""
     dev = abs(t[0] - t[0] - (ref_t[0] - ref_t[0]))
@@ -197,147 +315,175 @@ def _deviation(t, ref_t, m):
     return dev
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _root_bound(best_given_i, best_given_j, best_pair, r, n_pairs, i_idx, j_idx, bound_at, time_sum, time_min):
-    """The bound of reference r's root (only the reference fixed, at rank 0) into depth 0 of the per-depth scratch."""
-    root = 0.0
-    for p in range(n_pairs):
-        if i_idx[p] == r:
-            root += best_given_i[r, p, 0]
-        elif j_idx[p] == r:
-            root += best_given_j[r, p, 0]
-        else:
-            root += best_pair[r, p]
-    bound_at[0], time_sum[0], time_min[0] = root, 0.0, 0.0
+#: What :func:`_branch_and_bound` looks for.
+_COLLECT, _WINNER, _RUNNER_UP = 0, 1, 2
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _child_bound(table, best_given_i, best_given_j, best_pair, arrival, r, rank, depth, m, i_idx, j_idx, pair_index,
-                 bound_at, time_sum, time_min):
-    """The node just reached fixes mic n (slot depth − 1) on top of its parent: its bound is the parent's plus the change
-    in n's pairs, and its fixed mics' time sum and earliest time (for the lateness penalty's floor), into depth ``depth``."""
-    n = depth - 1 + (depth - 1 >= r)  # slot s of reference r is mic s + (s ≥ r)
-    q = rank[n]
-    bound = bound_at[depth - 1]
-    for x in range(m):
-        if x == n:
-            continue
-        p = pair_index[n, x]
-        if x == r or x - (x > r) < depth - 1:  # x fixed: the pair's entry replaces its best given x's rank
-            new = table[r, p, rank[i_idx[p]], rank[j_idx[p]]]
-            old = best_given_i[r, p, rank[x]] if x < n else best_given_j[r, p, rank[x]]
-        else:  # x free: the best given n's rank replaces the pair's best
-            new = best_given_i[r, p, q] if n < x else best_given_j[r, p, q]
-            old = best_pair[r, p]
-        bound += new - old
-    bound_at[depth] = bound
-    v = arrival[r, n, q]
-    time_sum[depth] = time_sum[depth - 1] + v
-    time_min[depth] = min(time_min[depth - 1], v)
+def _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, mode, level, far, tol,
+                      win_t, ranks, mic_rank, fixed, joint, time_sum, time_min, t, late, kept_score, kept_times):
+    """Branch and bound over every reference's slot ranks, depth first in index order (the numpy search's order).
 
+    A node fixes the reference and slots 0 … d. Its bound on the raw score of every hypothesis
+    below it is the sum of the entries of the pairs it fixes, plus for every free slot its best
+    rank's entries with the reference and the fixed slots together (``joint``: per depth, free
+    slot and rank), plus the largest entry of every pair of free slots (``free_best``). Less the
+    smallest lateness penalty its fixed mics already imply (the earliest of all mics is no later
+    than the earliest fixed one, and free mics add ≥ 0), that bounds every final score below it.
+    A node is skipped when its bound lies below ``level`` by more than rounding (10⁻¹² relative);
+    leaves that are not are scored exactly (:func:`_leaf_score`).
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _search(table, best_given_i, best_given_j, best_pair, arrival, k, m, n_pairs, i_idx, j_idx, pair_index, mic_of_slot, lateness_weight,
-            rank, t, late, win_t, tol, runner_up, start, bound_at, time_sum, time_min):
-    """Branch and bound over every reference's slot ranks, depth first in index order.
-
-    A node fixes the reference and slots 0 … d − 1. Its bound on the raw score of every hypothesis
-    below it is the sum over pairs of the pair's entry where both mics are fixed, its largest entry
-    given the fixed mic's rank where one is, and its largest entry where neither is; a child's bound
-    is its parent's plus the change in the pairs of the mic it fixes. Less the smallest lateness
-    penalty its fixed mics already imply (the earliest of all mics is no later than the earliest
-    fixed one, and free mics add ≥ 0), that bounds every final score below the node. A subtree is
-    skipped when it lies below the best score found so far by more than rounding (10⁻¹² relative):
-    nothing in it could replace the best, which only a strictly higher exact score does (keeping
-    the first in index order). Leaves are scored exactly as the numpy search scores them.
-
-    Returns (best final score, its reference, its slot code) of the winner (``runner_up`` False:
-    the first highest) or of the runner-up (True: the highest among patterns more than ``tol``
-    from ``win_t``); (``start``, −1, −1) when no hypothesis scores above ``start``, a score already
-    reached by an eligible hypothesis (−inf for the winner's search). ``bound_at``, ``time_sum``,
-    ``time_min`` (M,): scratch per depth.
+    ``mode`` :data:`_COLLECT`: ``level`` is θ, a certified lower bound on the runner-up's score
+    (:func:`_winner_one_pass`); every leaf scoring ≥ θ is kept in index order (score and
+    arrival times), and θ rises to the lower score of any two kept leaves whose patterns lie more
+    than ``far`` apart. Returns (number kept, θ, −1, −1); −1 kept when more than
+    ``kept_score``'s length would be. :data:`_WINNER`: the first highest leaf above ``level``
+    (−inf); :data:`_RUNNER_UP`: the highest of those more than ``tol`` from ``win_t``, above
+    ``level`` (a score an eligible pattern reaches). Both return (0, best score, reference,
+    slot code), (0, ``level``, −1, −1) when no leaf scores above it. ``ranks`` (S,): the slots' ranks, ``mic_rank`` (M,): the
+    same by mic; ``fixed``, ``time_sum``, ``time_min`` (S,) and ``joint`` (S, S, k): scratch per depth.
     """
-    n_slots = m - 1
-    best, best_r, best_code = start, -1, -1
+    m, n_slots = arrival.shape[0], arrival.shape[1]
+    n_kept, best_r, best_code = 0, -1, -1
+    floor = level - 1e-12 * (1.0 + abs(level))  # level less rounding: what a node's bound must reach
     for r in range(m):
-        for n in range(m):
-            rank[n] = 0
-        _root_bound(best_given_i, best_given_j, best_pair, r, n_pairs, i_idx, j_idx, bound_at, time_sum, time_min)
-        depth = 0  # the node: slots 0 … depth − 1 fixed at their ranks; free slots hold rank 0
-        while True:
-            if depth > 0:
-                _child_bound(table, best_given_i, best_given_j, best_pair, arrival, r, rank, depth, m, i_idx, j_idx, pair_index,
-                             bound_at, time_sum, time_min)
-            bound = bound_at[depth]
-            lateness = max(time_sum[depth] - (depth + 1) * time_min[depth], 0.0)
-            if bound > -np.inf and bound - lateness_weight * lateness >= best - 1e-12 * (1.0 + abs(best)):
-                if depth < n_slots:
-                    depth += 1
-                    continue
-                score = _score(table, arrival, r, rank, m, n_pairs, i_idx, j_idx, t, late, lateness_weight)
-                if score > best and (not runner_up or _deviation(t, win_t, m) > tol):
-                    best, best_r, best_code = score, r, 0
-                    for s in range(n_slots):
-                        best_code = best_code * k + rank[mic_of_slot[r, s]]
-            # next sibling of the node, or of its nearest ancestor that has one
-            while depth > 0:
-                mic = mic_of_slot[r, depth - 1]
-                if rank[mic] + 1 < k:
-                    rank[mic] += 1
-                    break
-                rank[mic] = 0
-                depth -= 1
-            if depth == 0:
-                break
-    return best, best_r, best_code
+        if root[r] == -np.inf or root[r] < floor:
+            continue
+        joint[0] = unary[r]
+        ranks[0], fixed[0], time_sum[0], time_min[0] = -1, 0.0, 0.0, 0.0
+        mic_rank[r] = 0
+        d = 0  # the slot being fixed; slots < d are fixed at ranks[:d], with joint[d] their free slots' best
+        while d >= 0:
+            q = ranks[d] + 1
+            if q == k:
+                d -= 1
+                continue
+            ranks[d] = q
+            v = arrival[r, d, q]
+            t_sum, t_min = time_sum[d] + v, min(time_min[d], v)
+            score = fixed[d] + joint[d, d, q]
+            bound = score + free_best[r, d + 1]
+            for s in range(d + 1, n_slots):  # later slots: their entries with slot d at rank q join the rest
+                pair = slot_pair[r, d, s]
+                top = -np.inf
+                for q2 in range(k):
+                    x = joint[d, s, q2] + table[r, pair, q, q2]
+                    joint[d + 1, s, q2] = x
+                    top = max(top, x)
+                bound += top
+            if bound == -np.inf or bound - lateness_weight * max(t_sum - (d + 2) * t_min, 0.0) < floor:
+                continue
+            mic_rank[d + (d >= r)] = q
+            if d + 1 < n_slots:
+                d += 1
+                ranks[d], fixed[d], time_sum[d], time_min[d] = -1, score, t_sum, t_min
+                continue
+            score = _leaf_score(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
+            if mode == _COLLECT:
+                if score > -np.inf and score >= floor:
+                    if n_kept == kept_score.shape[0]:
+                        return -1, level, -1, -1
+                    for y in range(n_kept):
+                        if _deviation(t, kept_times[y], m) > far:
+                            level = max(level, min(score, kept_score[y]))
+                    floor = level - 1e-12 * (1.0 + abs(level))
+                    kept_score[n_kept] = score
+                    kept_times[n_kept, :] = t
+                    n_kept += 1
+            elif score > level and (mode == _WINNER or _deviation(t, win_t, m) > tol):
+                level, best_r, best_code = score, r, 0
+                floor = level - 1e-12 * (1.0 + abs(level))
+                for s in range(n_slots):
+                    best_code = best_code * k + ranks[s]
+    return n_kept, level, best_r, best_code
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _score_of(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late):
+    """:func:`_leaf_score` of reference r and slot ranks ``ranks`` (fills ``mic_rank``)."""
+    mic_rank[r] = 0
+    for s in range(ranks.shape[0]):
+        mic_rank[s + (s >= r)] = ranks[s]
+    return _leaf_score(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _tables(cands, w, prior, use_prior, prior_weight, prior_tol, tol, k, i_idx, j_idx, pair_index, pair_lag, lag_w,
-            arrival, table, best_given_i, best_given_j, best_pair):
-    """One event's candidate arrival times (R, M, k) and pair tables (R, P, k, k), as numpy builds them, and the
-    tables' largest entries given the first mic's rank, the second's (R, P, k), and overall (R, P) for the bounds."""
-    n_pairs, k_all = cands.shape
-    m = arrival.shape[0]
-    for r in range(m):
-        for n in range(m):
-            for a in range(k):
-                if n == r:
-                    arrival[r, n, a] = 0.0
-                elif r < n:
-                    arrival[r, n, a] = cands[pair_index[r, n], a]
-                else:
-                    arrival[r, n, a] = -cands[pair_index[r, n], a]
-    for r in range(m):
-        for p in range(n_pairs):
-            i, j = i_idx[p], j_idx[p]
-            for rr in range(k_all):
-                pair_lag[rr] = cands[p, rr]
-                lag_w[rr] = w[p, rr]
-            for a in range(k):
-                best_given_i[r, p, a] = best_given_j[r, p, a] = -np.inf
-            for a in range(k):
-                ai = arrival[r, i, a]
-                finite_i = np.isfinite(ai)
-                for c in range(k):
-                    aj = arrival[r, j, c]
-                    if not (finite_i and np.isfinite(aj)):
-                        val = -np.inf  # a missing arrival time
-                    else:
-                        pred = aj - ai
-                        # numpy's running np.maximum from 0 of close · weight (≥ 0 throughout: a far candidate adds nothing)
-                        val = 0.0
-                        for rr in range(k_all):
-                            val = max(val, lag_w[rr] if abs(pred - pair_lag[rr]) < tol else 0.0)
-                        if use_prior and abs(pred - prior[p]) < prior_tol:
-                            val = val + prior_weight
-                    table[r, p, a, c] = val
-                    best_given_i[r, p, a] = max(best_given_i[r, p, a], val)
-                    best_given_j[r, p, c] = max(best_given_j[r, p, c], val)
-            best = -np.inf
-            for a in range(k):
-                best = max(best, best_given_i[r, p, a])
-            best_pair[r, p] = best
+def _winner(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks, mic_rank, fixed, joint,
+            scratch, win_t, kept_score, kept_times):
+    """The winner's arrival times into win_t and the score margin over the runner-up (NaN without one), in two passes."""
+    m, n_slots = arrival.shape[0], arrival.shape[1]
+    time_sum, time_min, t, late = scratch[0, :n_slots], scratch[1, :n_slots], scratch[2], scratch[3]
+    # pass 1: the winner, the first hypothesis in index order with the highest final score
+    _, win_score, r, code = _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight,
+                                              _WINNER, -np.inf, 0.0, tol, win_t, ranks, mic_rank, fixed, joint, time_sum, time_min, t,
+                                              late, kept_score, kept_times)
+    if r < 0:  # every hypothesis misses an arrival time: the first hypothesis (reference 0, ranks 0)
+        ranks[:] = 0
+        _score_of(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
+        return np.nan
+    for s in range(n_slots - 1, -1, -1):
+        ranks[s] = code % k
+        code //= k
+    _score_of(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
+    # pass 2: the runner-up, the best final score of a pattern more than the tolerance from the winner's;
+    # the winner's one-slot variants give it a score to prune from (often the runner-up's own)
+    start = -np.inf
+    for s in range(n_slots):
+        own = ranks[s]
+        for q in range(k):
+            if q != own:
+                ranks[s] = q
+                score = _score_of(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
+                if score > start and _deviation(t, win_t, m) > tol:
+                    start = score
+        ranks[s] = own
+    runner = _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, _RUNNER_UP, start,
+                               0.0, tol, win_t, ranks, mic_rank, fixed, joint, time_sum, time_min, t, late, kept_score, kept_times)[1]
+    return win_score - runner if np.isfinite(runner) else np.nan
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks, mic_rank, fixed,
+                     joint, scratch, win_t, kept_score, kept_times):
+    """:func:`_winner` in one branch and bound (:data:`_COLLECT`) where the hypotheses it keeps fit the buffers, else in two.
+
+    θ starts from reference 0's hypothesis of top-ranked lags and its one-slot variants: the lower
+    score of it and any variant whose pattern lies more than twice the tolerance from it (by the
+    triangle inequality one of the two lies more than the tolerance from the winner's pattern,
+    whichever it is).
+    """
+    m, n_slots = arrival.shape[0], arrival.shape[1]
+    time_sum, time_min, t, late, base = scratch[0, :n_slots], scratch[1, :n_slots], scratch[2], scratch[3], scratch[4]
+    far = 2 * tol * (1 + 1e-9) + 1e-15  # a hair over twice the tolerance, for rounding
+    ranks[:] = 0
+    first = _score_of(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, base, late)
+    theta = -np.inf
+    for s in range(n_slots):
+        for q in range(1, k):
+            ranks[s] = q
+            score = _score_of(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
+            if _deviation(t, base, m) > far:
+                theta = max(theta, min(first, score))
+        ranks[s] = 0
+    n_kept = _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, _COLLECT, theta, far,
+                               tol, win_t, ranks, mic_rank, fixed, joint, time_sum, time_min, t, late, kept_score, kept_times)[0]
+    if n_kept < 0:  # more candidates than the buffers hold (many near-ties): two passes
+        return _winner(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks, mic_rank, fixed,
+                       joint, scratch, win_t, kept_score, kept_times)
+    win = -1
+    for h in range(n_kept):  # the first highest, in index order
+        if win < 0 or kept_score[h] > kept_score[win]:
+            win = h
+    if win < 0:  # every hypothesis misses an arrival time: the first hypothesis (reference 0, ranks 0)
+        ranks[:] = 0
+        _score_of(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
+        return np.nan
+    win_t[:] = kept_times[win]
+    runner = -np.inf
+    for h in range(n_kept):
+        if kept_score[h] > runner and _deviation(kept_times[h], win_t, m) > tol:
+            runner = kept_score[h]
+    return kept_score[win] - runner if np.isfinite(runner) else np.nan
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -415,153 +561,18 @@ def _trust_and_fit(cands, tol, win_t, i_idx, j_idx, gap_ok, chosen, per_mic, nor
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _winner(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, mic_of_slot, lateness_weight, tol,
-            scratch, rank, win_t):
-    """The winner's arrival times into win_t and the score margin over the runner-up (NaN without one)."""
-    m, n_pairs = table.shape[0], table.shape[1]
-    t, late, bound_at, time_sum, time_min = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4]
-    # pass 1: the winner, the first hypothesis in index order with the highest final score
-    win_score, r, code = _search(table, best_given_i, best_given_j, best_pair, arrival, k, m, n_pairs, i_idx, j_idx, pair_index,
-                                 mic_of_slot, lateness_weight, rank, t, late, win_t, tol, False, -np.inf, bound_at, time_sum, time_min)
-    if not win_score > -np.inf:  # every hypothesis misses an arrival time: the first hypothesis (reference 0, ranks 0)
-        for n in range(m):
-            win_t[n] = arrival[0, n, 0]
-        return np.nan
-    rank[r] = 0
-    for s in range(m - 2, -1, -1):
-        rank[mic_of_slot[r, s]] = code % k
-        code //= k
-    for n in range(m):
-        win_t[n] = arrival[r, n, rank[n]]
-    # pass 2: the runner-up, the best final score of a pattern more than the tolerance from the winner's;
-    # the winner's one-slot variants give it a score to prune from (often the runner-up's own)
-    start = -np.inf
-    for s in range(m - 1):
-        mic = mic_of_slot[r, s]
-        own = rank[mic]
-        for q in range(k):
-            if q != own:
-                rank[mic] = q
-                score = _score(table, arrival, r, rank, m, n_pairs, i_idx, j_idx, t, late, lateness_weight)
-                if score > start and _deviation(t, win_t, m) > tol:
-                    start = score
-        rank[mic] = own
-    runner = _search(table, best_given_i, best_given_j, best_pair, arrival, k, m, n_pairs, i_idx, j_idx, pair_index, mic_of_slot,
-                     lateness_weight, rank, t, late, win_t, tol, True, start, bound_at, time_sum, time_min)[0]
-    return win_score - runner if np.isfinite(runner) else np.nan
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _collect(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, lateness_weight, far, theta,
-             rank, scratch, kept_score, kept_times):
-    """Every hypothesis that can be the winner or the runner-up, in one branch and bound, in index order.
-
-    ``theta`` is a certified lower bound on the runner-up's final score (and so on the winner's):
-    the lower score of two scored hypotheses whose patterns lie more than ``far`` (twice the
-    tolerance) apart, one of which is more than the tolerance from the winner's, whichever it is
-    (the pattern distance obeys the triangle inequality). Subtrees whose bound (see :func:`_search`)
-    lies below θ by more than rounding are skipped; every leaf scoring ≥ θ is kept (score and
-    arrival times), and θ rises as kept leaves form new far-apart pairs. Returns the number kept,
-    −1 when more than ``kept_score``'s length would be.
-    """
-    m, n_pairs = table.shape[0], table.shape[1]
-    n_slots = m - 1
-    t, late, bound_at, time_sum, time_min = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4]
-    n_kept = 0
-    for r in range(m):
-        for n in range(m):
-            rank[n] = 0
-        _root_bound(best_given_i, best_given_j, best_pair, r, n_pairs, i_idx, j_idx, bound_at, time_sum, time_min)
-        depth = 0
-        while True:
-            if depth > 0:
-                _child_bound(table, best_given_i, best_given_j, best_pair, arrival, r, rank, depth, m, i_idx, j_idx, pair_index,
-                             bound_at, time_sum, time_min)
-            bound = bound_at[depth]
-            lateness = max(time_sum[depth] - (depth + 1) * time_min[depth], 0.0)
-            floor = theta - 1e-12 * (1.0 + abs(theta))
-            if bound > -np.inf and bound - lateness_weight * lateness >= floor:
-                if depth < n_slots:
-                    depth += 1
-                    continue
-                score = _score(table, arrival, r, rank, m, n_pairs, i_idx, j_idx, t, late, lateness_weight)
-                if score > -np.inf and score >= floor:
-                    if n_kept == kept_score.shape[0]:
-                        return -1, theta
-                    for y in range(n_kept):
-                        if _deviation(t, kept_times[y], m) > far:
-                            theta = max(theta, min(score, kept_score[y]))
-                    kept_score[n_kept] = score
-                    kept_times[n_kept, :] = t
-                    n_kept += 1
-            while depth > 0:
-                mic = depth - 1 + (depth - 1 >= r)
-                if rank[mic] + 1 < k:
-                    rank[mic] += 1
-                    break
-                rank[mic] = 0
-                depth -= 1
-            if depth == 0:
-                break
-    return n_kept, theta
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _winner_one_pass(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, mic_of_slot, lateness_weight,
-                     tol, scratch, rank, win_t, kept_score, kept_times):
-    """:func:`_winner` in one branch and bound (:func:`_collect`) where the hypotheses it keeps fit the buffers, else in two.
-
-    θ starts from reference 0's hypothesis of top-ranked lags and its one-slot variants: the lower
-    score of it and any variant whose pattern lies more than twice the tolerance from it.
-    """
-    m, n_pairs = table.shape[0], table.shape[1]
-    t, late, base = scratch[0], scratch[1], scratch[2]
-    far = 2 * tol * (1 + 1e-9) + 1e-15  # a hair over twice the tolerance, for rounding
-    rank[:] = 0
-    first = _score(table, arrival, 0, rank, m, n_pairs, i_idx, j_idx, t, late, lateness_weight)
-    base[:] = t
-    theta = -np.inf
-    for s in range(m - 1):
-        mic = mic_of_slot[0, s]
-        for q in range(1, k):
-            rank[mic] = q
-            score = _score(table, arrival, 0, rank, m, n_pairs, i_idx, j_idx, t, late, lateness_weight)
-            if _deviation(t, base, m) > far:
-                theta = max(theta, min(first, score))
-        rank[mic] = 0
-    n_kept, theta = _collect(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, lateness_weight, far,
-                             theta, rank, scratch, kept_score, kept_times)
-    if n_kept < 0:  # more candidates than the buffers hold (many near-ties): two passes
-        return _winner(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, mic_of_slot,
-                       lateness_weight, tol, scratch, rank, win_t)
-    win = -1
-    for h in range(n_kept):  # the first highest, in index order
-        if win < 0 or kept_score[h] > kept_score[win]:
-            win = h
-    if win < 0:  # every hypothesis misses an arrival time: the first hypothesis (reference 0, ranks 0)
-        for n in range(m):
-            win_t[n] = arrival[0, n, 0]
-        return np.nan
-    win_t[:] = kept_times[win]
-    runner = -np.inf
-    for h in range(n_kept):
-        if kept_score[h] > runner and _deviation(kept_times[h], win_t, m) > tol:
-            runner = kept_score[h]
-    return kept_score[win] - runner if np.isfinite(runner) else np.nan
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, i_idx, j_idx, pair_index, mic_of_slot, lateness_weight,
+def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, k_all, i_idx, j_idx, ref_pair, slot_pair, lateness_weight,
             times_out, trusted_out, diag_out):
-    bsz, n_pairs, k_all = cands.shape
+    bsz, n_pairs = cands.shape[0], cands.shape[1]
     m = times_out.shape[1]
+    n_slots = m - 1
     w = np.empty((n_pairs, k_all))
-    pair_lag, lag_w = np.empty(k_all), np.empty(k_all)
-    arrival = np.empty((m, m, k))
+    own = np.empty((n_pairs, k))
+    arrival, unary = np.empty((m, n_slots, k)), np.empty((m, n_slots, k))
     table = np.empty((m, n_pairs, k, k))
-    best_given_i, best_given_j = np.empty((m, n_pairs, k)), np.empty((m, n_pairs, k))
-    best_pair = np.empty((m, n_pairs))
-    rank = np.zeros(m, np.int64)
+    free_best, root = np.empty((m, n_slots + 1)), np.empty(m)
+    ranks, mic_rank = np.zeros(n_slots, np.int64), np.zeros(m, np.int64)
+    fixed, joint = np.empty(n_slots), np.empty((n_slots, n_slots, k))
     scratch = np.empty((5, m))
     kept_score, kept_times = np.empty(_KEPT), np.empty((_KEPT, m))
     win_t = np.empty(m)
@@ -573,8 +584,8 @@ def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, i
         for p in range(n_pairs):
             for rr in range(k_all):
                 w[p, rr] = _clean_weight(weights[b, p, rr]) if np.isfinite(cands[b, p, rr]) else 0.0
-        _tables(cands[b], w, prior[b], use_prior, prior_weight, prior_tol, tol, k, i_idx, j_idx, pair_index, pair_lag, lag_w,
-                arrival, table, best_given_i, best_given_j, best_pair)
-        diag_out[b, 2] = _winner_one_pass(table, best_given_i, best_given_j, best_pair, arrival, k, i_idx, j_idx, pair_index, mic_of_slot,
-                                          lateness_weight, tol, scratch, rank, win_t, kept_score, kept_times)
+        _tables(cands[b], w, prior[b], use_prior, prior_weight, prior_tol, tol, k, k_all, i_idx, ref_pair, slot_pair, own, arrival, unary,
+                table, free_best, root)
+        diag_out[b, 2] = _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks,
+                                          mic_rank, fixed, joint, scratch, win_t, kept_score, kept_times)
         _trust_and_fit(cands[b], tol, win_t, i_idx, j_idx, gap_ok, chosen, per_mic, normal, rhs, times_out[b], trusted_out[b], diag_out[b])

@@ -231,6 +231,12 @@ class ConsistentSetSolver:
         t = np.sqrt(((src[:, None, :] - mics[None]) ** 2).sum(-1)) / c[:, None]
         return np.stack([t[:, j] - t[:, i] for i, j in pairs_of(len(mics))], axis=1)
 
+    @staticmethod
+    def _groups_by_trusted(trusted: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each distinct row of ``trusted`` (B, M) with the events (row indices, ascending) that have it, rows in lexicographic order."""
+        masks, group = np.unique(trusted, axis=0, return_inverse=True)
+        return [(mask, np.flatnonzero(group.ravel() == g)) for g, mask in enumerate(masks)]
+
     def _solve_subsets(self, base: HyperbolicSolver, mics: np.ndarray, chosen: dict[str, np.ndarray], c: np.ndarray,
                        levels: np.ndarray | None) -> SolverResult:
         """Solve each group of events that trusts the same mics in one batch."""
@@ -240,9 +246,7 @@ class ConsistentSetSolver:
         residual = np.full(bsz, np.nan)
         converged = np.zeros(bsz, dtype=bool)
         diagnostics: dict[str, np.ndarray] = {}
-        masks, group = np.unique(trusted, axis=0, return_inverse=True)
-        for g, mask in enumerate(masks):
-            rows = np.flatnonzero(group.ravel() == g)
+        for mask, rows in self._groups_by_trusted(trusted):
             sub = np.flatnonzero(mask)
             times = chosen["times_s"][np.ix_(rows, sub)]
             sub_inputs = SolverInputs(mics[sub], times - times[:, :1], c[rows],
