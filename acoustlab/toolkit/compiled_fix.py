@@ -17,7 +17,10 @@ The answers agree with the numpy solver's to within the polish's tolerance, not 
 systems are solved by Gaussian elimination with partial pivoting instead of LAPACK's
 pseudo-inverse and LU (the polish then converges to the same minimum), and sums run in a different
 order. Written by hand: SciPy solves one problem per call
-(≈ 0.5 ms), and batched numpy pays its per-call overhead on arrays of 2–12 elements.
+(≈ 0.5 ms), and batched numpy pays its per-call overhead on arrays of 2–12 elements. The helpers
+below the per-event fixes are inlined (``inline="always"``): a call between compiled functions
+passes each array as a struct and cost 12–29 % of a fix; inlining the per-event fixes too would
+double the first compile (about 12 s) for a few per cent more.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import numpy as np
 _TINY_DET = 1e-18
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _residuals_2d(px, py, mics, height, rd, r, jac):
     """Range-difference residuals r (M−1) and their Jacobian jac (M−1, 2) at (px, py, height); returns Σ r²."""
     m = mics.shape[0]
@@ -49,7 +52,7 @@ def _residuals_2d(px, py, mics, height, rd, r, jac):
     return cost
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _lm_2d(px, py, mics, height, rd, n_iterations, r, jac, r_new, jac_new):
     """:func:`acoustlab.toolkit.tdoa.levenberg_marquardt` for one problem: returns (x, y, cost, last accepted step)."""
     m = mics.shape[0]
@@ -86,7 +89,7 @@ def _lm_2d(px, py, mics, height, rd, n_iterations, r, jac, r_new, jac_new):
     return px, py, cost, step_norm
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _gdop(j00, j01, j11):
     """:func:`acoustlab.toolkit.geometry.gdop` from HᵀH of the horizontal unknowns (the rows of H are the range
     differences' gradients u_j − u_0, the 2-D Jacobian's rows): √trace((HᵀH)⁻¹), inf where it is singular."""
@@ -97,7 +100,7 @@ def _gdop(j00, j01, j11):
     return out if np.isfinite(out) else np.inf
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _energy_db(px, py, height, mics, levels):
     """:func:`acoustlab.toolkit.tdoa.energy_residual_db` at one candidate (NaN where a level is missing)."""
     m = mics.shape[0]
@@ -112,7 +115,7 @@ def _energy_db(px, py, height, mics, levels):
     return np.sqrt(total / (m * (m - 1) // 2))
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _roots_2d(mics, rd, height, pinv2, cx, cy):
     """The closed form's candidate positions into cx, cy (2,); returns whether each is a real root (p = u + v r₀,
     |p − m₀|² + h₀² = r₀²: the quadratic's roots, its vertex where the discriminant is negative, one root if both coincide)."""
@@ -147,7 +150,7 @@ def _roots_2d(mics, rd, height, pinv2, cx, cy):
     return valid_0, valid_1
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _root_choice(fx, fy, residual, valid, mics, height, box, residual_tie, levels, use_levels):
     """Index of the refined root to keep: a fit within the tie of the best, inside the plausibility box, then the
     smaller energy residual (or, without levels, nearer the array's centroid); 0 when neither root is real."""
@@ -169,7 +172,7 @@ def _root_choice(fx, fy, residual, valid, mics, height, box, residual_tie, level
     return choice
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _jacobian_diagnostics(jac, m1):
     """Conditioning (ratio of the singular values of the (M−1, 2) Jacobian, from the eigenvalues of the 2 × 2 JᵀJ in
     closed form) and GDOP at the point where ``jac`` was evaluated."""
@@ -208,7 +211,7 @@ def _fix_2d(mics, rd, height, pinv2, box, residual_tie, n_iterations, levels, us
     out[6] = n_roots
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _residuals_3d(px, py, pz, mics, rd, r, jac):
     """3-D residuals r (M−1), Jacobian jac (M−1, 3); returns Σ r²."""
     m = mics.shape[0]
@@ -226,7 +229,7 @@ def _residuals_3d(px, py, pz, mics, rd, r, jac):
     return cost
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _solve3(a, b):
     """Solve the 3 × 3 system a x = b in place (b becomes x), Gaussian elimination with partial pivoting."""
     for col in range(3):
@@ -250,7 +253,7 @@ def _solve3(a, b):
         b[row] = s / a[row, row]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _normal_3(jac, r, m1, jtj, jtr):
     for i in range(3):
         jtr[i] = 0.0
@@ -263,7 +266,7 @@ def _normal_3(jac, r, m1, jtj, jtr):
                 jtj[i, j] += jac[k, i] * jac[k, j]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _lm_3d(p, mics, rd, n_iterations, r, jac, r_new, jac_new, a, g):
     """:func:`acoustlab.toolkit.solve3d.polish_3d` for one start p (3,), refined in place; returns the cost (m²)."""
     m1 = mics.shape[0] - 1
@@ -290,13 +293,13 @@ def _lm_3d(p, mics, rd, n_iterations, r, jac, r_new, jac_new, a, g):
     return cost
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _det3(a):
     return a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]) - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0]) \
         + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0])
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _coplanar_roots(mics, rd, frame, local, a, g, row, cand):
     """Coplanar mics: least squares in the plane coordinates and r₀ (rows −2 local_j, −2 d_j; right side d_j² − |q_j|²),
     then both mirror images ±w off the plane into cand (2, 3) (left NaN without a solution with r₀ ≥ 0)."""
@@ -331,7 +334,7 @@ def _coplanar_roots(mics, rd, frame, local, a, g, row, cand):
                 cand[n, i] = (s0 * frame[0, i] + s1 * frame[1, i] + sign * w * frame[2, i]) + mics[0, i]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _quadratic_roots_3d(mics, rd, pinv3, u, v, cand):
     """Mics off a plane: p = u + v r₀ and |p − m₀| = r₀, a quadratic in r₀; its roots ≥ 0 (the vertex twice where the
     discriminant is negative) into cand (2, 3)."""
@@ -355,7 +358,7 @@ def _quadratic_roots_3d(mics, rd, pinv3, u, v, cand):
                 cand[n, i] = (u[i] + v[i] * r0) + mics[0, i]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _height_gdop(a):
     """√((JᵀJ)⁻¹)₂₂ for the 3 × 3 normal matrix a: the inverse where λ_min > 10⁻¹² λ_max (then it is the pseudo-inverse),
     else numpy's hermitian pseudo-inverse (a source in the mics' plane, where the height is unobservable to first order)."""

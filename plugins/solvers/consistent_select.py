@@ -163,7 +163,7 @@ def _final(raw, lateness, weight):
     return raw - weight * lateness
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _solve_in_place(a, b, m):
     """Solve a x = b (m × m) by Gaussian elimination with partial pivoting; x overwrites b."""
     for col in range(m):
@@ -408,6 +408,12 @@ def _score_of(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight,
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _score_of_cold(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late):
+    """:func:`_score_of` as a call, for the rare paths (each inlined copy costs compile time)."""
+    return _score_of(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _winner(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks, mic_rank, fixed, joint,
             scratch, win_t, kept_score, kept_times):
     """The winner's arrival times into win_t and the score margin over the runner-up (NaN without one), in two passes."""
@@ -419,12 +425,12 @@ def _winner(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, 
                                               late, kept_score, kept_times)
     if r < 0:  # every hypothesis misses an arrival time: the first hypothesis (reference 0, ranks 0)
         ranks[:] = 0
-        _score_of(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
+        _score_of_cold(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
         return np.nan
     for s in range(n_slots - 1, -1, -1):
         ranks[s] = code % k
         code //= k
-    _score_of(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
+    _score_of_cold(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
     # pass 2: the runner-up, the best final score of a pattern more than the tolerance from the winner's;
     # the winner's one-slot variants give it a score to prune from (often the runner-up's own)
     start = -np.inf
@@ -433,7 +439,7 @@ def _winner(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, 
         for q in range(k):
             if q != own:
                 ranks[s] = q
-                score = _score_of(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
+                score = _score_of_cold(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
                 if score > start and _deviation(t, win_t, m) > tol:
                     start = score
         ranks[s] = own
@@ -476,7 +482,7 @@ def _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, sl
             win = h
     if win < 0:  # every hypothesis misses an arrival time: the first hypothesis (reference 0, ranks 0)
         ranks[:] = 0
-        _score_of(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
+        _score_of_cold(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
         return np.nan
     win_t[:] = kept_times[win]
     runner = -np.inf
@@ -486,7 +492,7 @@ def _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, sl
     return kept_score[win] - runner if np.isfinite(runner) else np.nan
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _trust_and_fit(cands, tol, win_t, i_idx, j_idx, gap_ok, chosen, per_mic, normal, rhs, times_out, trusted_out, diag):
     """The mics to trust given the winner's arrival times, the least-squares times of the trusted mics from the chosen
     lags of their consistent pairs (sum of times 0), and the consistency diagnostics (numpy's ``select``, event by event)."""
