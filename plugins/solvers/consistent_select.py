@@ -202,39 +202,27 @@ def _entry(pred, cands, w, p, k_all, tol, use_prior, prior_lag, prior_weight, pr
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _pair_table(cands, w, p, k_all, first, second, k, tol, use_prior, prior_lag, prior_weight, prior_tol, out):
     """Pair p's table ``out`` (k, k) for the candidate arrival times of its first and second mic (k,), −inf where one is
-    missing (``x − x == 0`` tests that x is finite); returns its largest entry."""
+    missing (``x − x == 0`` tests that x is finite); returns its largest entry. With three candidates (the default)
+    they are held in registers, the same entries in the same order."""
+    three = k_all == 3
+    l0, l1, l2 = (cands[p, 0], cands[p, 1], cands[p, 2]) if three else (0.0, 0.0, 0.0)
+    w0, w1, w2 = (w[p, 0], w[p, 1], w[p, 2]) if three else (0.0, 0.0, 0.0)
     top = -np.inf
     for a in range(k):
         ai = first[a]
         finite = ai - ai == 0.0
         for c in range(k):
             aj = second[c]
-            if finite and aj - aj == 0.0:
-                val = _entry(aj - ai, cands, w, p, k_all, tol, use_prior, prior_lag, prior_weight, prior_tol)
-            else:
+            if not (finite and aj - aj == 0.0):
                 val = -np.inf  # a missing arrival time
-            out[a, c] = val
-            top = max(top, val)
-    return top
-
-
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _pair_table_3(l0, l1, l2, w0, w1, w2, first, second, k, tol, use_prior, prior_lag, prior_weight, prior_tol, out):
-    """:func:`_pair_table` for a pair of three candidates (lags l, cleaned weights w), the same entries in the same order."""
-    top = -np.inf
-    for a in range(k):
-        ai = first[a]
-        finite = ai - ai == 0.0
-        for c in range(k):
-            aj = second[c]
-            if finite and aj - aj == 0.0:
+            elif three:
                 pred = aj - ai
                 val = max(max(max(0.0, w0 if abs(pred - l0) < tol else 0.0), w1 if abs(pred - l1) < tol else 0.0),
                           w2 if abs(pred - l2) < tol else 0.0)
                 if use_prior and abs(pred - prior_lag) < prior_tol:
                     val = val + prior_weight
             else:
-                val = -np.inf  # a missing arrival time
+                val = _entry(aj - ai, cands, w, p, k_all, tol, use_prior, prior_lag, prior_weight, prior_tol)
             out[a, c] = val
             top = max(top, val)
     return top
@@ -280,13 +268,8 @@ def _tables(cands, w, prior, use_prior, prior_weight, prior_tol, tol, k, k_all, 
             tops = 0.0
             for s2 in range(s + 1, n_slots):
                 p = slot_pair[r, s, s2]
-                if k_all == 3:  # the default: the pair's candidates held in registers
-                    top = _pair_table_3(cands[p, 0], cands[p, 1], cands[p, 2], w[p, 0], w[p, 1], w[p, 2], arrival[r, s], arrival[r, s2], k,
-                                        tol, use_prior, prior[p], prior_weight, prior_tol, table[r, p])
-                else:
-                    top = _pair_table(cands, w, p, k_all, arrival[r, s], arrival[r, s2], k, tol, use_prior, prior[p], prior_weight,
-                                      prior_tol, table[r, p])
-                tops += top
+                tops += _pair_table(cands, w, p, k_all, arrival[r, s], arrival[r, s2], k, tol, use_prior, prior[p], prior_weight, prior_tol,
+                                    table[r, p])
             free_best[r, s] = free_best[r, s + 1] + tops
         root[r] = free_best[r, 0] + top_unary
 
