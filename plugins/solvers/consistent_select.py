@@ -302,14 +302,34 @@ def _deviation(t, ref_t, m):
 _COLLECT, _WINNER, _RUNNER_UP = 0, 1, 2
 
 
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _children(parent_joint, parent_fixed, table, free_best, slot_pair, r, d, k, fixed, joint, bounds):
+    """The children of a node whose slots < d are fixed (their entries summing to ``parent_fixed``; ``parent_joint``
+    (S, k): each free slot's entries by rank with the reference and the fixed slots): for each rank q of slot d, its
+    fixed entries ``fixed[d, q]``, its free slots' joint entries ``joint[d, q]`` and its bound ``bounds[d, q]``."""
+    n_slots = parent_joint.shape[0]
+    for q in range(k):
+        score = parent_fixed + parent_joint[d, q]
+        bound = score + free_best[r, d + 1]
+        for s in range(d + 1, n_slots):  # later slots: their entries with slot d at rank q join the rest
+            pair = slot_pair[r, d, s]
+            top = -np.inf
+            for q2 in range(k):
+                x = parent_joint[s, q2] + table[r, pair, q, q2]
+                joint[d, q, s, q2] = x
+                top = max(top, x)
+            bound += top
+        fixed[d, q], bounds[d, q] = score, bound
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, mode, level, far, tol,
-                      win_t, ranks, mic_rank, fixed, joint, time_sum, time_min, t, late, kept_score, kept_times):
+                      win_t, ranks, mic_rank, fixed, joint, bounds, time_sum, time_min, t, late, kept_score, kept_times):
     """Branch and bound over every reference's slot ranks, depth first in index order (the numpy search's order).
 
     A node fixes the reference and slots 0 … d. Its bound on the raw score of every hypothesis
     below it is the sum of the entries of the pairs it fixes, plus for every free slot its best
-    rank's entries with the reference and the fixed slots together (``joint``: per depth, free
+    rank's entries with the reference and the fixed slots together (``joint``: per node, free
     slot and rank), plus the largest entry of every pair of free slots (``free_best``). Less the
     smallest lateness penalty its fixed mics already imply (the earliest of all mics is no later
     than the earliest fixed one, and free mics add ≥ 0), that bounds every final score below it.
@@ -324,7 +344,8 @@ def _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, s
     (−inf); :data:`_RUNNER_UP`: the highest of those more than ``tol`` from ``win_t``, above
     ``level`` (a score an eligible pattern reaches). Both return (0, best score, reference,
     slot code), (0, ``level``, −1, −1) when no leaf scores above it. ``ranks`` (S,): the slots' ranks, ``mic_rank`` (M,): the
-    same by mic; ``fixed``, ``time_sum``, ``time_min`` (S,) and ``joint`` (S, S, k): scratch per depth.
+    same by mic; ``time_sum``, ``time_min`` (S,), ``fixed``, ``bounds`` (S, k) and ``joint`` (S, k, S, k): scratch per
+    depth (:func:`_children`).
     """
     m, n_slots = arrival.shape[0], arrival.shape[1]
     n_kept, best_r, best_code = 0, -1, -1
@@ -332,10 +353,10 @@ def _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, s
     for r in range(m):
         if root[r] == -np.inf or root[r] < floor:
             continue
-        joint[0] = unary[r]
-        ranks[0], fixed[0], time_sum[0], time_min[0] = -1, 0.0, 0.0, 0.0
+        _children(unary[r], 0.0, table, free_best, slot_pair, r, 0, k, fixed, joint, bounds)
+        ranks[0], time_sum[0], time_min[0] = -1, 0.0, 0.0
         mic_rank[r] = 0
-        d = 0  # the slot being fixed; slots < d are fixed at ranks[:d], with joint[d] their free slots' best
+        d = 0  # the slot being fixed; slots < d are fixed at ranks[:d]
         while d >= 0:
             q = ranks[d] + 1
             if q == k:
@@ -344,22 +365,14 @@ def _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, s
             ranks[d] = q
             v = arrival[r, d, q]
             t_sum, t_min = time_sum[d] + v, min(time_min[d], v)
-            score = fixed[d] + joint[d, d, q]
-            bound = score + free_best[r, d + 1]
-            for s in range(d + 1, n_slots):  # later slots: their entries with slot d at rank q join the rest
-                pair = slot_pair[r, d, s]
-                top = -np.inf
-                for q2 in range(k):
-                    x = joint[d, s, q2] + table[r, pair, q, q2]
-                    joint[d + 1, s, q2] = x
-                    top = max(top, x)
-                bound += top
+            bound = bounds[d, q]
             if bound == -np.inf or bound - lateness_weight * max(t_sum - (d + 2) * t_min, 0.0) < floor:
                 continue
             mic_rank[d + (d >= r)] = q
             if d + 1 < n_slots:
+                _children(joint[d, q], fixed[d, q], table, free_best, slot_pair, r, d + 1, k, fixed, joint, bounds)
                 d += 1
-                ranks[d], fixed[d], time_sum[d], time_min[d] = -1, score, t_sum, t_min
+                ranks[d], time_sum[d], time_min[d] = -1, t_sum, t_min
                 continue
             score = _leaf_score(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
             if mode == _COLLECT:
@@ -398,14 +411,14 @@ def _score_of_cold(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_we
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _winner(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks, mic_rank, fixed, joint,
-            scratch, win_t, kept_score, kept_times):
+            bounds, scratch, win_t, kept_score, kept_times):
     """The winner's arrival times into win_t and the score margin over the runner-up (NaN without one), in two passes."""
     m, n_slots = arrival.shape[0], arrival.shape[1]
     time_sum, time_min, t, late = scratch[0, :n_slots], scratch[1, :n_slots], scratch[2], scratch[3]
     # pass 1: the winner, the first hypothesis in index order with the highest final score
     _, win_score, r, code = _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight,
-                                              _WINNER, -np.inf, 0.0, tol, win_t, ranks, mic_rank, fixed, joint, time_sum, time_min, t,
-                                              late, kept_score, kept_times)
+                                              _WINNER, -np.inf, 0.0, tol, win_t, ranks, mic_rank, fixed, joint, bounds, time_sum,
+                                              time_min, t, late, kept_score, kept_times)
     if r < 0:  # every hypothesis misses an arrival time: the first hypothesis (reference 0, ranks 0)
         ranks[:] = 0
         _score_of_cold(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, win_t, late)
@@ -427,13 +440,14 @@ def _winner(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, 
                     start = score
         ranks[s] = own
     runner = _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, _RUNNER_UP, start,
-                               0.0, tol, win_t, ranks, mic_rank, fixed, joint, time_sum, time_min, t, late, kept_score, kept_times)[1]
+                               0.0, tol, win_t, ranks, mic_rank, fixed, joint, bounds, time_sum, time_min, t, late, kept_score,
+                               kept_times)[1]
     return win_score - runner if np.isfinite(runner) else np.nan
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks, mic_rank, fixed,
-                     joint, scratch, win_t, kept_score, kept_times):
+                     joint, bounds, scratch, win_t, kept_score, kept_times):
     """:func:`_winner` in one branch and bound (:data:`_COLLECT`) where the hypotheses it keeps fit the buffers, else in two.
 
     θ starts from reference 0's hypothesis of top-ranked lags and its one-slot variants: the lower
@@ -455,10 +469,10 @@ def _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, sl
                 theta = max(theta, min(first, score))
         ranks[s] = 0
     n_kept = _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, _COLLECT, theta, far,
-                               tol, win_t, ranks, mic_rank, fixed, joint, time_sum, time_min, t, late, kept_score, kept_times)[0]
+                               tol, win_t, ranks, mic_rank, fixed, joint, bounds, time_sum, time_min, t, late, kept_score, kept_times)[0]
     if n_kept < 0:  # more candidates than the buffers hold (many near-ties): two passes
         return _winner(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks, mic_rank, fixed,
-                       joint, scratch, win_t, kept_score, kept_times)
+                       joint, bounds, scratch, win_t, kept_score, kept_times)
     win = -1
     for h in range(n_kept):  # the first highest, in index order
         if win < 0 or kept_score[h] > kept_score[win]:
@@ -561,7 +575,7 @@ def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, k
     table = np.empty((m, n_pairs, k, k))
     free_best, root = np.empty((m, n_slots + 1)), np.empty(m)
     ranks, mic_rank = np.zeros(n_slots, np.int64), np.zeros(m, np.int64)
-    fixed, joint = np.empty(n_slots), np.empty((n_slots, n_slots, k))
+    fixed, joint, bounds = np.empty((n_slots, k)), np.empty((n_slots, k, n_slots, k)), np.empty((n_slots, k))
     scratch = np.empty((5, m))
     kept_score, kept_times = np.empty(_KEPT), np.empty((_KEPT, m))
     win_t = np.empty(m)
@@ -576,5 +590,5 @@ def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, k
         _tables(cands[b], w, prior[b], use_prior, prior_weight, prior_tol, tol, k, k_all, i_idx, ref_pair, slot_pair, own, arrival, unary,
                 table, free_best, root)
         diag_out[b, 2] = _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks,
-                                          mic_rank, fixed, joint, scratch, win_t, kept_score, kept_times)
+                                          mic_rank, fixed, joint, bounds, scratch, win_t, kept_score, kept_times)
         _trust_and_fit(cands[b], tol, win_t, i_idx, j_idx, gap_ok, chosen, per_mic, normal, rhs, times_out[b], trusted_out[b], diag_out[b])
