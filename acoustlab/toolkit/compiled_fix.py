@@ -17,10 +17,10 @@ The answers agree with the numpy solver's to within the polish's tolerance, not 
 systems are solved by Gaussian elimination with partial pivoting instead of LAPACK's
 pseudo-inverse and LU (the polish then converges to the same minimum), and sums run in a different
 order. Written by hand: SciPy solves one problem per call
-(≈ 0.5 ms), and batched numpy pays its per-call overhead on arrays of 2–12 elements. The helpers
-below the per-event fixes are inlined (``inline="always"``): a call between compiled functions
-passes each array as a struct and cost 12–29 % of a fix; inlining the per-event fixes too would
-double the first compile (about 12 s) for a few per cent more.
+(≈ 0.5 ms), and batched numpy pays its per-call overhead on arrays of 2–12 elements. The small
+helpers (residuals, GDOP, 3 × 3 solves, levels) are inlined (``inline="always"``): a call between
+compiled functions passes each array as a struct, which cost about 5 % of a fix; inlining the
+larger steps as well gained little more and lengthened the first compile.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def _residuals_2d(px, py, mics, height, rd, r, jac):
     return cost
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _lm_2d(px, py, mics, height, rd, n_iterations, r, jac, r_new, jac_new):
     """:func:`acoustlab.toolkit.tdoa.levenberg_marquardt` for one problem: returns (x, y, cost, last accepted step)."""
     m = mics.shape[0]
@@ -115,7 +115,7 @@ def _energy_db(px, py, height, mics, levels):
     return np.sqrt(total / (m * (m - 1) // 2))
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _roots_2d(mics, rd, height, pinv2, cx, cy):
     """The closed form's candidate positions into cx, cy (2,); returns whether each is a real root (p = u + v r₀,
     |p − m₀|² + h₀² = r₀²: the quadratic's roots, its vertex where the discriminant is negative, one root if both coincide)."""
@@ -150,7 +150,7 @@ def _roots_2d(mics, rd, height, pinv2, cx, cy):
     return valid_0, valid_1
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _root_choice(fx, fy, residual, valid, mics, height, box, residual_tie, levels, use_levels):
     """Index of the refined root to keep: a fit within the tie of the best, inside the plausibility box, then the
     smaller energy residual (or, without levels, nearer the array's centroid); 0 when neither root is real."""
@@ -266,7 +266,7 @@ def _normal_3(jac, r, m1, jtj, jtr):
                 jtj[i, j] += jac[k, i] * jac[k, j]
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _lm_3d(p, mics, rd, n_iterations, r, jac, r_new, jac_new, a, g):
     """:func:`acoustlab.toolkit.solve3d.polish_3d` for one start p (3,), refined in place; returns the cost (m²)."""
     m1 = mics.shape[0] - 1
@@ -299,7 +299,7 @@ def _det3(a):
         + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0])
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _coplanar_roots(mics, rd, frame, local, a, g, row, cand):
     """Coplanar mics: least squares in the plane coordinates and r₀ (rows −2 local_j, −2 d_j; right side d_j² − |q_j|²),
     then both mirror images ±w off the plane into cand (2, 3) (left NaN without a solution with r₀ ≥ 0)."""
@@ -334,7 +334,7 @@ def _coplanar_roots(mics, rd, frame, local, a, g, row, cand):
                 cand[n, i] = (s0 * frame[0, i] + s1 * frame[1, i] + sign * w * frame[2, i]) + mics[0, i]
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _quadratic_roots_3d(mics, rd, pinv3, u, v, cand):
     """Mics off a plane: p = u + v r₀ and |p − m₀| = r₀, a quadratic in r₀; its roots ≥ 0 (the vertex twice where the
     discriminant is negative) into cand (2, 3)."""
