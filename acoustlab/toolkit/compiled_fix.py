@@ -17,10 +17,7 @@ The answers agree with the numpy solver's to within the polish's tolerance, not 
 systems are solved by Gaussian elimination with partial pivoting instead of LAPACK's
 pseudo-inverse and LU (the polish then converges to the same minimum), and sums run in a different
 order. Written by hand: SciPy solves one problem per call
-(≈ 0.5 ms), and batched numpy pays its per-call overhead on arrays of 2–12 elements. The small
-helpers (residuals, GDOP, 3 × 3 solves, levels) are inlined (``inline="always"``): a call between
-compiled functions passes each array as a struct, which cost about 5 % of a fix; inlining the
-larger steps as well gained little more and lengthened the first compile.
+(≈ 0.5 ms), and batched numpy pays its per-call overhead on arrays of 2–12 elements.
 """
 
 from __future__ import annotations
@@ -33,7 +30,7 @@ import numpy as np
 _TINY_DET = 1e-18
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _residuals_2d(px, py, mics, height, rd, r, jac):
     """Range-difference residuals r (M−1) and their Jacobian jac (M−1, 2) at (px, py, height); returns Σ r²."""
     m = mics.shape[0]
@@ -89,7 +86,7 @@ def _lm_2d(px, py, mics, height, rd, n_iterations, r, jac, r_new, jac_new):
     return px, py, cost, step_norm
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _gdop(j00, j01, j11):
     """:func:`acoustlab.toolkit.geometry.gdop` from HᵀH of the horizontal unknowns (the rows of H are the range
     differences' gradients u_j − u_0, the 2-D Jacobian's rows): √trace((HᵀH)⁻¹), inf where it is singular."""
@@ -100,19 +97,21 @@ def _gdop(j00, j01, j11):
     return out if np.isfinite(out) else np.inf
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _energy_db(px, py, height, mics, levels):
     """:func:`acoustlab.toolkit.tdoa.energy_residual_db` at one candidate (NaN where a level is missing)."""
     m = mics.shape[0]
-    source_level = np.empty(m)  # each mic's level corrected for spreading, dB
+    total = 0.0
+    n = 0
     for i in range(m):
         di = np.sqrt((px - mics[i, 0]) ** 2 + (py - mics[i, 1]) ** 2 + (height - mics[i, 2]) ** 2)
-        source_level[i] = levels[i] + 20 * np.log10(max(di, 1e-3))
-    total = 0.0
-    for i in range(m):
+        ei = levels[i] + 20 * np.log10(max(di, 1e-3))
         for j in range(i + 1, m):
-            total += (source_level[i] - source_level[j]) ** 2
-    return np.sqrt(total / (m * (m - 1) // 2))
+            dj = np.sqrt((px - mics[j, 0]) ** 2 + (py - mics[j, 1]) ** 2 + (height - mics[j, 2]) ** 2)
+            ej = levels[j] + 20 * np.log10(max(dj, 1e-3))
+            total += (ei - ej) ** 2
+            n += 1
+    return np.sqrt(total / n)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -172,7 +171,7 @@ def _root_choice(fx, fy, residual, valid, mics, height, box, residual_tie, level
     return choice
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _jacobian_diagnostics(jac, m1):
     """Conditioning (ratio of the singular values of the (M−1, 2) Jacobian, from the eigenvalues of the 2 × 2 JᵀJ in
     closed form) and GDOP at the point where ``jac`` was evaluated."""
@@ -211,7 +210,7 @@ def _fix_2d(mics, rd, height, pinv2, box, residual_tie, n_iterations, levels, us
     out[6] = n_roots
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _residuals_3d(px, py, pz, mics, rd, r, jac):
     """3-D residuals r (M−1), Jacobian jac (M−1, 3); returns Σ r²."""
     m = mics.shape[0]
@@ -229,7 +228,7 @@ def _residuals_3d(px, py, pz, mics, rd, r, jac):
     return cost
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _solve3(a, b):
     """Solve the 3 × 3 system a x = b in place (b becomes x), Gaussian elimination with partial pivoting."""
     for col in range(3):
@@ -253,7 +252,7 @@ def _solve3(a, b):
         b[row] = s / a[row, row]
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _normal_3(jac, r, m1, jtj, jtr):
     for i in range(3):
         jtr[i] = 0.0
@@ -293,7 +292,7 @@ def _lm_3d(p, mics, rd, n_iterations, r, jac, r_new, jac_new, a, g):
     return cost
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _det3(a):
     return a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]) - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0]) \
         + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0])
@@ -358,7 +357,7 @@ def _quadratic_roots_3d(mics, rd, pinv3, u, v, cand):
                 cand[n, i] = (u[i] + v[i] * r0) + mics[0, i]
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _height_gdop(a):
     """√((JᵀJ)⁻¹)₂₂ for the 3 × 3 normal matrix a: the inverse where λ_min > 10⁻¹² λ_max (then it is the pseudo-inverse),
     else numpy's hermitian pseudo-inverse (a source in the mics' plane, where the height is unobservable to first order)."""
