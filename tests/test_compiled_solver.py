@@ -11,17 +11,12 @@ from plugins.solvers.consistent_set import ConsistentSetSolver
 from plugins.solvers.consistent_set_compiled import CompiledConsistentSetSolver
 from plugins.solvers.hyperbolic import HyperbolicSolver
 from plugins.solvers.hyperbolic_compiled import CompiledHyperbolicSolver
+from tests.test_first_stage import HEXAGON, TRIANGLE, pairs, random_candidate_events
 
 C = 343.0
-HEXAGON = np.array([[0, 0, 1.5], [55, -5, 1.5], [90, 25, 1.5], [75, 70, 1.5], [25, 75, 1.5], [-10, 35, 1.5]], float)
 OFF_PLANE = HEXAGON + np.array([0, 0, 1.0]) * np.array([0.0, 2.0, 0.5, 4.0, 1.0, 3.0])[:, None]
-TRIANGLE = np.array([[0.0, 0.0, 1.2], [50.0, 0.0, 1.2], [24.0, 44.0, 1.2]])
 #: Outputs of the selection that must be equal, bit for bit (the choice); the least-squares times agree to rounding.
 EXACT = ("trusted", "consistent_pairs", "consistency", "score_margin", "n_mics_used")
-
-
-def pairs(m):
-    return [(i, j) for i in range(m) for j in range(i + 1, m)]
 
 
 def assert_same_selection(cands, weights, prior=None, **settings):
@@ -41,17 +36,9 @@ def assert_same_selection(cands, weights, prior=None, **settings):
 def test_compiled_selection_chooses_what_the_numpy_search_chooses(seed, n_mics, k, missing, ties, with_prior):
     """Same winner, runner-up margin (bit for bit), trusted mics and diagnostics: near-duplicate and spurious peaks,
     equal weights (ties broken by index alike), missing peaks up to whole pairs, SRP priors."""
-    rng = np.random.default_rng(seed)
-    bsz, n_pairs = 24, n_mics * (n_mics - 1) // 2
-    arrival = rng.uniform(0, 0.01, size=(bsz, n_mics))
-    lags = np.stack([arrival[:, j] - arrival[:, i] for i, j in pairs(n_mics)], axis=1)
-    cands = lags[..., None] + rng.choice([0.0, 0.0, 1e-4, 2.4e-4, 3e-3, -4e-3, 9e-3], size=(bsz, n_pairs, k))
-    cands[rng.random(cands.shape) < missing] = np.nan
-    cands[0, 0] = np.nan  # a pair without any peak
+    cands, weights, prior = random_candidate_events(seed, n_mics, k, missing, ties, with_prior)
     cands[1] = np.nan  # an event without any peak: every hypothesis misses an arrival
-    weights = rng.choice([0.5, 1.0], size=cands.shape) if ties else rng.uniform(0, 1, size=cands.shape)
     weights[2, 0, 0] = np.nan  # a NaN height counts as 0
-    prior = lags + rng.normal(0, 1e-3, size=lags.shape) if with_prior else None
     assert_same_selection(cands, weights, prior, prior_weight=0.05 if with_prior else 0.0)
 
 

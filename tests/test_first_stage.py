@@ -24,6 +24,22 @@ def pairs(m):
     return [(i, j) for i in range(m) for j in range(i + 1, m)]
 
 
+def random_candidate_events(seed, n_mics, k, missing, ties, with_prior, bsz=24):
+    """(B, P, k) candidate lags around true ones (near-duplicate peaks within and just inside the tolerance, spurious
+    ones ms away), a share ``missing`` of them NaN and the first event's first pair without any, GCC heights (two
+    values when ``ties``) and SRP prior lags 1 ms off (None without ``with_prior``)."""
+    rng = np.random.default_rng(seed)
+    n_pairs = n_mics * (n_mics - 1) // 2
+    arrival = rng.uniform(0, 0.01, size=(bsz, n_mics))
+    lags = np.stack([arrival[:, j] - arrival[:, i] for i, j in pairs(n_mics)], axis=1)
+    cands = lags[..., None] + rng.choice([0.0, 0.0, 1e-4, 2.4e-4, 3e-3, -4e-3, 9e-3], size=(bsz, n_pairs, k))
+    cands[rng.random(cands.shape) < missing] = np.nan
+    cands[0, 0] = np.nan  # a pair without any peak
+    weights = rng.choice([0.5, 1.0], size=cands.shape) if ties else rng.uniform(0, 1, size=cands.shape)
+    prior = lags + rng.normal(0, 1e-3, size=lags.shape) if with_prior else None
+    return cands, weights, prior
+
+
 def scene(mics, xy, k=3, seed=0):
     """Exact lags of every pair as rank 1, two spurious lower peaks per pair; TDOAs to mic 0 from rank 1."""
     rng = np.random.default_rng(seed)
@@ -258,15 +274,7 @@ def assert_same_selection(cands, weights, prior=None, **settings):
 def test_branch_and_bound_equals_the_exhaustive_search(seed, n_mics, k, missing, ties, with_prior):
     """The fast candidate search gives the exhaustive search's choice, margins and trusted mics exactly: near-duplicate
     and spurious peaks, equal weights (ties broken by index alike), missing peaks up to whole pairs, SRP priors."""
-    rng = np.random.default_rng(seed)
-    bsz, n_pairs = 24, n_mics * (n_mics - 1) // 2
-    arrival = rng.uniform(0, 0.01, size=(bsz, n_mics))
-    lags = np.stack([arrival[:, j] - arrival[:, i] for i, j in pairs(n_mics)], axis=1)
-    cands = lags[..., None] + rng.choice([0.0, 0.0, 1e-4, 2.4e-4, 3e-3, -4e-3, 9e-3], size=(bsz, n_pairs, k))
-    cands[rng.random(cands.shape) < missing] = np.nan
-    cands[0, 0] = np.nan  # a pair without any peak
-    weights = rng.choice([0.5, 1.0], size=cands.shape) if ties else rng.uniform(0, 1, size=cands.shape)
-    prior = lags + rng.normal(0, 1e-3, size=lags.shape) if with_prior else None
+    cands, weights, prior = random_candidate_events(seed, n_mics, k, missing, ties, with_prior)
     assert_same_selection(cands, weights, prior, prior_weight=0.05 if with_prior else 0.0)
 
 
