@@ -306,8 +306,25 @@ _COLLECT, _WINNER, _RUNNER_UP = 0, 1, 2
 def _children(parent_joint, parent_fixed, table, free_best, slot_pair, r, d, k, fixed, joint, bounds):
     """The children of a node whose slots < d are fixed (their entries summing to ``parent_fixed``; ``parent_joint``
     (S, k): each free slot's entries by rank with the reference and the fixed slots): for each rank q of slot d, its
-    fixed entries ``fixed[d, q]``, its free slots' joint entries ``joint[d, q]`` and its bound ``bounds[d, q]``."""
+    fixed entries ``fixed[d, q]``, its free slots' joint entries ``joint[d, q]`` and its bound ``bounds[d, q]``. With
+    three ranks (the default) the ranks of each free slot are spelled out: the same sums, some 0.45 µs less per 6-mic
+    event than the loop over k (which the compiler unrolls for four)."""
     n_slots = parent_joint.shape[0]
+    if k == 3:
+        for q in range(3):
+            score = parent_fixed + parent_joint[d, q]
+            bound = score + free_best[r, d + 1]
+            for s in range(d + 1, n_slots):
+                row = table[r, slot_pair[r, d, s], q]
+                x0 = parent_joint[s, 0] + row[0]
+                x1 = parent_joint[s, 1] + row[1]
+                x2 = parent_joint[s, 2] + row[2]
+                joint[d, q, s, 0] = x0
+                joint[d, q, s, 1] = x1
+                joint[d, q, s, 2] = x2
+                bound += max(max(max(-np.inf, x0), x1), x2)
+            fixed[d, q], bounds[d, q] = score, bound
+        return
     for q in range(k):
         score = parent_fixed + parent_joint[d, q]
         bound = score + free_best[r, d + 1]
@@ -453,7 +470,12 @@ def _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, sl
     θ starts from reference 0's hypothesis of top-ranked lags and its one-slot variants: the lower
     score of it and any variant whose pattern lies more than twice the tolerance from it (by the
     triangle inequality one of the two lies more than the tolerance from the winner's pattern,
-    whichever it is).
+    whichever it is). A variant's raw score is the first's plus the change in the moved mic's
+    pairs, summed in another order than the numpy search's: it may differ from the exact score by
+    rounding (~10⁻¹⁶ relative), which the search's floor (10⁻¹² relative below θ) absorbs; θ only
+    prunes, every kept score is exact. Where the first hypothesis misses an arrival time (or its
+    score overflows) θ stays −inf: no variant's pattern is then more than the tolerance from another
+    (numpy's deviation is NaN).
     """
     m, n_slots = arrival.shape[0], arrival.shape[1]
     time_sum, time_min, t, late, base = scratch[0, :n_slots], scratch[1, :n_slots], scratch[2], scratch[3], scratch[4]
@@ -461,13 +483,34 @@ def _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, sl
     ranks[:] = 0
     first = _score_of(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, base, late)
     theta = -np.inf
+    raw = 0.0  # the first hypothesis' raw score, in any order (θ need not be exact: the search's floor allows for rounding)
     for s in range(n_slots):
-        for q in range(1, k):
-            ranks[s] = q
-            score = _score_of(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
-            if _deviation(t, base, m) > far:
-                theta = max(theta, min(first, score))
-        ranks[s] = 0
+        raw += unary[0, s, 0]
+        for s2 in range(s + 1, n_slots):
+            raw += table[0, slot_pair[0, s, s2], 0, 0]
+    finite = raw - raw == 0.0
+    for n in range(m):
+        finite &= base[n] - base[n] == 0.0
+    if finite:  # each one-slot variant's score from the first's, by the entries of the moved mic's pairs
+        t[:] = base
+        for s in range(n_slots):
+            for q in range(1, k):
+                v = arrival[0, s, q]
+                if not abs(v - base[s + 1]) > far:
+                    continue
+                change = unary[0, s, q] - unary[0, s, 0]
+                for s2 in range(n_slots):
+                    if s2 < s:
+                        pair = slot_pair[0, s2, s]
+                        change += table[0, pair, 0, q] - table[0, pair, 0, 0]
+                    elif s2 > s:
+                        pair = slot_pair[0, s, s2]
+                        change += table[0, pair, q, 0] - table[0, pair, 0, 0]
+                t[s + 1] = v
+                score = _final(raw + change, _lateness(t, m, late), lateness_weight)
+                t[s + 1] = base[s + 1]
+                if score - score == 0.0:
+                    theta = max(theta, min(first, score))
     n_kept = _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, _COLLECT, theta, far,
                                tol, win_t, ranks, mic_rank, fixed, joint, bounds, time_sum, time_min, t, late, kept_score, kept_times)[0]
     if n_kept < 0:  # more candidates than the buffers hold (many near-ties): two passes
