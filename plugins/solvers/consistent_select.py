@@ -396,9 +396,10 @@ def _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, s
                 if score > -np.inf and score >= floor:
                     if n_kept == kept_score.shape[0]:
                         return -1, level, -1, -1
-                    for y in range(n_kept):
-                        if _deviation(t, kept_times[y], m) > far:
-                            level = max(level, min(score, kept_score[y]))
+                    for y in range(n_kept):  # only a pair whose lower score is above θ can raise it
+                        low = min(score, kept_score[y])
+                        if low > level and _deviation(t, kept_times[y], m) > far:
+                            level = low
                     floor = level - 1e-12 * (1.0 + abs(level))
                     kept_score[n_kept] = score
                     kept_times[n_kept, :] = t
