@@ -11,6 +11,7 @@ from plugins.solvers.consistent_set import ConsistentSetSolver
 from plugins.solvers.consistent_set_compiled import CompiledConsistentSetSolver
 from plugins.solvers.hyperbolic import HyperbolicSolver
 from plugins.solvers.hyperbolic_compiled import CompiledHyperbolicSolver
+from plugins.solvers.hypothesis_search import LATENESS_WEIGHT
 from tests.test_first_stage import HEXAGON, TRIANGLE, pairs, random_candidate_events
 
 C = 343.0
@@ -40,6 +41,48 @@ def test_compiled_selection_chooses_what_the_numpy_search_chooses(seed, n_mics, 
     cands[1] = np.nan  # an event without any peak: every hypothesis misses an arrival
     weights[2, 0, 0] = np.nan  # a NaN height counts as 0
     assert_same_selection(cands, weights, prior, prior_weight=0.05 if with_prior else 0.0)
+
+
+def one_pass_and_two_passes(cands, weights, k, tolerance_s):
+    """Each event's winner times and margin from the seeded one-pass search and from the two-pass search (which
+    starts from no lower bound), run on the same tables."""
+    import plugins.solvers.consistent_select as cs
+
+    bsz, n_pairs, k_all = cands.shape
+    m = int(round((1 + np.sqrt(1 + 8 * n_pairs)) / 2))
+    i_idx, j_idx, ref_pair, slot_pair = cs._layout(m)
+    n_slots = m - 1
+    arrival, unary, own = np.empty((m, n_slots, k)), np.empty((m, n_slots, k)), np.empty((n_pairs, k))
+    table, free_best, root = np.empty((m, n_pairs, k, k)), np.empty((m, n_slots + 1)), np.empty(m)
+    kept_score, kept_times = np.empty(cs._KEPT), np.empty((cs._KEPT, m))
+    out = []
+    for b in range(bsz):
+        w = np.where(np.isfinite(cands[b]), np.nan_to_num(weights[b]), 0.0)
+        cs._tables(cands[b], w, np.zeros(n_pairs), False, 0.0, 0.0, tolerance_s, k, k_all, i_idx, ref_pair, slot_pair, own, arrival,
+                   unary, table, free_best, root)
+        results = []
+        for search in (cs._winner_one_pass, cs._winner):
+            win_t = np.empty(m)
+            margin = search(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, LATENESS_WEIGHT, tolerance_s,
+                            np.zeros(n_slots, np.int64), np.zeros(m, np.int64), np.empty((n_slots, k)),
+                            np.empty((n_slots, k, n_slots, k)), np.empty((n_slots, k)), np.empty((5, m)), win_t, kept_score, kept_times)
+            results.append((win_t, margin))
+        out.append(results)
+    return out
+
+
+@pytest.mark.parametrize("n_mics", [3, 4, 6])
+@pytest.mark.parametrize("ties", [True, False])
+def test_the_seeded_search_finds_what_the_unseeded_search_finds(n_mics, ties):
+    """θ's seed (one-slot variants scored from the first hypothesis, in another order than the exact scores) only
+    prunes: the one-pass search gives the winner's times and the margin of the two-pass search, which starts from
+    no bound, bit for bit, also with equal heights (exact ties, where the seed's rounding could matter)."""
+    tolerance_s = ConsistentSetSolver().tolerance_s
+    for seed in range(8):
+        cands, weights, _ = random_candidate_events(seed, n_mics, 3, 0.1, ties, False, bsz=40)
+        for (one_t, one_margin), (two_t, two_margin) in one_pass_and_two_passes(cands, weights, 3, tolerance_s):
+            np.testing.assert_array_equal(one_t, two_t)
+            np.testing.assert_array_equal(one_margin, two_margin)
 
 
 @pytest.mark.parametrize("n_mics", [8, 10])
