@@ -412,19 +412,14 @@ def _branch_and_bound(arrival, unary, table, free_best, root, k, i_idx, j_idx, s
     return n_kept, level, best_r, best_code
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _score_of(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late):
-    """:func:`_leaf_score` of reference r and slot ranks ``ranks`` (fills ``mic_rank``)."""
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _score_of_cold(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late):
+    """:func:`_leaf_score` of reference r and slot ranks ``ranks`` (fills ``mic_rank``), as a call: it serves the rare
+    paths only (each inlined copy costs compile time)."""
     mic_rank[r] = 0
     for s in range(ranks.shape[0]):
         mic_rank[s + (s >= r)] = ranks[s]
     return _leaf_score(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _score_of_cold(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late):
-    """:func:`_score_of` as a call, for the rare paths (each inlined copy costs compile time)."""
-    return _score_of(arrival, table, r, ranks, mic_rank, i_idx, j_idx, lateness_weight, t, late)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -471,27 +466,28 @@ def _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, sl
     θ starts from reference 0's hypothesis of top-ranked lags and its one-slot variants: the lower
     score of it and any variant whose pattern lies more than twice the tolerance from it (by the
     triangle inequality one of the two lies more than the tolerance from the winner's pattern,
-    whichever it is). A variant's raw score is the first's plus the change in the moved mic's
-    pairs, summed in another order than the numpy search's: it may differ from the exact score by
-    rounding (~10⁻¹⁶ relative), which the search's floor (10⁻¹² relative below θ) absorbs; θ only
-    prunes, every kept score is exact. Where the first hypothesis misses an arrival time (or its
+    whichever it is). The first hypothesis' raw score is summed slot by slot and a variant's is the
+    first's plus the change in the moved mic's pairs, both in another order than the numpy
+    search's: they may differ from the exact scores by rounding (~10⁻¹⁶ relative), which the
+    search's floor (10⁻¹² relative below θ) absorbs; θ only prunes, every kept score is exact. Where the first hypothesis misses an arrival time (or its
     score overflows) θ stays −inf: no variant's pattern is then more than the tolerance from another
     (numpy's deviation is NaN).
     """
     m, n_slots = arrival.shape[0], arrival.shape[1]
     time_sum, time_min, t, late, base = scratch[0, :n_slots], scratch[1, :n_slots], scratch[2], scratch[3], scratch[4]
     far = 2 * tol * (1 + 1e-9) + 1e-15  # a hair over twice the tolerance, for rounding
-    ranks[:] = 0
-    first = _score_of(arrival, table, 0, ranks, mic_rank, i_idx, j_idx, lateness_weight, base, late)
     theta = -np.inf
     raw = 0.0  # the first hypothesis' raw score, in any order (θ need not be exact: the search's floor allows for rounding)
+    base[0] = 0.0  # its arrival times: reference 0's, each slot at rank 0
     for s in range(n_slots):
+        base[s + 1] = arrival[0, s, 0]
         raw += unary[0, s, 0]
         for s2 in range(s + 1, n_slots):
             raw += table[0, slot_pair[0, s, s2], 0, 0]
     finite = raw - raw == 0.0
     for n in range(m):
         finite &= base[n] - base[n] == 0.0
+    first = _final(raw, _lateness(base, m, late), lateness_weight)
     if finite:  # each one-slot variant's score from the first's, by the entries of the moved mic's pairs
         t[:] = base
         for s in range(n_slots):
