@@ -43,13 +43,12 @@ def test_compiled_selection_chooses_what_the_numpy_search_chooses(seed, n_mics, 
     assert_same_selection(cands, weights, prior, prior_weight=0.05 if with_prior else 0.0)
 
 
-def one_pass_and_two_passes(cands, weights, k, tolerance_s):
-    """Each event's winner times and margin from the seeded one-pass search and from the two-pass search (which
-    starts from no lower bound), run on the same tables."""
+def one_pass_and_two_passes(cands, weights, m, k, tolerance_s):
+    """Each event's winner times and margin (m mics) from the seeded one-pass search and from the two-pass search
+    (which starts from no lower bound), run on the same tables."""
     import plugins.solvers.consistent_select as cs
 
     bsz, n_pairs, k_all = cands.shape
-    m = int(round((1 + np.sqrt(1 + 8 * n_pairs)) / 2))
     i_idx, j_idx, ref_pair, slot_pair = cs._layout(m)
     n_slots = m - 1
     arrival, unary, own = np.empty((m, n_slots, k)), np.empty((m, n_slots, k)), np.empty((n_pairs, k))
@@ -80,7 +79,7 @@ def test_the_seeded_search_finds_what_the_unseeded_search_finds(n_mics, ties):
     tolerance_s = ConsistentSetSolver().tolerance_s
     for seed in range(8):
         cands, weights, _ = random_candidate_events(seed, n_mics, 3, 0.1, ties, False, bsz=40)
-        for (one_t, one_margin), (two_t, two_margin) in one_pass_and_two_passes(cands, weights, 3, tolerance_s):
+        for (one_t, one_margin), (two_t, two_margin) in one_pass_and_two_passes(cands, weights, n_mics, 3, tolerance_s):
             np.testing.assert_array_equal(one_t, two_t)
             np.testing.assert_array_equal(one_margin, two_margin)
 
