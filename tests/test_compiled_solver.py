@@ -217,3 +217,34 @@ def test_compiled_consistent_set_solver_gives_the_numpy_solution():
         np.testing.assert_array_equal(got.diagnostics[name], expected.diagnostics[name], err_msg=name)
     np.testing.assert_allclose(got.position_m, expected.position_m, rtol=0, atol=1e-6)
     np.testing.assert_allclose(got.position_m, xy, atol=1e-3)
+
+
+@pytest.mark.parametrize("solver_class", [ConsistentSetSolver, CompiledConsistentSetSolver])
+def test_infinite_gcc_heights_stop_with_a_line_naming_them(solver_class):
+    """An infinite height of an existing candidate would make the scores that contain it infinite (the choice meaningless,
+    and the numpy and compiled searches would disagree): both solvers stop with a DataError naming event, pair and rank.
+    A NaN height (0) and an infinite height of a missing candidate (not read) are accepted, as are heights of any shape
+    only when it is the candidates' shape."""
+    from acoustlab.core.errors import DataError
+
+    cands, weights, _ = random_candidate_events(3, 4, 3, 0.0, False, False)
+    tdoa = np.zeros((cands.shape[0], 4))
+    solve = lambda w, c=cands: solver_class().solve(SolverInputs(HEXAGON[:4], tdoa, C, pair_lag_candidates_s=c, pair_lag_weights=w))  # noqa: E731
+    bad = weights.copy()
+    bad[2, 1, 0] = np.inf
+    with pytest.raises(DataError, match=r"pair_lag_weights must be finite .* got inf at event 2, pair 1, candidate 0 \(1 infinite"):
+        solve(bad)
+    bad[2, 1, 0] = -np.inf
+    with pytest.raises(DataError, match="got -inf at event 2"):
+        solve(bad)
+    with pytest.raises(DataError, match=r"pair_lag_weights must have the shape of pair_lag_candidates_s \(\d+, 6, 3\) .* got \(\d+, 6, 2\)"):
+        solve(weights[..., :2])
+    accepted = weights.copy()
+    accepted[0, 0, 0] = np.nan  # counts as 0
+    missing = cands.copy()
+    missing[1, 2, 2] = np.nan
+    accepted[1, 2, 2] = np.inf  # the height of a missing candidate is not read
+    expected = solver_class().solve(SolverInputs(HEXAGON[:4], tdoa, C, pair_lag_candidates_s=missing,
+                                                 pair_lag_weights=np.where(np.isinf(accepted), 0.0, accepted)))
+    got = solve(accepted, missing)
+    np.testing.assert_array_equal(got.position_m, expected.position_m)

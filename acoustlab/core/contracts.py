@@ -146,7 +146,8 @@ class SolverInputs:
         (B, P, K) the K highest GCC peak lags of every mic pair i < j (the ``tdoa`` group with
         candidates), s; None when only one lag per pair exists.
     pair_lag_weights : numpy.ndarray, optional
-        (B, P, K) the GCC heights of those candidates (the ``xcorr`` group); None when absent.
+        (B, P, K) the GCC heights of those candidates (the ``xcorr`` group), finite (NaN counts as 0);
+        None when absent.
     source_height_m : float, optional
         The source height to assume, m (the middle of the site's source-height range); a solver's
         own ``source_height_m`` setting takes precedence; None: the mean mic height.

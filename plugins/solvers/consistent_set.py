@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from acoustlab.core.contracts import SolverInputs, SolverResult
-from acoustlab.core.errors import ConfigError
+from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.toolkit.tdoa import solver_inputs
 from plugins.solvers.hyperbolic import HyperbolicSolver
 from plugins.solvers.hypothesis_search import exhaustive_best, hypothesis_design, pair_layout, pairs_of, pruned_best
@@ -44,6 +44,25 @@ EXHAUSTIVE_UP_TO = 20_000
 
 #: Diagnostics this solver adds to the hyperbolic solver's (catalogued in :data:`acoustlab.core.columns.SOLVER_CATALOG`).
 EXTRA_DIAGNOSTICS = ("consistent_pairs", "consistency", "score_margin", "n_mics_used", "closure_rms_s")
+
+
+def checked_weights(weights: np.ndarray, candidates_s: np.ndarray) -> np.ndarray:
+    """``weights`` (the GCC heights of ``candidates_s``, (B, P, K)) as floats, or a :class:`DataError` saying what is wrong with them.
+
+    A NaN height counts as 0 and a missing candidate's height is not read, but an infinite height of
+    a candidate that exists would make every score containing it infinite (or NaN beside another),
+    so the choice would mean nothing: it stops, naming the first such event, pair and rank.
+    """
+    weights = np.asarray(weights, dtype=float)
+    if weights.shape != candidates_s.shape:
+        raise DataError(f"pair_lag_weights must have the shape of pair_lag_candidates_s {candidates_s.shape} (events, pairs, candidates); "
+                        f"got {weights.shape}")
+    infinite = np.isinf(weights) & np.isfinite(candidates_s)
+    if infinite.any():
+        event, pair, rank = np.argwhere(infinite)[0]
+        raise DataError(f"pair_lag_weights must be finite GCC heights (NaN counts as 0); got {weights[event, pair, rank]} at event {event}, "
+                        f"pair {pair}, candidate {rank} ({int(infinite.sum())} infinite heights in all)")
+    return weights
 
 
 class ConsistentSetSolver:
@@ -125,13 +144,7 @@ class ConsistentSetSolver:
         ``trusted`` (B, M) bool, and the per-event diagnostics of the module docstring.
         """
         bsz, n_pairs, k_all = candidates_s.shape
-        m = int(round((1 + np.sqrt(1 + 8 * n_pairs)) / 2))
-        pairs = pairs_of(m)
-        if len(pairs) != n_pairs:
-            raise ValueError(f"pair_lag_candidates_s must cover all {len(pairs)} pairs of {m} mics; got {n_pairs}")
-        k = k_all
-        while k > 1 and m * k ** (m - 1) > self.max_hypotheses:
-            k -= 1
+        m, k = self._search_shape(n_pairs, k_all)
         layout = pair_layout(m)
         i_idx, j_idx = layout.i_idx, layout.j_idx
         cands = candidates_s
@@ -184,6 +197,17 @@ class ConsistentSetSolver:
             "closure_rms_s": np.where(n_use > 0, closure, np.nan),
         }
 
+    def _search_shape(self, n_pairs: int, k_all: int) -> tuple[int, int]:
+        """The mics M whose pairs the P = ``n_pairs`` candidates cover, and the candidates per pair k ≤ K = ``k_all`` that form
+        hypotheses (the most whose M · k^(M−1) hypotheses stay within ``max_hypotheses``)."""
+        m = int(round((1 + np.sqrt(1 + 8 * n_pairs)) / 2))
+        if len(pairs_of(m)) != n_pairs:
+            raise ValueError(f"pair_lag_candidates_s must cover all {len(pairs_of(m))} pairs of {m} mics; got {n_pairs}")
+        k = k_all
+        while k > 1 and m * k ** (m - 1) > self.max_hypotheses:
+            k -= 1
+        return m, k
+
     @staticmethod
     def _fit_times(lags: np.ndarray, use: np.ndarray, trusted: np.ndarray, fallback: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray) -> np.ndarray:
         """Least-squares arrival times from the used pair lags (B, P), batched normal equations (sum of times = 0)."""
@@ -214,7 +238,7 @@ class ConsistentSetSolver:
                 result.diagnostics[name] = np.full(tdoa.shape[0], np.nan)
             return result
         cands = np.asarray(inputs.pair_lag_candidates_s, dtype=float)
-        weights = np.ones_like(cands) if inputs.pair_lag_weights is None else np.asarray(inputs.pair_lag_weights, dtype=float)
+        weights = np.ones_like(cands) if inputs.pair_lag_weights is None else checked_weights(inputs.pair_lag_weights, cands)
         prior = self._prior_lags(inputs, mics, c, height)
         parts = [self.select(cands[s : s + self.chunk_events], weights[s : s + self.chunk_events],
                              None if prior is None else prior[s : s + self.chunk_events])

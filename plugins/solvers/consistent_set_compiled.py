@@ -18,7 +18,6 @@ from acoustlab.core.contracts import SolverResult
 from plugins.solvers.consistent_set import ConsistentSetSolver
 from plugins.solvers.hyperbolic import HyperbolicSolver
 from plugins.solvers.hyperbolic_compiled import CompiledHyperbolicSolver
-from plugins.solvers.hypothesis_search import pairs_of
 
 
 class CompiledConsistentSetSolver(ConsistentSetSolver):
@@ -40,12 +39,7 @@ class CompiledConsistentSetSolver(ConsistentSetSolver):
         """See :meth:`ConsistentSetSolver.select`: the same keys and choice, computed by :func:`plugins.solvers.consistent_select.select_compiled`."""
         from plugins.solvers.consistent_select import select_compiled  # imports numba: only when a compiled solver runs
 
-        n_pairs, k = candidates_s.shape[1], candidates_s.shape[2]
-        m = int(round((1 + np.sqrt(1 + 8 * n_pairs)) / 2))
-        if len(pairs_of(m)) != n_pairs:
-            raise ValueError(f"pair_lag_candidates_s must cover all {len(pairs_of(m))} pairs of {m} mics; got {n_pairs}")
-        while k > 1 and m * k ** (m - 1) > self.max_hypotheses:
-            k -= 1
+        _, k = self._search_shape(candidates_s.shape[1], candidates_s.shape[2])
         return select_compiled(candidates_s, weights, prior_lags_s if self.prior_weight > 0 else None, k=k, tolerance_s=self.tolerance_s,
                                prior_weight=self.prior_weight, prior_tolerance_s=self.prior_tolerance_s)
 
