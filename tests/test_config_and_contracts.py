@@ -51,6 +51,20 @@ def test_experiments_never_choose_a_site():
         assert "site" not in cfg, f"experiment {name} sets a site"
 
 
+def test_the_season_fast_preset_is_the_three_settings_season_search_measured(compose_cfg):
+    """``+experiment=season_fast`` composes to exactly ``features=physics_lean +features.gcc.search=coarse
+    solver=consistent_set_compiled`` (benchmarks/results/season_search.md measures the preset under that name), and a
+    setting given on the command line still wins over it."""
+    preset = compose_cfg(["+site=forest", "+experiment=season_fast", "protocol=season"])
+    spelled_out = compose_cfg(["+site=forest", "features=physics_lean", "+features.gcc.search=coarse", "solver=consistent_set_compiled",
+                               "protocol=season"])
+    assert OmegaConf.to_container(preset) == OmegaConf.to_container(spelled_out)
+    assert preset.solver._target_.endswith("CompiledConsistentSetSolver") and preset.features.gcc.search == "coarse"
+    assert set(preset.features.groups) == set(compose_cfg(["features=physics_lean"]).features.groups)
+    mine = compose_cfg(["+site=forest", "+experiment=season_fast", "solver=consistent_set", "features.gcc.search=fine"])
+    assert mine.solver._target_.endswith(".ConsistentSetSolver") and mine.features.gcc.search == "fine"
+
+
 @pytest.mark.parametrize("group,option", OPTIONS)
 def test_every_option_composes_and_instantiates_to_its_contract(compose_cfg, group, option):
     cfg = compose_cfg(["+site=frozen_lake", f"{group}={option}", "paths.outputs_dir=/tmp/acoustlab-contract"])
