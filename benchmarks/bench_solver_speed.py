@@ -1,6 +1,6 @@
 """Solver speed side by side in one run: per-event SciPy least squares against the vectorised and the compiled solvers.
 
-Usage: python benchmarks/bench_solver_speed.py [--n-detections 20000] [--n-scipy 500] [--repeat 3]
+Usage: python benchmarks/bench_solver_speed.py [--n-detections 20000] [--n-scipy 500] [--repeat 3] [--rounds 7]
 
 On the forest's 6 mics, sources drawn in the site's source region with noise-free TDOAs and, for
 the consistent-set solver, K = 3 GCC candidates per pair (the true lag plus two spurious peaks).
@@ -194,7 +194,7 @@ def main() -> None:
               "compiled_against_numpy": against, "rounds": rounds, "n_large": opts.n_large, "search_on_large_arrays": search_on_large_arrays(opts.n_large)}
     lines = ["# Solver speed side by side (one run, forest, 6 mics)", "",
              f"`python benchmarks/bench_solver_speed.py --n-detections {opts.n_detections} --n-scipy {opts.n_scipy} --n-large {opts.n_large} "
-             f"--repeat {opts.repeat}`: noise-free TDOAs, K = 3 candidates per pair for the consistent-set solver; one process, one core's "
+             f"--repeat {opts.repeat} --rounds {opts.rounds}`: noise-free TDOAs, K = 3 candidates per pair for the consistent-set solver; one process, one core's "
              f"worth of work; every row the fastest of {opts.repeat} timings.", "",
              "| solver | µs per detection | detections / s | speed-up over SciPy | max error (m) |", "|---|---|---|---|---|"]
     for name, r in result["solvers"].items():
