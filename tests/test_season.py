@@ -128,3 +128,24 @@ def test_shards_as_a_hydra_multirun_then_merge(season, run_cli, tmp_path):
     proc = run_cli("season", *common, "protocol.stage=merge", f"hydra.run.dir={tmp_path / 'merged'}", timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "merged" / "positions.parquet"), pd.read_parquet(root / "run" / "positions.parquet"))
+
+
+def test_the_season_fast_preset_localizes_the_season_with_the_defaults_solver_fixes(season, compose_cfg, tmp_path):
+    """``+experiment=season_fast`` (lean features, the coarse GCC search, the compiled solver) fits and places the same season:
+    near the truth as the defaults are, the solver's fixes those of the defaults (the same consistent sets from nearly the
+    same lags), and the fitted method records the preset's settings, so every shard runs what was fitted."""
+    root, truth, _, _ = season
+    overrides = [a.replace("+experiment=smoke", "+experiment=[smoke,season_fast]") for a in season_overrides(root, tmp_path / "out")]
+    cfg = compose_cfg([*overrides, f"paths.outputs_dir={tmp_path / 'outputs'}"])
+    assert cfg.solver._target_.endswith("CompiledConsistentSetSolver") and cfg.features.gcc.search == "coarse"
+    assert "ir" not in cfg.features.groups and cfg.data.n_events == 120  # the lean set, and smoke's small fit
+    run_experiment(cfg, tmp_path / "run")
+    fast, default = pd.read_parquet(tmp_path / "run" / "positions.parquet"), pd.read_parquet(root / "run" / "positions.parquet")
+    assert len(fast) == len(default) == N_CALLS
+    error = np.hypot(fast["x_m"] - truth["x_m"], fast["y_m"] - truth["y_m"])
+    assert np.median(error) < 1.0 and (error < 5).mean() >= 0.9, error.describe()
+    apart = np.hypot(fast["solver_x_m"] - default["solver_x_m"], fast["solver_y_m"] - default["solver_y_m"])
+    assert (apart < 0.05).mean() >= 0.9, apart.describe()
+    saved = load_method(tmp_path / "out").method.pipeline.c
+    assert type(saved.solver).__name__ == "CompiledConsistentSetSolver" and "ir" not in saved.feature_sets
+    assert saved.feature_sets["tdoa"].search == "coarse"
