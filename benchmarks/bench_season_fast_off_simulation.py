@@ -27,7 +27,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import pandas as pd
 from bench_cross_simulator import METHOD, region_rows
 from common import REPO, machine, write_results
 
@@ -80,7 +79,7 @@ def main() -> None:
         result["sites"][site] = {"seconds": seconds, "errors": errors.to_dict("records"), "relative": relative.to_dict("records"),
                                  "coverage": coverage.to_dict("records"), "regions": regions}
         keep = [c for c in errors.columns if c in ("configuration", "method", "n (detections)", "p50 (m)", "p90 (m)", "p95 (m)", "p99 (m)",
-                                                   "p95 95 % CI (m)", "> 5 m (%)", "> 5 m 95 % CI (%)")]
+                                                   "p95 95 % CI (m)", "> 5 m (%)")]
         ckeep = [c for c in coverage.columns if c in ("configuration", "scorer", "coverage@0.5 (share)", "coverage@0.8 (share)",
                                                       "coverage@0.95 (share)", "median radius@0.95 (m)", "worst position@0.95 (share)")]
         lines += ["", f"## {site} ({', '.join(f'{k} {v:.0f} s' for k, v in seconds.items())})", "",

@@ -155,10 +155,11 @@ def main() -> None:
     site = site_from_config(cfg.site)
     xy, inputs = scene(site, opts.n_detections)
     rows = {}
-    seconds, fixes = timed(scipy_per_event, site.mic_positions_m, inputs.tdoa_s[: opts.n_scipy], inputs.source_height_m, repeat=opts.repeat)
+    scipy_once = lambda: scipy_per_event(site.mic_positions_m, inputs.tdoa_s[: opts.n_scipy], inputs.source_height_m)  # noqa: E731
+    seconds, fixes = timed(scipy_once, repeat=opts.repeat)
     rows["scipy least_squares, per detection"] = (seconds / opts.n_scipy, np.abs(fixes - xy[: opts.n_scipy]).max())
     closed_form = {**{k: getattr(inputs, k) for k in ("mic_positions_m", "tdoa_s", "speed_of_sound_m_s", "source_height_m")}}
-    fixes, solvers = {}, {}
+    fixes, solvers = {}, {}  # solvers: label -> (solver, its inputs)
     for name, label, solver_inputs, extra in (
             ("hyperbolic", "closed form + polish (hyperbolic), vectorised", SolverInputs(**closed_form), []),
             ("hyperbolic_compiled", "closed form + polish, compiled (solver=hyperbolic_compiled)", SolverInputs(**closed_form), []),
@@ -173,12 +174,9 @@ def main() -> None:
         seconds, result = timed(solve_once, repeat=opts.repeat)
         rows[label] = (seconds / opts.n_detections, np.abs(result.position_m - xy).max())
         fixes[label] = result
-        solvers[label] = solver
+        solvers[label] = (solver, solver_inputs)
     reference = rows["scipy least_squares, per detection"][0]
-    scipy_once = lambda: scipy_per_event(site.mic_positions_m, inputs.tdoa_s[: opts.n_scipy], inputs.source_height_m)  # noqa: E731
-    goals = {label: (solvers[label], solver_inputs) for label, solver_inputs in ((GOAL_DEFAULT, inputs), (GOAL_COMPILED, inputs),
-                                                                                  (GOAL_CLOSED_FORM, SolverInputs(**closed_form)))}
-    rounds = interleaved_rounds(scipy_once, opts.n_scipy, goals, opts.n_detections, opts.rounds)
+    rounds = interleaved_rounds(scipy_once, opts.n_scipy, {label: solvers[label] for label in GOALS}, opts.n_detections, opts.rounds)
     against = {}
     for compiled, numpy_label in (("closed form + polish, compiled (solver=hyperbolic_compiled)", "closed form + polish (hyperbolic), vectorised"),
                                   ("3-D closed form + polish, compiled", "3-D closed form + polish (x, y, height), vectorised"),
