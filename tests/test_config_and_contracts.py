@@ -65,6 +65,26 @@ def test_the_season_fast_preset_is_the_three_settings_season_search_measured(com
     assert mine.solver._target_.endswith(".ConsistentSetSolver") and mine.features.gcc.search == "fine"
 
 
+def test_the_season_defaults_to_the_season_fast_settings_and_nothing_else_does(compose_cfg):
+    """``protocol=season`` (``python -m acoustlab season``) composes the lean set, the coarse GCC search and the compiled solver,
+    exactly ``+experiment=season_fast``'s features and solver; a features or solver given on the command line wins, and the
+    other protocols keep ``features=physics`` and ``solver=consistent_set``."""
+    season = compose_cfg(["+site=forest", "protocol=season"])
+    preset = compose_cfg(["+site=forest", "+experiment=season_fast", "protocol=season"])
+    for node in ("features", "solver"):
+        assert OmegaConf.to_container(season[node]) == OmegaConf.to_container(preset[node]), node
+    assert season.features.gcc.search == "coarse" and season.solver._target_.endswith(".CompiledConsistentSetSolver")
+    full = compose_cfg(["+site=forest", "protocol=season", "features=physics", "solver=consistent_set"])
+    assert OmegaConf.to_container(full.features) == OmegaConf.to_container(compose_cfg(["+site=forest"]).features)
+    assert full.solver._target_.endswith(".ConsistentSetSolver") and "search" not in full.features.gcc
+    on_gpu = compose_cfg(["+site=forest", "protocol=season", "features.gcc.search=fine", "+features.gcc.device=cuda"])
+    assert on_gpu.features.gcc.search == "fine" and "ir" not in on_gpu.features.groups
+    for protocol in ("sim_only", "localize", "field_eval", "cross_fit"):
+        cfg = compose_cfg(["+site=forest", f"protocol={protocol}"])
+        assert "ir" in cfg.features.groups and "search" not in cfg.features.gcc, protocol
+        assert cfg.solver._target_.endswith(".ConsistentSetSolver"), protocol
+
+
 @pytest.mark.parametrize("group,option", OPTIONS)
 def test_every_option_composes_and_instantiates_to_its_contract(compose_cfg, group, option):
     cfg = compose_cfg(["+site=frozen_lake", f"{group}={option}", "paths.outputs_dir=/tmp/acoustlab-contract"])
@@ -291,8 +311,9 @@ YAML_VARIANTS: dict[tuple[str, str, str], set[str]] = {
     # every conformal scorer is one SplitConformal variant: what it scales by, whether it uses the error model, its bins, its unit
     **{("conformal", option, label): {"normaliser", "use_error_model", "binning", "n_bins", "calibration_unit"}
        for option in group_options("conformal") for label in ("fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop")},
-    ("field", "recordings", "field"): {"mics_csv", "events_csv"},
-    ("features", "physics_lean", "xcorr"): {"extra_bands_hz"},  # the lean set's xcorr: main band only  # the shipped LOCA 2021 example; a user's own files have no default
+    ("field", "recordings", "field"): {"mics_csv", "events_csv"},  # the shipped LOCA 2021 example; a user's own files have no default
+    ("features", "physics_lean", "xcorr"): {"extra_bands_hz"},  # the lean set's xcorr: main band only
+    ("features", "physics_lean_coarse", "xcorr"): {"extra_bands_hz"},  # the season's default: the lean set with the coarse GCC search
 }
 
 

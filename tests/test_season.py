@@ -130,22 +130,28 @@ def test_shards_as_a_hydra_multirun_then_merge(season, run_cli, tmp_path):
     pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "merged" / "positions.parquet"), pd.read_parquet(root / "run" / "positions.parquet"))
 
 
-def test_the_season_fast_preset_localizes_the_season_with_the_defaults_solver_fixes(season, compose_cfg, tmp_path):
-    """``+experiment=season_fast`` (lean features, the coarse GCC search, the compiled solver) fits and places the same season:
-    near the truth as the defaults are, the solver's fixes those of the defaults (the same consistent sets from nearly the
-    same lags), and the fitted method records the preset's settings, so every shard runs what was fitted."""
-    root, truth, _, _ = season
-    overrides = [a.replace("+experiment=smoke", "+experiment=[smoke,season_fast]") for a in season_overrides(root, tmp_path / "out")]
-    cfg = compose_cfg([*overrides, f"paths.outputs_dir={tmp_path / 'outputs'}"])
+def test_the_season_defaults_are_the_fast_settings_with_the_full_sets_solver_fixes(season, compose_cfg, tmp_path):
+    """The season's defaults (lean features, the coarse GCC search, the compiled solver: the fixture's run) place the season as
+    the full set with the default search and the numpy solver does (``features=physics solver=consistent_set``): near the
+    truth, the solver's fixes the same (the same consistent sets from nearly the same lags); each fitted method records
+    its settings, so every shard runs what was fitted."""
+    root, truth, _, cfg = season
     assert cfg.solver._target_.endswith("CompiledConsistentSetSolver") and cfg.features.gcc.search == "coarse"
     assert "ir" not in cfg.features.groups and cfg.data.n_events == 120  # the lean set, and smoke's small fit
-    run_experiment(cfg, tmp_path / "run")
-    fast, default = pd.read_parquet(tmp_path / "run" / "positions.parquet"), pd.read_parquet(root / "run" / "positions.parquet")
-    assert len(fast) == len(default) == N_CALLS
-    error = np.hypot(fast["x_m"] - truth["x_m"], fast["y_m"] - truth["y_m"])
-    assert np.median(error) < 1.0 and (error < 5).mean() >= 0.9, error.describe()
-    apart = np.hypot(fast["solver_x_m"] - default["solver_x_m"], fast["solver_y_m"] - default["solver_y_m"])
+    default_method = load_method(root / "out").method.pipeline.c
+    assert type(default_method.solver).__name__ == "CompiledConsistentSetSolver" and "ir" not in default_method.feature_sets
+    assert default_method.feature_sets["tdoa"].search == "coarse"
+    full_cfg = compose_cfg([*season_overrides(root, tmp_path / "out", "features=physics", "solver=consistent_set"),
+                            f"paths.outputs_dir={tmp_path / 'outputs'}"])
+    assert full_cfg.solver._target_.endswith(".ConsistentSetSolver") and "ir" in full_cfg.features.groups
+    run_experiment(full_cfg, tmp_path / "run")
+    full, default = pd.read_parquet(tmp_path / "run" / "positions.parquet"), pd.read_parquet(root / "run" / "positions.parquet")
+    assert len(full) == len(default) == N_CALLS
+    for table in (full, default):
+        error = np.hypot(table["x_m"] - truth["x_m"], table["y_m"] - truth["y_m"])
+        assert np.median(error) < 1.0 and (error < 5).mean() >= 0.9, error.describe()
+    apart = np.hypot(full["solver_x_m"] - default["solver_x_m"], full["solver_y_m"] - default["solver_y_m"])
     assert (apart < 0.05).mean() >= 0.9, apart.describe()
     saved = load_method(tmp_path / "out").method.pipeline.c
-    assert type(saved.solver).__name__ == "CompiledConsistentSetSolver" and "ir" not in saved.feature_sets
-    assert saved.feature_sets["tdoa"].search == "coarse"
+    assert type(saved.solver).__name__ == "ConsistentSetSolver" and "ir" in saved.feature_sets
+    assert saved.feature_sets["tdoa"].search == "fine"
