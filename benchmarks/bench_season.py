@@ -255,7 +255,8 @@ def main() -> None:
     lines = [f"# Season-scale localize ({args.site})", "",
              f"`python benchmarks/bench_season.py --site {args.site} --calls {' '.join(map(str, args.calls))} --jobs {args.jobs} "
              f"--file-s {args.file_s:g}` ({machine()['cpus']} CPUs). Synthetic season: calls rendered into {args.file_s:g}-s files per "
-             "recorder (named by start time), Raven tables per recorder, localized with `python -m acoustlab season`. "
+             "recorder (named by start time), Raven tables per recorder, localized with `python -m acoustlab season` (its defaults: the lean "
+             "feature set, the GCC's coarse search, the compiled solver). "
              "CPU time from `os.wait4`, peak RSS from the process' own VmHWM (the shards' workers are not in it); baseline = the same "
              "command with every chunk done (imports and the fitted method). The audio is read per batch of "
              f"{runs[0]['batch_events']} events; a chunk ({runs[0]['chunk_events']} events) is never held.", "",

@@ -3,10 +3,11 @@
 Usage: python benchmarks/bench_season_search.py [--site forest] [--calls 2000]
 
 Renders one synthetic season with ``bench_season.py``'s settings (calls rendered into long noise
-files per recorder, Raven tables per recorder), then for ``features=physics_lean``, the same
-with ``+features.gcc.search=coarse`` (:mod:`acoustlab.toolkit.gcc_coarse`) and that with
-``solver=consistent_set_compiled`` (:mod:`plugins.solvers.consistent_set_compiled`), given as the preset
-``+experiment=season_fast`` (the three together; a test checks that it composes to exactly them): fits the method once,
+files per recorder, Raven tables per recorder), then for ``features=physics_lean solver=consistent_set``
+(the default GCC search and the numpy solver), the same with ``+features.gcc.search=coarse``
+(:mod:`acoustlab.toolkit.gcc_coarse`) and the season's defaults, which add ``solver=consistent_set_compiled``
+(:mod:`plugins.solvers.consistent_set_compiled`; the three together, also ``+experiment=season_fast``: a test checks
+that the season composes to exactly them): fits the method once,
 localizes every detection in one process, runs the same command again with nothing left to do (the
 baseline), merges, and scores the positions against the rendered calls (``bench_season_device``'s
 steps). Detections per second of wall time and of CPU time, above the baseline. Then the same
@@ -72,8 +73,9 @@ def main() -> None:
     truth = write_season(settings, folder)
     render_s = time.perf_counter() - start
     margin_s = SeasonLocalize({}, {"format": "raven"}, {}).margin_s(site)
-    configs = {"fine": ["features=physics_lean"], "coarse": ["features=physics_lean", "+features.gcc.search=coarse"],
-               "coarse_compiled": ["+experiment=season_fast"]}  # features=physics_lean +features.gcc.search=coarse solver=consistent_set_compiled
+    configs = {"fine": ["features=physics_lean", "solver=consistent_set"],
+               "coarse": ["features=physics_lean", "+features.gcc.search=coarse", "solver=consistent_set"],
+               "coarse_compiled": []}  # the season's defaults: features=physics_lean_coarse solver=consistent_set_compiled
     rows = {name: run_config(opts.site, folder, name, overrides, truth, margin_s) for name, overrides in configs.items()}
     for name, overrides in configs.items():
         rows[name]["sharded"] = sharded(opts.site, folder, name, overrides, opts.jobs, rows[name]["n_events"])
@@ -83,7 +85,7 @@ def main() -> None:
     lines = ["# A season end to end with the GCC's coarse search against the default (one run, one machine, CPU)", "",
              f"`python benchmarks/bench_season_search.py --site {opts.site} --calls {opts.calls} --jobs {opts.jobs}`: a synthetic {opts.site} season of "
              f"{opts.calls} calls ({settings.duration_s / 3600:.2f} h, rendered in {render_s:.0f} s), `python -m acoustlab season` with "
-             f"`features=physics_lean`, one localizing process, {machine()['cpus']} CPU cores; the method fitted once per search. "
+             f"the lean feature set, one localizing process, {machine()['cpus']} CPU cores; the method fitted once per search. "
              "Rates are above the baseline (the same command with every chunk done).", "",
              "| configuration | detections | detections/s (wall) | detections/s (CPU) | fit (wall, s) | method > 5 m | solver > 5 m | "
              f"GDOP-scaled 0.95 radii cover | {opts.jobs} local shards: detections/s (wall; above baseline) | sharded == unsharded |",
@@ -95,9 +97,10 @@ def main() -> None:
                      f"{100 * acc['coverage_gdop_scaled_0.95']:.1f} % | {r['sharded']['detections_per_s_wall']:.1f} "
                      f"({r['sharded']['detections_per_s_wall_above_baseline']:.1f}) | {r['sharded']['identical_to_unsharded']} |")
     fine, coarse, compiled = rows["fine"], rows["coarse"], rows["coarse_compiled"]
-    lines += ["", "Configurations: fine = `features=physics_lean` (the default GCC search and solver); coarse = the same with "
-              "`+features.gcc.search=coarse`; coarse_compiled = coarse with `solver=consistent_set_compiled` (fitted with it too), "
-              "given as the preset `+experiment=season_fast`.", "",
+    lines += ["", "Configurations: fine = `features=physics_lean solver=consistent_set` (the default GCC search, the numpy solver); "
+              "coarse = the same with `+features.gcc.search=coarse`; coarse_compiled = the season's defaults (no overrides: "
+              "`features=physics_lean_coarse solver=consistent_set_compiled`, coarse with the compiled solver, fitted with it too; "
+              "the same as `+experiment=season_fast`).", "",
               f"CPU per detection: the coarse search's rate is {coarse['detections_per_s_cpu'] / fine['detections_per_s_cpu']:.2f}× "
               f"the default search's; the compiled solver's {compiled['detections_per_s_cpu'] / coarse['detections_per_s_cpu']:.2f}× coarse's. "
               f"Solver positions, coarse against coarse_compiled: largest difference {solver_difference_m:.2g} m, "
