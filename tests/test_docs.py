@@ -21,7 +21,9 @@ def documented_commands() -> list[tuple[str, str]]:
     """(page, command) of every ``python -m acoustlab…`` line in a shell block of the README and the docs."""
     found = []
     for page in PAGES:
-        for block in re.findall(r"```(?:bash|sh|console)?\n(.*?)```", page.read_text(), flags=re.S):
+        for language, block in re.findall(r"```(\w*)\n(.*?)```", page.read_text(), flags=re.S):  # every fenced block, in pairs
+            if language not in ("", "bash", "sh", "console"):
+                continue
             for line in block.replace("\\\n", " ").split("\n"):
                 line = re.split(r"\s+#\s", line)[0].strip()  # a trailing comment
                 if "python -m acoustlab" in line:
