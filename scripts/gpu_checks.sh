@@ -7,7 +7,8 @@
 #   4. benchmarks/bench_season_device.py: a forest season end to end, the GCC on the GPU against the CPU (needs XGBoost there);
 #   5. benchmarks/bench_tabpfn_gpu_end_to_end.py: the README's main job with TabPFN point and error models on the GPU.
 # Usage: bash scripts/gpu_checks.sh OUT_DIR [STEP ...]   (every step, or the named ones: gpu_tests bench_gcc_device
-# bench_tabpfn_device bench_season_device bench_tabpfn_gpu_end_to_end; each step's log lands in OUT_DIR; a failing
+# bench_tabpfn_device bench_season_device bench_tabpfn_gpu_end_to_end; each step's log, and its result files as soon as it
+# ends, land in OUT_DIR; a failing
 # step does not stop the next). Together they take about 12 minutes on an H200 machine: split them over two calls.
 # On a lent GPU machine without network, carry what its image lacks as wheels for its Python (3.12 there):
 # hydra-core, omegaconf, antlr4-python3-runtime (built here with pip wheel), soundfile, cffi, pycparser,
@@ -32,13 +33,12 @@ step() {  # step NAME TIMEOUT_S COMMAND...
     echo "$name: exit $rc after $((SECONDS - start)) s"
     tail -n 25 "$out/$name.log"
     [ $rc -eq 0 ] || status=1
+    local result=benchmarks/results/${name#bench_}
+    if [ -f "$result.json" ] && [ "$result.json" -nt "$out/started" ]; then cp "$result".* "$out"/; fi  # now: a later step may be cut off
 }
 step gpu_tests 100 python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_gcc_device.py
 step bench_gcc_device 300 python3 benchmarks/bench_gcc_device.py --sites forest frozen_lake --n-events 1100 --batch-sizes 16 64 256
 step bench_tabpfn_device 160 python3 benchmarks/bench_tabpfn_device.py
 step bench_season_device 420 python3 benchmarks/bench_season_device.py --site forest --calls 1000
 step bench_tabpfn_gpu_end_to_end 300 python3 benchmarks/bench_tabpfn_gpu_end_to_end.py --n-jobs 8
-for name in gcc_device tabpfn_device season_device tabpfn_gpu_end_to_end; do
-    [ benchmarks/results/$name.json -nt "$out/started" ] && cp benchmarks/results/$name.* "$out"/
-done
 exit $status
