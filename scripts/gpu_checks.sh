@@ -7,9 +7,11 @@
 #   4. benchmarks/bench_season_device.py: a forest season end to end, the GCC on the GPU against the CPU (needs XGBoost there);
 #   5. benchmarks/bench_tabpfn_gpu_end_to_end.py: the README's main job with TabPFN point and error models on the GPU.
 # Usage: bash scripts/gpu_checks.sh OUT_DIR [STEP ...]   (every step, or the named ones: gpu_tests bench_gcc_device
-# bench_tabpfn_device bench_season_device bench_tabpfn_gpu_end_to_end; each step's log, and its result files as soon as it
-# ends, land in OUT_DIR; a failing
-# step does not stop the next). Together they take about 12 minutes on an H200 machine: split them over two calls.
+# bench_tabpfn_device bench_season_device bench_tabpfn_gpu_end_to_end; each step's log, and its result files as soon as
+# it ends, land in OUT_DIR; a failing step does not stop the next). Together they take about 12 minutes on an H200
+# machine, more on the H100 machine, whose CPU is about half as fast (2026-11-27: gpu_tests 18 s, bench_gcc_device 78 s,
+# bench_tabpfn_gpu_end_to_end 228 s; bench_season_device ran past its 420 s with one CPU fit of 186 s): give
+# bench_season_device a call of its own.
 # On a lent GPU machine without network, carry what its image lacks as wheels for its Python (3.12 there):
 # hydra-core, omegaconf, antlr4-python3-runtime (built here with pip wheel), soundfile, cffi, pycparser,
 # tabpfn, lightgbm, pydantic, pydantic-core, pydantic-settings, python-dotenv, annotated-types,
