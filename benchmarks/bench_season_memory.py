@@ -88,21 +88,21 @@ def main() -> None:
               "above_baseline_mib": above_baseline, "above_floor_mib": above_floor,
               "above_baseline_per_chunk_audio": above_baseline / chunk_audio_mib, "above_floor_per_chunk_audio": above_floor / chunk_audio_mib}
     lines = [f"# A season's peak memory above its floor ({args.site})", "",
-             f"`python benchmarks/bench_season_memory.py --site {args.site} --calls {args.calls} --floor-calls {args.floor_calls} "
+             (f"`python benchmarks/bench_season_memory.py --site {args.site} --calls {args.calls} --floor-calls {args.floor_calls} "
              f"--file-s {args.file_s:g}` ({machine()['cpus']} CPUs; one run). `python -m acoustlab season` with its defaults (the lean "
              "feature set, the GCC's coarse search, the compiled solver), one localizing process each; peak RSS is the process' own "
              "VmHWM. Baseline: the same command once every chunk is done (interpreter, imports, the fitted method; no compiled "
              f"kernel is loaded). Floor: a season of {floor_events} events localized with the same fitted method in a fresh process "
-             "(everything above plus the compiled kernels and one small batch).", "",
+             "(everything above plus the compiled kernels and one small batch)."), "",
              "| process | events | peak RSS (MiB) |", "|---|---|---|",
              f"| the season, localized | {len(events)} | {localize['peak_rss_mib']:.0f} |",
              f"| baseline (nothing left to do) | 0 | {baseline['peak_rss_mib']:.0f} |",
              f"| floor (a {floor_events}-event season) | {floor_events} | {floor['peak_rss_mib']:.0f} |", "",
-             f"One chunk ({manifest['chunk_events']} events; audio read in batches of {manifest['batch_events']}) holds "
+             (f"One chunk ({manifest['chunk_events']} events; audio read in batches of {manifest['batch_events']}) holds "
              f"{chunk_audio_mib:.1f} MiB of clips. The season's peak is {above_baseline:.0f} MiB above the baseline "
              f"({above_baseline / chunk_audio_mib:.2f}× a chunk's audio) and {above_floor:.0f} MiB above the floor "
              f"({above_floor / chunk_audio_mib:.2f}×); the floor is {floor['peak_rss_mib'] - baseline['peak_rss_mib']:.0f} MiB above "
-             "the baseline (the compiled kernels' runtime and one small batch)."]
+             "the baseline (the compiled kernels' runtime and one small batch).")]
     write_results(f"season_memory_{args.site}", result, lines)
     log.info("\n".join(lines))
 
