@@ -5,9 +5,8 @@ Usage (on a machine with a CUDA GPU, torch and XGBoost)::
     python benchmarks/bench_season_device.py [--site forest] [--calls 1000] [--device cuda]
 
 Renders one synthetic season with ``bench_season.py``'s settings (calls rendered into long noise
-files per recorder, Raven tables per recorder), then the season's defaults on the CPU (the lean
-feature set, the GCC's coarse search, the compiled solver) and the same with the GCC on the GPU
-(``features.gcc.search=fine +features.gcc.device=cuda``: the coarse search is the CPU's): fits the
+files per recorder, Raven tables per recorder), then for each feature configuration,
+``features=physics_lean`` on the CPU and the same with ``+features.gcc.device=cuda``: fits the
 method once (``protocol.stage=fit``: simulation, features and models), localizes every detection in
 one process (``protocol.stage=localize``), runs the same command again with nothing left to do
 (the baseline: imports and loading the method), merges, and scores the positions against the
@@ -74,7 +73,7 @@ def main() -> None:
     truth = write_season(settings, folder)
     render_s = time.perf_counter() - start
     margin_s = SeasonLocalize({}, {"format": "raven"}, {}).margin_s(site)
-    configs = {"cpu": [], opts.device: ["features.gcc.search=fine", f"+features.gcc.device={opts.device}"]}  # the season's defaults, and on the GPU
+    configs = {"cpu": ["features=physics_lean"], opts.device: ["features=physics_lean", f"+features.gcc.device={opts.device}"]}
     rows = {name: run_config(opts.site, folder, name, overrides, truth, margin_s) for name, overrides in configs.items()}
     gpu = "none"
     if opts.device.startswith("cuda"):
@@ -84,8 +83,7 @@ def main() -> None:
     lines = ["# A season end to end with the GCC on a GPU against the CPU (one run, one machine)", "",
              f"`python benchmarks/bench_season_device.py --site {opts.site} --calls {opts.calls} --device {opts.device}`: a synthetic "
              f"{opts.site} season of {opts.calls} calls ({settings.duration_s / 3600:.2f} h, rendered in {render_s:.0f} s), "
-             f"`python -m acoustlab season` with its defaults (the lean set, the compiled solver; the GCC's coarse search on the CPU, its "
-             f"fine search on the GPU), one localizing process; GPU: {gpu}; "
+             f"`python -m acoustlab season` with `features=physics_lean`, one localizing process; GPU: {gpu}; "
              f"{machine()['cpus']} CPU cores. Rates are above the baseline (the same command with every chunk done).", "",
              "| GCC on | detections | detections/s (wall) | detections/s (CPU) | fit (wall, s) | method > 5 m | solver > 5 m | GDOP-scaled 0.95 radii cover |",
              "|---|---|---|---|---|---|---|---|"]
