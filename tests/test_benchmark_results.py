@@ -226,3 +226,25 @@ def test_an_event_is_matched_to_its_own_call_even_when_its_source_is_next_to_a_r
     assert out["n_matched_calls"] == 3
     assert out["method"]["share_over_5m"] == 0.0 and out["solver"]["share_over_5m"] == 0.0
     assert out["coverage_gdop_scaled_0.95"] == 1.0
+
+
+def test_the_process_benchmark_summarises_each_process_by_its_median_round():
+    bench = _benchmark_module("bench_solver_processes")
+    label = next(label for label, (_, _, goal) in bench.SOLVERS.items() if goal == 100)
+    # three processes: the middle round of each is its figure (one slow round must not move it)
+    processes = [{name: {"ratio": [90.0, 110.0, 400.0], "us": [5.0, 4.0, 1.0], "scipy_us": [450.0, 440.0, 400.0]}
+                  for name in bench.SOLVERS} for _ in range(2)]
+    processes.append({name: {"ratio": [60.0, 70.0, 80.0], "us": [7.0, 6.0, 5.0], "scipy_us": [420.0, 420.0, 420.0]} for name in bench.SOLVERS})
+
+    summary = bench.summarise(processes)[label]
+
+    assert summary["per_process"]["ratio"] == [110.0, 110.0, 70.0]
+    assert (summary["ratio_median"], summary["ratio_min"], summary["ratio_max"]) == (110.0, 70.0, 110.0)
+    assert summary["processes_meeting_goal"] == 2 and summary["goal"] == 100
+    assert summary["us_median"] == 4.0 and summary["scipy_us_min"] == 420.0
+
+
+def test_the_process_benchmark_times_the_code_it_imports():
+    deps = _check_results().dependencies(REPO / "benchmarks" / "bench_solver_processes.py")
+    assert REPO / "benchmarks" / "bench_solver_speed.py" in deps  # imported inside the worker function, still followed
+    assert REPO / "plugins" / "solvers" / "consistent_select.py" in deps
