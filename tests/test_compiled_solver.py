@@ -177,10 +177,15 @@ def test_compiled_hyperbolic_solver_gives_the_numpy_fixes(mics, dimensions, fall
     for name in ("n_roots", "height_ambiguous", "dimensions_used"):
         if name in expected.diagnostics:
             np.testing.assert_array_equal(got.diagnostics[name], expected.diagnostics[name], err_msg=name)
+    # Beyond what rounding resolves, both solvers need only say "ill-conditioned": a source in the mics' plane (height_gdop
+    # ~ 1e14), or a Jacobian whose JᵀJ has eigenvalues 10¹² apart (conditioning > 10⁶: the smaller one, half-trace less
+    # spread, is then rounding noise of the larger; it moves with where each polish stopped and with the machine: equal
+    # to 1e-4 on earlier machines, 7.8e7 against 8.2e11 for one triangle event on an AMD EPYC)
+    beyond = {"height_gdop": 1e4, "conditioning": 1e6}
     for name, values in expected.diagnostics.items():
-        ill = (values > 1e4) if name == "height_gdop" else np.zeros(len(values), bool)  # a source in the mics' plane: cond ~ 1e14
+        ill = (values > beyond[name]) if name in beyond else np.zeros(len(values), bool)
         np.testing.assert_allclose(got.diagnostics[name][~ill], values[~ill], rtol=1e-4, atol=1e-6, equal_nan=True, err_msg=name)
-        assert (got.diagnostics[name][ill] > 1e4).all()
+        assert (got.diagnostics[name][ill] > beyond.get(name, np.inf)).all(), name
 
 
 def test_compiled_hyperbolic_solver_is_exact_on_noise_free_tdoas():
