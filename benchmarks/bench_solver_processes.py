@@ -4,8 +4,8 @@ Usage: python benchmarks/bench_solver_processes.py [--processes 8] [--n-detectio
 
 ``bench_solver_speed.py`` times every solver in one process. A ratio measured there moves between
 runs for two reasons it cannot see: SciPy's per-call cost moves with the machine's day, and the same
-compiled kernel runs at a speed that depends on the process it is loaded into (where its code and
-data land), by several per cent for identical code. This script starts ``--processes`` fresh Python
+compiled kernel, on the same data, runs faster in some processes than in others (by several per
+cent for identical code: the per-process figures below show it). This script starts ``--processes`` fresh Python
 processes one after the other; each builds ``bench_solver_speed.py``'s forest detections (6 mics,
 noise-free TDOAs, K = 3 candidates per pair), warms each solver up, and times ``--rounds``
 interleaved rounds of SciPy on ``--n-scipy`` detections and each solver on ``--n-detections``
