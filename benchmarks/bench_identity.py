@@ -14,6 +14,11 @@ Usage::
 Writes ``benchmarks/results/identity_<label>.json`` (and ``identity.md`` with ``--compare``).
 Exit status 1 when a compared job differs in anything but the ``JOB:KEY`` pairs listed in ``--allow``.
 ``--reuse`` compares an earlier measurement with the same label instead of running the jobs again.
+A measurement records its machine (``_machine``: the CPU model and the releases of the numerical
+packages): compare two measured on one machine. The same code gave different predictions in every
+job on two sessions' machines (``identity_after_season_default`` against ``identity_before_season_fast``;
+the forest's simulated audio, ``dataset_hash``, differed too), so a reference from another machine
+cannot show that a change left the answers as they were; the comparison says where the machines differ.
 Each run gets a cold feature and simulation cache of its own (``cache.dir`` in its temporary folder:
 with a warm ``outputs/cache`` a job measures what the cache holds, not what the code computes now); ``--shared-cache`` uses
 the configured one instead, for package versions that have no ``cache.dir``.
@@ -45,6 +50,39 @@ JOBS = {
 }
 #: metrics.json keys that are not results.
 VOLATILE = ("timings_s", "code_version", "run_time")
+#: The key of a measurement's machine record (every other top-level key is a job).
+MACHINE_KEY = "_machine"
+#: Releases recorded with a measurement: the packages whose arithmetic the jobs' answers depend on.
+RELEASES = ("numpy", "scipy", "pandas", "scikit-learn", "xgboost", "xgboost-cpu", "numba", "llvmlite", "soundfile", "pyarrow")
+
+
+def machine_record() -> dict:
+    """The CPU model (``/proc/cpuinfo``'s model name, else :func:`platform.processor`) and the releases of :data:`RELEASES`."""
+    import importlib.metadata
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        names = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines() if line.startswith("model name")]
+        cpu = names[0] if names else cpu
+    releases = {}
+    for name in RELEASES:  # only those installed (xgboost is xgboost-cpu on Linux)
+        try:
+            releases[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            continue
+    return {"cpu": cpu, "python": platform.python_version(), "releases": releases}
+
+
+def machine_differences(mine: dict | None, reference: dict | None) -> list[str]:
+    """How the machines of two measurements differ, as short phrases (["unknown"] when the reference records none)."""
+    if not mine or not reference:
+        return ["unknown"]
+    out = [f"{key}: {reference.get(key)} → {mine.get(key)}" for key in ("cpu", "python") if mine.get(key) != reference.get(key)]
+    releases, old = mine.get("releases", {}), reference.get("releases", {})
+    out += [f"{name} {old.get(name)} → {releases.get(name)}" for name in sorted(set(releases) | set(old)) if releases.get(name) != old.get(name)]
+    return out
 
 
 def frame_digest(frame: pd.DataFrame) -> str:
@@ -103,6 +141,7 @@ def main() -> None:
                 # a cold cache of the run's own: with a warm outputs/cache a job measures what the cache holds
                 cache = [] if opts.shared_cache else [f"cache.dir={Path(tmp) / 'cache'}"]
                 result[name] = run_job([*JOBS[name], *cache], Path(tmp) / name)
+        result[MACHINE_KEY] = machine_record()
         RESULTS.mkdir(parents=True, exist_ok=True)
         (RESULTS / f"identity_{opts.label}.json").write_text(json.dumps(result, indent=1, default=str))
     if not opts.compare:
@@ -121,6 +160,12 @@ def main() -> None:
         lines.append(f"| {name} | {new['n_predictions']} | {'identical' if same_pred else 'DIFFERENT'} | "
                      f"{'identical' if not keys else 'differs'} | {', '.join(keys) or '—'} |")
     lines += ["", f"Allowed to differ (job:key): {', '.join(opts.allow) or 'nothing'}."]
+    machines = machine_differences(result.get(MACHINE_KEY), reference.get(MACHINE_KEY))
+    if machines == ["unknown"]:
+        lines += ["", "One of the two measurements does not record its machine: the comparison holds only if both were made on one machine."]
+    elif machines:
+        lines += ["", f"Measured on different machines ({'; '.join(machines)}): answers can differ for that reason alone; "
+                  "measure both sides on one machine."]
     (RESULTS / "identity.md").write_text("\n".join(lines) + "\n")
     log.info("\n".join(lines))
     if failed:

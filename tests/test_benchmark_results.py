@@ -191,7 +191,8 @@ def test_every_waived_change_names_committed_identity_evidence():
     assert entries
     for entry in entries:
         assert {"before", "after", "files", "identity", "why"} <= set(entry)
-        before, after = (json.loads((RESULTS / f"identity_{label}.json").read_text()) for label in entry["identity"])
+        before, after = ({job: v for job, v in json.loads((RESULTS / f"identity_{label}.json").read_text()).items() if not job.startswith("_")}
+                         for label in entry["identity"])  # "_machine": where it was measured, not a job
         assert set(before) == set(after) and len(before) >= 3
         for job in before:
             assert before[job]["predictions_sha256"] == after[job]["predictions_sha256"], job
@@ -248,3 +249,13 @@ def test_the_process_benchmark_times_the_code_it_imports():
     deps = _check_results().dependencies(REPO / "benchmarks" / "bench_solver_processes.py")
     assert REPO / "benchmarks" / "bench_solver_speed.py" in deps  # imported inside the worker function, still followed
     assert REPO / "plugins" / "solvers" / "consistent_select.py" in deps
+
+
+def test_an_identity_measurement_says_where_its_machine_differs_from_the_reference():
+    bench = _benchmark_module("bench_identity")
+    here = bench.machine_record()
+    assert here["cpu"] and here["releases"]["numpy"] == np.__version__
+    elsewhere = {**here, "cpu": "another CPU", "releases": {**here["releases"], "numpy": "0.0"}}
+    assert bench.machine_differences(here, here) == []
+    assert bench.machine_differences(here, elsewhere) == [f"cpu: another CPU → {here['cpu']}", f"numpy 0.0 → {np.__version__}"]
+    assert bench.machine_differences(here, None) == ["unknown"]  # references made before machines were recorded
