@@ -52,27 +52,21 @@ JOBS = {
 VOLATILE = ("timings_s", "code_version", "run_time")
 #: The key of a measurement's machine record (every other top-level key is a job).
 MACHINE_KEY = "_machine"
-#: Releases recorded with a measurement: the packages whose arithmetic the jobs' answers depend on.
-RELEASES = ("numpy", "scipy", "pandas", "scikit-learn", "xgboost", "xgboost-cpu", "numba", "llvmlite", "soundfile", "pyarrow")
 
 
 def machine_record() -> dict:
-    """The CPU model (``/proc/cpuinfo``'s model name, else :func:`platform.processor`) and the releases of :data:`RELEASES`."""
-    import importlib.metadata
+    """The CPU model (``/proc/cpuinfo``'s model name, else :func:`platform.processor`), Python's version and the releases a
+    result records (:func:`common.package_versions`)."""
     import platform
+
+    from common import package_versions
 
     cpu = platform.processor() or platform.machine()
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.is_file():
         names = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines() if line.startswith("model name")]
         cpu = names[0] if names else cpu
-    releases = {}
-    for name in RELEASES:  # only those installed (xgboost is xgboost-cpu on Linux)
-        try:
-            releases[name] = importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:
-            continue
-    return {"cpu": cpu, "python": platform.python_version(), "releases": releases}
+    return {"cpu": cpu, "python": platform.python_version(), "releases": package_versions()}
 
 
 def machine_differences(mine: dict | None, reference: dict | None) -> list[str]:
