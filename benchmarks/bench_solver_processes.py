@@ -32,33 +32,27 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from common import machine, write_results
+from bench_solver_speed import GOAL_CLOSED_FORM, GOAL_COMPILED, GOAL_DEFAULT, GOALS, scene, scipy_per_event, timed
+from common import compose_cfg, machine, write_results
+
+from acoustlab.core.contracts import SolverInputs
+from acoustlab.run.registry import build
+from acoustlab.stages.sites import site_from_config
 
 log = logging.getLogger("bench_solver_processes")
 
-#: Solvers timed: label -> (config name, overrides, goal as a speed-up over per-event SciPy).
-SOLVERS = {
-    "consistent set + closed form (default), vectorised": ("consistent_set", [], 100),
-    "consistent set + closed form, compiled (solver=consistent_set_compiled)": ("consistent_set_compiled", [], 100),
-    "closed form + polish, compiled (solver=hyperbolic_compiled)": ("hyperbolic_compiled", [], 1000),
-}
+#: Solvers timed, by ``bench_solver_speed.py``'s labels of the rows with a goal (:data:`GOALS`): label -> config name.
+SOLVERS = {GOAL_DEFAULT: "consistent_set", GOAL_COMPILED: "consistent_set_compiled", GOAL_CLOSED_FORM: "hyperbolic_compiled"}
 
 
 def one_process(n_detections: int, n_scipy: int, rounds: int) -> dict:
     """This process's rounds: per solver the ratio of each round, its µs per detection and SciPy's (lists, one per round)."""
-    from bench_solver_speed import scene, scipy_per_event, timed
-    from common import compose_cfg
-
-    from acoustlab.core.contracts import SolverInputs
-    from acoustlab.run.registry import build
-    from acoustlab.stages.sites import site_from_config
-
     site = site_from_config(compose_cfg(["+site=forest"]).site)
     _, inputs = scene(site, n_detections)
     closed_form = SolverInputs(**{k: getattr(inputs, k) for k in ("mic_positions_m", "tdoa_s", "speed_of_sound_m_s", "source_height_m")})
     solvers = {}
-    for label, (name, extra, _) in SOLVERS.items():
-        solver = build(compose_cfg(["+site=forest", f"solver={name}", *extra]).solver, "solver")
+    for label, name in SOLVERS.items():
+        solver = build(compose_cfg(["+site=forest", f"solver={name}"]).solver, "solver")
         solver_inputs = closed_form if name == "hyperbolic_compiled" else inputs
         solver.solve(solver_inputs)  # warm-up: cached designs, imports, the compiled kernels' load
         solvers[label] = (solver, solver_inputs)
@@ -77,7 +71,8 @@ def one_process(n_detections: int, n_scipy: int, rounds: int) -> dict:
 def summarise(processes: list[dict]) -> dict:
     """Per solver: each process's median ratio, µs and SciPy µs, and their median, lowest and highest over the processes."""
     summary = {}
-    for label, (_, _, goal) in SOLVERS.items():
+    for label in SOLVERS:
+        goal = GOALS[label]
         per = {key: [float(np.median(p[label][key])) for p in processes] for key in ("ratio", "us", "scipy_us")}
         summary[label] = {"goal": goal, "per_process": per,
                           **{f"{key}_{stat}": float(fn(values)) for key, values in per.items()
