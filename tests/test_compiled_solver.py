@@ -51,7 +51,7 @@ def one_pass_and_two_passes(cands, weights, m, k, tolerance_s):
     bsz, n_pairs, k_all = cands.shape
     i_idx, j_idx, ref_pair, slot_pair = cs._layout(m)
     n_slots = m - 1
-    arrival, unary, own = np.empty((m, n_slots, k)), np.empty((m, n_slots, k)), np.empty((n_pairs, k))
+    arrival, unary, own = np.empty((m, n_slots, k)), np.empty((m, 1, n_slots, k)), np.empty((n_pairs, k))
     table, free_best, root = np.empty((m, n_pairs, k, k)), np.empty((m, n_slots + 1)), np.empty(m)
     kept_score, kept_times = np.empty(cs._KEPT), np.empty((cs._KEPT, m))
     out = []
@@ -60,11 +60,13 @@ def one_pass_and_two_passes(cands, weights, m, k, tolerance_s):
         cs._tables(cands[b], w, np.zeros(n_pairs), False, 0.0, 0.0, tolerance_s, k, k_all, i_idx, ref_pair, slot_pair, own, arrival,
                    unary, table, free_best, root)
         results = []
-        for search in (cs._winner_one_pass, cs._winner):
+        for one_pass in (True, False):
             win_t = np.empty(m)
-            margin = search(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, LATENESS_WEIGHT, tolerance_s,
-                            np.zeros(n_slots, np.int64), np.zeros(m, np.int64), np.empty((n_slots, k)),
-                            np.empty((n_slots, k, n_slots, k)), np.empty((n_slots, k)), np.empty((5, m)), win_t, kept_score, kept_times)
+            scratch = (np.empty(n_slots), np.empty(n_slots), np.empty(m), np.empty(m)) + ((np.empty(m),) if one_pass else ())
+            margin = (cs._winner_one_pass if one_pass else cs._winner)(
+                arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, LATENESS_WEIGHT, tolerance_s, np.zeros(n_slots, np.int64),
+                np.zeros(m, np.int64), np.empty((n_slots, k)), np.empty((n_slots, k, n_slots, k)), np.empty((n_slots, k)), *scratch, win_t,
+                kept_score, kept_times)
             results.append((win_t, margin))
         out.append(results)
     return out
