@@ -263,7 +263,8 @@ def _solve3(a00, a01, a02, a10, a11, a12, a20, a21, a22, b0, b1, b2):
 
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _lm_3d(px, py, pz, mics, rd, n_iterations):
-    """:func:`acoustlab.toolkit.solve3d.polish_3d` for one start (px, py, pz): returns the refined point and its cost (m²)."""
+    """:func:`acoustlab.toolkit.solve3d.polish_3d` for one start (px, py, pz): returns the refined point, its cost (m²)
+    and JᵀJ there (a00, a01, a02, a11, a12, a22)."""
     cost, a00, a01, a02, a11, a12, a22, g0, g1, g2 = _residuals_3d(px, py, pz, mics, rd)
     lam = 1e-3
     for _ in range(n_iterations):
@@ -278,7 +279,7 @@ def _lm_3d(px, py, pz, mics, rd, n_iterations):
         lam = min(max(lam * 0.3 if better else lam * 10.0, 1e-12), 1e8)
         if np.sqrt(s0 * s0 + s1 * s1 + s2 * s2) < 1e-9 or (not better and lam >= 1e8):
             break
-    return px, py, pz, cost
+    return px, py, pz, cost, a00, a01, a02, a11, a12, a22
 
 
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
@@ -403,10 +404,11 @@ def _fix_3d(mics, rd, coplanar, frame, local, pinv3, residual_tie, n_iterations)
     valid_0 = np.isfinite(x0) and np.isfinite(y0) and np.isfinite(z0)
     valid_1 = np.isfinite(x1) and np.isfinite(y1) and np.isfinite(z1)
     cost_0 = cost_1 = np.inf
+    p00 = p01 = p02 = p11 = p12 = p22 = q00 = q01 = q02 = q11 = q12 = q22 = 0.0  # JᵀJ at each refined root
     if valid_0:
-        x0, y0, z0, cost_0 = _lm_3d(x0, y0, z0, mics, rd, n_iterations)
+        x0, y0, z0, cost_0, p00, p01, p02, p11, p12, p22 = _lm_3d(x0, y0, z0, mics, rd, n_iterations)
     if valid_1:
-        x1, y1, z1, cost_1 = _lm_3d(x1, y1, z1, mics, rd, n_iterations)
+        x1, y1, z1, cost_1, q00, q01, q02, q11, q12, q22 = _lm_3d(x1, y1, z1, mics, rd, n_iterations)
     # above ground where possible; among fits within the tie of the best, the upper one (the first where equal)
     above_0, above_1 = valid_0 and z0 >= 0, valid_1 and z1 >= 0
     usable_0, usable_1 = (above_0, above_1) if (above_0 or above_1) else (valid_0, valid_1)
@@ -414,16 +416,17 @@ def _fix_3d(mics, rd, coplanar, frame, local, pinv3, residual_tie, n_iterations)
     best_fit = min(fit_0 if usable_0 else np.inf, fit_1 if usable_1 else np.inf)
     tie_0, tie_1 = usable_0 and fit_0 <= best_fit + residual_tie, usable_1 and fit_1 <= best_fit + residual_tie
     if tie_1 and (not tie_0 or z1 > z0):
-        px, py, pz, cost = x1, y1, z1, cost_1
+        px, py, pz, cost, a00, a01, a02, a11, a12, a22 = x1, y1, z1, cost_1, q00, q01, q02, q11, q12, q22
     else:
-        px, py, pz, cost = x0, y0, z0, cost_0
+        px, py, pz, cost, a00, a01, a02, a11, a12, a22 = x0, y0, z0, cost_0, p00, p01, p02, p11, p12, p22
     two_above = tie_0 and above_0 and tie_1 and above_1
     ambiguous = 1.0 if (two_above and abs(z0 - z1) > 2 * residual_tie) else 0.0
     n_roots = int(valid_0) + int(valid_1)
     height_gdop = geometry = np.nan
     if n_roots:
-        _, a00, a01, a02, a11, a12, a22, _, _, _ = _residuals_3d(px if np.isfinite(px) else 0.0, py if np.isfinite(py) else 0.0,
-                                                                 pz if np.isfinite(pz) else 0.0, mics, rd)
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):  # else JᵀJ at the fix is the polish's, as computed there
+            _, a00, a01, a02, a11, a12, a22, _, _, _ = _residuals_3d(px if np.isfinite(px) else 0.0, py if np.isfinite(py) else 0.0,
+                                                                     pz if np.isfinite(pz) else 0.0, mics, rd)
         geometry = _gdop(a00, a01, a11)  # the x, y columns are the horizontal GDOP's gradients at this height
         height_gdop = _height_gdop(a00, a01, a02, a11, a12, a22)
     return px, py, pz, cost, ambiguous, height_gdop, n_roots, geometry
