@@ -255,3 +255,32 @@ def test_infinite_gcc_heights_stop_with_a_line_naming_them(solver_class):
                                                  pair_lag_weights=np.where(np.isinf(accepted), 0.0, accepted)))
     got = solve(accepted, missing)
     np.testing.assert_array_equal(got.position_m, expected.position_m)
+
+
+def test_the_scalar_3x3_solve_and_normal_sums_are_the_linear_algebra_they_replace():
+    """The compiled fix's scalar pieces: the 3 × 3 Gaussian elimination with partial pivoting (leading zeros and tiny
+    pivots included) solves what numpy solves, and the residual sums are Σ r², JᵀJ and Jᵀr of the stored Jacobian."""
+    import acoustlab.toolkit.compiled_fix as cf
+
+    rng = np.random.default_rng(7)
+    for n in range(200):
+        a, b = rng.normal(size=(3, 3)), rng.normal(size=3)
+        if n % 4 == 1:
+            a[0, 0] = 0.0  # the first pivot must come from another row
+        elif n % 4 == 2:
+            a[:2, 0] = 1e-14 * a[:2, 0]  # the last row holds the only large first entry
+        elif n % 4 == 3:
+            a[1, 1] = a[0, 1] * a[1, 0] / a[0, 0]  # zero second pivot after the first elimination: swap rows 1 and 2
+        np.testing.assert_allclose(cf._solve3(*a.ravel(), *b), np.linalg.solve(a, b), rtol=1e-9, atol=1e-9)
+    mics = np.column_stack([rng.uniform(0, 60, (6, 2)), rng.uniform(0, 3, 6)])
+    point, rd = np.array([20.0, 35.0, 2.0]), rng.normal(0, 5, 5)
+    d = np.linalg.norm(point - mics, axis=1)
+    r = (d[1:] - d[0]) - rd
+    jac = (point - mics[1:]) / d[1:, None] - (point - mics[0]) / d[0]
+    cost, a00, a01, a02, a11, a12, a22, g0, g1, g2 = cf._residuals_3d(*point, mics, rd)
+    jtj = jac.T @ jac
+    np.testing.assert_allclose(cost, r @ r, rtol=1e-12)
+    np.testing.assert_allclose([a00, a01, a02, a11, a12, a22], jtj[np.triu_indices(3)], rtol=1e-12)
+    np.testing.assert_allclose([g0, g1, g2], jac.T @ r, rtol=1e-10, atol=1e-12)
+    cost2, j00, j01, j11, h0, h1 = cf._residuals_2d(point[0], point[1], mics, point[2], rd)
+    np.testing.assert_allclose([cost2, j00, j01, j11, h0, h1], [r @ r, *jtj[:2, :2][np.triu_indices(2)], *(jac.T @ r)[:2]], rtol=1e-10, atol=1e-12)
