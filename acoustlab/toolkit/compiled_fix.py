@@ -287,6 +287,25 @@ def _det3(a00, a01, a02, a10, a11, a12, a20, a21, a22):
     return a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
 
 
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _closed_form_rhs(mics, rd, j):
+    """The 3-D closed forms' right side for mic j ≥ 1: d_j² − |m_j − m_0|² (d_j its range difference to mic 0, m)."""
+    return rd[j - 1] ** 2 - ((mics[j, 0] - mics[0, 0]) ** 2 + (mics[j, 1] - mics[0, 1]) ** 2 + (mics[j, 2] - mics[0, 2]) ** 2)
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _from_mic0(d0, d1, d2, mics):
+    """Mic 0's position plus the offset (d0, d1, d2): a closed-form candidate position (x, y, z), m."""
+    return d0 + mics[0, 0], d1 + mics[0, 1], d2 + mics[0, 2]
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _mirror_point(s0, s1, w, frame, mics):
+    """The position (x, y, z) at plane coordinates (s0, s1) and signed distance w off the mics' plane, m."""
+    return _from_mic0(s0 * frame[0, 0] + s1 * frame[1, 0] + w * frame[2, 0], s0 * frame[0, 1] + s1 * frame[1, 1] + w * frame[2, 1],
+                      s0 * frame[0, 2] + s1 * frame[1, 2] + w * frame[2, 2], mics)
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _coplanar_pinv(mics, rd, local):
     """:func:`_coplanar_roots`' least squares where its normal equations are (near-)singular: the pseudo-inverse's
@@ -296,7 +315,7 @@ def _coplanar_pinv(mics, rd, local):
     rhs = np.empty(m - 1)
     for j in range(1, m):
         design[j - 1, 0], design[j - 1, 1], design[j - 1, 2] = -2 * local[j - 1, 0], -2 * local[j - 1, 1], -2 * rd[j - 1]
-        rhs[j - 1] = rd[j - 1] ** 2 - ((mics[j, 0] - mics[0, 0]) ** 2 + (mics[j, 1] - mics[0, 1]) ** 2 + (mics[j, 2] - mics[0, 2]) ** 2)
+        rhs[j - 1] = _closed_form_rhs(mics, rd, j)
     solution = np.linalg.pinv(design) @ rhs
     return solution[0], solution[1], solution[2]
 
@@ -309,8 +328,7 @@ def _coplanar_roots(mics, rd, frame, local):
     a00 = a01 = a02 = a11 = a12 = a22 = g0 = g1 = g2 = 0.0
     for j in range(1, m):
         w0, w1, w2 = -2 * local[j - 1, 0], -2 * local[j - 1, 1], -2 * rd[j - 1]
-        qq = (mics[j, 0] - mics[0, 0]) ** 2 + (mics[j, 1] - mics[0, 1]) ** 2 + (mics[j, 2] - mics[0, 2]) ** 2
-        rhs = rd[j - 1] ** 2 - qq
+        rhs = _closed_form_rhs(mics, rd, j)
         g0 += w0 * rhs
         a00 += w0 * w0
         a01 += w0 * w1
@@ -327,12 +345,8 @@ def _coplanar_roots(mics, rd, frame, local):
     if not (np.isfinite(s0) and np.isfinite(s1) and np.isfinite(r0) and r0 >= 0):
         return np.nan, np.nan, np.nan, np.nan, np.nan, np.nan
     w = np.sqrt(max(r0 * r0 - s0 * s0 - s1 * s1, 0.0))
-    x0, y0, z0 = ((s0 * frame[0, 0] + s1 * frame[1, 0] + w * frame[2, 0]) + mics[0, 0],
-                  (s0 * frame[0, 1] + s1 * frame[1, 1] + w * frame[2, 1]) + mics[0, 1],
-                  (s0 * frame[0, 2] + s1 * frame[1, 2] + w * frame[2, 2]) + mics[0, 2])
-    x1, y1, z1 = ((s0 * frame[0, 0] + s1 * frame[1, 0] + -w * frame[2, 0]) + mics[0, 0],
-                  (s0 * frame[0, 1] + s1 * frame[1, 1] + -w * frame[2, 1]) + mics[0, 1],
-                  (s0 * frame[0, 2] + s1 * frame[1, 2] + -w * frame[2, 2]) + mics[0, 2])
+    x0, y0, z0 = _mirror_point(s0, s1, w, frame, mics)
+    x1, y1, z1 = _mirror_point(s0, s1, -w, frame, mics)
     return x0, y0, z0, x1, y1, z1
 
 
@@ -343,7 +357,7 @@ def _quadratic_roots_3d(mics, rd, pinv3):
     m = mics.shape[0]
     u0 = u1 = u2 = v0 = v1 = v2 = 0.0
     for j in range(1, m):
-        b = rd[j - 1] ** 2 - ((mics[j, 0] - mics[0, 0]) ** 2 + (mics[j, 1] - mics[0, 1]) ** 2 + (mics[j, 2] - mics[0, 2]) ** 2)
+        b = _closed_form_rhs(mics, rd, j)
         u0 += b * pinv3[0, j - 1]
         v0 += 2 * rd[j - 1] * pinv3[0, j - 1]
         u1 += b * pinv3[1, j - 1]
@@ -359,9 +373,9 @@ def _quadratic_roots_3d(mics, rd, pinv3):
     r_1 = (-a1 / (2 * a2)) if disc < 0 else (-a1 - root) / (2 * a2)
     x0 = y0 = z0 = x1 = y1 = z1 = np.nan
     if np.isfinite(r_0) and r_0 >= 0:
-        x0, y0, z0 = (u0 + v0 * r_0) + mics[0, 0], (u1 + v1 * r_0) + mics[0, 1], (u2 + v2 * r_0) + mics[0, 2]
+        x0, y0, z0 = _from_mic0(u0 + v0 * r_0, u1 + v1 * r_0, u2 + v2 * r_0, mics)
     if np.isfinite(r_1) and r_1 >= 0:
-        x1, y1, z1 = (u0 + v0 * r_1) + mics[0, 0], (u1 + v1 * r_1) + mics[0, 1], (u2 + v2 * r_1) + mics[0, 2]
+        x1, y1, z1 = _from_mic0(u0 + v0 * r_1, u1 + v1 * r_1, u2 + v2 * r_1, mics)
     return x0, y0, z0, x1, y1, z1
 
 

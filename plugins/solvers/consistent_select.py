@@ -25,10 +25,10 @@ Written by hand: the search is a bounded enumeration over a dense pairwise score
 offers, and the per-event linear algebra is 6 × 6, where a LAPACK call costs more than the solve.
 The per-event work is inlined into one loop (``inline="always"``: the tables, the one-pass search
 and its branch and bound, the fit), arrays are indexed rather than sliced, and each event's rows
-are copied in and out by index: a call between compiled functions takes and releases a reference
-to every array it is passed, and a view one to its parent, each an atomic operation. Together
-about 15 % less time per 6-mic event than calls (same choices, bit for bit). Only the rare
-two-pass search (:func:`_winner`) is a call.
+are copied in and out by index: about 15 % less time per 6-mic event than the same work in calls
+(same choices, bit for bit), measured. The reference counts a call or a view takes (atomic
+operations) are not where that time went: compiled without them (numba's ``_nrt=False``) the loop
+ran no faster. Only the rare two-pass search (:func:`_winner`) is a call.
 The kernels are cached beside this module (``cache=True``): compiled once per installation (about
 35 s on one core: one large inlined function), loaded by the first compiled solve of a process
 (about 0.6 s with numba's import).
@@ -619,9 +619,8 @@ def _trust_and_fit(cands, tol, win_t, i_idx, j_idx, gap_ok, chosen, per_mic, nor
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, k_all, i_idx, j_idx, ref_pair, slot_pair, lateness_weight,
             times_out, trusted_out, diag_out):
-    """Every event's selection into ``times_out``, ``trusted_out`` and ``diag_out`` (:func:`select_compiled`). The helpers are
-    inlined and each event's rows are copied in and out by index: a call between compiled functions, or a view of an
-    array, costs two atomic reference counts per array, which cost more than the work here."""
+    """Every event's selection into ``times_out``, ``trusted_out`` and ``diag_out`` (:func:`select_compiled`), the helpers
+    inlined and each event's rows copied in and out by index (module docstring)."""
     bsz, n_pairs = cands.shape[0], cands.shape[1]
     m = times_out.shape[1]
     n_slots = m - 1
