@@ -53,12 +53,13 @@ def one_pass_and_two_passes(cands, weights, m, k, tolerance_s):
     n_slots = m - 1
     arrival, unary, own = np.empty((m, n_slots, k)), np.empty((m, 1, n_slots, k)), np.empty((n_pairs, k))
     table, free_best, root = np.empty((m, n_pairs, k, k)), np.empty((m, n_slots + 1)), np.empty(m)
+    tops, lane_tables = np.empty((m, n_pairs, 1)), np.empty((m, n_pairs, k, k, 1))
     kept_score, kept_times = np.empty(cs._KEPT), np.empty((cs._KEPT, m))
     out = []
     for b in range(bsz):
         w = np.where(np.isfinite(cands[b]), np.nan_to_num(weights[b]), 0.0)
         cs._tables(cands[b], w, np.zeros(n_pairs), False, 0.0, 0.0, tolerance_s, k, k_all, i_idx, ref_pair, slot_pair, own, arrival,
-                   unary, table, free_best, root)
+                   unary, table, free_best, root, tops, lane_tables, 0, False)
         results = []
         for one_pass in (True, False):
             win_t = np.empty(m)
@@ -113,6 +114,49 @@ def test_compiled_selection_with_near_duplicate_peaks_everywhere():
     cands = lags[..., None] + np.array([0.0, 3e-5, 6e-5])
     assert_same_selection(cands, np.full(cands.shape, 0.5))
     assert_same_selection(cands, rng.uniform(0.4, 0.6, size=cands.shape))
+
+
+def test_the_lanes_pair_tables_are_each_events_own_bit_for_bit():
+    """:func:`_lane_tables` (every lane's event at once) gives each event's pair tables and their largest entries as
+    :func:`_pair_table` does for that event alone, bit for bit: NaN, infinite and missing candidates, NaN and infinite
+    heights, a prior, and a last block with fewer events than lanes (its spare lanes repeat its last event)."""
+    import plugins.solvers.consistent_select as cs
+
+    m, k = 6, 3
+    cands, weights, prior = random_candidate_events(11, m, k, 0.1, False, True, bsz=cs.LANES + 7)
+    cands[3, 2, 1], cands[4, 5, 0], weights[5, 1, 2], weights[6, 3, 0] = np.inf, -np.inf, np.nan, np.inf
+    i_idx, j_idx, ref_pair, slot_pair = cs._layout(m)
+    n_pairs, n_slots, lanes = len(i_idx), m - 1, cs.LANES
+    settings = dict(use_prior=True, prior_weight=0.05, prior_tol=1e-3, tol=2.5e-4)
+    for b0 in (0, lanes):
+        nb = min(lanes, len(cands) - b0)
+        lane_arrival, lane_cands = np.empty((m, n_slots, 3, lanes)), np.empty((n_pairs, k, lanes))
+        lane_w, lane_prior = np.empty((n_pairs, k, lanes)), np.empty((n_pairs, lanes))
+        tables, tops = np.full((m, n_pairs, k, k, lanes), 7.0), np.full((m, n_pairs, lanes), 7.0)
+        cs._gather_lanes(cands, weights, prior, True, b0, nb, i_idx, ref_pair, lane_arrival, lane_cands, lane_w, lane_prior)
+        cs._lane_tables(lane_arrival, lane_cands, lane_w, lane_prior, True, 0.05, 1e-3, 2.5e-4, slot_pair, tables, tops)
+        for e in range(lanes):
+            b = b0 + min(e, nb - 1)
+            w = np.where(np.isfinite(cands[b]), np.nan_to_num(weights[b]), 0.0)
+            arrival = np.where(i_idx[ref_pair][..., None] == np.arange(m)[:, None, None], 1.0, -1.0) * cands[b][ref_pair]
+            np.testing.assert_array_equal(lane_arrival[..., e], arrival)
+            for r in range(m):
+                for s in range(n_slots):
+                    for s2 in range(s + 1, n_slots):
+                        p = slot_pair[r, s, s2]
+                        table = np.full((m, n_pairs, k, k), 7.0)
+                        top = cs._pair_table.py_func(cands[b], w, p, k, arrival, r, s, s2, k, settings["tol"], True, prior[b, p],
+                                                     settings["prior_weight"], settings["prior_tol"], table)
+                        np.testing.assert_array_equal(tables[r, p, :, :, e], table[r, p], err_msg=f"event {b}, reference {r}, pair {p}")
+                        assert tops[r, p, e] == top or (np.isnan(top) and np.isnan(tops[r, p, e]))
+
+
+def test_compiled_selection_of_several_blocks_of_lanes():
+    """More events than one block of lanes, the last block partly filled: the choice is still numpy's, bit for bit."""
+    import plugins.solvers.consistent_select as cs
+
+    cands, weights, prior = random_candidate_events(12, 6, 3, 0.1, False, True, bsz=2 * cs.LANES + 5)
+    assert_same_selection(cands, weights, prior, prior_weight=0.05)
 
 
 @pytest.mark.parametrize("k_all,max_hypotheses", [(4, 10_000), (4, 1_000), (5, 100)])
