@@ -26,15 +26,16 @@ offers, and the per-event linear algebra is 6 × 6, where a LAPACK call costs mo
 The per-event work is inlined into one loop (``inline="always"``: the tables, the one-pass search
 and its branch and bound, the fit), arrays are indexed rather than sliced, and each event's rows
 are copied in and out by index: about 15 % less time per 6-mic event than the same work in calls
-(same choices, bit for bit), measured. With three candidates per pair (the default) the pair
-tables are computed for :data:`LANES` events at once, the events innermost, which the compiler
-turns into vector instructions (:func:`_lane_tables`: the same operations per entry, so the same
-tables bit for bit), and each event copies its own out: some 4–6 % less time per 6-mic event than
-building each event's tables on their own, measured. The reference counts a call or a view takes (atomic
+(same choices, bit for bit), measured. The reference counts a call or a view takes (atomic
 operations) are not where that time went: compiled without them (numba's ``_nrt=False``) the loop
-ran no faster. Only the rare two-pass search (:func:`_winner`) is a call.
+ran no faster. Only the rare two-pass search (:func:`_winner`) is a call. With three candidates
+per pair (the default) the pair tables are computed for :data:`LANES` events at once, the events
+innermost, which the compiler turns into vector instructions (:func:`_lane_tables`: the same
+operations per entry, so the same tables bit for bit), and each event copies its own out: 0–6 %
+less time per 6-mic event than building each event's tables on their own in alternating timings
+(the branch and bound, about 2.3 µs of the 3.6, is the rest of the selection's time).
 The kernels are cached beside this module (``cache=True``): compiled once per installation (about
-35 s on one core: one large inlined function), loaded by the first compiled solve of a process
+30 s on one core: one large inlined function), loaded by the first compiled solve of a process
 (about 0.6 s with numba's import).
 """
 
