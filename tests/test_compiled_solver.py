@@ -127,14 +127,14 @@ def test_the_lanes_pair_tables_are_each_events_own_bit_for_bit():
     cands[3, 2, 1], cands[4, 5, 0], weights[5, 1, 2], weights[6, 3, 0] = np.inf, -np.inf, np.nan, np.inf
     i_idx, j_idx, ref_pair, slot_pair = cs._layout(m)
     n_pairs, n_slots, lanes = len(i_idx), m - 1, cs.LANES
-    settings = dict(use_prior=True, prior_weight=0.05, prior_tol=1e-3, tol=2.5e-4)
+    prior_weight, prior_tol, tol = 0.05, 1e-3, 2.5e-4
     for b0 in (0, lanes):
         nb = min(lanes, len(cands) - b0)
         lane_arrival, lane_cands = np.empty((m, n_slots, 3, lanes)), np.empty((n_pairs, k, lanes))
         lane_w, lane_prior = np.empty((n_pairs, k, lanes)), np.empty((n_pairs, lanes))
         tables, tops = np.full((m, n_pairs, k, k, lanes), 7.0), np.full((m, n_pairs, lanes), 7.0)
         cs._gather_lanes(cands, weights, prior, True, b0, nb, i_idx, ref_pair, lane_arrival, lane_cands, lane_w, lane_prior)
-        cs._lane_tables(lane_arrival, lane_cands, lane_w, lane_prior, True, 0.05, 1e-3, 2.5e-4, slot_pair, tables, tops)
+        cs._lane_tables(lane_arrival, lane_cands, lane_w, lane_prior, True, prior_weight, prior_tol, tol, slot_pair, tables, tops)
         for e in range(lanes):
             b = b0 + min(e, nb - 1)
             w = np.where(np.isfinite(cands[b]), np.nan_to_num(weights[b]), 0.0)
@@ -145,8 +145,8 @@ def test_the_lanes_pair_tables_are_each_events_own_bit_for_bit():
                     for s2 in range(s + 1, n_slots):
                         p = slot_pair[r, s, s2]
                         table = np.full((m, n_pairs, k, k), 7.0)
-                        top = cs._pair_table.py_func(cands[b], w, p, k, arrival, r, s, s2, k, settings["tol"], True, prior[b, p],
-                                                     settings["prior_weight"], settings["prior_tol"], table)
+                        top = cs._pair_table.py_func(cands[b], w, p, k, arrival, r, s, s2, k, tol, True, prior[b, p], prior_weight,
+                                                     prior_tol, table)
                         np.testing.assert_array_equal(tables[r, p, :, :, e], table[r, p], err_msg=f"event {b}, reference {r}, pair {p}")
                         assert tops[r, p, e] == top or (np.isnan(top) and np.isnan(tops[r, p, e]))
 
