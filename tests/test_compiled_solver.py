@@ -53,13 +53,13 @@ def one_pass_and_two_passes(cands, weights, m, k, tolerance_s):
     n_slots = m - 1
     arrival, unary, own = np.empty((m, n_slots, k)), np.empty((m, 1, n_slots, k)), np.empty((n_pairs, k))
     table, free_best, root = np.empty((m, n_pairs, k, k)), np.empty((m, n_slots + 1)), np.empty(m)
-    tops, lane_tables = np.empty((m, n_pairs, 1)), np.empty((m, n_pairs, k, k, 1))
+    tops, lane_tables, lane_own = np.empty((m, n_pairs, 1)), np.empty((m, n_pairs, k, k, 1)), np.empty((n_pairs, k_all, 1))
     kept_score, kept_times = np.empty(cs._KEPT), np.empty((cs._KEPT, m))
     out = []
     for b in range(bsz):
         w = np.where(np.isfinite(cands[b]), np.nan_to_num(weights[b]), 0.0)
         cs._tables(cands[b], w, np.zeros(n_pairs), False, 0.0, 0.0, tolerance_s, k, k_all, i_idx, ref_pair, slot_pair, own, arrival,
-                   unary, table, free_best, root, tops, lane_tables, 0, False)
+                   unary, table, free_best, root, tops, lane_tables, lane_own, 0, False)
         results = []
         for one_pass in (True, False):
             win_t = np.empty(m)
@@ -118,8 +118,9 @@ def test_compiled_selection_with_near_duplicate_peaks_everywhere():
 
 def test_the_lanes_pair_tables_are_each_events_own_bit_for_bit():
     """:func:`_lane_tables` (every lane's event at once) gives each event's pair tables and their largest entries as
-    :func:`_pair_table` does for that event alone, bit for bit: NaN, infinite and missing candidates, NaN and infinite
-    heights, a prior, and a last block with fewer events than lanes (its spare lanes repeat its last event)."""
+    :func:`_pair_table` does for that event alone, and each candidate's own entry as :func:`_entry` does, bit for bit: NaN,
+    infinite and missing candidates, NaN and infinite heights, a prior, and a last block with fewer events than lanes (whose
+    spare lanes are left as they were)."""
     import plugins.solvers.consistent_select as cs
 
     m, k = 6, 3
@@ -133,11 +134,19 @@ def test_the_lanes_pair_tables_are_each_events_own_bit_for_bit():
         lane_arrival, lane_cands = np.empty((m, n_slots, 3, lanes)), np.empty((n_pairs, k, lanes))
         lane_w, lane_prior = np.empty((n_pairs, k, lanes)), np.empty((n_pairs, lanes))
         tables, tops = np.full((m, n_pairs, k, k, lanes), 7.0), np.full((m, n_pairs, lanes), 7.0)
+        lane_own = np.full((n_pairs, k, lanes), 7.0)
         cs._gather_lanes(cands, weights, prior, True, b0, nb, i_idx, ref_pair, lane_arrival, lane_cands, lane_w, lane_prior)
-        cs._lane_tables(lane_arrival, lane_cands, lane_w, lane_prior, True, prior_weight, prior_tol, tol, slot_pair, tables, tops)
-        for e in range(lanes):
-            b = b0 + min(e, nb - 1)
+        cs._lane_tables(nb, lane_arrival, lane_cands, lane_w, lane_prior, True, prior_weight, prior_tol, tol, slot_pair, tables, tops,
+                        lane_own)
+        assert (tables[..., nb:] == 7.0).all() and (tops[..., nb:] == 7.0).all() and (lane_own[..., nb:] == 7.0).all()
+        for e in range(nb):
+            b = b0 + e
             w = np.where(np.isfinite(cands[b]), np.nan_to_num(weights[b]), 0.0)
+            for p in range(n_pairs):
+                for q in range(k):
+                    x = cands[b, p, q]
+                    own = cs._entry.py_func(x, cands[b], w, p, k, tol, True, prior[b, p], prior_weight, prior_tol) if np.isfinite(x) else -np.inf
+                    assert lane_own[p, q, e] == own or (np.isnan(own) and np.isnan(lane_own[p, q, e])), f"event {b}, pair {p}, rank {q}"
             arrival = np.where(i_idx[ref_pair][..., None] == np.arange(m)[:, None, None], 1.0, -1.0) * cands[b][ref_pair]
             np.testing.assert_array_equal(lane_arrival[..., e], arrival)
             for r in range(m):

@@ -29,11 +29,13 @@ are copied in and out by index: about 15 % less time per 6-mic event than the sa
 (same choices, bit for bit), measured. The reference counts a call or a view takes (atomic
 operations) are not where that time went: compiled without them (numba's ``_nrt=False``) the loop
 ran no faster. Only the rare two-pass search (:func:`_winner`) is a call. With three candidates
-per pair (the default) the pair tables are computed for :data:`LANES` events at once, the events
-innermost, which the compiler turns into vector instructions (:func:`_lane_tables`: the same
-operations per entry, so the same tables bit for bit), and each event copies its own out: 0–6 %
-less time per 6-mic event than building each event's tables on their own in alternating timings
-(the branch and bound, about 2.3 µs of the 3.6, is the rest of the selection's time).
+per pair (the default) the pair tables and each candidate's own entry are computed for
+:data:`LANES` events at once, the events innermost, which the compiler turns into vector
+instructions (:func:`_lane_tables`: every entry by the one formula :func:`_entry_of_three`, so the
+same tables bit for bit), and each event copies its own out. In alternating timings on the
+solver_speed detections the lanes' pair tables took 0–6 % less time per 6-mic event than building
+each event's on its own, and their own entries (no per-event weights then) 7–10 % less again: about
+3.3 µs per event, of which the branch and bound takes about 2.3.
 The kernels are cached beside this module (``cache=True``): compiled once per installation (about
 30 s on one core: one large inlined function), loaded by the first compiled solve of a process
 (about 0.6 s with numba's import).
@@ -211,6 +213,17 @@ def _entry(pred, cands, w, p, k_all, tol, use_prior, prior_lag, prior_weight, pr
 
 
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _entry_of_three(pred, l0, l1, l2, w0, w1, w2, tol, use_prior, prior_lag, prior_weight, prior_tol):
+    """:func:`_entry` of a pair with three candidates (lags l0 … l2, s; cleaned weights w0 … w2) spelled out: the same
+    operations in the same order (the running maximum from 0, then the prior's weight), so the same value bit for bit;
+    the one formula of the per-event tables (:func:`_pair_table`) and the lanes' (:func:`_lane_tables`)."""
+    val = max(max(max(0.0, w0 if abs(pred - l0) < tol else 0.0), w1 if abs(pred - l1) < tol else 0.0), w2 if abs(pred - l2) < tol else 0.0)
+    if use_prior and abs(pred - prior_lag) < prior_tol:
+        val = val + prior_weight
+    return val
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _pair_table(cands, w, p, k_all, arrival, r, s, s2, k, tol, use_prior, prior_lag, prior_weight, prior_tol, table):
     """Pair p's table ``table[r, p]`` (k, k) under reference r for the candidate arrival times of its first and second
     mic, slots s and s2 (``arrival[r, s]``, ``arrival[r, s2]``), −inf where one is missing (``x − x == 0`` tests that x
@@ -228,11 +241,7 @@ def _pair_table(cands, w, p, k_all, arrival, r, s, s2, k, tol, use_prior, prior_
             if not (finite and aj - aj == 0.0):
                 val = -np.inf  # a missing arrival time
             elif three:
-                pred = aj - ai
-                val = max(max(max(0.0, w0 if abs(pred - l0) < tol else 0.0), w1 if abs(pred - l1) < tol else 0.0),
-                          w2 if abs(pred - l2) < tol else 0.0)
-                if use_prior and abs(pred - prior_lag) < prior_tol:
-                    val = val + prior_weight
+                val = _entry_of_three(aj - ai, l0, l1, l2, w0, w1, w2, tol, use_prior, prior_lag, prior_weight, prior_tol)
             else:
                 val = _entry(aj - ai, cands, w, p, k_all, tol, use_prior, prior_lag, prior_weight, prior_tol)
             table[r, p, a, c] = val
@@ -242,7 +251,7 @@ def _pair_table(cands, w, p, k_all, arrival, r, s, s2, k, tol, use_prior, prior_
 
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _tables(cands, w, prior, use_prior, prior_weight, prior_tol, tol, k, k_all, i_idx, ref_pair, slot_pair, own, arrival, unary, table,
-            free_best, root, tops, lane_tables, e, filled):
+            free_best, root, tops, lane_tables, lane_own, e, filled):
     """One event's tables per reference r, as numpy builds its pair tables; slot s of reference r is mic s + (s ≥ r).
 
     ``arrival`` (R, S, k): candidate arrival times relative to the reference. ``table`` (R, P, k, k):
@@ -255,17 +264,21 @@ def _tables(cands, w, prior, use_prior, prior_weight, prior_tol, tol, k, k_all, 
     pairs of slots d … S − 1, and ``root`` (R,), the bound with every slot free. ``x − x == 0``
     tests that x is finite (a NaN or infinite x gives NaN).
 
-    The pair tables of the pairs without the reference come from the lanes where ``filled``
-    (:func:`_lane_tables`: this event's are ``lane_tables[..., e]`` and their largest entries
-    ``tops[:, :, e]``); otherwise they are computed here (:func:`_pair_table`) and their largest
+    Where ``filled`` the own entries and the pair tables of the pairs without the reference come
+    from the lanes (:func:`_lane_tables`: this event's are ``lane_own[..., e]``,
+    ``lane_tables[..., e]`` and their largest entries ``tops[:, :, e]``; ``w`` is then not read);
+    otherwise they are computed here (:func:`_entry`, :func:`_pair_table`) and the tables' largest
     entries stored in ``tops[:, :, e]``.
     """
     n_pairs = cands.shape[0]
     m, n_slots = arrival.shape[0], arrival.shape[1]
     for p in range(n_pairs):
         for q in range(k):
-            x = cands[p, q]
-            own[p, q] = _entry(x, cands, w, p, k_all, tol, use_prior, prior[p], prior_weight, prior_tol) if x - x == 0.0 else -np.inf
+            if filled:
+                own[p, q] = lane_own[p, q, e]
+            else:
+                x = cands[p, q]
+                own[p, q] = _entry(x, cands, w, p, k_all, tol, use_prior, prior[p], prior_weight, prior_tol) if x - x == 0.0 else -np.inf
     for r in range(m):
         top_unary = 0.0
         for s in range(n_slots):
@@ -642,13 +655,13 @@ _LANE_BYTES = 8 * 2**20
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _gather_lanes(cands, weights, prior, use_prior, b0, nb, i_idx, ref_pair, lane_arrival, lane_cands, lane_w, lane_prior):
-    """Events b0 … b0 + nb − 1 into the lanes (the last of them repeated in the spare lanes): candidates, cleaned weights and
-    prior lags by (pair, rank, lane), arrival times by (reference, slot, rank, lane), as :func:`_select` and :func:`_tables` form
-    them for one event."""
+    """Events b0 … b0 + nb − 1 into lanes 0 … nb − 1 (the spare lanes of a last, partial block are left alone and never read):
+    candidates, cleaned weights and prior lags by (pair, rank, lane), arrival times by (reference, slot, rank, lane), as
+    :func:`_tables` forms them for one event."""
     n_pairs, k_all = cands.shape[1], cands.shape[2]
-    m, n_slots, n_lanes = lane_arrival.shape[0], lane_arrival.shape[1], lane_arrival.shape[3]
-    for e in range(n_lanes):
-        b = b0 + min(e, nb - 1)
+    m, n_slots = lane_arrival.shape[0], lane_arrival.shape[1]
+    for e in range(nb):
+        b = b0 + e
         for p in range(n_pairs):
             lane_prior[p, e] = prior[b, p] if use_prior else 0.0
             for rr in range(k_all):
@@ -664,29 +677,34 @@ def _gather_lanes(cands, weights, prior, use_prior, b0, nb, i_idx, ref_pair, lan
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _lane_tables(lane_arrival, lane_cands, lane_w, lane_prior, use_prior, prior_weight, prior_tol, tol, slot_pair, tables, tops):
-    """The pair tables of three candidates (k = K = 3) of every lane's event, as :func:`_pair_table` computes them entry for entry
-    (the same operations in the same order, so the same values bit for bit), the lanes innermost so that the compiler
-    vectorizes them: entry (a, c) of pair p under reference r in ``tables[r, p, a, c, e]`` and the table's largest entry in
-    ``tops[r, p, e]``. The pairs with the reference are left alone (:func:`_tables` fills them per event)."""
-    m, n_slots, n_lanes = lane_arrival.shape[0], lane_arrival.shape[1], lane_arrival.shape[3]
+def _lane_tables(nb, lane_arrival, lane_cands, lane_w, lane_prior, use_prior, prior_weight, prior_tol, tol, slot_pair, tables, tops, lane_own):
+    """The tables of three candidates (k = K = 3) of the events in lanes 0 … nb − 1, the lanes innermost so that the compiler
+    vectorizes them, each entry by :func:`_entry_of_three` (the formula of :func:`_entry` and :func:`_pair_table`, so the
+    same values bit for bit): each candidate's own entry (its pair's entry for the candidate itself as the predicted lag,
+    −inf for a missing one) in ``lane_own[p, q, e]``, and for the pairs without the reference, entry (a, c) of pair p under
+    reference r in ``tables[r, p, a, c, e]`` (−inf where an arrival time is missing) and the table's largest entry in
+    ``tops[r, p, e]``. :func:`_tables` fills the pairs with the reference per event from the own entries."""
+    m, n_slots = lane_arrival.shape[0], lane_arrival.shape[1]
+    for p in range(lane_cands.shape[0]):
+        for q in range(3):
+            for e in range(nb):
+                x = lane_cands[p, q, e]
+                val = _entry_of_three(x, lane_cands[p, 0, e], lane_cands[p, 1, e], lane_cands[p, 2, e], lane_w[p, 0, e], lane_w[p, 1, e],
+                                      lane_w[p, 2, e], tol, use_prior, lane_prior[p, e], prior_weight, prior_tol)
+                lane_own[p, q, e] = val if x - x == 0.0 else -np.inf
     for r in range(m):
         for s in range(n_slots):
             for s2 in range(s + 1, n_slots):
                 p = slot_pair[r, s, s2]
-                for e in range(n_lanes):
+                for e in range(nb):
                     tops[r, p, e] = -np.inf
                 for a in range(3):
                     for c in range(3):
-                        for e in range(n_lanes):
+                        for e in range(nb):
                             ai = lane_arrival[r, s, a, e]
                             aj = lane_arrival[r, s2, c, e]
-                            pred = aj - ai
-                            val = max(max(max(0.0, lane_w[p, 0, e] if abs(pred - lane_cands[p, 0, e]) < tol else 0.0),
-                                          lane_w[p, 1, e] if abs(pred - lane_cands[p, 1, e]) < tol else 0.0),
-                                      lane_w[p, 2, e] if abs(pred - lane_cands[p, 2, e]) < tol else 0.0)
-                            if use_prior and abs(pred - lane_prior[p, e]) < prior_tol:
-                                val = val + prior_weight
+                            val = _entry_of_three(aj - ai, lane_cands[p, 0, e], lane_cands[p, 1, e], lane_cands[p, 2, e], lane_w[p, 0, e],
+                                                  lane_w[p, 1, e], lane_w[p, 2, e], tol, use_prior, lane_prior[p, e], prior_weight, prior_tol)
                             val = val if (ai - ai == 0.0 and aj - aj == 0.0) else -np.inf
                             tables[r, p, a, c, e] = val
                             tops[r, p, e] = max(tops[r, p, e], val)
@@ -713,6 +731,7 @@ def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, k
     table = np.empty((m, n_pairs, k, k))
     lane_arrival, lane_cands = np.empty((m, n_slots, 3, n_lanes)), np.empty((n_pairs, k_all, n_lanes))
     lane_w, lane_prior = np.empty((n_pairs, k_all, n_lanes)), np.empty((n_pairs, n_lanes))
+    lane_own = np.empty((n_pairs, k_all, n_lanes))
     free_best, root = np.empty((m, n_slots + 1)), np.empty(m)
     ranks, mic_rank = np.zeros(n_slots, np.int64), np.zeros(m, np.int64)
     fixed, joint, bounds = np.empty((n_slots, k)), np.empty((n_slots, k, n_slots, k)), np.empty((n_slots, k))
@@ -728,16 +747,18 @@ def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, k
         nb = min(n_lanes, bsz - b0)
         if filled:
             _gather_lanes(cands, weights, prior, use_prior, b0, nb, i_idx, ref_pair, lane_arrival, lane_cands, lane_w, lane_prior)
-            _lane_tables(lane_arrival, lane_cands, lane_w, lane_prior, use_prior, prior_weight, prior_tol, tol, slot_pair, tables, tops)
+            _lane_tables(nb, lane_arrival, lane_cands, lane_w, lane_prior, use_prior, prior_weight, prior_tol, tol, slot_pair, tables, tops,
+                         lane_own)
         for e in range(nb):
             b = b0 + e
             for p in range(n_pairs):
                 event_prior[p] = prior[b, p]
                 for rr in range(k_all):
                     c[p, rr] = cands[b, p, rr]
-                    w[p, rr] = _clean_weight(weights[b, p, rr]) if np.isfinite(c[p, rr]) else 0.0
+                    if not filled:
+                        w[p, rr] = _clean_weight(weights[b, p, rr]) if np.isfinite(c[p, rr]) else 0.0
             _tables(c, w, event_prior, use_prior, prior_weight, prior_tol, tol, k, k_all, i_idx, ref_pair, slot_pair, own, arrival, unary, table,
-                    free_best, root, tops, tables, e, filled)
+                    free_best, root, tops, tables, lane_own, e, filled)
             diag[2] = _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks, mic_rank,
                                        fixed, joint, bounds, time_sum, time_min, t, late, base, win_t, kept_score, kept_times)
             _trust_and_fit(c, tol, win_t, i_idx, j_idx, gap_ok, chosen, per_mic, normal, rhs, times, trusted, diag)
