@@ -121,9 +121,10 @@ def _numpy_max(a, b):
 
 
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _clean_weight(w):
-    # np.nan_to_num: NaN → 0, ±inf → ±largest float
-    if np.isnan(w):
+def _clean_weight(w, lag):
+    """The weight a candidate at ``lag`` counts with: 0 where the lag is missing (not finite), else its height as
+    np.nan_to_num cleans it (NaN → 0, ±inf → ±largest float)."""
+    if not np.isfinite(lag) or np.isnan(w):
         return 0.0
     if w == np.inf:
         return _BIG
@@ -198,6 +199,13 @@ def _solve_in_place(a, b, m):
         for n in range(row + 1, m):
             s -= a[row, n] * b[n]
         b[row] = s / a[row, row]
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _arrival(lag, first):
+    """A pair's other mic's arrival time relative to the reference, s, from the pair's lag t_j − t_i: the lag where the
+    reference is the pair's first mic i, its negative where it is the second."""
+    return lag if first else -lag
 
 
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
@@ -286,7 +294,7 @@ def _tables(cands, w, prior, use_prior, prior_weight, prior_tol, tol, k, k_all, 
             first = i_idx[p] == r
             top = -np.inf
             for q in range(k):
-                arrival[r, s, q] = cands[p, q] if first else -cands[p, q]
+                arrival[r, s, q] = _arrival(cands[p, q], first)
                 unary[r, 0, s, q] = own[p, q]
                 if first:
                     table[r, p, 0, q] = own[p, q]
@@ -667,13 +675,13 @@ def _gather_lanes(cands, weights, prior, use_prior, b0, nb, i_idx, ref_pair, lan
             for rr in range(k_all):
                 x = cands[b, p, rr]
                 lane_cands[p, rr, e] = x
-                lane_w[p, rr, e] = _clean_weight(weights[b, p, rr]) if np.isfinite(x) else 0.0
+                lane_w[p, rr, e] = _clean_weight(weights[b, p, rr], x)
         for r in range(m):
             for s in range(n_slots):
                 p = ref_pair[r, s]
                 first = i_idx[p] == r
                 for q in range(3):
-                    lane_arrival[r, s, q, e] = cands[b, p, q] if first else -cands[b, p, q]
+                    lane_arrival[r, s, q, e] = _arrival(cands[b, p, q], first)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -756,7 +764,7 @@ def _select(cands, weights, prior, use_prior, prior_weight, prior_tol, tol, k, k
                 for rr in range(k_all):
                     c[p, rr] = cands[b, p, rr]
                     if not filled:
-                        w[p, rr] = _clean_weight(weights[b, p, rr]) if np.isfinite(c[p, rr]) else 0.0
+                        w[p, rr] = _clean_weight(weights[b, p, rr], c[p, rr])
             _tables(c, w, event_prior, use_prior, prior_weight, prior_tol, tol, k, k_all, i_idx, ref_pair, slot_pair, own, arrival, unary, table,
                     free_best, root, tops, tables, lane_own, e, filled)
             diag[2] = _winner_one_pass(arrival, unary, table, free_best, root, k, i_idx, j_idx, slot_pair, lateness_weight, tol, ranks, mic_rank,
