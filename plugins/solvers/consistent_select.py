@@ -34,8 +34,8 @@ per pair (the default) the pair tables and each candidate's own entry are comput
 instructions (:func:`_lane_tables`: every entry by the one formula :func:`_entry_of_three`, so the
 same tables bit for bit), and each event copies its own out. In alternating timings on the
 solver_speed detections the lanes' pair tables took 0–6 % less time per 6-mic event than building
-each event's on its own, and their own entries (no per-event weights then) 7–10 % less again: about
-3.3 µs per event, of which the branch and bound takes about 2.3.
+each event's on its own, and their own entries (no per-event weights then) made the selection
+1.07–1.10× faster again: about 3.3 µs per event, of which the branch and bound takes about 2.3.
 The kernels are cached beside this module (``cache=True``): compiled once per installation (about
 30 s on one core: one large inlined function), loaded by the first compiled solve of a process
 (about 0.6 s with numba's import).
