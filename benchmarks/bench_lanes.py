@@ -28,11 +28,10 @@ import importlib.util
 import logging
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
-from bench_solver_speed import large_array, scene
+from bench_solver_speed import large_array, scene, timed
 from common import compose_cfg, machine, write_results
 
 import plugins.solvers.consistent_select as lanes_on
@@ -67,6 +66,12 @@ def events(n_mics: int, n_events: int) -> tuple[np.ndarray, np.ndarray]:
     return cands, weights
 
 
+def select_in_calls(module, cands: np.ndarray, weights: np.ndarray, chunk: int, settings: dict) -> None:
+    """``module.select_compiled`` over every event, ``chunk`` events per call."""
+    for i in range(0, len(cands), chunk):
+        module.select_compiled(cands[i:i + chunk], weights[i:i + chunk], None, **settings)
+
+
 def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -86,10 +91,7 @@ def main() -> None:
                 seconds = {"on": [], "off": []}
                 for _ in range(opts.rounds):
                     for label, module in (("on", lanes_on), ("off", lanes_off)):
-                        start = time.perf_counter()
-                        for i in range(0, len(cands), chunk):
-                            module.select_compiled(cands[i:i + chunk], weights[i:i + chunk], None, **settings)
-                        seconds[label].append(time.perf_counter() - start)
+                        seconds[label].append(timed(select_in_calls, module, cands, weights, chunk, settings)[0])
                 on, off = (1e6 * float(np.median(seconds[label])) / len(cands) for label in ("on", "off"))
                 rows.append({"n_mics": n_mics, "chunk_events": chunk, "us_per_event_lanes_on": on, "us_per_event_lanes_off": off,
                              "off_over_on": off / on, "same_choice_bit_for_bit": same,
