@@ -51,29 +51,28 @@ def test_experiments_never_choose_a_site():
         assert "site" not in cfg, f"experiment {name} sets a site"
 
 
-def test_the_season_fast_preset_is_the_three_settings_season_search_measured(compose_cfg):
+def test_the_season_fast_preset_is_the_lean_set_with_the_coarse_search(compose_cfg):
     """``+experiment=season_fast`` composes to exactly ``features=physics_lean +features.gcc.search=coarse
-    solver=consistent_set_compiled`` (benchmarks/results/season_search.md measures the preset under that name), and a
-    setting given on the command line still wins over it."""
+    solver=consistent_set``, and a setting given on the command line still wins over it."""
     preset = compose_cfg(["+site=forest", "+experiment=season_fast", "protocol=season"])
-    spelled_out = compose_cfg(["+site=forest", "features=physics_lean", "+features.gcc.search=coarse", "solver=consistent_set_compiled",
+    spelled_out = compose_cfg(["+site=forest", "features=physics_lean", "+features.gcc.search=coarse", "solver=consistent_set",
                                "protocol=season"])
     assert OmegaConf.to_container(preset) == OmegaConf.to_container(spelled_out)
-    assert preset.solver._target_.endswith("CompiledConsistentSetSolver") and preset.features.gcc.search == "coarse"
+    assert preset.solver._target_.endswith(".ConsistentSetSolver") and preset.features.gcc.search == "coarse"
     assert set(preset.features.groups) == set(compose_cfg(["features=physics_lean"]).features.groups)
     mine = compose_cfg(["+site=forest", "+experiment=season_fast", "solver=consistent_set", "features.gcc.search=fine"])
     assert mine.solver._target_.endswith(".ConsistentSetSolver") and mine.features.gcc.search == "fine"
 
 
 def test_the_season_defaults_to_the_season_fast_settings_and_nothing_else_does(compose_cfg):
-    """``protocol=season`` (``python -m acoustlab season``) composes the lean set, the coarse GCC search and the compiled solver,
+    """``protocol=season`` (``python -m acoustlab season``) composes the lean set, the coarse GCC search and the consistent-set solver,
     exactly ``+experiment=season_fast``'s features and solver; a features or solver given on the command line wins, and the
     other protocols keep ``features=physics`` and ``solver=consistent_set``."""
     season = compose_cfg(["+site=forest", "protocol=season"])
     preset = compose_cfg(["+site=forest", "+experiment=season_fast", "protocol=season"])
     for node in ("features", "solver"):
         assert OmegaConf.to_container(season[node]) == OmegaConf.to_container(preset[node]), node
-    assert season.features.gcc.search == "coarse" and season.solver._target_.endswith(".CompiledConsistentSetSolver")
+    assert season.features.gcc.search == "coarse" and season.solver._target_.endswith(".ConsistentSetSolver")
     full = compose_cfg(["+site=forest", "protocol=season", "features=physics", "solver=consistent_set"])
     assert OmegaConf.to_container(full.features) == OmegaConf.to_container(compose_cfg(["+site=forest"]).features)
     assert full.solver._target_.endswith(".ConsistentSetSolver") and "search" not in full.features.gcc

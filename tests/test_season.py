@@ -131,15 +131,15 @@ def test_shards_as_a_hydra_multirun_then_merge(season, run_cli, tmp_path):
 
 
 def test_the_season_defaults_are_the_fast_settings_with_the_full_sets_solver_fixes(season, compose_cfg, tmp_path):
-    """The season's defaults (lean features, the coarse GCC search, the compiled solver: the fixture's run) place the season as
-    the full set with the default search and the numpy solver does (``features=physics solver=consistent_set``): near the
+    """The season's defaults (lean features, the coarse GCC search: the fixture's run) place the season as
+    the full set with the default search does (``features=physics solver=consistent_set``): near the
     truth, the solver's fixes the same (the same consistent sets from nearly the same lags); each fitted method records
     its settings, so every shard runs what was fitted."""
     root, truth, _, cfg = season
-    assert cfg.solver._target_.endswith("CompiledConsistentSetSolver") and cfg.features.gcc.search == "coarse"
+    assert cfg.solver._target_.endswith(".ConsistentSetSolver") and cfg.features.gcc.search == "coarse"
     assert "ir" not in cfg.features.groups and cfg.data.n_events == 120  # the lean set, and smoke's small fit
     default_method = load_method(root / "out").method.pipeline.c
-    assert type(default_method.solver).__name__ == "CompiledConsistentSetSolver" and "ir" not in default_method.feature_sets
+    assert type(default_method.solver).__name__ == "ConsistentSetSolver" and "ir" not in default_method.feature_sets
     assert default_method.feature_sets["tdoa"].search == "coarse"
     full_cfg = compose_cfg([*season_overrides(root, tmp_path / "out", "features=physics", "solver=consistent_set"),
                             f"paths.outputs_dir={tmp_path / 'outputs'}"])
