@@ -3,10 +3,7 @@
 A localizing loop allocates the same few arrays of tens of megabytes for every batch (padded audio,
 spectra, correlations). By default glibc's malloc serves blocks above its mmap threshold with a
 fresh ``mmap`` and returns them with ``munmap``, so every batch faults those pages in again and the
-kernel zeroes them. Localizing the 2000-detection forest season of ``bench_season_search.py``
-(``features=physics_lean +features.gcc.search=coarse``) took 2.2 s of system time that way and 0.5 s
-with these settings (given as ``MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824``),
-wall 19.7 → 18.8 s, peak RSS 490 → 493 MB. Raising the mmap threshold to its largest
+kernel zeroes them, which shows as system time. Raising the mmap threshold to its largest
 value (32 MiB on 64-bit systems) and the trim threshold keeps freed blocks in the heap, where the
 next batch finds them. The peak resident memory is unchanged (it is set by one batch's arrays);
 what changes is that memory freed after the peak stays with the process, up to

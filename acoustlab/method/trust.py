@@ -21,7 +21,7 @@ domain and checks every gate's decision against it:
   hull, or the solver's consistent fix lies outside it), the solver's fix is kept and the row
   says why. With no solver fix and the model outside its support, the method abstains (NaN).
 
-Measured off the simulator in ``benchmarks/bench_cross_simulator.py`` (``benchmarks/results/cross_simulator.md``).
+Measured off the simulator by ``experiments/cross_simulator.py`` (``experiments/results/cross_simulator.md``).
 """
 
 from __future__ import annotations

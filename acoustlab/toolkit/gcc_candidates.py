@@ -66,8 +66,8 @@ def pair_candidates(
     (:mod:`acoustlab.toolkit.gcc_torch`: equal up to single-precision rounding); ``"cpu"`` is the
     numpy/SciPy path; ``device_memory_gb`` bounds the GPU memory of one pass of events there.
     ``search="coarse"`` (CPU, ``upsample=2``, not band-limited) searches the peaks on the 1/fs grid
-    and refines them on the 1/(2 fs) grid (:mod:`acoustlab.toolkit.gcc_coarse`: 2.28× cheaper on the forest, the
-    same dominant lag on 99.88 % of forest pairs).
+    and refines them on the 1/(2 fs) grid (:mod:`acoustlab.toolkit.gcc_coarse`: cheaper, and nearly always the
+    same dominant lag).
     """
     check_search(search, upsample, band_limited, device)
     band_key = band_hz.tobytes() if isinstance(band_hz, np.ndarray) else band_hz

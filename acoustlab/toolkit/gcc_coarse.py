@@ -20,8 +20,6 @@ the neighbourhoods of likely peaks are brought to the finer grid:
    fine-grid sample, best first (the default's ranking), with their parabolic heights (all pairs'
    centres refined together); the RMS of the window on the 1/fs grid as the sidelobe level.
 
-Measured against the default (``benchmarks/results/gcc_coarse_search.md``): 2.28× cheaper per
-6-mic forest event, the same dominant lag on 99.88 % of pairs and the same first-stage accuracy.
 It can miss a narrow peak half-way between two samples when both samples lie far below it (a
 component near the band's upper edge loses up to three quarters of its height there). Written by
 hand: no library picks peaks of a band-limited sequence between its samples.

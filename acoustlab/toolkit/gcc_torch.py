@@ -14,8 +14,8 @@ batch tensor operations so that a GPU runs them without a Python loop over pairs
    clipped to the window.
 
 Only the peaks (K per pair) and the RMS travel back to the host. The numbers equal the CPU path's
-up to single-precision rounding of a different FFT library (cuFFT): the chosen peaks agree, and
-``benchmarks/bench_gcc_device.py`` measures how often and what the first stage does with them. The
+up to single-precision rounding of a different FFT library (cuFFT): the chosen peaks agree where
+the heights of two candidates are not within that rounding of each other. The
 lags themselves are assembled on the host in double precision exactly as the CPU path does.
 
 The events go through in passes of as many as fit ``memory_gb`` of GPU memory (an estimate of the

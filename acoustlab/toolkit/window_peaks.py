@@ -3,9 +3,9 @@
 :mod:`acoustlab.toolkit.gcc_coarse` refines, per pair window, the M highest local maxima of the
 correlation and the M highest local maxima of its two-sample sums, and reports the window's RMS.
 In numpy that takes some 25 passes over the window (the two peak masks, a masked copy for each,
-two ``argpartition`` selections, a double-precision square for the RMS): 1.5 ms of a 6-mic forest
-event's 5.5 ms. :func:`window_peaks` does it in one pass per row, keeping the M best of each kind in
-a small sorted buffer, and a forest event's windows take about 0.4 ms.
+two ``argpartition`` selections, a double-precision square for the RMS), a large share of a coarse
+event's time. :func:`window_peaks` does it in one pass per row, keeping the M best of each kind in
+a small sorted buffer.
 
 Written by hand because no library selects the top-M local maxima of a sequence without
 materialising the peak mask and a masked copy (``scipy.signal.find_peaks`` treats plateaus
@@ -13,9 +13,9 @@ differently and returns every peak; ``numpy.argpartition`` needs the masked copy
 :func:`acoustlab.toolkit.dsp.local_maxima`'s (≥ the left neighbour, > the right one, edges allowed);
 ties are resolved deterministically: higher value first, the lower index first among equal values.
 
-This module imports numba (about 0.2 s); :mod:`acoustlab.toolkit.gcc_coarse` imports it on its
-first coarse search only. The compiled kernel is cached beside this module (``cache=True``: about
-1 s to compile once per installation, 0.3 s to load in a new process).
+This module imports numba; :mod:`acoustlab.toolkit.gcc_coarse` imports it on its first coarse search
+only. The compiled kernel is cached beside this module (``cache=True``): it compiles once per
+installation.
 """
 
 from __future__ import annotations

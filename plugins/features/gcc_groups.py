@@ -49,8 +49,8 @@ class _GccGroup:
         than that runs in several passes; ``+features.gcc.device_memory_gb=2`` for a small GPU).
     search : {"fine", "coarse"}
         ``fine``: the peaks of the 1/(2 fs) lag grid (default). ``coarse``: searched on the 1/fs
-        grid and refined on the 1/(2 fs) grid by band-limited interpolation, 1.94× cheaper on the
-        CPU (forest) with the same first-stage accuracy (:mod:`acoustlab.toolkit.gcc_coarse`); for the CPU
+        grid and refined on the 1/(2 fs) grid by band-limited interpolation, cheaper on the
+        CPU with nearly the same first-stage fixes (:mod:`acoustlab.toolkit.gcc_coarse`); for the CPU
         path with ``upsample: 2``. Not in the default config; set, it is part of the key.
     """
 

@@ -3,7 +3,7 @@
 For every grid point the GCC-PHAT of each pair is read at the lag that point implies (linear
 interpolation) and summed over pairs; a coarse grid over the plausibility box is followed by a
 fine grid around its maximum. It needs the audio, so it lives in the (cached) feature stage;
-its estimate is compared with the solvers in ``benchmarks/bench_solvers.py``.
+its estimate is compared with the solvers in ``experiments/solvers.py``.
 """
 
 from __future__ import annotations

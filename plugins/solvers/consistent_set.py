@@ -37,9 +37,9 @@ from acoustlab.toolkit.tdoa import solver_inputs
 from plugins.solvers.hyperbolic import HyperbolicSolver
 from plugins.solvers.hypothesis_search import exhaustive_best, hypothesis_design, pair_layout, pairs_of, pruned_best
 
-#: Largest number of hypotheses per event that ``search="auto"`` scores exhaustively: in numpy the
-#: exhaustive search is the faster up to 8 mics × 3 candidates (17,496), the branch and bound from
-#: 10 mics (196,830) on (``benchmarks/results/solver_speed.md``).
+#: Largest number of hypotheses per event that ``search="auto"`` scores exhaustively: scoring every
+#: hypothesis as one array wins while they are few (up to 8 mics × 3 candidates: 17,496); the branch
+#: and bound, which scores a few dozen, wins from 10 mics (196,830) on. Both make the same choice.
 EXHAUSTIVE_UP_TO = 20_000
 
 #: Diagnostics this solver adds to the hyperbolic solver's (catalogued in :data:`acoustlab.core.columns.SOLVER_CATALOG`).
@@ -57,7 +57,7 @@ def checked_weights(weights: np.ndarray, candidates_s: np.ndarray) -> np.ndarray
     if weights.shape != candidates_s.shape:
         raise DataError(f"pair_lag_weights must have the shape of pair_lag_candidates_s {candidates_s.shape} (events, pairs, candidates); "
                         f"got {weights.shape}")
-    if not np.isinf(weights).any():  # the usual case, in one pass (about 0.02 µs per 6-mic event)
+    if not np.isinf(weights).any():  # the usual case, in one pass
         return weights
     infinite = np.isinf(weights) & np.isfinite(candidates_s)
     if infinite.any():
