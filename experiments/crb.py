@@ -26,8 +26,8 @@ import argparse
 import logging
 
 import numpy as np
-from first_stage import load
 from common import compose_cfg, machine, write_results
+from first_stage import load
 
 from acoustlab.method.pipeline import crb_from_features, error_2d_m
 from acoustlab.reporting.metrics import GROSS_ERROR_M, share_gross

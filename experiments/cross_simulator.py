@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 from common import REPO, compose_cfg, fmt, machine, run_in_process, write_results
 
-
 log = logging.getLogger("bench_cross_simulator")
 METHOD = ["model=xgboost", "error_model=xgboost_quantile", "gate=learned", "conformal=paper", "+gate@pipeline.extra_gates.hybrid=hybrid",
           "+gate@pipeline.extra_gates.solver_only=solver_only"]

@@ -15,8 +15,8 @@ import logging
 import numpy as np
 from common import compose_cfg, machine, write_results
 
-from acoustlab.core.contracts import SolverInputs
 from acoustlab.core import columns as col
+from acoustlab.core.contracts import SolverInputs
 from acoustlab.method.pipeline import error_2d_m
 from acoustlab.run.app import build_run, prepare_data
 from acoustlab.stages.solver_columns import tdoa_matrix

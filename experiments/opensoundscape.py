@@ -85,7 +85,7 @@ def driver(folder: Path, speed_of_sound: float, band_hz: list[float] | None) -> 
     coords = pd.read_csv(folder / "file_coords.csv", index_col=0)
     detections = pd.read_csv(folder / "detections.csv").reset_index(drop=True)
     # every file starts at the same instant (its documented way of saying so: a timezone-aware start per detection)
-    origin = datetime.datetime(2026, 1, 1, tzinfo=datetime.timezone.utc)
+    origin = datetime.datetime(2026, 1, 1, tzinfo=datetime.UTC)
     detections["start_timestamp"] = [origin + datetime.timedelta(seconds=float(t)) for t in detections["start_time"]]
     detections = detections.set_index(["file", "start_time", "end_time", "start_timestamp"])
     array = SynchronizedRecorderArray(coords, speed_of_sound=speed_of_sound)

@@ -27,8 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from cross_simulator import METHOD, region_rows
 from common import REPO, machine, write_results
+from cross_simulator import METHOD, region_rows
 
 from acoustlab.reporting.report import collect_runs, coverage_rows, error_rows, relative_rows
 

@@ -5,8 +5,8 @@ import pandas as pd
 import pytest
 
 from acoustlab.core import columns as col
-from acoustlab.method import trust
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.method import trust
 from acoustlab.method.protocols.cross_fit import CrossFitProtocol
 from acoustlab.reporting.metrics import position_bootstrap_ci
 from acoustlab.run.app import run_experiment

@@ -115,7 +115,7 @@ def test_events_in_several_passes_give_the_peaks_of_one_pass(noisy_batches, band
 def test_events_per_pass_grows_with_the_memory_and_refuses_a_non_positive_bound():
     size = gcc_lengths(26_400, 24_000.0, 2, 0.2)
     small, large = events_per_pass(1.0, 6, 15, size), events_per_pass(8.0, 6, 15, size)
-    assert 1 <= small and 8 * small <= large < 8 * (small + 1)  # floors of 1 and 8 GiB over one event's bytes
+    assert small >= 1 and 8 * small <= large < 8 * (small + 1)  # floors of 1 and 8 GiB over one event's bytes
     assert events_per_pass(1e-6, 6, 15, size) == 1
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(ConfigError, match="features.gcc.device_memory_gb must be > 0"):

@@ -71,7 +71,7 @@ def test_rigid_ground_reflection_at_image_distance_and_first_dip():
     assert np.argmax(np.abs(ir)) == pytest.approx(r2 / c * FS, abs=1.0)
     total = np.abs(h["direct"][0] + h["ground"][0])
     f_dip = c / (2 * (r2 - r1))
-    band = (FREQS > 0.5 * f_dip) & (FREQS < 1.5 * f_dip)
+    band = (0.5 * f_dip < FREQS) & (1.5 * f_dip > FREQS)
     assert FREQS[band][np.argmin(total[band])] == pytest.approx(f_dip, rel=0.02)
 
 

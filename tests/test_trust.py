@@ -250,7 +250,6 @@ def test_a_header_rate_other_than_the_recorders_is_refused(tmp_path):
 def test_image_source_field_renders_direct_path_delays(compose_cfg):
     """pyroomacoustics' renders carry the geometric TDOAs (the delays the method must recover), and sources lie in and around the array."""
     pytest.importorskip("pyroomacoustics")
-    from scipy.signal import correlate
 
     from acoustlab.run.registry import build
     from acoustlab.stages.sites import site_from_config

@@ -10,7 +10,6 @@ of repeating an f-string, so a rename happens in one place.
 from __future__ import annotations
 
 import re
-
 from collections.abc import Iterable
 
 from acoustlab.core.errors import DataError

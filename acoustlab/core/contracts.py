@@ -16,7 +16,6 @@ import pandas as pd
 
 from acoustlab.core.types import RecordingBatch, Site
 
-
 #: Optional properties a plugin may declare (as a class or instance attribute), and the value every
 #: plugin that declares none is taken to have, as scikit-learn's estimator tags. Read them with
 #: :func:`declared`; a name not listed here is a programming error (a test scans for others).

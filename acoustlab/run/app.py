@@ -15,13 +15,12 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
-from acoustlab.core import columns as col
 from acoustlab import __version__
+from acoustlab.core import columns as col
 from acoustlab.core.contracts import declared, hook
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.method.pipeline import Components, LocalizationPipeline
 from acoustlab.method.trust import TrustSettings
-from acoustlab.toolkit.input_uncertainty import InputUncertainty
 from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
 from acoustlab.reporting.metrics import (
     split_diagnostics_summary,
@@ -47,6 +46,7 @@ from acoustlab.stages.dataset import (
 )
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import add_solver_columns
+from acoustlab.toolkit.input_uncertainty import InputUncertainty
 from acoustlab.toolkit.quality import QUALITY_REASONS
 
 log = logging.getLogger(__name__)

@@ -32,8 +32,8 @@ from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.run.registry import CONF_DIR, build, build_feature_sets, build_scorers, group_options
 from acoustlab.stages.sites import site_from_config
-from acoustlab.toolkit.geometry import sample_in_expanded_hull
 from acoustlab.toolkit.event_physics import assumed_source_height_m
+from acoustlab.toolkit.geometry import sample_in_expanded_hull
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 Check = Callable[[], None]

@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, make_dataclass
 from dataclasses import field as dc_field
 from enum import Enum
-from typing import Any, Optional
+from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
@@ -69,7 +69,7 @@ class PipelineConfig:
     """What the point model predicts, the solver's plausible region, and which feature groups each learned model is denied."""
 
     model_target: ModelTarget = MISSING
-    plausible_margin_fraction: Optional[float] = MISSING
+    plausible_margin_fraction: float | None = MISSING
     drop_from_model: list[str] = dc_field(default_factory=list)
     drop_from_error_model: list[str] = dc_field(default_factory=list)
     error_model_gate_cues: bool = True
@@ -124,9 +124,9 @@ class SiteConfig:
     """A site: mics, trees, weather ranges, ground, noise, species (validated when the site is built)."""
 
     name: str = "???"
-    mics: Optional[Any] = None
-    mics_csv: Optional[str] = None
-    trees_csv: Optional[str] = None
+    mics: Any | None = None
+    mics_csv: str | None = None
+    trees_csv: str | None = None
     temperature_c: Any = None
     relative_humidity_pct: Any = None
     ground: dict[str, Any] = dc_field(default_factory=dict)
@@ -134,7 +134,7 @@ class SiteConfig:
     species_pool: list[str] = dc_field(default_factory=list)
     source_height_m: Any = None
     hull_expansion: float = 0.0
-    foliage_db_per_m: Optional[Any] = None
+    foliage_db_per_m: Any | None = None
 
 
 #: Plugin groups whose nodes are free-form (their keys are the plugin's constructor arguments).
@@ -151,11 +151,11 @@ class _TypedRoot:
     paths: PathsConfig = dc_field(default_factory=PathsConfig)
     features: FeaturesConfig = dc_field(default_factory=FeaturesConfig)
     conformal: ConformalConfig = dc_field(default_factory=ConformalConfig)
-    site: Optional[SiteConfig] = None
+    site: SiteConfig | None = None
     #: the paper's published figures for this experiment (``paper_forest``, ``paper_frozen_lake``): written beside ours
-    paper_reference: Optional[dict[str, Any]] = None
+    paper_reference: dict[str, Any] | None = None
     #: what a long experiment costs, as measured (said before it starts: a run logs it, a sweep with its job count)
-    expected_duration: Optional[str] = None
+    expected_duration: str | None = None
 
 
 #: The root: the typed nodes above plus one free-form node per plugin group in :data:`FREE_FORM_GROUPS`.

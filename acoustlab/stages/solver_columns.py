@@ -11,8 +11,8 @@ from acoustlab.core import columns as col
 from acoustlab.core.contracts import Solver, SolverInputs
 from acoustlab.core.errors import DataError
 from acoustlab.core.types import Site
-from acoustlab.toolkit.geometry import bounding_box
 from acoustlab.toolkit.event_physics import assumed_source_height_m, event_speed_of_sound_m_s
+from acoustlab.toolkit.geometry import bounding_box
 
 
 def tdoa_matrix(features: pd.DataFrame, n_mics: int) -> np.ndarray:

@@ -25,7 +25,7 @@ class ConstantErrorModel(RegressorMixin, BaseEstimator):
     def __init__(self, statistic: str = "median") -> None:
         self.statistic = statistic
 
-    def fit(self, X: Any, y: np.ndarray) -> "ConstantErrorModel":
+    def fit(self, X: Any, y: np.ndarray) -> ConstantErrorModel:
         """Store the statistic of the errors ``y`` (m) as ``constant_``."""
         if self.statistic not in ("median", "mean"):
             raise ConfigError(f"error_model.statistic must be 'median' or 'mean'; got {self.statistic!r}")

@@ -30,7 +30,7 @@ class GdopOnlyErrorModel(RegressorMixin, BaseEstimator):
         g = X[self.column].to_numpy(dtype=float)
         return np.where(np.isfinite(g), g, np.nanmedian(g) if np.isfinite(g).any() else 1.0)
 
-    def fit(self, X: Any, y: np.ndarray) -> "GdopOnlyErrorModel":
+    def fit(self, X: Any, y: np.ndarray) -> GdopOnlyErrorModel:
         """Fit ``scale_`` = median(error / GDOP) in m."""
         ratio = np.asarray(y, dtype=float) / np.maximum(self._gdop(X), 1e-9)
         self.scale_ = float(max(np.median(ratio[np.isfinite(ratio)]), 1e-6))

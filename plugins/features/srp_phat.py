@@ -15,8 +15,8 @@ from scipy.ndimage import maximum_filter1d
 from acoustlab.core import columns as col
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.dsp import event_band_hz, gcc
-from acoustlab.toolkit.geometry import bounding_box
 from acoustlab.toolkit.event_physics import assumed_source_height_m, event_speed_of_sound_m_s
+from acoustlab.toolkit.geometry import bounding_box
 
 
 def _steered_power(cc: np.ndarray, lag0_s: float, step_s: float, grid: np.ndarray, mics: np.ndarray, pairs, height: float, c: np.ndarray) -> np.ndarray:

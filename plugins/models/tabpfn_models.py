@@ -159,7 +159,7 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
             ignore_pretraining_limits=bool(self.ignore_pretraining_limits), random_state=self.random_state,
         )
 
-    def fit(self, X: Any, y: np.ndarray) -> "TabPFNPointModel":
+    def fit(self, X: Any, y: np.ndarray) -> TabPFNPointModel:
         """Store the training rows in a fresh TabPFN regressor."""
         self.preflight()
         X = np.asarray(X, dtype=np.float32)
