@@ -55,8 +55,9 @@ def _hydra_main(cfg: DictConfig) -> None:
     hc = HydraConfig.get()
     parent = parent_run_id_for(Path(hc.sweep.dir)) if hc.mode == RunMode.MULTIRUN else None
     try:
-        run_experiment(cfg, Path(hc.runtime.output_dir), dict(hc.runtime.choices), parent_run_id=parent,
-                       run_name=run_name_of(list(hc.overrides.task)))
+        run_experiment(
+            cfg, Path(hc.runtime.output_dir), dict(hc.runtime.choices), parent_run_id=parent, run_name=run_name_of(list(hc.overrides.task))
+        )
     except AcoustlabError as exc:
         if hc.mode == RunMode.MULTIRUN:  # let Hydra record the failed job and run the others
             log.error("job %s failed: %s", hc.job.num, exc)

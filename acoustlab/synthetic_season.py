@@ -21,8 +21,10 @@ def main(argv: list[str] | None = None) -> int:
     from acoustlab.run.plugin_checks import compose_config
     from acoustlab.stages.sites import site_from_config
 
-    parser = argparse.ArgumentParser(prog="python -m acoustlab.synthetic_season",
-                                     description="Write a synthetic season (long files per recorder, Raven tables, truth.csv) to try protocol=season.")
+    parser = argparse.ArgumentParser(
+        prog="python -m acoustlab.synthetic_season",
+        description="Write a synthetic season (long files per recorder, Raven tables, truth.csv) to try protocol=season.",
+    )
     parser.add_argument("--site", default="forest", help="a site of conf/site (its mics, weather and source heights)")
     parser.add_argument("--calls", type=int, default=200, help="calls in the season")
     parser.add_argument("--file-s", type=float, default=600.0, help="length of each recording file, s")
@@ -32,13 +34,25 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = compose_config([f"+site={args.site}"])
     site = site_from_config(cfg.site)
-    settings = SyntheticSeason.for_site(site, duration_s=2.2 * args.calls + 5, file_s=args.file_s, n_calls=args.calls, min_spacing_s=2.0,
-                                        sample_rate_hz=float(cfg.simulator.sample_rate_hz), seed=args.seed)
+    settings = SyntheticSeason.for_site(
+        site,
+        duration_s=2.2 * args.calls + 5,
+        file_s=args.file_s,
+        n_calls=args.calls,
+        min_spacing_s=2.0,
+        sample_rate_hz=float(cfg.simulator.sample_rate_hz),
+        seed=args.seed,
+    )
     out = Path(args.out)
     truth = write_season(settings, out)
     truth.to_csv(out / "truth.csv", index=False)
-    log.info("wrote %d calls over %.1f h for %d recorders to %s (audio/, raven/, truth.csv)", len(truth), settings.duration_s / 3600,
-             len(site.mic_positions_m), out)
+    log.info(
+        "wrote %d calls over %.1f h for %d recorders to %s (audio/, raven/, truth.csv)",
+        len(truth),
+        settings.duration_s / 3600,
+        len(site.mic_positions_m),
+        out,
+    )
     return 0
 
 

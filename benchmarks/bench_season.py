@@ -22,23 +22,34 @@ WORK = REPO / "outputs" / "benchmarks" / "season"
 
 #: Runs ``python -m acoustlab ARGS`` and prints the process' own peak RSS (VmHWM, KiB) at exit. ``ru_maxrss`` of
 #: ``os.wait4`` cannot serve: Linux carries the forking parent's high-water mark into the child.
-PEAK_PROBE = ("import atexit, runpy, sys; "
-              "atexit.register(lambda: print('PEAK_RSS_KIB', next(l.split()[1] for l in open('/proc/self/status') "
-              "if l.startswith('VmHWM')), file=sys.stderr)); sys.argv = ['acoustlab', *sys.argv[1:]]; "
-              "runpy.run_module('acoustlab', run_name='__main__')")
+PEAK_PROBE = (
+    "import atexit, runpy, sys; "
+    "atexit.register(lambda: print('PEAK_RSS_KIB', next(l.split()[1] for l in open('/proc/self/status') "
+    "if l.startswith('VmHWM')), file=sys.stderr)); sys.argv = ['acoustlab', *sys.argv[1:]]; "
+    "runpy.run_module('acoustlab', run_name='__main__')"
+)
 
 
 def season_args(site: str, folder: Path, output_dir: Path, *extra: str) -> list[str]:
     """The ``python -m acoustlab season`` arguments for the synthetic season in ``folder``."""
-    return ["season", f"+site={site}", "tracking=none", "plots=false", f"protocol.recordings.audio_dir={folder / 'audio'}",
-            f"protocol.detections.paths=[{folder / 'raven'}]", f"protocol.output_dir={output_dir}",
-            f"hydra.run.dir={output_dir}_run", *extra]
+    return [
+        "season",
+        f"+site={site}",
+        "tracking=none",
+        "plots=false",
+        f"protocol.recordings.audio_dir={folder / 'audio'}",
+        f"protocol.detections.paths=[{folder / 'raven'}]",
+        f"protocol.output_dir={output_dir}",
+        f"hydra.run.dir={output_dir}_run",
+        *extra,
+    ]
 
 
 def measured(args: list[str]) -> dict[str, float]:
     """CPU seconds (user + system, children included) and own peak RSS (MiB) of ``python -m acoustlab ARGS``."""
-    proc = subprocess.Popen([sys.executable, "-c", PEAK_PROBE, *args], cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", PEAK_PROBE, *args], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
     output = proc.stdout.read()
     _, status, usage = os.wait4(proc.pid, 0)
     if status != 0:
@@ -64,8 +75,15 @@ class Season:
         self.folder = WORK / f"{site}_{calls}"
         if not (self.folder / "truth.csv").is_file():
             cfg = compose_config([f"+site={site}"])
-            season = SyntheticSeason.for_site(site_from_config(cfg.site), duration_s=2.2 * calls + 5, file_s=600.0, n_calls=calls,
-                                              min_spacing_s=2.0, sample_rate_hz=float(cfg.simulator.sample_rate_hz), seed=calls)
+            season = SyntheticSeason.for_site(
+                site_from_config(cfg.site),
+                duration_s=2.2 * calls + 5,
+                file_s=600.0,
+                n_calls=calls,
+                min_spacing_s=2.0,
+                sample_rate_hz=float(cfg.simulator.sample_rate_hz),
+                seed=calls,
+            )
             shutil.rmtree(self.folder, ignore_errors=True)
             write_season(season, self.folder).to_csv(self.folder / "truth.csv", index=False)
         self.fitted = self.folder / f"fitted_{settings.replace('=', '_')}"

@@ -68,7 +68,9 @@ def machine_differences(mine: dict | None, reference: dict | None) -> list[str]:
         return ["unknown"]
     out = [f"{key}: {reference.get(key)} → {mine.get(key)}" for key in ("cpu", "python") if mine.get(key) != reference.get(key)]
     releases, old = mine.get("releases", {}), reference.get("releases", {})
-    out += [f"{name} {old.get(name)} → {releases.get(name)}" for name in sorted(set(releases) | set(old)) if releases.get(name) != old.get(name)]
+    out += [
+        f"{name} {old.get(name)} → {releases.get(name)}" for name in sorted(set(releases) | set(old)) if releases.get(name) != old.get(name)
+    ]
     return out
 
 
@@ -112,11 +114,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--label", required=True, help="name of this measurement (e.g. before, after)")
     parser.add_argument("--compare", help="label of a reference measurement to compare with")
-    parser.add_argument("--allow", nargs="*", default=[], help="JOB:KEY metrics keys allowed to differ in one job (e.g. frozen_lake_lopo_standin:tau_grid)")
+    parser.add_argument(
+        "--allow", nargs="*", default=[], help="JOB:KEY metrics keys allowed to differ in one job (e.g. frozen_lake_lopo_standin:tau_grid)"
+    )
     parser.add_argument("--reuse", action="store_true", help="compare the stored identity_<label>.json instead of running")
     parser.add_argument("--jobs", nargs="*", default=list(JOBS), choices=list(JOBS))
-    parser.add_argument("--shared-cache", action="store_true",
-                        help="use the configured cache (outputs/cache) instead of a cold one per run: for package versions without cache.dir")
+    parser.add_argument(
+        "--shared-cache",
+        action="store_true",
+        help="use the configured cache (outputs/cache) instead of a cold one per run: for package versions without cache.dir",
+    )
     opts = parser.parse_args()
     if opts.reuse:
         result = json.loads((RESULTS / f"identity_{opts.label}.json").read_text())
@@ -134,9 +141,14 @@ def main() -> None:
     if not opts.compare:
         return
     reference = json.loads((RESULTS / f"identity_{opts.compare}.json").read_text())
-    lines = ["# Bit-identity across a change", "",
-             f"`python benchmarks/bench_identity.py --label {opts.label} --compare {opts.compare}`", "",
-             "| job | events | predictions.parquet | metrics.json | differing metrics keys |", "|---|---|---|---|---|"]
+    lines = [
+        "# Bit-identity across a change",
+        "",
+        f"`python benchmarks/bench_identity.py --label {opts.label} --compare {opts.compare}`",
+        "",
+        "| job | events | predictions.parquet | metrics.json | differing metrics keys |",
+        "|---|---|---|---|---|",
+    ]
     failed = False
     for name in opts.jobs:
         new, old = result[name], reference[name]
@@ -144,15 +156,23 @@ def main() -> None:
         keys = differing_keys(new["metrics"], old["metrics"])
         unexpected = [k for k in keys if f"{name}:{k}" not in opts.allow]
         failed |= not same_pred or bool(unexpected)
-        lines.append(f"| {name} | {new['n_predictions']} | {'identical' if same_pred else 'DIFFERENT'} | "
-                     f"{'identical' if not keys else 'differs'} | {', '.join(keys) or '—'} |")
+        lines.append(
+            f"| {name} | {new['n_predictions']} | {'identical' if same_pred else 'DIFFERENT'} | "
+            f"{'identical' if not keys else 'differs'} | {', '.join(keys) or '—'} |"
+        )
     lines += ["", f"Allowed to differ (job:key): {', '.join(opts.allow) or 'nothing'}."]
     machines = machine_differences(result.get(MACHINE_KEY), reference.get(MACHINE_KEY))
     if machines == ["unknown"]:
-        lines += ["", "One of the two measurements does not record its machine: the comparison holds only if both were made on one machine."]
+        lines += [
+            "",
+            "One of the two measurements does not record its machine: the comparison holds only if both were made on one machine.",
+        ]
     elif machines:
-        lines += ["", f"Measured on different machines ({'; '.join(machines)}): answers can differ for that reason alone; "
-                  "measure both sides on one machine."]
+        lines += [
+            "",
+            f"Measured on different machines ({'; '.join(machines)}): answers can differ for that reason alone; "
+            "measure both sides on one machine.",
+        ]
     (RESULTS / "identity.md").write_text("\n".join(lines) + "\n")
     log.info("\n".join(lines))
     if failed:

@@ -48,12 +48,13 @@ def machine() -> dict[str, Any]:
     """The commit, date, Python, CPU model and the cores this process may use: what a figure depends on."""
     model = platform.processor()
     if Path("/proc/cpuinfo").is_file():
-        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                      if line.startswith("model name")), model)
+        model = next(
+            (line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name")),
+            model,
+        )
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
-    return {"commit": commit, "date": datetime.date.today().isoformat(), "python": platform.python_version(),
-            "cpu": model, "cores": cores}
+    return {"commit": commit, "date": datetime.date.today().isoformat(), "python": platform.python_version(), "cpu": model, "cores": cores}
 
 
 def cases(cls: type, quick: bool) -> list[tuple]:
@@ -157,8 +158,17 @@ def main(argv: list[str] | None = None) -> int:
         rows = run_module(name, opts.quick, opts.repeat)
         RESULTS.mkdir(exist_ok=True)
         out = RESULTS / f"{name}.json"
-        out.write_text(json.dumps({"command": " ".join(["python", "benchmarks/run.py", *(argv or sys.argv[1:])]), **about,
-                                   "quick": opts.quick, "results": rows}, indent=1))
+        out.write_text(
+            json.dumps(
+                {
+                    "command": " ".join(["python", "benchmarks/run.py", *(argv or sys.argv[1:])]),
+                    **about,
+                    "quick": opts.quick,
+                    "results": rows,
+                },
+                indent=1,
+            )
+        )
         log.info("wrote %s", out)
         if opts.mlflow:
             log_to_mlflow(name, rows, about)

@@ -38,8 +38,18 @@ def main() -> None:
     parser.add_argument("--extra", nargs="*", default=[])
     opts = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        args = ["-m", f"+site={opts.site}", "+experiment=ablate_features", f"protocol.n_folds={opts.n_folds}", "conformal=fixed",
-                "tracking=none", "plots=false", f"paths.outputs_dir={tmp}", f"hydra.sweep.dir={tmp}/sweep", *opts.extra]
+        args = [
+            "-m",
+            f"+site={opts.site}",
+            "+experiment=ablate_features",
+            f"protocol.n_folds={opts.n_folds}",
+            "conformal=fixed",
+            "tracking=none",
+            "plots=false",
+            f"paths.outputs_dir={tmp}",
+            f"hydra.sweep.dir={tmp}/sweep",
+            *opts.extra,
+        ]
         start = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True)
         seconds = time.perf_counter() - start
@@ -51,17 +61,34 @@ def main() -> None:
         errors = error_rows(runs)
     gate = errors[errors["method"] == "gate"]
     extra = f" --extra {' '.join(opts.extra)}" if opts.extra else ""
-    lines = [f"# Feature-group ablation, {opts.site}, cross-fitted", "",
-             f"`python experiments/ablation.py --site {opts.site} --n-folds {opts.n_folds}{extra}` ({len(runs)} jobs, {seconds:.0f} s; "
-             f"{int(gate['n (detections)'].iloc[0])} events per job, the same events in every job). Gated error of each job relative to "
-             "the first (all groups); intervals: paired bootstrap over source positions. A group matters where the interval excludes 1.",
-             "", relative.to_markdown(index=False, floatfmt=".3g"), "",
-             "The point model's error relative to the first job (where the features act: the gate mostly keeps the solver's fix):", "",
-             model_relative.to_markdown(index=False, floatfmt=".3g"), "",
-             "Gated errors per job:", "", gate.drop(columns=["method"]).to_markdown(index=False, floatfmt=".3g")]
-    write_results(f"ablation_{opts.site}", {"machine": machine(), "seconds": seconds, "relative": relative.to_dict("records"),
-                                            "model_relative": model_relative.to_dict("records"),
-                                            "gate_errors": gate.to_dict("records")}, lines)
+    lines = [
+        f"# Feature-group ablation, {opts.site}, cross-fitted",
+        "",
+        f"`python experiments/ablation.py --site {opts.site} --n-folds {opts.n_folds}{extra}` ({len(runs)} jobs, {seconds:.0f} s; "
+        f"{int(gate['n (detections)'].iloc[0])} events per job, the same events in every job). Gated error of each job relative to "
+        "the first (all groups); intervals: paired bootstrap over source positions. A group matters where the interval excludes 1.",
+        "",
+        relative.to_markdown(index=False, floatfmt=".3g"),
+        "",
+        "The point model's error relative to the first job (where the features act: the gate mostly keeps the solver's fix):",
+        "",
+        model_relative.to_markdown(index=False, floatfmt=".3g"),
+        "",
+        "Gated errors per job:",
+        "",
+        gate.drop(columns=["method"]).to_markdown(index=False, floatfmt=".3g"),
+    ]
+    write_results(
+        f"ablation_{opts.site}",
+        {
+            "machine": machine(),
+            "seconds": seconds,
+            "relative": relative.to_dict("records"),
+            "model_relative": model_relative.to_dict("records"),
+            "gate_errors": gate.to_dict("records"),
+        },
+        lines,
+    )
     log.info("\n".join(lines))
 
 

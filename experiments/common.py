@@ -59,8 +59,20 @@ def machine() -> dict[str, Any]:
 
 
 #: Distributions whose releases can move a result (numerics, learned models, configs); their versions go into every result.
-PACKAGES = ("numpy", "scipy", "pandas", "pyarrow", "scikit-learn", "xgboost", "xgboost-cpu", "torch", "tabpfn", "soundfile",
-            "hydra-core", "omegaconf")
+PACKAGES = (
+    "numpy",
+    "scipy",
+    "pandas",
+    "pyarrow",
+    "scikit-learn",
+    "xgboost",
+    "xgboost-cpu",
+    "torch",
+    "tabpfn",
+    "soundfile",
+    "hydra-core",
+    "omegaconf",
+)
 
 
 def package_versions() -> dict[str, str]:
@@ -90,8 +102,13 @@ def provenance() -> dict[str, Any]:
     script = Path(sys.argv[0]).resolve()
     shown = script.relative_to(REPO).as_posix() if script.is_relative_to(REPO) else str(script)
     changes = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)experiments/results")
-    return {"command": " ".join(["python", shown, *sys.argv[1:]]), "commit": git("rev-parse", "HEAD"),
-            "uncommitted_changes": bool(changes), "date": datetime.date.today().isoformat(), "packages": package_versions()}
+    return {
+        "command": " ".join(["python", shown, *sys.argv[1:]]),
+        "commit": git("rev-parse", "HEAD"),
+        "uncommitted_changes": bool(changes),
+        "date": datetime.date.today().isoformat(),
+        "packages": package_versions(),
+    }
 
 
 def write_results(name: str, result: dict[str, Any], markdown: list[str]) -> Path:
@@ -103,12 +120,20 @@ def write_results(name: str, result: dict[str, Any], markdown: list[str]) -> Pat
     RESULTS.mkdir(parents=True, exist_ok=True)
     made_with = provenance()
     dirty = " plus uncommitted changes" if made_with["uncommitted_changes"] else ""
-    header = [markdown[0], "", f"> Made by `{made_with['command']}` at commit {made_with['commit'][:10]}{dirty} on {made_with['date']}. "
-              "Re-running the command overwrites this file."]
+    header = [
+        markdown[0],
+        "",
+        f"> Made by `{made_with['command']}` at commit {made_with['commit'][:10]}{dirty} on {made_with['date']}. "
+        "Re-running the command overwrites this file.",
+    ]
     raw = json.dumps({**result, "provenance": made_with}, indent=1, default=float)
     path = RESULTS / f"{name}.md"
-    path.write_text("\n".join([*header, *markdown[1:], "", "<details><summary>Raw result (JSON)</summary>", "", "```json", raw, "```",
-                               "", "</details>"]) + "\n")
+    path.write_text(
+        "\n".join(
+            [*header, *markdown[1:], "", "<details><summary>Raw result (JSON)</summary>", "", "```json", raw, "```", "", "</details>"]
+        )
+        + "\n"
+    )
     log.info("wrote %s", path)
     return path
 

@@ -53,9 +53,15 @@ def evaluate(site_name: str, n_events: int, overrides: tuple[str, ...], solver_o
     crb = crb_from_features(data.features, data.events, site)
     fine = (err <= GROSS_ERROR_M) & np.isfinite(crb) & (crb > 0)
     ratio = err[fine] / crb[fine]
-    return {"n_events": int(err.size), "share_gross": share_gross(err), "median_error_m": float(np.median(err[fine])),
-            "median_crb_m": float(np.median(crb[fine])), "median_error_over_median_crb": float(np.median(err[fine]) / np.median(crb[fine])),
-            "median_ratio": float(np.median(ratio)), "share_within_3x": float(np.mean(ratio <= 3.0))}
+    return {
+        "n_events": int(err.size),
+        "share_gross": share_gross(err),
+        "median_error_m": float(np.median(err[fine])),
+        "median_crb_m": float(np.median(crb[fine])),
+        "median_error_over_median_crb": float(np.median(err[fine]) / np.median(crb[fine])),
+        "median_ratio": float(np.median(ratio)),
+        "share_within_3x": float(np.mean(ratio <= 3.0)),
+    }
 
 
 def main() -> None:
@@ -64,18 +70,29 @@ def main() -> None:
     parser.add_argument("--n-events", type=int, default=1100)
     parser.add_argument("--sites", nargs="+", default=["frozen_lake", "forest"])
     opts = parser.parse_args()
-    results = {s: {name: evaluate(s, opts.n_events, data_ov, solver_ov) for name, (data_ov, solver_ov) in CONDITIONS.items()
-                   if site_from_config(compose_cfg([f"+site={s}"]).site).n_mics >= 4 or "solver.dimensions=3" not in solver_ov}
-               for s in opts.sites}
-    lines = ["# Solver error against the Cramér–Rao bound", "",
-             f"`python experiments/crb.py --n-events {opts.n_events}`: consistent-set solver on β-PHAT candidates; "
-             "ratios over events with error ≤ 5 m (gross errors counted separately).", "",
-             "| site | simulation | median error (m) | median CRB (m) | median error ÷ median CRB | median of error ÷ CRB | within 3× CRB | > 5 m |",
-             "|---|---|---|---|---|---|---|---|"]
+    results = {
+        s: {
+            name: evaluate(s, opts.n_events, data_ov, solver_ov)
+            for name, (data_ov, solver_ov) in CONDITIONS.items()
+            if site_from_config(compose_cfg([f"+site={s}"]).site).n_mics >= 4 or "solver.dimensions=3" not in solver_ov
+        }
+        for s in opts.sites
+    }
+    lines = [
+        "# Solver error against the Cramér–Rao bound",
+        "",
+        f"`python experiments/crb.py --n-events {opts.n_events}`: consistent-set solver on β-PHAT candidates; "
+        "ratios over events with error ≤ 5 m (gross errors counted separately).",
+        "",
+        "| site | simulation | median error (m) | median CRB (m) | median error ÷ median CRB | median of error ÷ CRB | within 3× CRB | > 5 m |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for s, by in results.items():
         for name, r in by.items():
-            lines.append(f"| {s} | {name} | {r['median_error_m']:.3g} | {r['median_crb_m']:.3g} | {r['median_error_over_median_crb']:.1f} | "
-                         f"{r['median_ratio']:.1f} | {100 * r['share_within_3x']:.0f} % | {100 * r['share_gross']:.1f} % |")
+            lines.append(
+                f"| {s} | {name} | {r['median_error_m']:.3g} | {r['median_crb_m']:.3g} | {r['median_error_over_median_crb']:.1f} | "
+                f"{r['median_ratio']:.1f} | {100 * r['share_within_3x']:.0f} % | {100 * r['share_gross']:.1f} % |"
+            )
     write_results("crb", {"machine": machine(), "n_events": opts.n_events, "sites": results}, lines)
     log.info("\n".join(lines))
 

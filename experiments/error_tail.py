@@ -52,7 +52,9 @@ def analyse(site_name: str, n_events: int) -> dict:
     height_off = np.abs(truth[:, 2] - np.mean(site.source_height_range_m))
     return {
         "n_events": int(len(ev)),
-        "solver_error_m": {q: float(np.percentile(err, p, method="inverted_cdf")) for q, p in (("p50", 50), ("p90", 90), ("p95", 95), ("p99", 99))},
+        "solver_error_m": {
+            q: float(np.percentile(err, p, method="inverted_cdf")) for q, p in (("p50", 50), ("p90", 90), ("p95", 95), ("p99", 99))
+        },
         "p95_over_p50": float(np.percentile(err, 95, method="inverted_cdf") / np.percentile(err, 50, method="inverted_cdf")),
         "gross_fraction": float(gross.mean()),
         "gross_with_bad_tdoa": float((gross & bad_tdoa).sum() / max(gross.sum(), 1)),
@@ -92,7 +94,10 @@ def main() -> None:
         ("… with a TDOA off by > 2 samples", lambda r: f"{100 * r['gross_with_bad_tdoa']:.0f} %"),
         ("… still gross with the true TDOAs (geometry)", lambda r: f"{100 * r['gross_with_true_tdoa_also_gross']:.0f} %"),
         ("median SNR, gross / fine (dB)", lambda r: f"{r['median_snr_db_gross']:.1f} / {r['median_snr_db_ok']:.1f}"),
-        ("a trunk blocks a direct path, gross / fine", lambda r: f"{100 * (r['occluded_fraction_gross'] or 0):.0f} % / {100 * r['occluded_fraction_ok']:.0f} %"),
+        (
+            "a trunk blocks a direct path, gross / fine",
+            lambda r: f"{100 * (r['occluded_fraction_gross'] or 0):.0f} % / {100 * r['occluded_fraction_ok']:.0f} %",
+        ),
         ("solver with true TDOAs, p50 / p95 (m)", lambda r: f"{r['ideal_tdoa_error_m']['p50']:.2f} / {r['ideal_tdoa_error_m']['p95']:.1f}"),
     ]
     for name, fmt in keys:

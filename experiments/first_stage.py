@@ -65,8 +65,15 @@ def load(site_name: str, n_events: int, weighting: str, extra: tuple[str, ...] =
     site = site_from_config(cfg.site)
     features = build_feature_sets(cfg.features)
     plan = SimulationPlan(seed=cfg.seed, **{**to_plain(cfg.data), "n_events": n_events})
-    data = load_or_build_simulated(site, build(cfg.simulator, "simulator"), to_plain(cfg.simulator), features,
-                                   to_plain(cfg.features.groups), plan, StageCache(cfg.cache.dir))
+    data = load_or_build_simulated(
+        site,
+        build(cfg.simulator, "simulator"),
+        to_plain(cfg.simulator),
+        features,
+        to_plain(cfg.features.groups),
+        plan,
+        StageCache(cfg.cache.dir),
+    )
     truth = data.events[["x_m", "y_m", "z_m"]].to_numpy(float)
     out = (site, solver_inputs_for(data.features, data.events, site), truth, data.events["position_id"].to_numpy(), cfg)
     return (*out, data) if with_data else out
@@ -108,8 +115,16 @@ def evaluate(site_name: str, n_events: int) -> dict:
             "share_no_fix": float((failure > 0).mean()),
             "ms_per_event": 1000 * elapsed / len(err),
         }
-        log.info("%s %s: p50 %.2f p95 %.1f, > 5 m %.1f %%, no fix %.1f %%, %.2f ms/event", site_name, label, summary["p50"], summary["p95"],
-                 100 * gross.mean(), 100 * (failure > 0).mean(), out[label]["ms_per_event"])
+        log.info(
+            "%s %s: p50 %.2f p95 %.1f, > 5 m %.1f %%, no fix %.1f %%, %.2f ms/event",
+            site_name,
+            label,
+            summary["p50"],
+            summary["p95"],
+            100 * gross.mean(),
+            100 * (failure > 0).mean(),
+            out[label]["ms_per_event"],
+        )
     return out
 
 
@@ -120,18 +135,28 @@ def main() -> None:
     parser.add_argument("--sites", nargs="+", default=["frozen_lake", "forest"])
     opts = parser.parse_args()
     sites = {s: evaluate(s, opts.n_events) for s in opts.sites}
-    lines = ["# The first stage side by side (same events, same inputs)", "",
-             f"`python experiments/first_stage.py --n-events {opts.n_events}`: default simulation and features; failures "
-             "(no fix, or a fix outside the plausible region) count as infinite errors in every percentile.", ""]
+    lines = [
+        "# The first stage side by side (same events, same inputs)",
+        "",
+        f"`python experiments/first_stage.py --n-events {opts.n_events}`: default simulation and features; failures "
+        "(no fix, or a fix outside the plausible region) count as infinite errors in every percentile.",
+        "",
+    ]
     fmt = lambda v: "∞" if not np.isfinite(v) else f"{v:.2f}" if v < 10 else f"{v:.0f}"  # noqa: E731
     for site_name, res in sites.items():
-        lines += [f"## {site_name}: {res['n_events']} events at {res['n_positions']} source positions", "",
-                  "| solver | p50 (m) | p90 | p95 | p99 | > 5 m (95 % CI by position) | no fix | ms / event |", "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            f"## {site_name}: {res['n_events']} events at {res['n_positions']} source positions",
+            "",
+            "| solver | p50 (m) | p90 | p95 | p99 | > 5 m (95 % CI by position) | no fix | ms / event |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for name, *_ in VARIANTS:
             r = res[name]
             lo, hi = r["share_gross_ci95"]
-            lines.append(f"| {name} | {fmt(r['p50'])} | {fmt(r['p90'])} | {fmt(r['p95'])} | {fmt(r['p99'])} | "
-                         f"{100 * r['share_gross']:.1f} % ({100 * lo:.1f}–{100 * hi:.1f}) | {100 * r['share_no_fix']:.1f} % | {r['ms_per_event']:.2f} |")
+            lines.append(
+                f"| {name} | {fmt(r['p50'])} | {fmt(r['p90'])} | {fmt(r['p95'])} | {fmt(r['p99'])} | "
+                f"{100 * r['share_gross']:.1f} % ({100 * lo:.1f}–{100 * hi:.1f}) | {100 * r['share_no_fix']:.1f} % | {r['ms_per_event']:.2f} |"
+            )
         lines.append("")
     write_results("first_stage", {"machine": machine(), "n_events": opts.n_events, "sites": sites}, lines)
     log.info("\n".join(lines))

@@ -35,8 +35,18 @@ FEATURE_SETS = ("physics", "physics_lean")
 def cross_fitted(site_name: str, n_folds: int, extra: list[str]) -> dict:
     """One sweep over both feature sets (``extra``: more overrides); the report's tables as records."""
     with tempfile.TemporaryDirectory() as tmp:
-        args = ["-m", f"+site={site_name}", f"features={','.join(FEATURE_SETS)}", "protocol=cross_fit", f"protocol.n_folds={n_folds}",
-                "tracking=none", "plots=false", *extra, f"paths.outputs_dir={tmp}", f"hydra.sweep.dir={tmp}/sweep"]
+        args = [
+            "-m",
+            f"+site={site_name}",
+            f"features={','.join(FEATURE_SETS)}",
+            "protocol=cross_fit",
+            f"protocol.n_folds={n_folds}",
+            "tracking=none",
+            "plots=false",
+            *extra,
+            f"paths.outputs_dir={tmp}",
+            f"hydra.sweep.dir={tmp}/sweep",
+        ]
         start = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True)
         if proc.returncode != 0:
@@ -44,28 +54,61 @@ def cross_fitted(site_name: str, n_folds: int, extra: list[str]) -> dict:
         seconds = time.perf_counter() - start
         runs = collect_runs([Path(tmp) / "sweep"])
         errors = error_rows(runs)
-        return {"seconds": seconds, "command": f"python -m acoustlab {' '.join(a for a in args if not a.startswith(('paths.', 'hydra.')))}",
-                "errors": errors[errors["method"].isin(["gate", "solver"])].to_dict("records"),
-                "relative": relative_rows(runs).to_dict("records"), "coverage": coverage_rows(runs).to_dict("records")}
+        return {
+            "seconds": seconds,
+            "command": f"python -m acoustlab {' '.join(a for a in args if not a.startswith(('paths.', 'hydra.')))}",
+            "errors": errors[errors["method"].isin(["gate", "solver"])].to_dict("records"),
+            "relative": relative_rows(runs).to_dict("records"),
+            "coverage": coverage_rows(runs).to_dict("records"),
+        }
 
 
 def markdown(result: dict, opts: argparse.Namespace) -> list[str]:
-    lines = ["# The lean feature set (features=physics_lean) against the full one (features=physics)", "",
-             f"{machine()['cpus']} CPUs, one run. The lean set keeps the GCC groups "
-             "(tdoa, xcorr in the main band, uncertainty) and the context groups; it leaves out ir, spectral, envelope and xcorr's "
-             "extra 1–4 kHz band. Its speed: `python benchmarks/run.py features season`."]
+    lines = [
+        "# The lean feature set (features=physics_lean) against the full one (features=physics)",
+        "",
+        f"{machine()['cpus']} CPUs, one run. The lean set keeps the GCC groups "
+        "(tdoa, xcorr in the main band, uncertainty) and the context groups; it leaves out ir, spectral, envelope and xcorr's "
+        "extra 1–4 kHz band. Its speed: `python benchmarks/run.py features season`.",
+    ]
     for site_name, sweep in result["cross_fitted"].items():
         errors = pd.DataFrame(sweep["errors"])
-        keep = [c for c in errors.columns if c in ("features", "method", "n (detections)", "p50 (m)", "p90 (m)", "p95 (m)", "p99 (m)",
-                                                   "p95 95 % CI (m)", "> 5 m (%)")]
+        keep = [
+            c
+            for c in errors.columns
+            if c in ("features", "method", "n (detections)", "p50 (m)", "p90 (m)", "p95 (m)", "p99 (m)", "p95 95 % CI (m)", "> 5 m (%)")
+        ]
         coverage = pd.DataFrame(sweep["coverage"])
-        ckeep = [c for c in coverage.columns if c in ("features", "scorer", "coverage@0.8 (share)", "coverage@0.95 (share)",
-                                                      "median radius@0.95 (m)", "worst position@0.95 (share)")]
-        lines += ["", f"## {site_name}: the method cross-fitted ({sweep['seconds']:.0f} s)", "", f"`{sweep['command']}`", "",
-                  errors[keep].to_markdown(index=False, floatfmt=".3g"), "",
-                  "Lean relative to full, gated error (paired bootstrap over source positions; the lean set costs accuracy where "
-                  "an interval lies above 1):", "", pd.DataFrame(sweep["relative"]).to_markdown(index=False, floatfmt=".3g"), "",
-                  "Coverage of the radii:", "", coverage[ckeep].to_markdown(index=False, floatfmt=".3g")]
+        ckeep = [
+            c
+            for c in coverage.columns
+            if c
+            in (
+                "features",
+                "scorer",
+                "coverage@0.8 (share)",
+                "coverage@0.95 (share)",
+                "median radius@0.95 (m)",
+                "worst position@0.95 (share)",
+            )
+        ]
+        lines += [
+            "",
+            f"## {site_name}: the method cross-fitted ({sweep['seconds']:.0f} s)",
+            "",
+            f"`{sweep['command']}`",
+            "",
+            errors[keep].to_markdown(index=False, floatfmt=".3g"),
+            "",
+            "Lean relative to full, gated error (paired bootstrap over source positions; the lean set costs accuracy where "
+            "an interval lies above 1):",
+            "",
+            pd.DataFrame(sweep["relative"]).to_markdown(index=False, floatfmt=".3g"),
+            "",
+            "Coverage of the radii:",
+            "",
+            coverage[ckeep].to_markdown(index=False, floatfmt=".3g"),
+        ]
     return lines
 
 

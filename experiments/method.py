@@ -41,31 +41,50 @@ def main() -> None:
     parser.add_argument("--n-events", type=int, default=1100)
     opts = parser.parse_args()
     forest = {}
-    for name, extra in (("xgboost", ["model=xgboost"]), ("xgboost, correction target", ["model=xgboost", "pipeline.model_target=correction"]),
-                        ("random_forest", ["model=random_forest"]), ("knn", ["model=knn"])):
+    for name, extra in (
+        ("xgboost", ["model=xgboost"]),
+        ("xgboost, correction target", ["model=xgboost", "pipeline.model_target=correction"]),
+        ("random_forest", ["model=random_forest"]),
+        ("knn", ["model=knn"]),
+    ):
         forest[name] = run(["+site=forest", "+experiment=paper_forest", f"data.n_events={opts.n_events}", *extra])
     lake = run(["+site=frozen_lake", "+experiment=paper_frozen_lake", f"data.n_events={opts.n_events}", "model=xgboost"])
     result = {"machine": machine(), "forest_sim_only": forest, "frozen_lake_standin_lopo": lake}
-    lines = ["# The method end to end", "", f"`python experiments/method.py --n-events {opts.n_events}`", "",
-             "## Forest simulation, sim-only (hybrid gate, τ* on simulation; XGBoost-quantile error model)", "",
-             "| point model | solver p50 / p95 / p99 | model p50 / p95 / p99 | gate p50 / p95 / p99 | gate p99 ÷ solver p99 | gate p50 ÷ solver p50 | τ* (dB) | substitution |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# The method end to end",
+        "",
+        f"`python experiments/method.py --n-events {opts.n_events}`",
+        "",
+        "## Forest simulation, sim-only (hybrid gate, τ* on simulation; XGBoost-quantile error model)",
+        "",
+        "| point model | solver p50 / p95 / p99 | model p50 / p95 / p99 | gate p50 / p95 / p99 | gate p99 ÷ solver p99 | gate p50 ÷ solver p50 | τ* (dB) | substitution |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     fmt = lambda e: f"{e['p50']:.2f} / {e['p95']:.1f} / {e['p99']:.1f}"  # noqa: E731
     for name, m in forest.items():
         e = m["errors"]
-        lines.append(f"| {name} | {fmt(e['solver'])} | {fmt(e['model'])} | {fmt(e['gate'])} | {e['gate']['p99'] / max(e['solver']['p99'], 1e-9):.2f} | "
-                     f"{e['gate']['p50'] / max(e['solver']['p50'], 1e-9):.2f} | {gate_scalars(m).get('tau_star_db', float('nan')):.3g} | {100 * m['substitution_rate']:.0f} % |")
+        lines.append(
+            f"| {name} | {fmt(e['solver'])} | {fmt(e['model'])} | {fmt(e['gate'])} | {e['gate']['p99'] / max(e['solver']['p99'], 1e-9):.2f} | "
+            f"{e['gate']['p50'] / max(e['solver']['p50'], 1e-9):.2f} | {gate_scalars(m).get('tau_star_db', float('nan')):.3g} | {100 * m['substitution_rate']:.0f} % |"
+        )
     lines += ["", "Coverage (XGBoost):", "", "| scorer | 0.50 | 0.80 | 0.95 | median width at 0.95 (m) |", "|---|---|---|---|---|"]
     for scorer, cov in forest["xgboost"]["coverage"].items():
         w = forest["xgboost"]["interval_width"][scorer]["0.95"]["median_m"]
         lines.append(f"| {scorer} | {cov['0.5']:.2f} | {cov['0.8']:.2f} | {cov['0.95']:.2f} | {w:.1f} |")
     lines += ["", f"Spearman ρ with the actual error: {rho_text(forest['xgboost']['spearman_rho'])}.", ""]
     e = lake["errors"]
-    lines += ["## Frozen lake, SYNTHETIC field stand-in, leave-one-position-out (XGBoost)", "",
-              f"Per-detection errors (failed position excluded, n = {e['gate']['n']}): solver {fmt(e['solver'])}, model {fmt(e['model'])}, gate {fmt(e['gate'])} m; τ* = {gate_scalars(lake).get('tau_star_db', float('nan')):.3g} dB.", "",
-              "| scorer | 0.50 | 0.80 | 0.95 | worst position at 0.95 |", "|---|---|---|---|---|"]
+    lines += [
+        "## Frozen lake, SYNTHETIC field stand-in, leave-one-position-out (XGBoost)",
+        "",
+        f"Per-detection errors (failed position excluded, n = {e['gate']['n']}): solver {fmt(e['solver'])}, model {fmt(e['model'])}, gate {fmt(e['gate'])} m; τ* = {gate_scalars(lake).get('tau_star_db', float('nan')):.3g} dB.",
+        "",
+        "| scorer | 0.50 | 0.80 | 0.95 | worst position at 0.95 |",
+        "|---|---|---|---|---|",
+    ]
     for scorer, cov in lake["coverage"].items():
-        lines.append(f"| {scorer} | {cov['0.5']:.2f} | {cov['0.8']:.2f} | {cov['0.95']:.2f} | {lake['coverage_by_position'][scorer]['0.95']['min']:.2f} |")
+        lines.append(
+            f"| {scorer} | {cov['0.5']:.2f} | {cov['0.8']:.2f} | {cov['0.95']:.2f} | {lake['coverage_by_position'][scorer]['0.95']['min']:.2f} |"
+        )
     lines += ["", f"Spearman ρ with the actual error: {rho_text(lake['spearman_rho'])}."]
     write_results("method", result, lines)
     log.info("\n".join(lines))

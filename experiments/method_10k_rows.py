@@ -19,8 +19,13 @@ import logging
 from common import fmt, run_in_process, write_results
 
 log = logging.getLogger("bench_method_10k_rows")
-METHODS = (("solver", "solver"), ("model", "model (XGBoost, ≤ {rows:,} rows)"), ("gate", "gate (learned, unweighted)"),
-           ("oracle", "oracle"), ("gate_hybrid", "hybrid gate"))
+METHODS = (
+    ("solver", "solver"),
+    ("model", "model (XGBoost, ≤ {rows:,} rows)"),
+    ("gate", "gate (learned, unweighted)"),
+    ("oracle", "oracle"),
+    ("gate_hybrid", "hybrid gate"),
+)
 
 
 def table(metrics: dict, rows: int) -> list[str]:
@@ -30,17 +35,25 @@ def table(metrics: dict, rows: int) -> list[str]:
     for key, label in METHODS:
         if key in errors:
             e = errors[key]
-            lines.append(f"| {label.format(rows=rows)} | {fmt(e['p50'])} | {fmt(e['p95'])} | {fmt(e['p99'])} | "
-                         f"{100 * e['share_gt_5m']:.1f} % | {e['n_failed']} |")
-    coverage = ", ".join(f"{scorer} " + " / ".join(f"{c[level]:.3f}" for level in ("0.5", "0.8", "0.95"))
-                         + f" (median radius at 0.95 {metrics['interval_width'][scorer]['0.95']['median_m']:.2f} m)"
-                         for scorer, c in metrics["coverage"].items())
+            lines.append(
+                f"| {label.format(rows=rows)} | {fmt(e['p50'])} | {fmt(e['p95'])} | {fmt(e['p99'])} | "
+                f"{100 * e['share_gt_5m']:.1f} % | {e['n_failed']} |"
+            )
+    coverage = ", ".join(
+        f"{scorer} "
+        + " / ".join(f"{c[level]:.3f}" for level in ("0.5", "0.8", "0.95"))
+        + f" (median radius at 0.95 {metrics['interval_width'][scorer]['0.95']['median_m']:.2f} m)"
+        for scorer, c in metrics["coverage"].items()
+    )
     rho = metrics["spearman_rho"]
-    return [*lines, "",
-            f"Gate ÷ oracle: p95 {gap['p95_gate_over_oracle']:.2f}, p99 {gap['p99_gate_over_oracle']:.2f}; gate p50 ÷ solver "
-            f"{gap['p50_gate_over_solver']:.2f}. Coverage at 0.50 / 0.80 / 0.95: {coverage}. Spearman ρ with the gate's error: "
-            f"error model {rho['error_model']:.3f}, GDOP {rho['gdop']:.3f}; gross-error AUC of the error model "
-            f"{metrics['gross_error_auc']['error_model']:.3f}."]
+    return [
+        *lines,
+        "",
+        f"Gate ÷ oracle: p95 {gap['p95_gate_over_oracle']:.2f}, p99 {gap['p99_gate_over_oracle']:.2f}; gate p50 ÷ solver "
+        f"{gap['p50_gate_over_solver']:.2f}. Coverage at 0.50 / 0.80 / 0.95: {coverage}. Spearman ρ with the gate's error: "
+        f"error model {rho['error_model']:.3f}, GDOP {rho['gdop']:.3f}; gross-error AUC of the error model "
+        f"{metrics['gross_error_auc']['error_model']:.3f}.",
+    ]
 
 
 def main() -> None:
@@ -49,15 +62,27 @@ def main() -> None:
     parser.add_argument("--n-events", type=int, default=12500)
     parser.add_argument("--max-train-rows", type=int, default=10000)
     opts = parser.parse_args()
-    overrides = ["+site=frozen_lake", "+experiment=cross_fit_gates", f"data.n_events={opts.n_events}", "protocol.n_folds=5",
-                 f"protocol.max_train_rows={opts.max_train_rows}", "gate.stakes_cap_m=null", "conformal=paper"]
+    overrides = [
+        "+site=frozen_lake",
+        "+experiment=cross_fit_gates",
+        f"data.n_events={opts.n_events}",
+        "protocol.n_folds=5",
+        f"protocol.max_train_rows={opts.max_train_rows}",
+        "gate.stakes_cap_m=null",
+        "conformal=paper",
+    ]
     metrics = run_in_process(overrides)
     timings = metrics.get("timings_s", {})
-    lines = [f"# The method with {opts.max_train_rows:,} training rows (frozen lake, cross-fitted)", "",
-             f"`python experiments/method_10k_rows.py --n-events {opts.n_events} --max-train-rows {opts.max_train_rows}`: "
-             f"the job `python -m acoustlab {' '.join(overrides)} tracking=none` in one process "
-             f"(models {timings.get('models_s', float('nan')):.0f} s, whole job {metrics['bench_seconds']:.0f} s). "
-             "The JSON file is the run's metrics.json.", "", *table(metrics, opts.max_train_rows)]
+    lines = [
+        f"# The method with {opts.max_train_rows:,} training rows (frozen lake, cross-fitted)",
+        "",
+        f"`python experiments/method_10k_rows.py --n-events {opts.n_events} --max-train-rows {opts.max_train_rows}`: "
+        f"the job `python -m acoustlab {' '.join(overrides)} tracking=none` in one process "
+        f"(models {timings.get('models_s', float('nan')):.0f} s, whole job {metrics['bench_seconds']:.0f} s). "
+        "The JSON file is the run's metrics.json.",
+        "",
+        *table(metrics, opts.max_train_rows),
+    ]
     write_results("method_10k_rows_frozen_lake", metrics, lines)
     log.info("\n".join(lines))
 

@@ -29,20 +29,37 @@ def main() -> None:
     parser.add_argument("--n-events", type=int, default=12500)
     parser.add_argument("--rows", type=int, nargs="+", default=[1000, 3000, 10000])
     opts = parser.parse_args()
-    base = [f"+site={opts.site}", f"data.n_events={opts.n_events}", "protocol=cross_fit", "protocol.n_folds=5", "model=xgboost",
-            "gate=learned", "gate.stakes_cap_m=null", "error_model=constant", "conformal=fixed"]
+    base = [
+        f"+site={opts.site}",
+        f"data.n_events={opts.n_events}",
+        "protocol=cross_fit",
+        "protocol.n_folds=5",
+        "model=xgboost",
+        "gate=learned",
+        "gate.stakes_cap_m=null",
+        "error_model=constant",
+        "conformal=fixed",
+    ]
     runs = {f"absolute, ≤ {rows} rows": run_in_process([*base, f"protocol.max_train_rows={rows}"]) for rows in opts.rows}
-    runs[f"correction, ≤ {opts.rows[0]} rows"] = run_in_process([*base, f"protocol.max_train_rows={opts.rows[0]}", "pipeline.model_target=correction"])
-    lines = [f"# Point model against training rows ({opts.site}, cross-fitted)", "",
-             f"`python experiments/model_rows.py --site {opts.site} --n-events {opts.n_events} --rows {' '.join(map(str, opts.rows))}`: "
-             f"{opts.n_events} events, 5 folds over positions, XGBoost, learned gate with equal weights. Failures count as infinite errors.", "",
-             "| point model target, training cap | model p50 (m) | model p95 | model p99 | model > 5 m | gate p50 | gate p95 | gate p99 | oracle p95 | seconds |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    runs[f"correction, ≤ {opts.rows[0]} rows"] = run_in_process(
+        [*base, f"protocol.max_train_rows={opts.rows[0]}", "pipeline.model_target=correction"]
+    )
+    lines = [
+        f"# Point model against training rows ({opts.site}, cross-fitted)",
+        "",
+        f"`python experiments/model_rows.py --site {opts.site} --n-events {opts.n_events} --rows {' '.join(map(str, opts.rows))}`: "
+        f"{opts.n_events} events, 5 folds over positions, XGBoost, learned gate with equal weights. Failures count as infinite errors.",
+        "",
+        "| point model target, training cap | model p50 (m) | model p95 | model p99 | model > 5 m | gate p50 | gate p95 | gate p99 | oracle p95 | seconds |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, m in runs.items():
         e = m["errors"]
-        lines.append(f"| {name} | {fmt(e['model']['p50'])} | {fmt(e['model']['p95'])} | {fmt(e['model']['p99'])} | "
-                     f"{100 * e['model']['share_gt_5m']:.1f} % | {fmt(e['gate']['p50'])} | {fmt(e['gate']['p95'])} | {fmt(e['gate']['p99'])} | "
-                     f"{fmt(e['oracle']['p95'])} | {m['bench_seconds']:.0f} |")
+        lines.append(
+            f"| {name} | {fmt(e['model']['p50'])} | {fmt(e['model']['p95'])} | {fmt(e['model']['p99'])} | "
+            f"{100 * e['model']['share_gt_5m']:.1f} % | {fmt(e['gate']['p50'])} | {fmt(e['gate']['p95'])} | {fmt(e['gate']['p99'])} | "
+            f"{fmt(e['oracle']['p95'])} | {m['bench_seconds']:.0f} |"
+        )
     write_results("model_rows", {"machine": machine(), "site": opts.site, "n_events": opts.n_events, "runs": runs}, lines)
     log.info("\n".join(lines))
 

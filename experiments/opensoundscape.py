@@ -93,15 +93,22 @@ def driver(folder: Path, speed_of_sound: float, band_hz: list[float] | None) -> 
     extent_m = float(pdist(coords[["x", "y"]].to_numpy()).max())
     start = time.process_time()
     wall = time.perf_counter()
-    placed, unplaced = array.localize_detections(detections, max_receiver_dist=extent_m + 1.0, min_n_receivers=3, cc_filter="phat",
-                                                 bandpass_ranges=band_hz, return_unlocalized=True)
+    placed, unplaced = array.localize_detections(
+        detections, max_receiver_dist=extent_m + 1.0, min_n_receivers=3, cc_filter="phat", bandpass_ranges=band_hz, return_unlocalized=True
+    )
     cpu_s, wall_s = time.process_time() - start, time.perf_counter() - wall
     rows = []
     for estimate, kept in [*((e, True) for e in placed), *((e, False) for e in unplaced)]:
         location = estimate.location_estimate if kept and estimate.location_estimate is not None else [np.nan, np.nan]
         residual = float(estimate.residual_rms) if kept and estimate.location_estimate is not None else float("inf")
-        rows.append({"start_s": float(np.asarray(estimate.receiver_start_time_offsets, dtype=float)[0]),
-                     "x_m": float(location[0]), "y_m": float(location[1]), "residual_m": residual})
+        rows.append(
+            {
+                "start_s": float(np.asarray(estimate.receiver_start_time_offsets, dtype=float)[0]),
+                "x_m": float(location[0]),
+                "y_m": float(location[1]),
+                "residual_m": residual,
+            }
+        )
     print(json.dumps({"import_s": import_s, "cpu_s": cpu_s, "wall_s": wall_s, "candidates": rows}))
 
 
@@ -123,10 +130,16 @@ def opensoundscape_run(python: str, folder: Path, speed: float, band_hz: list[fl
     # per call the estimate a user filtering on OpenSoundscape's residual would keep: the lowest residual (none: no position)
     best = candidates.sort_values(["event", "residual_m"]).groupby("event").head(1).set_index("event").reindex(range(n_events))
     best_err = np.where(np.isfinite(best["residual_m"].to_numpy(float)), best["error_m"].to_numpy(float), np.inf)
-    return {"band_hz": band_hz, "cpu_s": osl["cpu_s"], "wall_s": osl["wall_s"], "import_cpu_s": osl["import_s"],
-            "ms_per_call": 1000 * osl["cpu_s"] / n_events, "estimates": len(candidates),
-            "errors_every_estimate": summary(candidates["error_m"].to_numpy(float), positions[event_of]),
-            "errors_lowest_residual_per_call": summary(best_err, positions)}
+    return {
+        "band_hz": band_hz,
+        "cpu_s": osl["cpu_s"],
+        "wall_s": osl["wall_s"],
+        "import_cpu_s": osl["import_s"],
+        "ms_per_call": 1000 * osl["cpu_s"] / n_events,
+        "estimates": len(candidates),
+        "errors_every_estimate": summary(candidates["error_m"].to_numpy(float), positions[event_of]),
+        "errors_lowest_residual_per_call": summary(best_err, positions),
+    }
 
 
 def write_inputs(batch, site, folder: Path) -> float:
@@ -143,7 +156,8 @@ def write_inputs(batch, site, folder: Path) -> float:
         sf.write(path, np.concatenate([pad, batch.audio[:, m, :].reshape(-1), pad]), int(batch.sample_rate_hz), subtype="FLOAT")
         files.append(str(path))
     pd.DataFrame({"x": site.mic_positions_m[:, 0], "y": site.mic_positions_m[:, 1]}, index=pd.Index(files, name="file")).to_csv(
-        folder / "file_coords.csv")
+        folder / "file_coords.csv"
+    )
     starts = len(pad) / batch.sample_rate_hz + np.arange(n_events) * clip_s
     index = pd.MultiIndex.from_tuples([(f, s, s + clip_s) for f in files for s in starts], names=["file", "start_time", "end_time"])
     pd.DataFrame({CLASS: 1}, index=index).to_csv(folder / "detections.csv")
@@ -180,14 +194,22 @@ def summary(err: np.ndarray, positions: np.ndarray) -> dict[str, float]:
 
     low, high = share_ci(err > 5, positions)
     stats = error_summary(err)  # a percentile among the failures is inf (np.quantile would give NaN between two infs)
-    return {"n": stats["n"], "p50_m": stats["p50"], "p90_m": stats["p90"], "share_over_5m": stats["share_gt_5m"],
-            "share_over_5m_ci": [low, high], "share_unplaced": stats["n_failed"] / stats["n"]}
+    return {
+        "n": stats["n"],
+        "p50_m": stats["p50"],
+        "p90_m": stats["p90"],
+        "share_over_5m": stats["share_gt_5m"],
+        "share_over_5m_ci": [low, high],
+        "share_unplaced": stats["n_failed"] / stats["n"],
+    }
 
 
 def row(label: str, ms: float, ratio: str, n: str, e: dict[str, float]) -> str:
     low, high = e["share_over_5m_ci"]
-    return (f"| {label} | {ms:.1f} | {ratio} | {n} | {e['p50_m']:.2f} | {e['p90_m']:.1f} | {e['share_over_5m']:.1%} "
-            f"({low:.1%}–{high:.1%}) | {e['share_unplaced']:.1%} |")
+    return (
+        f"| {label} | {ms:.1f} | {ratio} | {n} | {e['p50_m']:.2f} | {e['p90_m']:.1f} | {e['share_over_5m']:.1%} "
+        f"({low:.1%}–{high:.1%}) | {e['share_unplaced']:.1%} |"
+    )
 
 
 def main() -> None:
@@ -220,10 +242,13 @@ def main() -> None:
     clip_s = write_inputs(batch, site, folder)
     speed = float(speed_of_sound_m_s(float(np.mean(site.temperature_range_c)), float(np.mean(site.relative_humidity_range_pct))))
     band = [float(b) for b in cfg.features.gcc.band_hz]
-    osl = {name: opensoundscape_run(opts.osl_python, folder, speed, b, batch.events, clip_s)
-           for name, b in (("no band-pass (its default)", None), (f"band-pass {band[0]:.0f}–{band[1]:.0f} Hz (acoustlab's band)", band))}
-    version = subprocess.run([opts.osl_python, "-c", "import importlib.metadata as m; print(m.version('opensoundscape'))"],
-                             capture_output=True, text=True).stdout.strip()
+    osl = {
+        name: opensoundscape_run(opts.osl_python, folder, speed, b, batch.events, clip_s)
+        for name, b in (("no band-pass (its default)", None), (f"band-pass {band[0]:.0f}–{band[1]:.0f} Hz (acoustlab's band)", band))
+    }
+    version = subprocess.run(
+        [opts.osl_python, "-c", "import importlib.metadata as m; print(m.version('opensoundscape'))"], capture_output=True, text=True
+    ).stdout.strip()
 
     n_mics, n_samples = batch.audio.shape[1:]
     t = {}
@@ -231,57 +256,104 @@ def main() -> None:
     audio, rate = read_clips(folder, n_mics, opts.n_events, n_samples)
     t["read"] = time.process_time() - start
     ours = {}
-    feature_configs = {"physics": ["features=physics"], "physics_lean": ["features=physics_lean"],
-                       "physics_lean, coarse search": ["features=physics_lean", "+features.gcc.search=coarse"]}
+    feature_configs = {
+        "physics": ["features=physics"],
+        "physics_lean": ["features=physics_lean"],
+        "physics_lean, coarse search": ["features=physics_lean", "+features.gcc.search=coarse"],
+    }
     for name, overrides in feature_configs.items():
         sets = build_feature_sets(compose_cfg(["+site=forest", *overrides]).features)
         start = time.process_time()
-        parts = [extract_features(RecordingBatch(audio[k:k + BATCH_EVENTS], rate, batch.events.iloc[k:k + BATCH_EVENTS].reset_index(drop=True)),
-                                  site, sets) for k in range(0, opts.n_events, BATCH_EVENTS)]
+        parts = [
+            extract_features(
+                RecordingBatch(audio[k : k + BATCH_EVENTS], rate, batch.events.iloc[k : k + BATCH_EVENTS].reset_index(drop=True)),
+                site,
+                sets,
+            )
+            for k in range(0, opts.n_events, BATCH_EVENTS)
+        ]
         ours[name] = pd.concat(parts, ignore_index=True)
         t[f"features ({name})"] = time.process_time() - start
     tx, ty = batch.events[col.TRUE_X].to_numpy(float), batch.events[col.TRUE_Y].to_numpy(float)
     errors = {}
     for name, solver_key in (("physics_lean", "solver"), ("physics_lean, coarse search", "solver (coarse search)")):
         start = time.process_time()
-        table = add_solver_columns(ours[name], batch.events, site, build(cfg.solver, "solver"), float(cfg.pipeline.plausible_margin_fraction))
+        table = add_solver_columns(
+            ours[name], batch.events, site, build(cfg.solver, "solver"), float(cfg.pipeline.plausible_margin_fraction)
+        )
         t[solver_key] = time.process_time() - start
-        errors[name] = summary(errors_m(table[col.SOLVER_X].to_numpy(float), table[col.SOLVER_Y].to_numpy(float), tx, ty),
-                               batch.events[col.POSITION_ID].to_numpy())
+        errors[name] = summary(
+            errors_m(table[col.SOLVER_X].to_numpy(float), table[col.SOLVER_Y].to_numpy(float), tx, ty),
+            batch.events[col.POSITION_ID].to_numpy(),
+        )
     ms = {k: 1000 * v / opts.n_events for k, v in t.items()}
     ours_full = ms["read"] + ms["features (physics)"] + ms["solver"]
     ours_lean = ms["read"] + ms["features (physics_lean)"] + ms["solver"]
     ours_coarse = ms["read"] + ms["features (physics_lean, coarse search)"] + ms["solver (coarse search)"]
     a = errors["physics_lean"]
-    result = {"machine": machine(), "n_events": opts.n_events, "opensoundscape_version": version, "speed_of_sound_m_s": speed,
-              "opensoundscape": osl, "acoustlab_ms_per_call": ms,
-              "acoustlab_first_stage_ms": {"physics": ours_full, "physics_lean": ours_lean, "physics_lean_coarse_search": ours_coarse},
-              "acoustlab_solver_errors": a, "acoustlab_solver_errors_coarse_search": errors["physics_lean, coarse search"]}
-    lines = ["# OpenSoundscape (released) against acoustlab's first stage, same forest detections", "",
-             f"`python experiments/opensoundscape.py --osl-python PYTHON --n-events {opts.n_events}` (OpenSoundscape {version}; "
-             f"{machine()['cpus']} CPUs, one run). {opts.n_events} simulated forest events at {opts.n_events // 5} source positions "
-             f"(6 mics, {clip_s:.1f} s at {rate:.0f} Hz) in one WAV per mic; every window of every file marked as a detection. "
-             "Process CPU time per call; OpenSoundscape in its own interpreter (torch on one thread, its import not counted), "
-             "with the array's extent as max_receiver_dist and the speed of sound at the site's mean temperature. Errors: "
-             "horizontal distance to the source; no position counts as an error.", "",
-             "| | CPU ms per call | over acoustlab (lean) | estimates | p50 (m) | p90 (m) | > 5 m (95 % CI by position) | no position |",
-             "|---|---|---|---|---|---|---|---|"]
+    result = {
+        "machine": machine(),
+        "n_events": opts.n_events,
+        "opensoundscape_version": version,
+        "speed_of_sound_m_s": speed,
+        "opensoundscape": osl,
+        "acoustlab_ms_per_call": ms,
+        "acoustlab_first_stage_ms": {"physics": ours_full, "physics_lean": ours_lean, "physics_lean_coarse_search": ours_coarse},
+        "acoustlab_solver_errors": a,
+        "acoustlab_solver_errors_coarse_search": errors["physics_lean, coarse search"],
+    }
+    lines = [
+        "# OpenSoundscape (released) against acoustlab's first stage, same forest detections",
+        "",
+        f"`python experiments/opensoundscape.py --osl-python PYTHON --n-events {opts.n_events}` (OpenSoundscape {version}; "
+        f"{machine()['cpus']} CPUs, one run). {opts.n_events} simulated forest events at {opts.n_events // 5} source positions "
+        f"(6 mics, {clip_s:.1f} s at {rate:.0f} Hz) in one WAV per mic; every window of every file marked as a detection. "
+        "Process CPU time per call; OpenSoundscape in its own interpreter (torch on one thread, its import not counted), "
+        "with the array's extent as max_receiver_dist and the speed of sound at the site's mean temperature. Errors: "
+        "horizontal distance to the source; no position counts as an error.",
+        "",
+        "| | CPU ms per call | over acoustlab (lean) | estimates | p50 (m) | p90 (m) | > 5 m (95 % CI by position) | no position |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for name, o in osl.items():
-        lines += [row(f"OpenSoundscape `localize_detections`, PHAT, least squares, {name}: every estimate", o["ms_per_call"],
-                      f"{o['ms_per_call'] / ours_lean:.1f}×", f"{o['estimates']} (one per reference receiver)", o["errors_every_estimate"]),
-                  row("… the lowest-residual estimate of each call", o["ms_per_call"], f"{o['ms_per_call'] / ours_lean:.1f}×",
-                      str(opts.n_events), o["errors_lowest_residual_per_call"])]
-    lines += [row("acoustlab read + features=physics + solver (consistent set)", ours_full, f"{ours_full / ours_lean:.2f}×",
-                  str(opts.n_events), a),
-              row("acoustlab read + features=physics_lean + solver (consistent set)", ours_lean, "1.00×", str(opts.n_events), a),
-              row("acoustlab read + features=physics_lean with +features.gcc.search=coarse + solver", ours_coarse,
-                  f"{ours_coarse / ours_lean:.2f}×", str(opts.n_events), errors["physics_lean, coarse search"]), "",
-              "OpenSoundscape's CPU per call over acoustlab's lean first stage with the coarse search: "
-              + ", ".join(f"{o['ms_per_call'] / ours_coarse:.1f}× ({name})" for name, o in osl.items()) + ".", "",
-              "acoustlab's stages, CPU ms per call: " + ", ".join(f"{k} {v:.1f}" for k, v in ms.items()) + ". The solver's fixes "
-              "are the same with either feature set (it reads only the tdoa and xcorr main-band columns); the fitted method "
-              "(gate, radii) adds about 3 ms per detection and is not run here. OpenSoundscape's import: "
-              f"{next(iter(osl.values()))['import_cpu_s']:.1f} s of CPU."]
+        lines += [
+            row(
+                f"OpenSoundscape `localize_detections`, PHAT, least squares, {name}: every estimate",
+                o["ms_per_call"],
+                f"{o['ms_per_call'] / ours_lean:.1f}×",
+                f"{o['estimates']} (one per reference receiver)",
+                o["errors_every_estimate"],
+            ),
+            row(
+                "… the lowest-residual estimate of each call",
+                o["ms_per_call"],
+                f"{o['ms_per_call'] / ours_lean:.1f}×",
+                str(opts.n_events),
+                o["errors_lowest_residual_per_call"],
+            ),
+        ]
+    lines += [
+        row(
+            "acoustlab read + features=physics + solver (consistent set)", ours_full, f"{ours_full / ours_lean:.2f}×", str(opts.n_events), a
+        ),
+        row("acoustlab read + features=physics_lean + solver (consistent set)", ours_lean, "1.00×", str(opts.n_events), a),
+        row(
+            "acoustlab read + features=physics_lean with +features.gcc.search=coarse + solver",
+            ours_coarse,
+            f"{ours_coarse / ours_lean:.2f}×",
+            str(opts.n_events),
+            errors["physics_lean, coarse search"],
+        ),
+        "",
+        "OpenSoundscape's CPU per call over acoustlab's lean first stage with the coarse search: "
+        + ", ".join(f"{o['ms_per_call'] / ours_coarse:.1f}× ({name})" for name, o in osl.items())
+        + ".",
+        "",
+        "acoustlab's stages, CPU ms per call: " + ", ".join(f"{k} {v:.1f}" for k, v in ms.items()) + ". The solver's fixes "
+        "are the same with either feature set (it reads only the tdoa and xcorr main-band columns); the fitted method "
+        "(gate, radii) adds about 3 ms per detection and is not run here. OpenSoundscape's import: "
+        f"{next(iter(osl.values()))['import_cpu_s']:.1f} s of CPU.",
+    ]
     write_results("opensoundscape", result, lines)
     log.info("\n".join(lines))
 

@@ -29,7 +29,9 @@ BAND = "[6000,10500]"
 UPSTREAM_TDOA_S = [0.0, 0.0325, -0.002, 0.0316, -0.0086, 0.024]  # OpenSoundscape's test reference, ±0.01 s
 
 
-def solve_scan(mics: np.ndarray, tdoa: np.ndarray, c: float, heights=np.concatenate([np.arange(0.0, 50.0, 0.5), np.arange(50.0, 400.0, 2.0)])):
+def solve_scan(
+    mics: np.ndarray, tdoa: np.ndarray, c: float, heights=np.concatenate([np.arange(0.0, 50.0, 0.5), np.arange(50.0, 400.0, 2.0)])
+):
     best = None
     for h in heights:
         res = HyperbolicSolver(source_height_m=float(h), box_margin_fraction=3.0).solve(SolverInputs(mics, tdoa, c))
@@ -64,9 +66,17 @@ def main() -> None:
         dist = np.linalg.norm(mics - src, axis=1)
         predicted = (dist[r] - dist[ref]) / c
         measured = tdoa[0, r] - tdoa[0, ref]
-        loo.append({"left_out": r, "reference": ref, "measured_ms": 1e3 * measured, "predicted_ms": 1e3 * predicted,
-                    "error_ms": 1e3 * (predicted - measured), "fix_m": src.tolist(),
-                    "fallback_kept_3d": bool(with_fallback.diagnostics["dimensions_used"][0] == 3)})
+        loo.append(
+            {
+                "left_out": r,
+                "reference": ref,
+                "measured_ms": 1e3 * measured,
+                "predicted_ms": 1e3 * predicted,
+                "error_ms": 1e3 * (predicted - measured),
+                "fix_m": src.tolist(),
+                "fallback_kept_3d": bool(with_fallback.diagnostics["dimensions_used"][0] == 3),
+            }
+        )
     result = {
         "measured_tdoa_s": tdoa[0].tolist(),
         "upstream_reference_tdoa_s": UPSTREAM_TDOA_S,
@@ -74,8 +84,10 @@ def main() -> None:
         "position_m": [float(res.position_m[0, 0]), float(res.position_m[0, 1]), float(height)],
         "height_gdop": float(res.diagnostics["height_gdop"][0]),
         "height_ambiguous": bool(res.diagnostics["height_ambiguous"][0]),
-        "scanned_2d": {"position_m": [float(scan.position_m[0, 0]), float(scan.position_m[0, 1]), float(scan_height)],
-                       "residual_m": float(scan.residual_m[0])},
+        "scanned_2d": {
+            "position_m": [float(scan.position_m[0, 0]), float(scan.position_m[0, 1]), float(scan_height)],
+            "residual_m": float(scan.residual_m[0]),
+        },
         "residual_m": float(res.residual_m[0]),
         "gdop": float(res.diagnostics["gdop"][0]),
         "leave_one_receiver_out": loo,
@@ -86,8 +98,10 @@ def main() -> None:
         "",
         "`python experiments/real_array.py` (GCC-PHAT band 6–10.5 kHz, 3-D hyperbolic solver: x, y and height, no scan)",
         "",
-        "TDOA to recorder 3 (ms): " + ", ".join(f"{1e3 * v:.1f}" for v in tdoa[0])
-        + " — OpenSoundscape's reference: " + ", ".join(f"{1e3 * v:.1f}" for v in UPSTREAM_TDOA_S)
+        "TDOA to recorder 3 (ms): "
+        + ", ".join(f"{1e3 * v:.1f}" for v in tdoa[0])
+        + " — OpenSoundscape's reference: "
+        + ", ".join(f"{1e3 * v:.1f}" for v in UPSTREAM_TDOA_S)
         + f" (largest difference {result['max_abs_diff_to_upstream_ms']:.2f} ms; its tests allow ±10 ms).",
         "",
         f"3-D fix: x = {result['position_m'][0]:.1f} m, y = {result['position_m'][1]:.1f} m, height "
@@ -107,8 +121,11 @@ def main() -> None:
         "| left out | reference | measured (ms) | predicted (ms) | error (ms) | fix x, y, height (m) | default fallback keeps it |",
         "|---|---|---|---|---|---|---|",
     ]
-    lines += [f"| {x['left_out']} | {x['reference']} | {x['measured_ms']:.2f} | {x['predicted_ms']:.2f} | {x['error_ms']:+.2f} | "
-              f"{x['fix_m'][0]:.1f}, {x['fix_m'][1]:.1f}, {x['fix_m'][2]:.0f} | {'yes' if x['fallback_kept_3d'] else 'no'} |" for x in loo]
+    lines += [
+        f"| {x['left_out']} | {x['reference']} | {x['measured_ms']:.2f} | {x['predicted_ms']:.2f} | {x['error_ms']:+.2f} | "
+        f"{x['fix_m'][0]:.1f}, {x['fix_m'][1]:.1f}, {x['fix_m'][2]:.0f} | {'yes' if x['fallback_kept_3d'] else 'no'} |"
+        for x in loo
+    ]
     lines += ["", f"RMS error {result['loo_rms_error_ms']:.2f} ms (1 ms ≈ 0.34 m of range difference)."]
     write_results("real_array", result, lines)
     log.info("\n".join(lines))

@@ -41,8 +41,17 @@ def site_runs(site: str, n_positions: int, folder: Path) -> tuple[list, dict[str
     """The three jobs of one site (each a run folder under ``folder``), in :data:`CONFIGS`' order, and their wall times, s."""
     seconds = {}
     for name, extra in CONFIGS.items():
-        args = [f"+site={site}", *METHOD, "protocol=field_eval", "field=image_source", f"field.n_positions={n_positions}", *extra,
-                "tracking=none", "plots=false", f"hydra.run.dir={folder / name}"]
+        args = [
+            f"+site={site}",
+            *METHOD,
+            "protocol=field_eval",
+            "field=image_source",
+            f"field.n_positions={n_positions}",
+            *extra,
+            "tracking=none",
+            "plots=false",
+            f"hydra.run.dir={folder / name}",
+        ]
         start = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True)
         if proc.returncode != 0:
@@ -59,14 +68,17 @@ def main() -> None:
     parser.add_argument("--n-positions", type=int, default=200, help="evaluation source positions per site (5 events each)")
     opts = parser.parse_args()
     result: dict = {"machine": machine(), "n_positions": opts.n_positions, "configs": CONFIGS, "sites": {}}
-    lines = ["# The season's fast first stage off the simulator (`+experiment=season_fast`, beside the defaults)", "",
-             f"`python experiments/season_off_simulation.py --sites {' '.join(opts.sites)} --n-positions {opts.n_positions}`: "
-             "per site, fitted on 1,000 of the site's own simulated events, evaluated on "
-             f"{5 * opts.n_positions:,} events rendered by pyroomacoustics' image-source method (`protocol=field_eval field=image_source`; "
-             "XGBoost point model, XGBoost-quantile error model, learned gate, the paper's conformal). Configurations: defaults "
-             "(`features=physics`, the default GCC search and solver), `features=physics_lean`, and `+experiment=season_fast` (the lean "
-             "set, `features.gcc.search=coarse`, `solver=consistent_set_compiled`). Failures are infinite errors; intervals are 95 % "
-             "bootstraps over source positions."]
+    lines = [
+        "# The season's fast first stage off the simulator (`+experiment=season_fast`, beside the defaults)",
+        "",
+        f"`python experiments/season_off_simulation.py --sites {' '.join(opts.sites)} --n-positions {opts.n_positions}`: "
+        "per site, fitted on 1,000 of the site's own simulated events, evaluated on "
+        f"{5 * opts.n_positions:,} events rendered by pyroomacoustics' image-source method (`protocol=field_eval field=image_source`; "
+        "XGBoost point model, XGBoost-quantile error model, learned gate, the paper's conformal). Configurations: defaults "
+        "(`features=physics`, the default GCC search and solver), `features=physics_lean`, and `+experiment=season_fast` (the lean "
+        "set, `features.gcc.search=coarse`, `solver=consistent_set_compiled`). Failures are infinite errors; intervals are 95 % "
+        "bootstraps over source positions.",
+    ]
     for site in opts.sites:
         with tempfile.TemporaryDirectory() as tmp:
             runs, seconds = site_runs(site, opts.n_positions, Path(tmp))
@@ -76,20 +88,55 @@ def main() -> None:
             errors = errors[errors["method"].isin(["solver", "gate"])]
             relative, coverage = relative_rows(runs), coverage_rows(runs)
             regions = [row for name in CONFIGS for row in region_rows(site, name, Path(tmp) / name / "predictions.parquet")]
-        result["sites"][site] = {"seconds": seconds, "errors": errors.to_dict("records"), "relative": relative.to_dict("records"),
-                                 "coverage": coverage.to_dict("records"), "regions": regions}
-        keep = [c for c in errors.columns if c in ("configuration", "method", "n (detections)", "p50 (m)", "p90 (m)", "p95 (m)", "p99 (m)",
-                                                   "p95 95 % CI (m)", "> 5 m (%)")]
-        ckeep = [c for c in coverage.columns if c in ("configuration", "scorer", "coverage@0.5 (share)", "coverage@0.8 (share)",
-                                                      "coverage@0.95 (share)", "median radius@0.95 (m)", "worst position@0.95 (share)")]
-        lines += ["", f"## {site} ({', '.join(f'{k} {v:.0f} s' for k, v in seconds.items())})", "",
-                  errors[keep].to_markdown(index=False, floatfmt=".3g"), "",
-                  "Gated error relative to the defaults (paired bootstrap over source positions; a configuration costs accuracy where "
-                  "an interval lies above 1):", "", relative.to_markdown(index=False, floatfmt=".3g"), "",
-                  "Coverage of the radii:", "", coverage[ckeep].to_markdown(index=False, floatfmt=".3g"), "",
-                  "By region (the site's simulated source region; the evaluation puts 30 % of its positions outside it): > 5 m % of "
-                  "solver / model / gate / gate_without_trust / gate_solver_only, and coverage of `fixed` at 0.50 / 0.80 / 0.95:", "",
-                  "| configuration | region (events) | > 5 m % | coverage |", "|---|---|---|---|", *regions]
+        result["sites"][site] = {
+            "seconds": seconds,
+            "errors": errors.to_dict("records"),
+            "relative": relative.to_dict("records"),
+            "coverage": coverage.to_dict("records"),
+            "regions": regions,
+        }
+        keep = [
+            c
+            for c in errors.columns
+            if c
+            in ("configuration", "method", "n (detections)", "p50 (m)", "p90 (m)", "p95 (m)", "p99 (m)", "p95 95 % CI (m)", "> 5 m (%)")
+        ]
+        ckeep = [
+            c
+            for c in coverage.columns
+            if c
+            in (
+                "configuration",
+                "scorer",
+                "coverage@0.5 (share)",
+                "coverage@0.8 (share)",
+                "coverage@0.95 (share)",
+                "median radius@0.95 (m)",
+                "worst position@0.95 (share)",
+            )
+        ]
+        lines += [
+            "",
+            f"## {site} ({', '.join(f'{k} {v:.0f} s' for k, v in seconds.items())})",
+            "",
+            errors[keep].to_markdown(index=False, floatfmt=".3g"),
+            "",
+            "Gated error relative to the defaults (paired bootstrap over source positions; a configuration costs accuracy where "
+            "an interval lies above 1):",
+            "",
+            relative.to_markdown(index=False, floatfmt=".3g"),
+            "",
+            "Coverage of the radii:",
+            "",
+            coverage[ckeep].to_markdown(index=False, floatfmt=".3g"),
+            "",
+            "By region (the site's simulated source region; the evaluation puts 30 % of its positions outside it): > 5 m % of "
+            "solver / model / gate / gate_without_trust / gate_solver_only, and coverage of `fixed` at 0.50 / 0.80 / 0.95:",
+            "",
+            "| configuration | region (events) | > 5 m % | coverage |",
+            "|---|---|---|---|",
+            *regions,
+        ]
     write_results("season_fast_off_simulation", result, lines)
     log.info("\n".join(lines))
 

@@ -63,9 +63,19 @@ def main() -> None:
     parser.add_argument("--n-events", type=int, default=1100)
     opts = parser.parse_args()
     result = {"machine": machine(), "sites": {s: evaluate(s, opts.n_events) for s in ("frozen_lake", "forest")}}
-    lines = ["# Solvers side by side", "", f"`python experiments/solvers.py --n-events {opts.n_events}` (all simulated events; errors in m; a fix outside the plausible region a run applies is a failure, an infinite error; empirical percentiles, so inf means the percentile falls among the failures)", ""]
+    lines = [
+        "# Solvers side by side",
+        "",
+        f"`python experiments/solvers.py --n-events {opts.n_events}` (all simulated events; errors in m; a fix outside the plausible region a run applies is a failure, an infinite error; empirical percentiles, so inf means the percentile falls among the failures)",
+        "",
+    ]
     for site, r in result["sites"].items():
-        lines += [f"## {site}", "", "| method | p50 | p90 | p95 | p99 | gross > 5 m | p50 / p95, lowest-SNR third | p50 / p95, highest-SNR third | ms per event |", "|---|---|---|---|---|---|---|---|---|"]
+        lines += [
+            f"## {site}",
+            "",
+            "| method | p50 | p90 | p95 | p99 | gross > 5 m | p50 / p95, lowest-SNR third | p50 / p95, highest-SNR third | ms per event |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
         for name, s in r["all"].items():
             lo, hi = r["low_snr"][name], r["high_snr"][name]
             t = r["seconds_per_event"][name]

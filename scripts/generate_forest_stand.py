@@ -46,7 +46,9 @@ def main() -> None:
     dbh = np.clip(dbh, 0.10, 0.95)
     # keep stems off the microphone poles
     keep = np.min(np.linalg.norm(xy[:, None] - MICS_XY[None], axis=2), axis=1) > 1.0
-    table = pd.DataFrame({"x_m": xy[keep, 0].round(2), "y_m": xy[keep, 1].round(2), "diameter_m": dbh[keep].round(3), "species": species[keep]})
+    table = pd.DataFrame(
+        {"x_m": xy[keep, 0].round(2), "y_m": xy[keep, 1].round(2), "diameter_m": dbh[keep].round(3), "species": species[keep]}
+    )
     out = Path(__file__).resolve().parent.parent / "acoustlab" / "data" / "sites" / "forest_trees.csv"
     out.parent.mkdir(parents=True, exist_ok=True)
     header = "# GENERATED stand (not surveyed): scripts/generate_forest_stand.py, seed %d\n" % SEED

@@ -98,8 +98,17 @@ NOT_COLUMNS = {
 
 
 #: Constants whose values are ordinary words used in many other senses (method names, config groups).
-GENERIC_WORDS = {"ESTIMATORS", "METHODS", "TRUST_PREFIX", "RADIUS_PREFIX", "POSITION_SOURCE", "GROUP_SEPARATOR", "EXTRA_GATE_PREFIX", "GATE_WITHOUT_TRUST",
-                 "METRICS_GATE"}
+GENERIC_WORDS = {
+    "ESTIMATORS",
+    "METHODS",
+    "TRUST_PREFIX",
+    "RADIUS_PREFIX",
+    "POSITION_SOURCE",
+    "GROUP_SEPARATOR",
+    "EXTRA_GATE_PREFIX",
+    "GATE_WITHOUT_TRUST",
+    "METRICS_GATE",
+}
 
 
 def _column_names() -> set[str]:
@@ -119,12 +128,20 @@ def _literal_uses(path: Path, names: set[str]) -> list[tuple[int, str]]:
     import ast
 
     tree = ast.parse(path.read_text())
-    skip = {id(n.body[0].value) for n in ast.walk(tree)
-            if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and n.body
-            and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+    skip = {
+        id(n.body[0].value)
+        for n in ast.walk(tree)
+        if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+        and n.body
+        and isinstance(n.body[0], ast.Expr)
+        and isinstance(n.body[0].value, ast.Constant)
+    }
     skip |= {id(v) for n in ast.walk(tree) if isinstance(n, ast.JoinedStr) for v in n.values}
-    return [(n.lineno, n.value) for n in ast.walk(tree)
-            if isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value in names and id(n) not in skip]
+    return [
+        (n.lineno, n.value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value in names and id(n) not in skip
+    ]
 
 
 def test_column_names_are_written_only_through_the_columns_module():

@@ -31,6 +31,8 @@ def test_multirun_over_two_sites_runs_two_jobs(run_cli, tmp_path):
 def test_runs_are_named_by_what_they_vary():
     from acoustlab.__main__ import run_name_of
 
-    assert run_name_of(["+site=forest", "model=knn", "features.drop=[solver]", "paths.outputs_dir=/x", "tracking=none",
-                        "data.n_jobs=2"]) == "forest model=knn features.drop=[solver]"
+    assert (
+        run_name_of(["+site=forest", "model=knn", "features.drop=[solver]", "paths.outputs_dir=/x", "tracking=none", "data.n_jobs=2"])
+        == "forest model=knn features.drop=[solver]"
+    )
     assert run_name_of(["+site=frozen_lake", "+experiment=smoke"]) == "frozen_lake experiment=smoke"

@@ -55,8 +55,9 @@ def test_the_season_fast_preset_is_the_lean_set_with_the_coarse_search(compose_c
     """``+experiment=season_fast`` composes to exactly ``features=physics_lean +features.gcc.search=coarse
     solver=consistent_set``, and a setting given on the command line still wins over it."""
     preset = compose_cfg(["+site=forest", "+experiment=season_fast", "protocol=season"])
-    spelled_out = compose_cfg(["+site=forest", "features=physics_lean", "+features.gcc.search=coarse", "solver=consistent_set",
-                               "protocol=season"])
+    spelled_out = compose_cfg(
+        ["+site=forest", "features=physics_lean", "+features.gcc.search=coarse", "solver=consistent_set", "protocol=season"]
+    )
     assert OmegaConf.to_container(preset) == OmegaConf.to_container(spelled_out)
     assert preset.solver._target_.endswith(".ConsistentSetSolver") and preset.features.gcc.search == "coarse"
     assert set(preset.features.groups) == set(compose_cfg(["features=physics_lean"]).features.groups)
@@ -277,19 +278,34 @@ def test_no_plugin_attribute_is_read_that_no_contract_declares():
 
     import acoustlab
 
-    contract_names = {name for obj in vars(interfaces).values() if inspect.isclass(obj) and getattr(obj, "_is_protocol", False)
-                      for name in (*getattr(obj, "__annotations__", {}), *(n for n in vars(obj) if not n.startswith("_")))}
-    allowed = {"getattr": set(interfaces.OPTIONAL_PROPERTIES) | set(interfaces.OPTIONAL_HOOKS) | contract_names | set(NOT_PLUGIN_ATTRIBUTES),
-               "declared": set(interfaces.OPTIONAL_PROPERTIES), "hook": set(interfaces.OPTIONAL_HOOKS)}
+    contract_names = {
+        name
+        for obj in vars(interfaces).values()
+        if inspect.isclass(obj) and getattr(obj, "_is_protocol", False)
+        for name in (*getattr(obj, "__annotations__", {}), *(n for n in vars(obj) if not n.startswith("_")))
+    }
+    allowed = {
+        "getattr": set(interfaces.OPTIONAL_PROPERTIES) | set(interfaces.OPTIONAL_HOOKS) | contract_names | set(NOT_PLUGIN_ATTRIBUTES),
+        "declared": set(interfaces.OPTIONAL_PROPERTIES),
+        "hook": set(interfaces.OPTIONAL_HOOKS),
+    }
     allowed["hasattr"] = allowed["getattr"]
     offenders = []
     for path in Path(acoustlab.__file__).parent.rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
-            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in allowed and len(node.args) >= 2
-                    and isinstance(node.args[1], ast.Constant) and isinstance(node.args[1].value, str)
-                    and node.args[1].value not in allowed[node.func.id]):
+            if (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Name)
+                and node.func.id in allowed
+                and len(node.args) >= 2
+                and isinstance(node.args[1], ast.Constant)
+                and isinstance(node.args[1].value, str)
+                and node.args[1].value not in allowed[node.func.id]
+            ):
                 offenders.append(f"{path.name}:{node.lineno} {node.func.id}(…, {node.args[1].value!r})")
-    assert not offenders, "attributes read by name that no contract declares (add them to OPTIONAL_PROPERTIES / OPTIONAL_HOOKS): " + ", ".join(offenders)
+    assert not offenders, (
+        "attributes read by name that no contract declares (add them to OPTIONAL_PROPERTIES / OPTIONAL_HOOKS): " + ", ".join(offenders)
+    )
 
 
 def test_declared_refuses_an_undeclared_name():
@@ -308,8 +324,11 @@ def test_srp_phat_cross_correlates_in_the_shared_gcc_band(compose_cfg):
 #: Options that are deliberate variants of a plugin (its name says how), by (group, option, plugin label) → the settings that make the variant.
 YAML_VARIANTS: dict[tuple[str, str, str], set[str]] = {
     # every conformal scorer is one SplitConformal variant: what it scales by, whether it uses the error model, its bins, its unit
-    **{("conformal", option, label): {"normaliser", "use_error_model", "binning", "n_bins", "calibration_unit"}
-       for option in group_options("conformal") for label in ("fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop")},
+    **{
+        ("conformal", option, label): {"normaliser", "use_error_model", "binning", "n_bins", "calibration_unit"}
+        for option in group_options("conformal")
+        for label in ("fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop")
+    },
     ("field", "recordings", "field"): {"mics_csv", "events_csv"},  # the shipped LOCA 2021 example; a user's own files have no default
     ("features", "physics_lean", "xcorr"): {"extra_bands_hz"},  # the lean set's xcorr: main band only
     ("features", "physics_lean_coarse", "xcorr"): {"extra_bands_hz"},  # the season's default: the lean set with the coarse GCC search
@@ -356,16 +375,20 @@ def test_python_defaults_equal_the_yaml_defaults(compose_cfg, group, option):
         resolved = OmegaConf.to_container(node, resolve=True)
         from_python = instantiate({"_target_": resolved["_target_"], **{k: resolved[k] for k in needed}}, _convert_="all")
         differing = [k for k in vars(from_yaml) if not _same(vars(from_yaml)[k], vars(from_python).get(k))]
-        assert not differing, (f"conf/{group}/{option}.yaml ({label}, {node._target_}) differs from the Python defaults in "
-                               + ", ".join(f"{k}: YAML {vars(from_yaml)[k]!r} vs Python {vars(from_python).get(k)!r}" for k in differing))
+        assert not differing, f"conf/{group}/{option}.yaml ({label}, {node._target_}) differs from the Python defaults in " + ", ".join(
+            f"{k}: YAML {vars(from_yaml)[k]!r} vs Python {vars(from_python).get(k)!r}" for k in differing
+        )
 
 
-@pytest.mark.parametrize("override,message", [
-    ("pipeline.selective.delta=1.5", "pipeline.selective.delta must lie in (0, 1); got 1.5"),
-    ("pipeline.selective.epsilon=0", "pipeline.selective.epsilon must lie in (0, 1); got 0.0"),
-    ("pipeline.selective.gross_m=-1", "pipeline.selective.gross_m must be a positive number"),
-    ("pipeline.selective.delta=0.0001", "need at least 23025 calibration events to certify anything, but data.n_events=120"),
-])
+@pytest.mark.parametrize(
+    "override,message",
+    [
+        ("pipeline.selective.delta=1.5", "pipeline.selective.delta must lie in (0, 1); got 1.5"),
+        ("pipeline.selective.epsilon=0", "pipeline.selective.epsilon must lie in (0, 1); got 0.0"),
+        ("pipeline.selective.gross_m=-1", "pipeline.selective.gross_m must be a positive number"),
+        ("pipeline.selective.delta=0.0001", "need at least 23025 calibration events to certify anything, but data.n_events=120"),
+    ],
+)
 def test_impossible_selective_settings_stop_in_the_preflight(compose_cfg, override, message):
     from acoustlab.core.errors import ConfigError
     from acoustlab.run.app import build_run

@@ -28,8 +28,12 @@ def test_bad_scores_are_refused():
 
 
 @settings(max_examples=20, deadline=None)
-@given(seed=st.integers(0, 2**31), n=st.integers(20, 200), level=st.sampled_from([0.5, 0.8, 0.9, 0.95]),
-       normaliser=st.sampled_from(["none", "gdop", "predicted_error"]))
+@given(
+    seed=st.integers(0, 2**31),
+    n=st.integers(20, 200),
+    level=st.sampled_from([0.5, 0.8, 0.9, 0.95]),
+    normaliser=st.sampled_from(["none", "gdop", "predicted_error"]),
+)
 def test_split_conformal_covers_on_exchangeable_data(seed, n, level, normaliser):
     """Average coverage over many draws lies in [1−α, 1−α + 1/(n+1)] (up to Monte-Carlo error), for every normaliser."""
     rng = np.random.default_rng(seed)
@@ -58,14 +62,19 @@ def test_fixed_is_one_additive_adjustment_and_gdop_scaled_scales_it():
     r = scaled.radius(np.array([1.0, 1.0]), test_g)[:, 0]
     assert (r[1] - 1.0) == pytest.approx(2 * (r[0] - 1.0))  # the adjustment doubles with GDOP
     only = SplitConformal("gdop", use_error_model=False).fit(err, pred, g, [0.9])
-    np.testing.assert_allclose(only.radius(np.array([0.1, 50.0]), np.array([2.0, 2.0]))[:, 0], only.radius(np.array([1.0, 1.0]), np.array([2.0, 2.0]))[:, 0])
+    np.testing.assert_allclose(
+        only.radius(np.array([0.1, 50.0]), np.array([2.0, 2.0]))[:, 0], only.radius(np.array([1.0, 1.0]), np.array([2.0, 2.0]))[:, 0]
+    )
 
 
 def test_binned_gdop_scaled_and_gdop_only_cover_on_exchangeable_data():
     rng = np.random.default_rng(0)
     reps, n, m = 300, 150, 60
-    variants = {"gdop_scaled": SplitConformal("gdop"), "gdop_only": SplitConformal("gdop", use_error_model=False),
-                "mondrian": SplitConformal("none", binning="gdop", n_bins=3)}
+    variants = {
+        "gdop_scaled": SplitConformal("gdop"),
+        "gdop_only": SplitConformal("gdop", use_error_model=False),
+        "mondrian": SplitConformal("none", binning="gdop", n_bins=3),
+    }
     hits = {k: [] for k in variants}
     for _ in range(reps):
         g = rng.uniform(1, 10, n + m)
@@ -186,12 +195,14 @@ def test_cqr_covers_and_adapts_where_fixed_cannot():
     predicted_cal, predicted_test = np.full(len(e_cal), np.median(e_fit)), np.full(len(e_test), np.median(e_fit))
     gdop_cal, gdop_test = np.ones(len(e_cal)), np.ones(len(e_test))
     fixed = SplitConformal().fit(e_cal, predicted_cal, gdop_cal, levels)
-    for model in (XGBRegressor(objective="reg:quantileerror", n_estimators=100, max_depth=3, n_jobs=1),
-                  HistGradientBoostingRegressor(loss="quantile", max_iter=100)):
+    for model in (
+        XGBRegressor(objective="reg:quantileerror", n_estimators=100, max_depth=3, n_jobs=1),
+        HistGradientBoostingRegressor(loss="quantile", max_iter=100),
+    ):
         cqr = ConformalizedQuantile(model)
         q_all = cqr.fit_predict_quantiles(x_fit, e_fit, pd.concat([x_cal, x_test]), levels)
         cqr.fit(e_cal, predicted_cal, gdop_cal, levels, quantiles=q_all[: len(e_cal)])
-        radii = cqr.radius(predicted_test, gdop_test, quantiles=q_all[len(e_cal):])
+        radii = cqr.radius(predicted_test, gdop_test, quantiles=q_all[len(e_cal) :])
         assert (np.diff(radii, axis=1) >= 0).all()
         for k, level in enumerate(levels):
             assert abs(np.mean(e_test <= radii[:, k]) - level) < 0.03, (type(model).__name__, level)

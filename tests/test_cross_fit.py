@@ -57,10 +57,23 @@ def test_position_bootstrap_interval_brackets_the_estimate_and_counts_failures()
 
 @pytest.mark.slow
 def test_cross_fit_end_to_end(compose_cfg, tmp_path):
-    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking=none",
-                       "model.n_estimators=20", "protocol=cross_fit", "protocol.n_folds=3", "gate=learned", "conformal=all",
-                       "conformal.ellipse=true", "pipeline.selective.enabled=true", "pipeline.selective.delta=0.2",
-                       "+pipeline.extra_gates.box={_target_: plugins.gates.bounding_box.BoundingBoxGate}"])
+    cfg = compose_cfg(
+        [
+            "+site=frozen_lake",
+            "+experiment=smoke",
+            f"paths.outputs_dir={tmp_path / 'outputs'}",
+            "tracking=none",
+            "model.n_estimators=20",
+            "protocol=cross_fit",
+            "protocol.n_folds=3",
+            "gate=learned",
+            "conformal=all",
+            "conformal.ellipse=true",
+            "pipeline.selective.enabled=true",
+            "pipeline.selective.delta=0.2",
+            "+pipeline.extra_gates.box={_target_: plugins.gates.bounding_box.BoundingBoxGate}",
+        ]
+    )
     metrics = run_experiment(cfg, tmp_path / "run")
     pred = pd.read_parquet(tmp_path / "run" / "predictions.parquet")
     assert len(pred) == 120 and pred["event_id"].is_unique  # every simulated event, once
@@ -75,6 +88,10 @@ def test_cross_fit_end_to_end(compose_cfg, tmp_path):
     assert (pred[col.ellipse(0.95, "a_m")] >= pred[col.ellipse(0.95, "b_m")]).all()
     assert len(metrics["selective_by_split"]) == 3
     placed = pred["placed"].to_numpy(bool)
-    assert set(pred.loc[~placed, "abstain_reason"]) <= {"no estimate", "predicted error above the certified threshold", trust.REASON_ABSTAIN}
+    assert set(pred.loc[~placed, "abstain_reason"]) <= {
+        "no estimate",
+        "predicted error above the certified threshold",
+        trust.REASON_ABSTAIN,
+    }
     assert metrics["selective"]["share_placed"] == pytest.approx(placed.mean())
     assert [r["share_placed"] for r in metrics["risk_coverage"]][0] == 1.0

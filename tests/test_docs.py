@@ -13,8 +13,16 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 #: Placeholders a reader replaces with their own paths: such commands are checked only as far as they can be.
-PLACEHOLDERS = ("…", "...", "/data/", "NAME", "DIR", "outputs/runs/2026", "outputs/multirun/2026",
-                "outputs/demo_season")  # written by the documented command before it (python -m acoustlab.synthetic_season)
+PLACEHOLDERS = (
+    "…",
+    "...",
+    "/data/",
+    "NAME",
+    "DIR",
+    "outputs/runs/2026",
+    "outputs/multirun/2026",
+    "outputs/demo_season",
+)  # written by the documented command before it (python -m acoustlab.synthetic_season)
 
 
 def documented_commands() -> list[tuple[str, str]]:
@@ -27,7 +35,7 @@ def documented_commands() -> list[tuple[str, str]]:
             for line in block.replace("\\\n", " ").split("\n"):
                 line = re.split(r"\s+#\s", line)[0].strip()  # a trailing comment
                 if "python -m acoustlab" in line:
-                    found.append((page.name, line[line.index("python -m acoustlab"):]))
+                    found.append((page.name, line[line.index("python -m acoustlab") :]))
     return found
 
 
@@ -53,7 +61,7 @@ def _overrides(args: list[str]) -> list[str]:
                 assert (REPO / "conf" / "hydra" / "launcher" / f"{value}.yaml").exists(), f"no launcher {value}"
             continue
         if value.startswith("range("):
-            value = value[len("range("):].split(",")[0]
+            value = value[len("range(") :].split(",")[0]
         elif value.startswith("["):
             value = re.match(r"\[[^\]]*\]", value)[0]
         else:
@@ -94,7 +102,12 @@ def test_every_documented_command_is_valid(page, command, compose_cfg):
 def test_the_site_builds_strictly(tmp_path):
     pytest.importorskip("mkdocs", reason='the docs extra: pip install -e ".[docs]"')
     pytest.importorskip("mkdocstrings")
-    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
-                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (tmp_path / "site" / "api" / "index.html").exists()

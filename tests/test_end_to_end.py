@@ -142,7 +142,9 @@ def test_parallel_and_sharded_generation_give_the_same_data(compose_cfg, tmp_pat
     parallel = run_experiment(smoke(compose_cfg, tmp_path / "parallel", "data.n_jobs=2"), tmp_path / "b")
     assert parallel["dataset_hash"] == serial["dataset_hash"]
     for index in (0, 1):
-        out = run_experiment(smoke(compose_cfg, tmp_path / "sharded", "data.shard_count=2", f"data.shard_index={index}"), tmp_path / f"s{index}")
+        out = run_experiment(
+            smoke(compose_cfg, tmp_path / "sharded", "data.shard_count=2", f"data.shard_index={index}"), tmp_path / f"s{index}"
+        )
         assert out == {"shard": {"index": index, "count": 2}}
     partial = list((tmp_path / "sharded" / "outputs" / "cache" / "simulation").glob("*.partial/*.npy"))
     assert len(partial) == 4  # 120 events in chunks of 32, split over two shards

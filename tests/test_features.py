@@ -20,9 +20,16 @@ def clean_batches():
     for site_name in ("frozen_lake", "forest"):
         GlobalHydra.instance().clear()
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=[f"+site={site_name}", "site.noise.snr_db=[60,60]",
-                                                            "simulator.trunks.enabled=false", "simulator.ground=false",
-                                                            "simulator.occlusion=false"])
+            cfg = compose(
+                config_name="config",
+                overrides=[
+                    f"+site={site_name}",
+                    "site.noise.snr_db=[60,60]",
+                    "simulator.trunks.enabled=false",
+                    "simulator.ground=false",
+                    "simulator.occlusion=false",
+                ],
+            )
         site = site_from_config(cfg.site)
         sim = build(cfg.simulator, "simulator")
         out[site_name] = (site, sim.simulate(site, np.arange(12), np.arange(12), 4), build_feature_sets(cfg.features))
@@ -30,7 +37,9 @@ def clean_batches():
     return out
 
 
-@pytest.mark.parametrize("site_name,expected", [("frozen_lake", 73), ("forest", 3 * 15 + 4 * 15 + 3 * 15 + 4 * 6 + (3 * 6 + 15) + 15 + (15 + 1) + (3 + 3 * 6))])
+@pytest.mark.parametrize(
+    "site_name,expected", [("frozen_lake", 73), ("forest", 3 * 15 + 4 * 15 + 3 * 15 + 4 * 6 + (3 * 6 + 15) + 15 + (15 + 1) + (3 + 3 * 6))]
+)
 def test_columns_follow_the_catalog(clean_batches, site_name, expected):
     site, batch, sets = clean_batches[site_name]
     table = extract_features(batch, site, sets)
@@ -147,8 +156,14 @@ def test_windowed_reverberation_summaries_equal_their_full_length_definitions(cl
     early_late = 10 * np.log10(np.maximum(early, 1e-20) / np.maximum(late, 1e-20))
     spread = (env_db > -10).sum(-1) / fs
     for k in range(site.n_mics):
-        reference = pd.DataFrame({f"ir__decay_{k}_db_s": slope[:, k], f"ir__early_late_{k}_db": early_late[:, k],
-                                  f"ir__rise_time_{k}_s": rise[:, k], f"ir__spread_{k}_s": spread[:, k]})
+        reference = pd.DataFrame(
+            {
+                f"ir__decay_{k}_db_s": slope[:, k],
+                f"ir__early_late_{k}_db": early_late[:, k],
+                f"ir__rise_time_{k}_s": rise[:, k],
+                f"ir__spread_{k}_s": spread[:, k],
+            }
+        )
         for name in reference:
             np.testing.assert_allclose(ours[name], reference[name], rtol=1e-9, atol=1e-9, err_msg=name)
     assert ours["ir__spread_1_s"][0] == env.shape[-1] / fs  # a silent channel is "within 10 dB" everywhere, as defined
@@ -185,10 +200,10 @@ def test_peak_to_sidelobe_rms_is_that_of_the_lag_window_bit_for_bit(clean_batche
 
     site, batch, _ = clean_batches["forest"]
     windows = lag_windows_s(site, 0.002)
-    ours = pair_candidates(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, (300.0, 10000.0),
-                           "beta_phat", 2, 0.8)
-    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, "beta_phat", (300.0, 10000.0), 2, 0.8,
-                   max_lag_s=float(windows.max()))
+    ours = pair_candidates(
+        RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, (300.0, 10000.0), "beta_phat", 2, 0.8
+    )
+    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, "beta_phat", (300.0, 10000.0), 2, 0.8, max_lag_s=float(windows.max()))
     for k, max_lag in enumerate(windows):
         np.testing.assert_array_equal(ours.sidelobe[:, k], np.sqrt(np.mean(cc[:, k, np.abs(lags) <= max_lag] ** 2, axis=-1)))
 

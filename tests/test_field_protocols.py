@@ -15,10 +15,17 @@ from acoustlab.stages.dataset import Dataset
 
 
 def toy(n_sim_pos=50, per=4, n_field_pos=6, per_field=10):
-    sim_ev = pd.DataFrame({"event_id": np.arange(n_sim_pos * per), "position_id": np.repeat(np.arange(n_sim_pos), per),
-                           "x_m": 0.0, "y_m": 0.0})
-    field_ev = pd.DataFrame({"event_id": np.arange(n_field_pos * per_field), "position_id": np.repeat(np.arange(n_field_pos), per_field),
-                             "x_m": 1.0, "y_m": 1.0})
+    sim_ev = pd.DataFrame(
+        {"event_id": np.arange(n_sim_pos * per), "position_id": np.repeat(np.arange(n_sim_pos), per), "x_m": 0.0, "y_m": 0.0}
+    )
+    field_ev = pd.DataFrame(
+        {
+            "event_id": np.arange(n_field_pos * per_field),
+            "position_id": np.repeat(np.arange(n_field_pos), per_field),
+            "x_m": 1.0,
+            "y_m": 1.0,
+        }
+    )
     feats = lambda n: pd.DataFrame({"tdoa__lag_0_1_s": np.zeros(n)})  # noqa: E731
     return Dataset(sim_ev, feats(len(sim_ev)), "a"), Dataset(field_ev, feats(len(field_ev)), "b")
 
@@ -75,9 +82,20 @@ def test_protocols_never_train_or_calibrate_on_a_withheld_position(protocol):
 def test_field_protocols_end_to_end(compose_cfg, tmp_path, protocol):
     from acoustlab.run.app import run_experiment
 
-    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", f"protocol={protocol}", "field=playback_standin",
-                       "field.stimuli={europe: 3, north_america: 3}", "model.n_estimators=40", "gate=hybrid", "conformal=all", "tracking=none",
-                       f"paths.outputs_dir={tmp_path}"])
+    cfg = compose_cfg(
+        [
+            "+site=frozen_lake",
+            "+experiment=smoke",
+            f"protocol={protocol}",
+            "field=playback_standin",
+            "field.stimuli={europe: 3, north_america: 3}",
+            "model.n_estimators=40",
+            "gate=hybrid",
+            "conformal=all",
+            "tracking=none",
+            f"paths.outputs_dir={tmp_path}",
+        ]
+    )
     metrics = run_experiment(cfg, tmp_path / "run", {"protocol": protocol})
     preds = pd.read_parquet(tmp_path / "run" / "predictions.parquet")
     assert set(preds["position_id"]) == set(range(6))

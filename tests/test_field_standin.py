@@ -8,8 +8,13 @@ from acoustlab.stages.sites import site_from_config
 
 def small_standin(compose_cfg):
     cfg = compose_cfg(
-        ["+site=frozen_lake", "field=playback_standin", "field.n_positions=3", "field.failed_position=2",
-         "field.stimuli={europe: 3, north_america: 2}"]
+        [
+            "+site=frozen_lake",
+            "field=playback_standin",
+            "field.n_positions=3",
+            "field.failed_position=2",
+            "field.stimuli={europe: 3, north_america: 2}",
+        ]
     )
     return build(cfg.field, "field"), site_from_config(cfg.site)
 

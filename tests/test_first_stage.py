@@ -123,11 +123,23 @@ def test_the_peer_heuristic_keeps_the_lowest_residual_reference():
 
 
 def site_of(mics):
-    return Site(name="t", mic_positions_m=mics, tree_positions_m=np.zeros((0, 2)), trunk_diameters_m=np.zeros(0),
-                temperature_range_c=(10.0, 10.0), relative_humidity_range_pct=(50.0, 50.0), ground_type="grass",
-                ground_flow_resistivity_kpa_s_m2=200.0, ground_impedance_model="miki", ground_layer_thickness_m=None,
-                noise_regimes=(NoiseRegime("white"),), snr_range_db=(10.0, 20.0), species_pool=("synthetic",),
-                source_height_range_m=(1.2, 1.2), hull_expansion=0.2)
+    return Site(
+        name="t",
+        mic_positions_m=mics,
+        tree_positions_m=np.zeros((0, 2)),
+        trunk_diameters_m=np.zeros(0),
+        temperature_range_c=(10.0, 10.0),
+        relative_humidity_range_pct=(50.0, 50.0),
+        ground_type="grass",
+        ground_flow_resistivity_kpa_s_m2=200.0,
+        ground_impedance_model="miki",
+        ground_layer_thickness_m=None,
+        noise_regimes=(NoiseRegime("white"),),
+        snr_range_db=(10.0, 20.0),
+        species_pool=("synthetic",),
+        source_height_range_m=(1.2, 1.2),
+        hull_expansion=0.2,
+    )
 
 
 def test_bounded_output_on_a_degenerate_geometry():
@@ -269,8 +281,14 @@ def assert_same_selection(cands, weights, prior=None, **settings):
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**31), n_mics=st.sampled_from([3, 4, 5, 6]), k=st.sampled_from([1, 2, 3]),
-       missing=st.sampled_from([0.0, 0.1, 0.5]), ties=st.booleans(), with_prior=st.booleans())
+@given(
+    seed=st.integers(0, 2**31),
+    n_mics=st.sampled_from([3, 4, 5, 6]),
+    k=st.sampled_from([1, 2, 3]),
+    missing=st.sampled_from([0.0, 0.1, 0.5]),
+    ties=st.booleans(),
+    with_prior=st.booleans(),
+)
 def test_branch_and_bound_equals_the_exhaustive_search(seed, n_mics, k, missing, ties, with_prior):
     """The fast candidate search gives the exhaustive search's choice, margins and trusted mics exactly: near-duplicate
     and spurious peaks, equal weights (ties broken by index alike), missing peaks up to whole pairs, SRP priors."""
@@ -299,8 +317,9 @@ def test_srp_disagreement_is_reported_beside_the_fix():
     site = site_of(TRIANGLE)
     src = np.array([[25.0, 15.0], [20.0, 20.0]])
     tdoa = exact_tdoa(TRIANGLE, np.column_stack([src, np.full(2, TRIANGLE[0, 2])]))
-    features = pd.DataFrame({col.tdoa_lag(0, 1): tdoa[:, 1], col.tdoa_lag(0, 2): tdoa[:, 2],
-                             "srp__x_m": [25.0, 23.0], "srp__y_m": [15.0, 24.0]})
+    features = pd.DataFrame(
+        {col.tdoa_lag(0, 1): tdoa[:, 1], col.tdoa_lag(0, 2): tdoa[:, 2], "srp__x_m": [25.0, 23.0], "srp__y_m": [15.0, 24.0]}
+    )
     events = pd.DataFrame({"speed_of_sound_m_s": [C, C]})
     out = add_solver_columns(features, events, site, HyperbolicSolver(source_height_m=float(TRIANGLE[0, 2])), 1.0)
     np.testing.assert_allclose(out["solver__srp_disagreement_m"], [0.0, 5.0], atol=1e-6)

@@ -15,9 +15,20 @@ pytestmark = pytest.mark.slow
 
 def test_predicting_in_chunks_equals_predicting_at_once_with_every_optional_output(compose_cfg, tmp_path, monkeypatch):
     """CQR, ellipses, selective localization and an extra gate: every output is a function of the fitted method and the row."""
-    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", f"paths.outputs_dir={tmp_path}", "tracking=none", "model.n_estimators=20",
-                       "conformal=all", "conformal.ellipse=true", "pipeline.selective.enabled=true", "pipeline.selective.delta=0.2",
-                       "+gate@pipeline.extra_gates.box=bounding_box"])
+    cfg = compose_cfg(
+        [
+            "+site=frozen_lake",
+            "+experiment=smoke",
+            f"paths.outputs_dir={tmp_path}",
+            "tracking=none",
+            "model.n_estimators=20",
+            "conformal=all",
+            "conformal.ellipse=true",
+            "pipeline.selective.enabled=true",
+            "pipeline.selective.delta=0.2",
+            "+gate@pipeline.extra_gates.box=bounding_box",
+        ]
+    )
     built = build_run(cfg)
     data = prepare_data(cfg, built).dataset
     groups = data.events[col.POSITION_ID].to_numpy()

@@ -13,12 +13,14 @@ from plugins.gates.simple import ModelOnlyGate, SolverOnlyGate
 def test_select_tau_known_answer():
     solver = np.concatenate([np.full(95, 1.0), np.full(5, 100.0)])  # p50 1, p99 100
     taus = np.array([1.0, 2.0, 3.0, 4.0])
-    gated = np.stack([
-        np.concatenate([np.full(95, 1.5), np.full(5, 5.0)]),   # τ=1: p99 ok but median +50 % → rejected
-        np.concatenate([np.full(95, 1.1), np.full(5, 10.0)]),  # τ=2: ok (p99 ≤ 33, median +10 %)
-        np.concatenate([np.full(95, 1.0), np.full(5, 30.0)]),  # τ=3: ok → the most permissive acceptable
-        np.concatenate([np.full(95, 1.0), np.full(5, 60.0)]),  # τ=4: p99 too high → rejected
-    ])
+    gated = np.stack(
+        [
+            np.concatenate([np.full(95, 1.5), np.full(5, 5.0)]),  # τ=1: p99 ok but median +50 % → rejected
+            np.concatenate([np.full(95, 1.1), np.full(5, 10.0)]),  # τ=2: ok (p99 ≤ 33, median +10 %)
+            np.concatenate([np.full(95, 1.0), np.full(5, 30.0)]),  # τ=3: ok → the most permissive acceptable
+            np.concatenate([np.full(95, 1.0), np.full(5, 60.0)]),  # τ=4: p99 too high → rejected
+        ]
+    )
     tau, grid, met = select_tau(solver, gated, taus)
     assert met and tau == 3.0
     assert list(grid.columns) == ["tau_db", "p50_m", "p99_m"]
@@ -27,8 +29,23 @@ def test_select_tau_known_answer():
 
 
 def site3():
-    return Site("t", np.array([[0.0, 0, 1], [40, 0, 1], [20, 35, 1]]), np.zeros((0, 2)), np.zeros(0), (10, 10), (50, 50),
-                "x", 100.0, "rigid", None, (NoiseRegime("white"),), (10, 10), ("synthetic",), (1.0, 1.0), 0.2)
+    return Site(
+        "t",
+        np.array([[0.0, 0, 1], [40, 0, 1], [20, 35, 1]]),
+        np.zeros((0, 2)),
+        np.zeros(0),
+        (10, 10),
+        (50, 50),
+        "x",
+        100.0,
+        "rigid",
+        None,
+        (NoiseRegime("white"),),
+        (10, 10),
+        ("synthetic",),
+        (1.0, 1.0),
+        0.2,
+    )
 
 
 def test_hybrid_gate_uses_box_then_energy():
@@ -79,8 +96,14 @@ def gate_scene(n=400, seed=0):
     solver[diverged] = 1e5
     model = truth + rng.normal(0, 2.0, (n, 2))
     residual = np.where(gross, rng.uniform(0.5, 2.0, n), rng.uniform(0.0, 0.6, n))  # an informative solver diagnostic
-    features = pd.DataFrame({**{f"environment__level_{m}_db": levels[:, m] for m in range(3)}, "solver__residual_m": residual,
-                             "solver__x_m": solver[:, 0], "solver__y_m": solver[:, 1]})
+    features = pd.DataFrame(
+        {
+            **{f"environment__level_{m}_db": levels[:, m] for m in range(3)},
+            "solver__residual_m": residual,
+            "solver__x_m": solver[:, 0],
+            "solver__y_m": solver[:, 1],
+        }
+    )
     return site, solver, model, truth, features, np.arange(n) // 5, gross
 
 

@@ -77,9 +77,14 @@ def test_the_shipped_real_array_gives_the_reference_tdoas_with_the_coarse_search
     np.testing.assert_allclose(tdoa_matrix(table, 6)[0], UPSTREAM_LOCA_TDOA_S, atol=1e-3)
 
 
-@pytest.mark.parametrize("settings,message", [({"search": "medium"}, "must be 'fine' or 'coarse'"),
-                                              ({"search": "coarse", "upsample": 4}, "upsample=4"),
-                                              ({"search": "coarse", "upsample": 1}, "upsample=1")])
+@pytest.mark.parametrize(
+    "settings,message",
+    [
+        ({"search": "medium"}, "must be 'fine' or 'coarse'"),
+        ({"search": "coarse", "upsample": 4}, "upsample=4"),
+        ({"search": "coarse", "upsample": 1}, "upsample=1"),
+    ],
+)
 def test_bad_search_settings_are_config_errors_naming_the_setting(settings, message):
     with pytest.raises(ConfigError, match=f"features.gcc.search.*{message}"):
         TdoaCandidates(gcc=settings)
@@ -141,8 +146,12 @@ def test_window_peaks_equal_the_sorted_masked_maxima_with_ties_and_plateaus(dtyp
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.lists(st.floats(-4, 4, width=32), min_size=4, max_size=60), min_size=1, max_size=4).filter(
-    lambda rows: len({len(r) for r in rows}) == 1), st.integers(1, 20))
+@given(
+    st.lists(st.lists(st.floats(-4, 4, width=32), min_size=4, max_size=60), min_size=1, max_size=4).filter(
+        lambda rows: len({len(r) for r in rows}) == 1
+    ),
+    st.integers(1, 20),
+)
 def test_window_peaks_hold_for_any_rows(rows, m):
     """Arbitrary float32 rows (Hypothesis): the same peaks as the reference, in the same order."""
     _assert_same_peaks(np.array(rows, dtype=np.float32), m, m)
@@ -171,6 +180,7 @@ def test_a_centre_that_is_no_fine_peak_does_not_hide_a_later_one():
     index = np.array([[7, 7, 3, 7, 3]])
     kept = np.array([[False, True, True, True, True]])
     np.testing.assert_array_equal(_repeated(index, kept), [[False, False, False, True, True]])
+
 
 @pytest.mark.parametrize("length", [20, 33, 400])
 def test_fine_samples_from_window_views_equal_the_clamped_gathers(length):

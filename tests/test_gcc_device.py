@@ -33,17 +33,31 @@ def _assert_same_candidates(ours_lags, ours_heights, ours_sidelobe, reference, s
 
 
 @pytest.mark.parametrize("site_name", ["frozen_lake", "forest"])
-@pytest.mark.parametrize("weighting,band,band_limited", [("beta_phat", (300.0, 10000.0), False), ("phat", None, False),
-                                                         ("none", (1000.0, 4000.0), True), ("beta_phat", "per_event", True)])
+@pytest.mark.parametrize(
+    "weighting,band,band_limited",
+    [("beta_phat", (300.0, 10000.0), False), ("phat", None, False), ("none", (1000.0, 4000.0), True), ("beta_phat", "per_event", True)],
+)
 def test_torch_gcc_gives_the_numpy_paths_peaks(noisy_batches, site_name, weighting, band, band_limited):
     site, batch = noisy_batches[site_name]
     if band == "per_event":  # one band per event, as detector tables give them
         band = np.tile([[500.0, 8000.0]], (batch.n_events, 1))
         band[::2] = [1500.0, 6000.0]
-    reference = pair_candidates(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, band, weighting, 2, 0.8,
-                                band_limited)
-    lags, heights, sidelobe = pair_candidates_torch(batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, 0.002), 3,
-                                                    weighting, band, 2, 0.8, band_limited, device="cpu")
+    reference = pair_candidates(
+        RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, band, weighting, 2, 0.8, band_limited
+    )
+    lags, heights, sidelobe = pair_candidates_torch(
+        batch.audio,
+        site.mic_pairs,
+        batch.sample_rate_hz,
+        lag_windows_s(site, 0.002),
+        3,
+        weighting,
+        band,
+        2,
+        0.8,
+        band_limited,
+        device="cpu",
+    )
     _assert_same_candidates(lags, heights, sidelobe, reference, batch.sample_rate_hz, 2)
     assert np.isfinite(lags[..., 0]).all()
 
@@ -53,8 +67,9 @@ def test_a_pair_window_narrower_than_k_peaks_leaves_the_missing_candidates_nan(n
     (up to the half lag step parabolic refinement may add at the window's edge)."""
     site, batch = noisy_batches["frozen_lake"]
     windows = np.full(len(site.mic_pairs), 1.5 / batch.sample_rate_hz)  # ±1.5 samples: at most a couple of maxima
-    lags, heights, _ = pair_candidates_torch(batch.audio, site.mic_pairs, batch.sample_rate_hz, windows, 3, "beta_phat",
-                                             (300.0, 10000.0), 2, 0.8, device="cpu")
+    lags, heights, _ = pair_candidates_torch(
+        batch.audio, site.mic_pairs, batch.sample_rate_hz, windows, 3, "beta_phat", (300.0, 10000.0), 2, 0.8, device="cpu"
+    )
     assert np.isnan(lags[..., -1]).any()
     np.testing.assert_array_equal(np.isnan(lags), np.isnan(heights))
     assert np.nanmax(np.abs(lags)) <= windows[0] + 0.5 / (2 * batch.sample_rate_hz) + 1e-15
@@ -82,7 +97,8 @@ def test_feature_groups_route_the_gcc_to_the_configured_device(noisy_batches, mo
     monkeypatch.setattr(gcc_torch, "pair_candidates_torch", on_cpu)
     site, batch = noisy_batches["frozen_lake"]
     on_gpu = groups.TdoaCandidates(gcc={"device": "cuda:0", "device_memory_gb": 1.5}).transform(
-        RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site)
+        RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site
+    )
     on_host = groups.TdoaCandidates().transform(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site)
     assert seen == [("cuda:0", 1.5)]
     assert list(on_gpu.columns) == list(on_host.columns)
@@ -100,7 +116,9 @@ def test_an_unknown_device_is_a_config_error_naming_the_setting(device, message)
 def test_events_in_several_passes_give_the_peaks_of_one_pass(noisy_batches, band):
     """A memory bound of one event per pass: the same peaks as the whole batch at once (per-event bands cut with their events)."""
     site, batch = noisy_batches["frozen_lake"]
-    bands = (300.0, 10000.0) if band == "one" else np.tile([[500.0, 8000.0]], (batch.n_events, 1)) + np.arange(batch.n_events)[:, None] * 100.0
+    bands = (
+        (300.0, 10000.0) if band == "one" else np.tile([[500.0, 8000.0]], (batch.n_events, 1)) + np.arange(batch.n_events)[:, None] * 100.0
+    )
     args = (batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, 0.002), 3, "beta_phat", bands, 2, 0.8, True)
     size = gcc_lengths(batch.audio.shape[-1], batch.sample_rate_hz, 2, float(lag_windows_s(site, 0.002).max()), bands, True)
     tiny = 1.5 / (events_per_pass(1.0, site.n_mics, len(site.mic_pairs), size) + 1)  # GiB of about 1.5 events
@@ -121,6 +139,7 @@ def test_events_per_pass_grows_with_the_memory_and_refuses_a_non_positive_bound(
         with pytest.raises(ConfigError, match="features.gcc.device_memory_gb must be > 0"):
             events_per_pass(bad, 6, 15, size)
     from plugins.features.gcc_groups import TdoaCandidates
+
     with pytest.raises(ConfigError, match="features.gcc.device_memory_gb must be > 0"):
         TdoaCandidates(gcc={"device_memory_gb": 0})
 
@@ -133,8 +152,18 @@ def test_a_gpu_out_of_memory_stops_with_the_setting_named(noisy_batches, monkeyp
 
     monkeypatch.setattr(gcc_torch, "_correlation", out_of_memory)
     with pytest.raises(ConfigError, match=r"ran the GPU out of memory; lower features.gcc.device_memory_gb \(now 4.0 GiB\)"):
-        pair_candidates_torch(batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, 0.002), 3, "beta_phat",
-                              (300.0, 10000.0), 2, 0.8, device="cpu")
+        pair_candidates_torch(
+            batch.audio,
+            site.mic_pairs,
+            batch.sample_rate_hz,
+            lag_windows_s(site, 0.002),
+            3,
+            "beta_phat",
+            (300.0, 10000.0),
+            2,
+            0.8,
+            device="cpu",
+        )
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA GPU is visible")
@@ -150,8 +179,17 @@ def test_a_method_fitted_on_a_gpu_and_run_without_one_stops_with_the_setting_nam
     """A loaded method does not run its constructors again: the GCC itself checks its device (a shard on a CPU node)."""
     site, batch = noisy_batches["frozen_lake"]
     with pytest.raises(ConfigError, match="features.gcc.device=cuda: torch .* sees no CUDA GPU"):
-        pair_candidates(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, (300.0, 10000.0), "beta_phat",
-                        2, 0.8, device="cuda")
+        pair_candidates(
+            RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events),
+            site,
+            3,
+            0.002,
+            (300.0, 10000.0),
+            "beta_phat",
+            2,
+            0.8,
+            device="cuda",
+        )
 
 
 def test_the_default_config_does_not_name_a_device(compose_cfg):
@@ -166,8 +204,18 @@ def test_the_default_config_does_not_name_a_device(compose_cfg):
 @pytest.mark.gpu
 def test_cuda_gcc_gives_the_numpy_paths_peaks(noisy_batches):
     site, batch = noisy_batches["forest"]
-    reference = pair_candidates(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, (300.0, 10000.0),
-                                "beta_phat", 2, 0.8)
-    ours = pair_candidates(RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, (300.0, 10000.0),
-                           "beta_phat", 2, 0.8, device="cuda")
+    reference = pair_candidates(
+        RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events), site, 3, 0.002, (300.0, 10000.0), "beta_phat", 2, 0.8
+    )
+    ours = pair_candidates(
+        RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events),
+        site,
+        3,
+        0.002,
+        (300.0, 10000.0),
+        "beta_phat",
+        2,
+        0.8,
+        device="cuda",
+    )
     _assert_same_candidates(ours.lags_s, ours.heights, ours.sidelobe, reference, batch.sample_rate_hz, 2)

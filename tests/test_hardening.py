@@ -48,8 +48,9 @@ def lake_folder(root, n_events=3, duration_s=2.0, seed=0):
 
 
 def folder(root, **kwargs) -> RecordingFolder:
-    return RecordingFolder(audio_dir=str(root), mics_csv=str(root / "mics.csv"), events_csv=str(root / "events.csv"),
-                           sample_rate_hz=RATE, **kwargs)
+    return RecordingFolder(
+        audio_dir=str(root), mics_csv=str(root / "mics.csv"), events_csv=str(root / "events.csv"), sample_rate_hz=RATE, **kwargs
+    )
 
 
 @pytest.fixture
@@ -60,24 +61,32 @@ def lake_site(compose_cfg, tmp_path):
 
 
 # ------------------------------------------------------------------------------------- config values
-@pytest.mark.parametrize(("override", "named"), [
-    ("data.n_jobs=0", "data.n_jobs"),
-    ("seed=-1", "seed"),
-    ("site.relative_humidity_pct=[70,250]", "site.relative_humidity_pct"),
-    ("site.temperature_c=[10,400]", "site.temperature_c"),
-    ("cache.file_mode=abc", "cache.file_mode"),
-    ("cache.file_mode=0200", "cache.file_mode"),
-    ("data.n_events=0", "data.n_events"),
-])
+@pytest.mark.parametrize(
+    ("override", "named"),
+    [
+        ("data.n_jobs=0", "data.n_jobs"),
+        ("seed=-1", "seed"),
+        ("site.relative_humidity_pct=[70,250]", "site.relative_humidity_pct"),
+        ("site.temperature_c=[10,400]", "site.temperature_c"),
+        ("cache.file_mode=abc", "cache.file_mode"),
+        ("cache.file_mode=0200", "cache.file_mode"),
+        ("data.n_events=0", "data.n_events"),
+    ],
+)
 def test_bad_config_values_stop_in_the_preflight_naming_the_key(compose_cfg, tmp_path, override, named):
     cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", "tracking=none", f"paths.outputs_dir={tmp_path}", override])
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
         build_run(cfg)
 
 
-@pytest.mark.parametrize(("override", "message"), [("data.n_events=abc", "data.n_events must be an integer; got 'abc'"),
-                                                  ("seed=1.5", "seed must be an integer; got '1.5'"),
-                                                  ("pipeline.plausible_margin_fraction=wide", "must be a number; got 'wide'")])
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("data.n_events=abc", "data.n_events must be an integer; got 'abc'"),
+        ("seed=1.5", "seed must be an integer; got '1.5'"),
+        ("pipeline.plausible_margin_fraction=wide", "must be a number; got 'wide'"),
+    ],
+)
 def test_a_wrong_type_is_one_line_before_hydra_and_still_fails_when_composing(compose_cfg, override, message):
     from hydra.errors import ConfigCompositionException
 
@@ -123,17 +132,20 @@ def test_mics_table_coordinates_that_are_not_numbers_are_named(tmp_path_factory,
         folder(root).validate()
 
 
-@pytest.mark.parametrize(("edit", "message"), [
-    (lambda e: e.iloc[:0], "has a header but no rows"),
-    (lambda e: e.assign(event_id=[0, 0, 1]), "appears more than once"),
-    (lambda e: e.assign(end_s=[1.0, 3600.0, 1.0]), "lasts 3599.5 s, more than field.max_event_s"),
-    (lambda e: e.assign(end_s=[0.2, 1.0, 1.0]), "end_s 0.2 is not after start_s 0.5"),
-    (lambda e: e.assign(file=["ev0.wav", "../../../../etc/passwd", "ev2.wav"]), "outside field.audio_dir"),
-    (lambda e: e.assign(file=["ev0.wav", "/etc/passwd", "ev2.wav"]), "outside field.audio_dir"),
-    (lambda e: e.assign(file=["ev0.wav", "missing.wav", "ev2.wav"]), "missing.wav does not exist"),
-    (lambda e: e.assign(relative_humidity_pct=[50, 140, 50]), "relative_humidity_pct"),
-    (lambda e: e.assign(position_id=[0, 0.5, 1]), "not a whole number"),
-])
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda e: e.iloc[:0], "has a header but no rows"),
+        (lambda e: e.assign(event_id=[0, 0, 1]), "appears more than once"),
+        (lambda e: e.assign(end_s=[1.0, 3600.0, 1.0]), "lasts 3599.5 s, more than field.max_event_s"),
+        (lambda e: e.assign(end_s=[0.2, 1.0, 1.0]), "end_s 0.2 is not after start_s 0.5"),
+        (lambda e: e.assign(file=["ev0.wav", "../../../../etc/passwd", "ev2.wav"]), "outside field.audio_dir"),
+        (lambda e: e.assign(file=["ev0.wav", "/etc/passwd", "ev2.wav"]), "outside field.audio_dir"),
+        (lambda e: e.assign(file=["ev0.wav", "missing.wav", "ev2.wav"]), "missing.wav does not exist"),
+        (lambda e: e.assign(relative_humidity_pct=[50, 140, 50]), "relative_humidity_pct"),
+        (lambda e: e.assign(position_id=[0, 0.5, 1]), "not a whole number"),
+    ],
+)
 def test_bad_events_tables_stop_in_the_preflight(tmp_path, edit, message):
     _, events = lake_folder(tmp_path)
     edit(events).to_csv(tmp_path / "events.csv", index=False)
@@ -155,13 +167,20 @@ def test_opensoundscape_tables_with_text_classes_or_unknown_files(tmp_path):
     pd.DataFrame({"file": ["a.wav", "b.wav", "c.wav"], "x": [0, 40, 20], "y": [0, 0, 35]}).to_csv(tmp_path / "coords.csv", index=False)
     for k in "abc":
         sf.write(tmp_path / f"{k}.wav", np.zeros(RATE, np.float32), RATE)
-    make = lambda: RecordingFolder(audio_dir=str(tmp_path), coords_csv=str(tmp_path / "coords.csv"),  # noqa: E731
-                                   detections_csv=str(tmp_path / "det.csv"), sample_rate_hz=RATE)
+    make = lambda: RecordingFolder(
+        audio_dir=str(tmp_path),
+        coords_csv=str(tmp_path / "coords.csv"),  # noqa: E731
+        detections_csv=str(tmp_path / "det.csv"),
+        sample_rate_hz=RATE,
+    )
     pd.DataFrame({"file": ["a.wav", "b.wav", "c.wav"], "start_time": 0.1, "end_time": 0.4, "zeep": ["yes", "no", "yes"]}).to_csv(
-        tmp_path / "det.csv", index=False)
+        tmp_path / "det.csv", index=False
+    )
     with pytest.raises(DataError, match="det.csv, line 2, column 'zeep'"):
         make().validate()
-    pd.DataFrame({"file": ["x.wav", "y.wav", "z.wav"], "start_time": 0.1, "end_time": 0.4, "zeep": 1}).to_csv(tmp_path / "det.csv", index=False)
+    pd.DataFrame({"file": ["x.wav", "y.wav", "z.wav"], "start_time": 0.1, "end_time": 0.4, "zeep": 1}).to_csv(
+        tmp_path / "det.csv", index=False
+    )
     with pytest.raises(DataError, match="none of its files .* is in the coords table"):
         make().validate()
     pd.DataFrame({"file": ["a.wav", "b.wav"], "start_time": 0.1, "end_time": 0.4, "zeep": 1}).to_csv(tmp_path / "det.csv", index=False)
@@ -171,8 +190,9 @@ def test_opensoundscape_tables_with_text_classes_or_unknown_files(tmp_path):
 
 # --------------------------------------------------------------------------------------------- audio
 @settings(max_examples=60, deadline=None)
-@given(n=st.integers(1, 400), start=st.integers(-500, 500), length=st.integers(1, 300), margin=st.integers(0, 20),
-       seed=st.integers(0, 2**16))
+@given(
+    n=st.integers(1, 400), start=st.integers(-500, 500), length=st.integers(1, 300), margin=st.integers(0, 20), seed=st.integers(0, 2**16)
+)
 def test_clip_quality_places_samples_at_their_true_offset(n, start, length, margin, seed):
     signal = np.random.default_rng(seed).uniform(-0.5, 0.5, n).astype(np.float32)
     length += 2 * margin  # the event itself is never empty
@@ -205,8 +225,10 @@ def test_clip_quality_names_what_is_wrong(kind, seed):
         signal[where] = 1.0
     clip, reasons = clip_quality(signal, 0, 1000, QualityThresholds())
     assert np.isfinite(clip).all()
-    assert reasons == {"nan": ["nonfinite"], "inf": ["nonfinite"], "zeros": ["dead"], "constant": ["dead"], "clipped": ["clipped"],
-                       "fine": []}[kind]
+    assert (
+        reasons
+        == {"nan": ["nonfinite"], "inf": ["nonfinite"], "zeros": ["dead"], "constant": ["dead"], "clipped": ["clipped"], "fine": []}[kind]
+    )
 
 
 def test_damaged_recordings_are_flagged_not_localized_from_zeros(tmp_path, lake_site):
@@ -227,9 +249,14 @@ def test_damaged_recordings_are_flagged_not_localized_from_zeros(tmp_path, lake_
     events.to_csv(root / "events.csv", index=False)
     batch = folder(root).load(lake_site)
     flags = batch.events["quality_flags"].tolist()
-    assert flags == ["mic c: dead", "mic c: dead", "mic a: nonfinite", "mic a: truncated; mic b: truncated; mic c: truncated",
-                     "mic a: out_of_range; mic b: out_of_range; mic c: out_of_range",
-                     "mic a: truncated; mic b: truncated; mic c: truncated"]
+    assert flags == [
+        "mic c: dead",
+        "mic c: dead",
+        "mic a: nonfinite",
+        "mic a: truncated; mic b: truncated; mic c: truncated",
+        "mic a: out_of_range; mic b: out_of_range; mic c: out_of_range",
+        "mic a: truncated; mic b: truncated; mic c: truncated",
+    ]
     assert batch.events["hardware_failure"].tolist() == [True, True, False, False, False, False]
     assert np.isfinite(batch.audio).all()
     # the event that begins before its file keeps its samples at their true times: the file's first sample lands 0.2 s + pad in
@@ -255,11 +282,25 @@ def test_flagged_detections_are_kept_unplaced_with_their_reason(compose_cfg, tmp
         rows.append({"event_id": k, "start_s": 0.05, "end_s": audio.shape[-1] / batch.sample_rate_hz - 0.05, "file": f"e{k}.wav"})
     pd.DataFrame(rows).to_csv(root / "events.csv", index=False)
     pd.DataFrame({"x_m": site.mic_positions_m[:, 0], "y_m": site.mic_positions_m[:, 1], "z_m": site.mic_positions_m[:, 2]}).to_csv(
-        root / "mics.csv", index=False)
-    cfg = compose_cfg(["+site=frozen_lake", "simulator=free_field", "protocol=localize", "field=recordings", "+experiment=smoke",
-                       "tracking=none", "model.n_estimators=20", "plots=false", f"paths.outputs_dir={tmp_path / 'out'}",
-                       f"field.audio_dir={root}", f"field.mics_csv={root / 'mics.csv'}", f"field.events_csv={root / 'events.csv'}",
-                       f"field.sample_rate_hz={batch.sample_rate_hz}"])
+        root / "mics.csv", index=False
+    )
+    cfg = compose_cfg(
+        [
+            "+site=frozen_lake",
+            "simulator=free_field",
+            "protocol=localize",
+            "field=recordings",
+            "+experiment=smoke",
+            "tracking=none",
+            "model.n_estimators=20",
+            "plots=false",
+            f"paths.outputs_dir={tmp_path / 'out'}",
+            f"field.audio_dir={root}",
+            f"field.mics_csv={root / 'mics.csv'}",
+            f"field.events_csv={root / 'events.csv'}",
+            f"field.sample_rate_hz={batch.sample_rate_hz}",
+        ]
+    )
     metrics = run_experiment(cfg, tmp_path / "run")
     table = pd.read_csv(tmp_path / "run" / "positions.csv", keep_default_na=False)
     assert len(table) == 4 and not bool(table["placed"].iloc[2])
@@ -286,8 +327,9 @@ def flip_bytes(path, offset_fraction=0.5, n=3):
     path.write_bytes(bytes(data))
 
 
-@pytest.mark.parametrize("damage", ["truncate features", "flip features", "flip chunk", "truncate chunk", "delete manifest",
-                                    "bad parquet metadata"])
+@pytest.mark.parametrize(
+    "damage", ["truncate features", "flip features", "flip chunk", "truncate chunk", "delete manifest", "bad parquet metadata"]
+)
 def test_a_damaged_cache_entry_is_discarded_and_rebuilt_identically(compose_cfg, tmp_path, caplog, damage):
     load = tiny_dataset(compose_cfg, tmp_path / "cache")
     clean = load()
@@ -376,8 +418,9 @@ def test_a_plotting_failure_never_loses_the_metrics(compose_cfg, tmp_path, monke
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(plots, "write_run_plots", broken)
-    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", "tracking=none", "model.n_estimators=20",
-                       f"paths.outputs_dir={tmp_path / 'out'}"])
+    cfg = compose_cfg(
+        ["+site=frozen_lake", "+experiment=smoke", "tracking=none", "model.n_estimators=20", f"paths.outputs_dir={tmp_path / 'out'}"]
+    )
     caplog.set_level(logging.WARNING)
     metrics = run_experiment(cfg, tmp_path / "run")
     on_disk = json.loads((tmp_path / "run" / "metrics.json").read_text())
@@ -389,7 +432,8 @@ def test_a_plotting_failure_never_loses_the_metrics(compose_cfg, tmp_path, monke
 def test_projected_mic_coordinates_that_disagree_with_the_local_ones_are_named(tmp_path):
     mics, _ = lake_folder(tmp_path)
     mics.assign(easting_m=mics["x_m"] + 500000.0, northing_m=mics["y_m"] + [0.0, 0.0, 3.0], crs="EPSG:32617").to_csv(
-        tmp_path / "mics.csv", index=False)
+        tmp_path / "mics.csv", index=False
+    )
     with pytest.raises(DataError, match=r"mics.csv, line \d: x_m, y_m and easting_m, northing_m disagree by"):
         folder(tmp_path).projection()
     mics.assign(easting_m=mics["x_m"] + 500000.0, northing_m=mics["y_m"] + 4100000.0).to_csv(tmp_path / "mics.csv", index=False)

@@ -58,7 +58,12 @@ def test_known_mic_heights_and_assumed_source_height():
 
 
 @settings(max_examples=25, deadline=None)
-@given(shift=st.tuples(st.floats(-500, 500), st.floats(-500, 500)), angle=st.floats(0, 2 * np.pi), u=st.floats(0.05, 0.45), v=st.floats(0.05, 0.45))
+@given(
+    shift=st.tuples(st.floats(-500, 500), st.floats(-500, 500)),
+    angle=st.floats(0, 2 * np.pi),
+    u=st.floats(0.05, 0.45),
+    v=st.floats(0.05, 0.45),
+)
 def test_translation_and_rotation_invariance(shift, angle, u, v):
     xy = HEXAGON[0, :2] + u * (HEXAGON[2, :2] - HEXAGON[0, :2]) + v * (HEXAGON[4, :2] - HEXAGON[0, :2])
     rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])

@@ -15,8 +15,18 @@ LEVELS = ["0.5", "0.8", "0.95"]
 
 
 def localize(compose_cfg, tmp_path, *overrides):
-    cfg = compose_cfg([*overrides, "protocol=localize", "field=recordings", "+experiment=smoke", "tracking=none", "model.n_estimators=20",
-                       "conformal=all", f"paths.outputs_dir={tmp_path / 'outputs'}"])
+    cfg = compose_cfg(
+        [
+            *overrides,
+            "protocol=localize",
+            "field=recordings",
+            "+experiment=smoke",
+            "tracking=none",
+            "model.n_estimators=20",
+            "conformal=all",
+            f"paths.outputs_dir={tmp_path / 'outputs'}",
+        ]
+    )
     run_dir = tmp_path / "run"
     metrics = run_experiment(cfg, run_dir)
     return pd.read_csv(run_dir / "positions.csv"), metrics, run_dir
@@ -30,8 +40,20 @@ def check_radii(table):
 
 def test_localize_the_shipped_loca_example(compose_cfg, tmp_path):
     table, metrics, run_dir = localize(compose_cfg, tmp_path, "+site=loca2021", "features.gcc.band_hz=[6000,10500]", "solver.dimensions=3")
-    assert len(table) == 1 and {"x_m", "y_m", "z_m", "solver_x_m", "model_x_m", "source", "predicted_error_m", "placed",
-                                "abstain_reason", "gate_reason", "solver__failure", "solver__height_gdop"} <= set(table.columns)
+    assert len(table) == 1 and {
+        "x_m",
+        "y_m",
+        "z_m",
+        "solver_x_m",
+        "model_x_m",
+        "source",
+        "predicted_error_m",
+        "placed",
+        "abstain_reason",
+        "gate_reason",
+        "solver__failure",
+        "solver__height_gdop",
+    } <= set(table.columns)
     check_radii(table)
     assert metrics["localization"]["n_detections"] == 1
     assert "errors" not in metrics  # no truth, no error metrics
@@ -54,23 +76,41 @@ def simulated_folder(compose_cfg, folder, n_events, known=0, rotation_deg=None):
     rows = []
     for k, audio in enumerate(batch.audio):
         sf.write(folder / f"event_{k}.wav", audio.T, int(batch.sample_rate_hz))
-        row = {"event_id": k, "start_s": 0.0, "end_s": audio.shape[-1] / batch.sample_rate_hz, "file": f"event_{k}.wav",
-               "temperature_c": batch.events["temperature_c"].iloc[k], "relative_humidity_pct": batch.events["relative_humidity_pct"].iloc[k],
-               "position_id": k}
+        row = {
+            "event_id": k,
+            "start_s": 0.0,
+            "end_s": audio.shape[-1] / batch.sample_rate_hz,
+            "file": f"event_{k}.wav",
+            "temperature_c": batch.events["temperature_c"].iloc[k],
+            "relative_humidity_pct": batch.events["relative_humidity_pct"].iloc[k],
+            "position_id": k,
+        }
         if k < known:
             row.update(x_m=batch.events["x_m"].iloc[k], y_m=batch.events["y_m"].iloc[k])
         rows.append(row)
     pd.DataFrame(rows).to_csv(folder / "events.csv", index=False)
-    mics = pd.DataFrame({"mic_id": range(site.n_mics), "x_m": site.mic_positions_m[:, 0], "y_m": site.mic_positions_m[:, 1],
-                         "z_m": site.mic_positions_m[:, 2]})
+    mics = pd.DataFrame(
+        {
+            "mic_id": range(site.n_mics),
+            "x_m": site.mic_positions_m[:, 0],
+            "y_m": site.mic_positions_m[:, 1],
+            "z_m": site.mic_positions_m[:, 2],
+        }
+    )
     if rotation_deg is not None:
         a = np.deg2rad(rotation_deg)
         rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
         projected = site.mic_positions_m[:, :2] @ rotation.T + [500000.0, 4100000.0]
         mics = mics.assign(easting_m=projected[:, 0], northing_m=projected[:, 1], crs="EPSG:32617")
     mics.to_csv(folder / "mics.csv", index=False)
-    overrides = ["+site=frozen_lake", "simulator=free_field", f"field.audio_dir={folder}", f"field.mics_csv={folder / 'mics.csv'}",
-                 f"field.events_csv={folder / 'events.csv'}", f"field.sample_rate_hz={batch.sample_rate_hz}"]
+    overrides = [
+        "+site=frozen_lake",
+        "simulator=free_field",
+        f"field.audio_dir={folder}",
+        f"field.mics_csv={folder / 'mics.csv'}",
+        f"field.events_csv={folder / 'events.csv'}",
+        f"field.sample_rate_hz={batch.sample_rate_hz}",
+    ]
     return batch, overrides
 
 

@@ -16,10 +16,19 @@ def test_paper_experiments_carry_the_published_figures(compose_cfg, experiment, 
 
 
 def test_paper_comparison_reads_dotted_paths_including_level_keys():
-    metrics = {"errors": {"solver": {"p50": 0.07, "p99": float("inf")}}, "coverage": {"gdop_scaled": {"0.8": 0.79}},
-               "spearman_rho": {"gdop": None}}
-    rows, lines = paper_comparison({"source": "s", "note": "n", "figures": {"errors.solver.p50": 0.14, "errors.solver.p99": 71.4,
-                                                                             "coverage.gdop_scaled.0.8": 0.78, "spearman_rho.gdop": 0.22}}, metrics)
+    metrics = {
+        "errors": {"solver": {"p50": 0.07, "p99": float("inf")}},
+        "coverage": {"gdop_scaled": {"0.8": 0.79}},
+        "spearman_rho": {"gdop": None},
+    }
+    rows, lines = paper_comparison(
+        {
+            "source": "s",
+            "note": "n",
+            "figures": {"errors.solver.p50": 0.14, "errors.solver.p99": 71.4, "coverage.gdop_scaled.0.8": 0.78, "spearman_rho.gdop": 0.22},
+        },
+        metrics,
+    )
     by = {r["quantity"]: r for r in rows}
     assert by["errors.solver.p50"]["ours"] == 0.07 and by["errors.solver.p50"]["ratio"] == pytest.approx(0.5)
     assert by["coverage.gdop_scaled.0.8"]["ours"] == 0.79

@@ -20,8 +20,23 @@ from plugins.gates.learned import LearnedGate
 
 
 def site3() -> Site:
-    return Site("t", np.array([[0.0, 0, 1], [40, 0, 1], [20, 35, 1]]), np.zeros((0, 2)), np.zeros(0), (10, 10), (50, 50),
-                "x", 100.0, "rigid", None, (NoiseRegime("white"),), (10, 10), ("synthetic",), (1.0, 1.0), 0.2)
+    return Site(
+        "t",
+        np.array([[0.0, 0, 1], [40, 0, 1], [20, 35, 1]]),
+        np.zeros((0, 2)),
+        np.zeros(0),
+        (10, 10),
+        (50, 50),
+        "x",
+        100.0,
+        "rigid",
+        None,
+        (NoiseRegime("white"),),
+        (10, 10),
+        ("synthetic",),
+        (1.0, 1.0),
+        0.2,
+    )
 
 
 def scene(n_positions: int = 120, per: int = 5, seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -38,14 +53,16 @@ def scene(n_positions: int = 120, per: int = 5, seed: int = 0) -> tuple[pd.DataF
     solver = source + rng.normal(0, 0.1, (n, 2))
     gross = rng.random(n) < 0.2
     solver[gross] += rng.uniform(6, 15, (gross.sum(), 2)) * rng.choice([-1, 1], (gross.sum(), 2))
-    features = pd.DataFrame({
-        "tdoa__hint_x_m": source[:, 0] + rng.normal(0, 2.0, n),
-        "tdoa__hint_y_m": source[:, 1] + rng.normal(0, 2.0, n),
-        "tdoa__noise": rng.normal(size=n),
-        col.SOLVER_X: solver[:, 0],
-        col.SOLVER_Y: solver[:, 1],
-        col.SOLVER_GDOP: np.ones(n),
-    })
+    features = pd.DataFrame(
+        {
+            "tdoa__hint_x_m": source[:, 0] + rng.normal(0, 2.0, n),
+            "tdoa__hint_y_m": source[:, 1] + rng.normal(0, 2.0, n),
+            "tdoa__noise": rng.normal(size=n),
+            col.SOLVER_X: solver[:, 0],
+            col.SOLVER_Y: solver[:, 1],
+            col.SOLVER_GDOP: np.ones(n),
+        }
+    )
     events = pd.DataFrame({"event_id": np.arange(n), "position_id": position_id, "x_m": source[:, 0], "y_m": source[:, 1]})
     return features, events
 
@@ -80,9 +97,18 @@ class ExactMedian(BaseEstimator, RegressorMixin):
 
 
 def components(gate, error_model, cues: bool) -> Components:
-    return Components(site=site3(), feature_sets={}, solver=None, point_model=KNeighborsRegressor(n_neighbors=10), gate=gate,
-                      error_model=error_model, scorers={"fixed": SplitConformal()}, levels=[0.5, 0.8, 0.95], calibration_folds=5,
-                      error_model_gate_cues=cues)
+    return Components(
+        site=site3(),
+        feature_sets={},
+        solver=None,
+        point_model=KNeighborsRegressor(n_neighbors=10),
+        gate=gate,
+        error_model=error_model,
+        scorers={"fixed": SplitConformal()},
+        levels=[0.5, 0.8, 0.95],
+        calibration_folds=5,
+        error_model_gate_cues=cues,
+    )
 
 
 def test_calibration_gates_never_decide_on_a_position_they_were_fitted_on():
@@ -141,7 +167,9 @@ def shifted_scene(seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray
     rng = np.random.default_rng(seed + 10)
     field = events["position_id"].to_numpy() >= 80
     features.loc[field, [col.SOLVER_X, col.SOLVER_Y]] = events.loc[field, ["x_m", "y_m"]].to_numpy() + rng.normal(0, 1.0, (field.sum(), 2))
-    features.loc[~field, [col.SOLVER_X, col.SOLVER_Y]] = events.loc[~field, ["x_m", "y_m"]].to_numpy() + rng.normal(0, 0.1, ((~field).sum(), 2))
+    features.loc[~field, [col.SOLVER_X, col.SOLVER_Y]] = events.loc[~field, ["x_m", "y_m"]].to_numpy() + rng.normal(
+        0, 0.1, ((~field).sum(), 2)
+    )
     events["is_field"] = field
     groups = events["position_id"].to_numpy()
     return features, events, np.flatnonzero(groups < 110), np.flatnonzero(groups >= 110)

@@ -121,9 +121,7 @@ def test_site_from_csv_files(tmp_path, compose_cfg):
     mics.write_text("mic_id,x_m,y_m,z_m\na,0,0,1.5\nb,30,0,1.5\nc,15,25,1.5\nd,15,8,2\n")
     trees = tmp_path / "t.csv"
     trees.write_text("x_m,y_m,diameter_m\n5,5,0.3\n20,10,0.45\n")
-    site = site_from_config(
-        compose_cfg(["+site=from_csv", "site.name=mine", f"site.mics_csv={mics}", f"site.trees_csv={trees}"]).site
-    )
+    site = site_from_config(compose_cfg(["+site=from_csv", "site.name=mine", f"site.mics_csv={mics}", f"site.trees_csv={trees}"]).site)
     assert site.n_mics == 4 and site.tree_positions_m.shape == (2, 2)
     np.testing.assert_allclose(site.trunk_diameters_m, [0.3, 0.45])
 
@@ -145,8 +143,14 @@ def test_sweep_jobs_follow_hydra_a_command_line_key_replaces_the_sweep_params():
 
     from acoustlab.run.sweep import sweep_jobs
 
-    cfg = OmegaConf.create({"hydra": {"sweeper": {"params": {"gate": "solver_only,model_only,hybrid", "features.drop": "[],[tdoa]"}},
-                                      "overrides": {"task": ["+site=forest", "gate=learned", "model=xgboost,knn"]}}})
+    cfg = OmegaConf.create(
+        {
+            "hydra": {
+                "sweeper": {"params": {"gate": "solver_only,model_only,hybrid", "features.drop": "[],[tdoa]"}},
+                "overrides": {"task": ["+site=forest", "gate=learned", "model=xgboost,knn"]},
+            }
+        }
+    )
     jobs = sweep_jobs(cfg)
     assert len(jobs) == 4  # 2 drops × 1 gate (the command line's) × 2 models, not 2 × 3 × 2
     assert all("gate=learned" in job for job in jobs)

@@ -35,8 +35,18 @@ def test_opensoundscape_layout(tmp_path, compose_cfg):
     det = pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1})
     det = pd.concat([det, pd.DataFrame({"file": mics["file"][:2], "start_time": 0.6, "end_time": 0.8, "zeep": 1})])
     det.to_csv(tmp_path / "detections.csv", index=False)
-    cfg = compose_cfg(["+site=loca2021", "field=recordings", f"field.audio_dir={tmp_path}", "field.mics_csv=null", "field.events_csv=null",
-                       f"field.coords_csv={tmp_path / 'coords.csv'}", f"field.detections_csv={tmp_path / 'detections.csv'}", *BAND])
+    cfg = compose_cfg(
+        [
+            "+site=loca2021",
+            "field=recordings",
+            f"field.audio_dir={tmp_path}",
+            "field.mics_csv=null",
+            "field.events_csv=null",
+            f"field.coords_csv={tmp_path / 'coords.csv'}",
+            f"field.detections_csv={tmp_path / 'detections.csv'}",
+            *BAND,
+        ]
+    )
     site = site_from_config(cfg.site)
     batch = build(cfg.field, "field").load(site)
     assert batch.n_events == 1  # the second window has only 2 receivers (< min_receivers=3)

@@ -25,9 +25,19 @@ N_CALLS = 24
 
 
 def season_overrides(folder, output_dir, *extra):
-    return ["+site=frozen_lake", "+experiment=smoke", "protocol=season", "tracking=none", "model.n_estimators=20",
-            f"protocol.recordings.audio_dir={folder / 'audio'}", f"protocol.detections.paths=[{folder / 'raven'}]",
-            "protocol.chunk_events=5", "protocol.batch_events=3", f"protocol.output_dir={output_dir}", *extra]
+    return [
+        "+site=frozen_lake",
+        "+experiment=smoke",
+        "protocol=season",
+        "tracking=none",
+        "model.n_estimators=20",
+        f"protocol.recordings.audio_dir={folder / 'audio'}",
+        f"protocol.detections.paths=[{folder / 'raven'}]",
+        "protocol.chunk_events=5",
+        "protocol.batch_events=3",
+        f"protocol.output_dir={output_dir}",
+        *extra,
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -43,8 +53,12 @@ def season(tmp_path_factory):
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=season_overrides(root, root / "out", f"paths.outputs_dir={root / 'outputs'}"))
         site = site_from_config(cfg.site)
-        truth = write_season(SyntheticSeason.for_site(site, duration_s=60, file_s=20, n_calls=N_CALLS, min_spacing_s=2.0,
-                                                      sample_rate_hz=float(cfg.simulator.sample_rate_hz)), root)
+        truth = write_season(
+            SyntheticSeason.for_site(
+                site, duration_s=60, file_s=20, n_calls=N_CALLS, min_spacing_s=2.0, sample_rate_hz=float(cfg.simulator.sample_rate_hz)
+            ),
+            root,
+        )
         metrics = run_experiment(cfg, root / "run")
     GlobalHydra.instance().clear()
     return root, truth, metrics, cfg
@@ -58,7 +72,9 @@ def test_a_season_is_localized_from_raven_tables_near_the_truth(season):
     assert table["n_recorders"].eq(3).all() and table["time"].iloc[0].startswith("2026-05-01T05:00:")
     error = np.hypot(table["x_m"] - truth["x_m"], table["y_m"] - truth["y_m"])
     assert np.median(error) < 1.0 and (error < 5).mean() >= 0.9, error.describe()
-    assert (root / "run" / "positions.csv").is_file() and json.loads((root / "run" / "metrics.json").read_text())["season"]["n_events"] == N_CALLS
+    assert (root / "run" / "positions.csv").is_file() and json.loads((root / "run" / "metrics.json").read_text())["season"][
+        "n_events"
+    ] == N_CALLS
 
 
 def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path):
@@ -67,8 +83,16 @@ def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path
     fitted = tmp_path / "sharded"
     shutil.copytree(root / "out", fitted, ignore=shutil.ignore_patterns("parts"))  # the fitted method and events, no positions
     for shard in range(3):  # as three SLURM array tasks would
-        cfg = compose_cfg(season_overrides(root, fitted, "protocol.stage=localize", f"protocol.shard={shard}", "protocol.n_shards=3",
-                                           f"paths.outputs_dir={tmp_path / 'outputs'}"))
+        cfg = compose_cfg(
+            season_overrides(
+                root,
+                fitted,
+                "protocol.stage=localize",
+                f"protocol.shard={shard}",
+                "protocol.n_shards=3",
+                f"paths.outputs_dir={tmp_path / 'outputs'}",
+            )
+        )
         run_experiment(cfg, tmp_path / f"shard{shard}")
     cfg = compose_cfg(season_overrides(root, fitted, "protocol.stage=merge", f"paths.outputs_dir={tmp_path / 'outputs'}"))
     run_experiment(cfg, tmp_path / "merged")
@@ -84,7 +108,9 @@ def test_a_killed_run_resumes_without_redoing_finished_chunks(season, tmp_path):
     root, _, _, _ = season
     folder = tmp_path / "killed"
     shutil.copytree(root / "out", folder, ignore=shutil.ignore_patterns("parts"))
-    code = f"from pathlib import Path; from acoustlab.season.stream import localize_chunks; localize_chunks(Path({str(folder)!r}), range(5))"
+    code = (
+        f"from pathlib import Path; from acoustlab.season.stream import localize_chunks; localize_chunks(Path({str(folder)!r}), range(5))"
+    )
     proc = subprocess.Popen([sys.executable, "-c", code], env={**os.environ, "PYTHONWARNINGS": "ignore"})
     deadline = time.monotonic() + 120
     while not part_path(folder, 0).is_file() and proc.poll() is None and time.monotonic() < deadline:
@@ -122,12 +148,22 @@ def test_shards_as_a_hydra_multirun_then_merge(season, run_cli, tmp_path):
     folder = tmp_path / "multirun"
     shutil.copytree(root / "out", folder, ignore=shutil.ignore_patterns("parts"))
     common = [a for a in season_overrides(root, folder) if a != "protocol=season"]
-    proc = run_cli("season", "-m", *common, "protocol.stage=localize", "protocol.n_shards=2", "protocol.shard=0,1",
-                   f"hydra.sweep.dir={tmp_path / 'sweep'}", timeout=600)
+    proc = run_cli(
+        "season",
+        "-m",
+        *common,
+        "protocol.stage=localize",
+        "protocol.n_shards=2",
+        "protocol.shard=0,1",
+        f"hydra.sweep.dir={tmp_path / 'sweep'}",
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     proc = run_cli("season", *common, "protocol.stage=merge", f"hydra.run.dir={tmp_path / 'merged'}", timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "merged" / "positions.parquet"), pd.read_parquet(root / "run" / "positions.parquet"))
+    pd.testing.assert_frame_equal(
+        pd.read_parquet(tmp_path / "merged" / "positions.parquet"), pd.read_parquet(root / "run" / "positions.parquet")
+    )
 
 
 def test_the_season_defaults_are_the_fast_settings_with_the_full_sets_solver_fixes(season, compose_cfg, tmp_path):
@@ -141,8 +177,12 @@ def test_the_season_defaults_are_the_fast_settings_with_the_full_sets_solver_fix
     default_method = load_method(root / "out").method.pipeline.c
     assert type(default_method.solver).__name__ == "ConsistentSetSolver" and "ir" not in default_method.feature_sets
     assert default_method.feature_sets["tdoa"].search == "coarse"
-    full_cfg = compose_cfg([*season_overrides(root, tmp_path / "out", "features=physics", "solver=consistent_set"),
-                            f"paths.outputs_dir={tmp_path / 'outputs'}"])
+    full_cfg = compose_cfg(
+        [
+            *season_overrides(root, tmp_path / "out", "features=physics", "solver=consistent_set"),
+            f"paths.outputs_dir={tmp_path / 'outputs'}",
+        ]
+    )
     assert full_cfg.solver._target_.endswith(".ConsistentSetSolver") and "ir" in full_cfg.features.groups
     run_experiment(full_cfg, tmp_path / "run")
     full, default = pd.read_parquet(tmp_path / "run" / "positions.parquet"), pd.read_parquet(root / "run" / "positions.parquet")

@@ -45,7 +45,7 @@ def test_a_clip_across_file_boundaries_equals_the_clip_from_one_joined_file(seas
     clip = files.read("A", start, n)
     first = int(round(start * FS))
     expected = np.zeros(n, np.float32)
-    available = joined[first:first + n]
+    available = joined[first : first + n]
     expected[: available.size] = available
     np.testing.assert_array_equal(clip.samples, expected)
     assert clip.flags == ([] if first + n <= joined.size else ["out_of_range"])
@@ -67,14 +67,14 @@ def test_clips_read_from_any_wav_subtype_equal_libsndfiles_floats(tmp_path, subt
     joined = np.concatenate(as_float)[:, 0]
     for start_s, n in ((0.0, 100), (9.5, FS), (3.25, 2 * FS)):  # the second clip crosses the file boundary
         first = int(round(start_s * FS))
-        np.testing.assert_array_equal(files.read("A", start_s, n).samples, joined[first:first + n])
+        np.testing.assert_array_equal(files.read("A", start_s, n).samples, joined[first : first + n])
     files.close()
 
 
 def test_gaps_and_times_outside_the_recordings_are_flagged(season_files):
     files = RecorderFiles.from_file_names(season_files[0])
     across_gap = files.read("B", 9.5, FS)  # 9.5–10.5 s: the second half is in B's gap
-    assert across_gap.flags == ["gap"] and not across_gap.samples[FS // 2 + 1:].any() and across_gap.samples[: FS // 2].any()
+    assert across_gap.flags == ["gap"] and not across_gap.samples[FS // 2 + 1 :].any() and across_gap.samples[: FS // 2].any()
     assert files.read("B", 45.0, FS).flags == ["out_of_range"]
     assert files.read("A", 5.0, FS).flags == []
     assert files.origin == pd.Timestamp("2026-05-01 05:00:00")
@@ -103,9 +103,13 @@ def test_overlapping_files_of_one_recorder_are_refused(tmp_path):
 def test_files_table_with_iso_times_and_the_saved_index(tmp_path, season_files):
     folder, _ = season_files
     table = tmp_path / "files.csv"
-    rows = ["recorder_id,file,start_time"] + [f"A,{p},{t}" for p, t in
-                                               ((folder / "A" / "20260501_050000.wav", "2026-05-01T05:00:00"),
-                                                (folder / "A" / "20260501_050010.wav", "2026-05-01T05:00:10+00:00"))]
+    rows = ["recorder_id,file,start_time"] + [
+        f"A,{p},{t}"
+        for p, t in (
+            (folder / "A" / "20260501_050000.wav", "2026-05-01T05:00:00"),
+            (folder / "A" / "20260501_050010.wav", "2026-05-01T05:00:10+00:00"),
+        )
+    ]
     table.write_text("\n".join(rows) + "\n")
     with pytest.raises(DataError, match="line 3, column start_time: '2026-05-01T05:00:10\\+00:00' has a UTC offset and line 2 does not"):
         RecorderFiles.from_table(table)
@@ -136,7 +140,9 @@ def raven_table(path, rows):
 
 def test_raven_tables_per_recorder_place_selections_by_file_start_and_offset(two_recorders):
     folder, files = two_recorders
-    raven_table(folder / "R0.Table.1.selections.txt", [("20260501_050000.wav", 12.0, 0.5, "wren"), ("20260501_050100.wav", 3.0, 0.4, "tit")])
+    raven_table(
+        folder / "R0.Table.1.selections.txt", [("20260501_050000.wav", 12.0, 0.5, "wren"), ("20260501_050100.wav", 3.0, 0.4, "tit")]
+    )
     raven_table(folder / "R1.Table.1.selections.txt", [("20260501_050000.wav", 12.1, 0.5, "wren")])
     det = read_detections([folder / "R0.Table.1.selections.txt", folder / "R1.Table.1.selections.txt"], "raven", files)
     assert det[["recorder_id", "start_s", "label"]].values.tolist() == [["R0", 12.0, "wren"], ["R1", 12.1, "wren"], ["R0", 63.0, "tit"]]
@@ -158,24 +164,41 @@ def test_one_raven_table_for_all_recorders_needs_a_recorder_column(two_recorders
 def test_birdnet_and_opensoundscape_tables_with_class_and_score_thresholds(two_recorders):
     folder, files = two_recorders
     (folder / "R0").mkdir()
-    pd.DataFrame({"Start (s)": [0.0, 3.0, 6.0], "End (s)": [3.0, 6.0, 9.0], "Scientific name": ["Troglodytes troglodytes"] * 3,
-                  "Common name": ["Eurasian Wren", "Eurasian Wren", "Great Tit"], "Confidence": [0.9, 0.3, 0.8],
-                  "File": ["20260501_050100.wav"] * 3}).to_csv(folder / "R0" / "birdnet.csv", index=False)
+    pd.DataFrame(
+        {
+            "Start (s)": [0.0, 3.0, 6.0],
+            "End (s)": [3.0, 6.0, 9.0],
+            "Scientific name": ["Troglodytes troglodytes"] * 3,
+            "Common name": ["Eurasian Wren", "Eurasian Wren", "Great Tit"],
+            "Confidence": [0.9, 0.3, 0.8],
+            "File": ["20260501_050100.wav"] * 3,
+        }
+    ).to_csv(folder / "R0" / "birdnet.csv", index=False)
     det = read_detections([folder / "R0" / "birdnet.csv"], "birdnet", files, classes=["Eurasian Wren"], min_score=0.5)
     assert det[["recorder_id", "start_s", "end_s", "score"]].values.tolist() == [["R0", 60.0, 63.0, 0.9]]
-    pd.DataFrame({"file": ["20260501_050000.wav"] * 2, "start_time": [0.0, 5.0], "end_time": [5.0, 10.0], "wren": [0.2, 4.0],
-                  "tit": [3.0, -1.0]}).to_csv(folder / "R1.scores.csv", index=False)
+    pd.DataFrame(
+        {"file": ["20260501_050000.wav"] * 2, "start_time": [0.0, 5.0], "end_time": [5.0, 10.0], "wren": [0.2, 4.0], "tit": [3.0, -1.0]}
+    ).to_csv(folder / "R1.scores.csv", index=False)
     det = read_detections([folder / "R1.scores.csv"], "opensoundscape", files, classes=["wren", "tit"], min_score=1.0)
     assert sorted(det[["label", "start_s"]].values.tolist()) == [["tit", 0.0], ["wren", 5.0]] and set(det["recorder_id"]) == {"R1"}
 
 
-@pytest.mark.parametrize("content, message", [
-    ("Selection\tBegin Time (s)\n1\t3.0\n", r"lacks columns \['End Time \(s\)'\]"),
-    ("Selection\tBegin Time (s)\tEnd Time (s)\n1\t3.0\t4.0\n", "names no audio file: add the Begin File or Begin Path column"),
-    ("Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\tsoon\t4.0\t20260501_050000.wav\n", r"line 2, column 'Begin Time \(s\)': 'soon'"),
-    ("Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\t5.0\t4.0\t20260501_050000.wav\n", "line 2: the detection ends before it begins"),
-    ("Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\t3.0\t4.0\tother.wav\n", "file 'other.wav' of recorder R0 is not among"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("Selection\tBegin Time (s)\n1\t3.0\n", r"lacks columns \['End Time \(s\)'\]"),
+        ("Selection\tBegin Time (s)\tEnd Time (s)\n1\t3.0\t4.0\n", "names no audio file: add the Begin File or Begin Path column"),
+        (
+            "Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\tsoon\t4.0\t20260501_050000.wav\n",
+            r"line 2, column 'Begin Time \(s\)': 'soon'",
+        ),
+        (
+            "Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\t5.0\t4.0\t20260501_050000.wav\n",
+            "line 2: the detection ends before it begins",
+        ),
+        ("Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\t3.0\t4.0\tother.wav\n", "file 'other.wav' of recorder R0 is not among"),
+    ],
+)
 def test_malformed_raven_tables_stop_with_one_line(two_recorders, content, message):
     folder, files = two_recorders
     (folder / "R0.txt").write_text(content)
@@ -184,17 +207,27 @@ def test_malformed_raven_tables_stop_with_one_line(two_recorders, content, messa
 
 
 def detections(rows):
-    return pd.DataFrame([{"recorder_id": r, "start_s": s, "end_s": e, "low_hz": lo, "high_hz": hi, "label": lab, "score": np.nan,
-                          "source": f"t:{k}"} for k, (r, s, e, lo, hi, lab) in enumerate(rows)])
+    return pd.DataFrame(
+        [
+            {"recorder_id": r, "start_s": s, "end_s": e, "low_hz": lo, "high_hz": hi, "label": lab, "score": np.nan, "source": f"t:{k}"}
+            for k, (r, s, e, lo, hi, lab) in enumerate(rows)
+        ]
+    )
 
 
 def test_detections_are_grouped_into_events_heard_by_enough_recorders():
-    det = detections([
-        ("R0", 10.0, 10.5, 2000, 5000, "wren"), ("R1", 10.2, 10.7, 2500, 6000, "wren"), ("R2", 10.25, 10.75, np.nan, np.nan, "wren"),
-        ("R0", 10.1, 10.4, 1000, 2000, "tit"),  # another species at the same time: its own event, heard once
-        ("R1", 20.0, 20.5, 2000, 5000, "wren"), ("R2", 20.1, 20.6, 2000, 5000, "wren"),
-        ("R0", 40.0, 52.0, 2000, 5000, "wren"), ("R1", 40.1, 52.1, 2000, 5000, "wren"),  # too long to read
-    ])
+    det = detections(
+        [
+            ("R0", 10.0, 10.5, 2000, 5000, "wren"),
+            ("R1", 10.2, 10.7, 2500, 6000, "wren"),
+            ("R2", 10.25, 10.75, np.nan, np.nan, "wren"),
+            ("R0", 10.1, 10.4, 1000, 2000, "tit"),  # another species at the same time: its own event, heard once
+            ("R1", 20.0, 20.5, 2000, 5000, "wren"),
+            ("R2", 20.1, 20.6, 2000, 5000, "wren"),
+            ("R0", 40.0, 52.0, 2000, 5000, "wren"),
+            ("R1", 40.1, 52.1, 2000, 5000, "wren"),  # too long to read
+        ]
+    )
     events = group_detections(det, margin_s=0.3, min_recorders=2, max_event_s=10.0)
     assert events["event_id"].tolist() == [0, 1, 2]
     assert events["n_recorders"].tolist() == [3, 2, 2] and events["recorders"].iloc[0] == "R0;R1;R2"

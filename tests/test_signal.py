@@ -63,8 +63,10 @@ def test_band_limited_gcc_samples_the_same_correlation():
     assert shared.sum() > 10
     index = np.rint(coarse_lags[shared] * 48000.0).astype(int) + len(full_lags) // 2
     np.testing.assert_allclose(coarse[..., shared], full[..., index], rtol=1e-4, atol=1e-5 * np.abs(full).max())
-    np.testing.assert_array_equal(gcc(audio, pairs, fs, "beta_phat", None, 2, max_lag_s=0.01, band_limited=True)[0],
-                                  gcc(audio, pairs, fs, "beta_phat", None, 2, max_lag_s=0.01)[0])  # no band: nothing changes
+    np.testing.assert_array_equal(
+        gcc(audio, pairs, fs, "beta_phat", None, 2, max_lag_s=0.01, band_limited=True)[0],
+        gcc(audio, pairs, fs, "beta_phat", None, 2, max_lag_s=0.01)[0],
+    )  # no band: nothing changes
 
 
 @pytest.mark.parametrize("weighting", ["phat", "beta_phat", "none"])
@@ -80,7 +82,7 @@ def test_weighted_spectra_in_place_equals_the_textbook_weighting_bit_for_bit(wei
     expected = spectra
     if weighting != "none":
         magnitude = np.maximum(np.abs(spectra), 1e-6 * np.abs(spectra).max(axis=-1, keepdims=True) + 1e-30)
-        expected = spectra / (magnitude if weighting == "phat" else magnitude ** 0.8)
+        expected = spectra / (magnitude if weighting == "phat" else magnitude**0.8)
     np.testing.assert_array_equal(weighted_spectra(audio, weighting, 0.8), expected)
 
 
@@ -110,7 +112,7 @@ def _textbook_gcc(audio, pairs, fs, weighting, band, upsample, max_lag_s, band_l
         full = sfft.irfft(np.conj(spectra[:, i]) * spectra[:, j], n=n_out, axis=-1)
         if scale is not None:
             full *= np.float32(scale)
-        rows.append(np.concatenate([full[:, n_out - half:], full[:, : half + 1]], axis=-1))
+        rows.append(np.concatenate([full[:, n_out - half :], full[:, : half + 1]], axis=-1))
     return np.stack(rows, axis=1)
 
 
@@ -124,8 +126,11 @@ def test_gcc_equals_the_textbook_masked_cross_spectra_bit_for_bit(band, band_lim
     audio = rng.standard_normal((5, 4, 1500)).astype(np.float32)
     audio[:, 1] = np.roll(audio[:, 0], 9, axis=-1) + 0.2 * audio[:, 1]
     pairs = [(0, 1), (0, 2), (1, 3), (2, 3), (3, 0)]
-    band_hz = {"none": None, "one": (300.0, 7000.0),
-               "per_event": np.stack([rng.uniform(200, 2000, 5), rng.uniform(3000, 9000, 5)], axis=1)}[band]
+    band_hz = {
+        "none": None,
+        "one": (300.0, 7000.0),
+        "per_event": np.stack([rng.uniform(200, 2000, 5), rng.uniform(3000, 9000, 5)], axis=1),
+    }[band]
     for weighting, upsample in (("beta_phat", 2), ("phat", 1), ("none", 3)):
         cc, _ = gcc(audio, pairs, fs, weighting, band_hz, upsample, 0.8, max_lag_s=0.02, band_limited=band_limited)
         expected = _textbook_gcc(audio, pairs, fs, weighting, band_hz, upsample, 0.02, band_limited)

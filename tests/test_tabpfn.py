@@ -71,10 +71,22 @@ def test_missing_weights_give_one_clear_message(tmp_path):
 def test_smoke_run_with_tabpfn_point_and_error_models(tiny_checkpoint, compose_cfg, tmp_path):
     from acoustlab.run.app import run_experiment
 
-    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", "model=tabpfn", "error_model=tabpfn", "tracking=none",
-                       f"model.model_path={tiny_checkpoint}", f"error_model.model_path={tiny_checkpoint}",
-                       "model.n_estimators=1", "error_model.n_estimators=1", "model.device=cpu", "error_model.device=cpu",
-                       f"paths.outputs_dir={tmp_path}"])
+    cfg = compose_cfg(
+        [
+            "+site=frozen_lake",
+            "+experiment=smoke",
+            "model=tabpfn",
+            "error_model=tabpfn",
+            "tracking=none",
+            f"model.model_path={tiny_checkpoint}",
+            f"error_model.model_path={tiny_checkpoint}",
+            "model.n_estimators=1",
+            "error_model.n_estimators=1",
+            "model.device=cpu",
+            "error_model.device=cpu",
+            f"paths.outputs_dir={tmp_path}",
+        ]
+    )
     metrics = run_experiment(cfg, tmp_path / "run", {"model": "tabpfn"})
     assert metrics["errors"]["model"]["n"] > 0 and np.isfinite(metrics["errors"]["model"]["p50"])
 
@@ -82,8 +94,16 @@ def test_smoke_run_with_tabpfn_point_and_error_models(tiny_checkpoint, compose_c
 def test_preflight_stops_a_run_before_simulation(compose_cfg, tmp_path):
     from acoustlab.run.app import run_experiment
 
-    cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", "model=tabpfn", f"model.model_path={tmp_path / 'none.ckpt'}",
-                       "tracking=none", f"paths.outputs_dir={tmp_path}"])
+    cfg = compose_cfg(
+        [
+            "+site=frozen_lake",
+            "+experiment=smoke",
+            "model=tabpfn",
+            f"model.model_path={tmp_path / 'none.ckpt'}",
+            "tracking=none",
+            f"paths.outputs_dir={tmp_path}",
+        ]
+    )
     with pytest.raises(ConfigError, match="TabPFN weights not found"):
         run_experiment(cfg, tmp_path / "run")
     assert not (tmp_path / "cache").exists()

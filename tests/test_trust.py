@@ -38,23 +38,35 @@ def scene(n_positions: int = 100, per: int = 5, seed: int = 0, outside: int = 0)
     gross = (rng.random(n) < 0.2) & (source[:, 0] < 50)
     solver[gross] += rng.uniform(6, 15, (gross.sum(), 2)) * rng.choice([-1, 1], (gross.sum(), 2))
     residual[gross] = rng.uniform(5e-4, 2e-3, gross.sum())
-    features = pd.DataFrame({
-        "tdoa__hint_x_m": source[:, 0] + rng.normal(0, 2.0, n),
-        "tdoa__hint_y_m": source[:, 1] + rng.normal(0, 2.0, n),
-        col.SOLVER_X: solver[:, 0],
-        col.SOLVER_Y: solver[:, 1],
-        col.solver_column("residual_s"): residual,
-        col.SOLVER_GDOP: np.ones(n),
-    })
-    events = pd.DataFrame({"event_id": np.arange(n), "position_id": position_id, "x_m": source[:, 0], "y_m": source[:, 1],
-                           "z_m": np.full(n, 1.0)})
+    features = pd.DataFrame(
+        {
+            "tdoa__hint_x_m": source[:, 0] + rng.normal(0, 2.0, n),
+            "tdoa__hint_y_m": source[:, 1] + rng.normal(0, 2.0, n),
+            col.SOLVER_X: solver[:, 0],
+            col.SOLVER_Y: solver[:, 1],
+            col.solver_column("residual_s"): residual,
+            col.SOLVER_GDOP: np.ones(n),
+        }
+    )
+    events = pd.DataFrame(
+        {"event_id": np.arange(n), "position_id": position_id, "x_m": source[:, 0], "y_m": source[:, 1], "z_m": np.full(n, 1.0)}
+    )
     return features, events
 
 
 def components(gate, settings: TrustSettings | None = None) -> Components:
-    return Components(site=site3(), feature_sets={}, solver=None, point_model=KNeighborsRegressor(n_neighbors=10), gate=gate,
-                      error_model=ExactMedian(), scorers={"fixed": SplitConformal()}, levels=[0.5, 0.8, 0.95], calibration_folds=5,
-                      trust=settings or TrustSettings())
+    return Components(
+        site=site3(),
+        feature_sets={},
+        solver=None,
+        point_model=KNeighborsRegressor(n_neighbors=10),
+        gate=gate,
+        error_model=ExactMedian(),
+        scorers={"fixed": SplitConformal()},
+        levels=[0.5, 0.8, 0.95],
+        calibration_folds=5,
+        trust=settings or TrustSettings(),
+    )
 
 
 def test_consistent_solver_fix_outside_the_training_region_is_kept():
@@ -69,7 +81,11 @@ def test_consistent_solver_fix_outside_the_training_region_is_kept():
     assert (out[col.TRUST_REASON] != "").all()
     assert out[col.trust_flag("solver_outside_support")].all()
     # … where without the trust check the model's extrapolated guess replaced every one of them
-    plain = LocalizationPipeline(components(BoundingBoxGate(), TrustSettings(enabled=False))).fit_predict(features, events, train, test).predictions
+    plain = (
+        LocalizationPipeline(components(BoundingBoxGate(), TrustSettings(enabled=False)))
+        .fit_predict(features, events, train, test)
+        .predictions
+    )
     assert plain["substituted"].all() and plain[col.error_m("gate")].min() > 10
 
 
@@ -107,8 +123,11 @@ def test_a_model_asked_outside_its_training_support_is_not_used():
     assert out.reason[1] == trust.REASON_ABSTAIN and out.reason[0] == trust.REASON_NOVEL  # … and says why
     assert not out.decision.substituted.any()
     # a row like the training ones: the gate's choice stands
-    same = apply_trust(GateDecision(model_xy[:1].copy(), substituted[:1]), solver_xy[:1],
-                       support_cues(solver_xy[:1], model_xy[:1], features.iloc[:1], features.iloc[:1], support))
+    same = apply_trust(
+        GateDecision(model_xy[:1].copy(), substituted[:1]),
+        solver_xy[:1],
+        support_cues(solver_xy[:1], model_xy[:1], features.iloc[:1], features.iloc[:1], support),
+    )
     assert same.decision.substituted.all() and same.reason[0] == trust.REASON_GATE
 
 
@@ -158,7 +177,9 @@ def test_learned_gate_with_a_useless_classifier_falls_back():
     solver = truth + rng.normal(0, 1.0, truth.shape)  # solver and model equally good, independent of every cue
     model = truth + rng.normal(0, 1.0, truth.shape)
     features[list(col.SOLVER_ESTIMATE_COLUMNS)] = solver
-    gate = LearnedGate(seed=0, n_threads=1, min_auc=0.75).fit(solver, model, features, site3(), truth, groups=events["position_id"].to_numpy())
+    gate = LearnedGate(seed=0, n_threads=1, min_auc=0.75).fit(
+        solver, model, features, site3(), truth, groups=events["position_id"].to_numpy()
+    )
     assert "AUC" in gate.diagnostics()["fallback"]
     assert not gate.decide(solver, model, features, site3()).substituted.any()
 
@@ -176,13 +197,22 @@ def test_singular_geometry_gives_a_bounded_gdop_scaled_radius():
 
 def test_no_positions_row_mixes_estimates():
     """x, y, z of a row come from one estimate: the model's x, y never carry the solver's height."""
-    predictions = pd.DataFrame({
-        "event_id": [0, 1, 2], "substituted": [False, True, False],
-        "solver_x_m": [1.0, 2.0, np.nan], "solver_y_m": [1.0, 2.0, np.nan], "model_x_m": [5.0, 6.0, 7.0], "model_y_m": [5.0, 6.0, 7.0],
-        "gate_x_m": [1.0, 6.0, np.nan], "gate_y_m": [1.0, 6.0, np.nan], col.SOLVER_SOURCE_HEIGHT: [100.0, 90.0, np.nan],
-        "predicted_error_m": [1.0, 1.0, 1.0], col.radius("fixed", 0.95): [2.0, 2.0, 2.0],
-        col.TRUST_REASON: ["", "", trust.REASON_ABSTAIN],
-    })
+    predictions = pd.DataFrame(
+        {
+            "event_id": [0, 1, 2],
+            "substituted": [False, True, False],
+            "solver_x_m": [1.0, 2.0, np.nan],
+            "solver_y_m": [1.0, 2.0, np.nan],
+            "model_x_m": [5.0, 6.0, 7.0],
+            "model_y_m": [5.0, 6.0, 7.0],
+            "gate_x_m": [1.0, 6.0, np.nan],
+            "gate_y_m": [1.0, 6.0, np.nan],
+            col.SOLVER_SOURCE_HEIGHT: [100.0, 90.0, np.nan],
+            "predicted_error_m": [1.0, 1.0, 1.0],
+            col.radius("fixed", 0.95): [2.0, 2.0, 2.0],
+            col.TRUST_REASON: ["", "", trust.REASON_ABSTAIN],
+        }
+    )
     table = positions_table(predictions, [0.95], ["fixed"])
     assert table["z_m"].iloc[0] == 100.0 and np.isnan(table["z_m"].iloc[1])
     assert table["source"].tolist() == ["solver", "model", "none"]
@@ -213,8 +243,9 @@ def _shared_multichannel_folder(root, with_channel: bool, identical: bool = Fals
 def _folder(root, **kwargs):
     from plugins.fields.recordings import RecordingFolder
 
-    return RecordingFolder(audio_dir=str(root), mics_csv=str(root / "mics.csv"), events_csv=str(root / "events.csv"),
-                           sample_rate_hz=24000, **kwargs)
+    return RecordingFolder(
+        audio_dir=str(root), mics_csv=str(root / "mics.csv"), events_csv=str(root / "events.csv"), sample_rate_hz=24000, **kwargs
+    )
 
 
 def test_one_multichannel_file_for_every_mic_needs_a_channel_column(tmp_path):
@@ -226,7 +257,7 @@ def test_one_multichannel_file_for_every_mic_needs_a_channel_column(tmp_path):
         _folder(tmp_path / "a").validate()
     audio = _shared_multichannel_folder(tmp_path / "b", with_channel=True)
     batch = _folder(tmp_path / "b", pad_s=0.0).load(None)
-    np.testing.assert_allclose(batch.audio[0, :, :100], audio[int(0.3 * 24000): int(0.3 * 24000) + 100].T, atol=1e-7)
+    np.testing.assert_allclose(batch.audio[0, :, :100], audio[int(0.3 * 24000) : int(0.3 * 24000) + 100].T, atol=1e-7)
     assert batch.events["quality_ok"].all()
 
 
@@ -254,8 +285,16 @@ def test_image_source_field_renders_direct_path_delays(compose_cfg):
     from acoustlab.run.registry import build
     from acoustlab.stages.sites import site_from_config
 
-    cfg = compose_cfg(["+site=frozen_lake", "field=image_source", "field.n_positions=4", "field.events_per_position=1", "field.snr_db=[60,60]",
-                       "field.outside_share=0.5"])
+    cfg = compose_cfg(
+        [
+            "+site=frozen_lake",
+            "field=image_source",
+            "field.n_positions=4",
+            "field.events_per_position=1",
+            "field.snr_db=[60,60]",
+            "field.outside_share=0.5",
+        ]
+    )
     site = site_from_config(cfg.site)
     source = build(cfg.field, "field")
     batch = source.load(site)
@@ -301,9 +340,14 @@ def _solve_xy(mics: np.ndarray, ranges_m: np.ndarray, start: np.ndarray, height:
     return least_squares(residual, [*start, 0.0], xtol=1e-12, ftol=1e-12).x[:2]
 
 
-@pytest.mark.parametrize("stated", [dict(temperature_c=1.0, mic_position_m=0.0, clock_offset_s=0.0),
-                                    dict(temperature_c=0.0, mic_position_m=0.0, clock_offset_s=1e-4),
-                                    dict(temperature_c=0.0, mic_position_m=0.2, clock_offset_s=0.0)])
+@pytest.mark.parametrize(
+    "stated",
+    [
+        dict(temperature_c=1.0, mic_position_m=0.0, clock_offset_s=0.0),
+        dict(temperature_c=0.0, mic_position_m=0.0, clock_offset_s=1e-4),
+        dict(temperature_c=0.0, mic_position_m=0.2, clock_offset_s=0.0),
+    ],
+)
 def test_input_uncertainty_matches_a_monte_carlo_of_the_solve(stated):
     """The first-order position error from stated input errors equals the spread of exact solves with those errors (±15 %)."""
     from acoustlab.toolkit.input_uncertainty import InputUncertainty, position_sigma_m
@@ -314,15 +358,19 @@ def test_input_uncertainty_matches_a_monte_carlo_of_the_solve(stated):
     source = np.array([35.0, 20.0, 1.2])
     temperature, humidity = -10.0, 80.0
     c = float(speed_of_sound_m_s(temperature, humidity))
-    sigma_c = float(speed_of_sound_m_s(temperature + 0.5, humidity) - speed_of_sound_m_s(temperature - 0.5, humidity)) * stated["temperature_c"]
+    sigma_c = (
+        float(speed_of_sound_m_s(temperature + 0.5, humidity) - speed_of_sound_m_s(temperature - 0.5, humidity)) * stated["temperature_c"]
+    )
     travel_s = np.sqrt(((mics - source) ** 2).sum(axis=1)) / c
     errors = []
     for _ in range(400):
         c_used = c + rng.normal(0, sigma_c) if sigma_c else c
         arrival = travel_s + rng.normal(0, stated["clock_offset_s"], 4) if stated["clock_offset_s"] else travel_s
-        surveyed = mics + np.column_stack([rng.normal(0, stated["mic_position_m"], (4, 2)), np.zeros(4)]) if stated["mic_position_m"] else mics
+        surveyed = (
+            mics + np.column_stack([rng.normal(0, stated["mic_position_m"], (4, 2)), np.zeros(4)]) if stated["mic_position_m"] else mics
+        )
         errors.append(_solve_xy(surveyed, c_used * arrival, source[:2], source[2]) - source[:2])
-    monte_carlo = np.sqrt(np.mean(np.square(errors)) )
+    monte_carlo = np.sqrt(np.mean(np.square(errors)))
     predicted = position_sigma_m(mics, source[None], np.array([temperature]), np.array([humidity]), InputUncertainty(**stated))[0]
     assert predicted == pytest.approx(monte_carlo, rel=0.15)
 

@@ -123,18 +123,18 @@ SOLVER_CATALOG = (
 RADIUS_PREFIX = "radius"
 
 #: metrics.json blocks (written by reporting.metrics and the app, read by reports, the tracker and benchmarks).
-METRICS_ERRORS = "errors"                    # per method: n, mean, p50 … p99, share_gt_5m, n_failed
-METRICS_COVERAGE = "coverage"                # per scorer and level key: empirical coverage
-METRICS_WIDTH = "interval_width"             # per scorer and level key: median_m, mean_m, max_m
-METRICS_CI95 = "ci95"                        # position-bootstrap 95 % intervals of errors and coverage
+METRICS_ERRORS = "errors"  # per method: n, mean, p50 … p99, share_gt_5m, n_failed
+METRICS_COVERAGE = "coverage"  # per scorer and level key: empirical coverage
+METRICS_WIDTH = "interval_width"  # per scorer and level key: median_m, mean_m, max_m
+METRICS_CI95 = "ci95"  # position-bootstrap 95 % intervals of errors and coverage
 METRICS_COVERAGE_BY_POSITION = "coverage_by_position"
 METRICS_SPEARMAN = "spearman_rho"
 METRICS_GROSS_AUC = "gross_error_auc"
 METRICS_SUBSTITUTION = "substitution_rate"
 METRICS_RISK_COVERAGE = "risk_coverage"
 METRICS_GATE_GAP = "gate_gap"
-METRICS_LOCALIZATION = "localization"        # protocol=localize: the positions' summary instead of errors
-METRICS_GATE = "gate"                        # the configured gate: {name, diagnostics, by_split}
+METRICS_LOCALIZATION = "localization"  # protocol=localize: the positions' summary instead of errors
+METRICS_GATE = "gate"  # the configured gate: {name, diagnostics, by_split}
 
 
 def feature(group: str, name: str) -> str:
@@ -161,6 +161,7 @@ def groups_in(columns: Iterable[str]) -> set[str]:
 
 
 # --- feature columns read by more than one module -------------------------------------------
+
 
 def tdoa_lag(i: int, j: int, rank: int = 1) -> str:
     """``tdoa__lag_i_j_s`` (rank 1, the highest GCC peak) or ``tdoa__lag_i_j_c<rank>_s``: t_j − t_i in s."""
@@ -209,6 +210,7 @@ def ir_spread_s(mic: int) -> str:
 
 
 # --- prediction tables and metrics ----------------------------------------------------------
+
 
 def estimate_xy(method: str) -> tuple[str, str]:
     """``(<method>_x_m, <method>_y_m)``: a method's estimate (or ``"true"``: the truth) in a prediction table."""

@@ -227,7 +227,12 @@ class Gate(Protocol):
     required_feature_groups: tuple[str, ...]
 
     def fit(
-        self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
+        self,
+        solver_position_m: np.ndarray,
+        model_position_m: np.ndarray,
+        features: pd.DataFrame,
+        site: Site,
+        truth_m: np.ndarray,
         groups: np.ndarray | None = None,
     ) -> Any:
         """Learn what the gate needs from simulated training events with known positions; return self.
@@ -236,9 +241,7 @@ class Gate(Protocol):
         positions (a gate that cross-validates itself keeps them apart).
         """
 
-    def decide(
-        self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site
-    ) -> GateDecision:
+    def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
         """Return the hybrid estimate; ``features`` holds the events' feature rows in the same order."""
 
     def diagnostics(self) -> dict[str, Any]:
@@ -250,8 +253,15 @@ class StatelessGate:
 
     required_feature_groups: tuple[str, ...] = ()
 
-    def fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
-            groups: np.ndarray | None = None) -> Any:
+    def fit(
+        self,
+        solver_position_m: np.ndarray,
+        model_position_m: np.ndarray,
+        features: pd.DataFrame,
+        site: Site,
+        truth_m: np.ndarray,
+        groups: np.ndarray | None = None,
+    ) -> Any:
         """Nothing to learn."""
         return self
 
@@ -277,7 +287,9 @@ class ErrorModel(Protocol):
 class ConformalScorer(Protocol):
     """Turns predicted errors into calibrated radii at nominal coverage levels."""
 
-    def fit(self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float], groups: np.ndarray | None = None) -> Any:
+    def fit(
+        self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float], groups: np.ndarray | None = None
+    ) -> Any:
         """Calibrate on held-out errors (m), the error model's predictions (m), GDOP and the events' positions (``groups``)."""
 
     def radius(self, predicted_m: np.ndarray, gdop: np.ndarray) -> np.ndarray:
@@ -320,8 +332,14 @@ class Tracker(Protocol):
         """Raise an exception saying why when the store cannot be reached (before anything is logged)."""
         ...
 
-    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None,
-              start_time_ms: int | None = None) -> None:
+    def start(
+        self,
+        run_name: str,
+        params: dict[str, Any],
+        tags: dict[str, str],
+        parent_run_id: str | None = None,
+        start_time_ms: int | None = None,
+    ) -> None:
         """Open a run; ``start_time_ms`` (Unix epoch, ms) is when the job really started (a run logged after it finished)."""
         ...
 

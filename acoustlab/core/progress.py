@@ -17,8 +17,9 @@ log = logging.getLogger("acoustlab.progress")
 LOG_INTERVAL_S = 30.0
 
 
-def progress(items: Iterable[T], total: int | None = None, desc: str = "", unit: str = "it",
-             interval_s: float = LOG_INTERVAL_S, leave: bool = True) -> Iterator[T]:
+def progress(
+    items: Iterable[T], total: int | None = None, desc: str = "", unit: str = "it", interval_s: float = LOG_INTERVAL_S, leave: bool = True
+) -> Iterator[T]:
     """Yield ``items``, showing a tqdm bar on a terminal or logging ``desc: k/total unit (elapsed, left)`` every ``interval_s``.
 
     tqdm hides its bar when output is not a terminal (a batch job, a log file); then a log line

@@ -138,9 +138,7 @@ class Site:
             "ground_flow_resistivity_kpa_s_m2": self.ground_flow_resistivity_kpa_s_m2,
             "ground_impedance_model": self.ground_impedance_model,
             "ground_layer_thickness_m": self.ground_layer_thickness_m,
-            "noise_regimes": [
-                {"kind": r.kind, "files": list(r.files), "band_hz": r.band_hz} for r in self.noise_regimes
-            ],
+            "noise_regimes": [{"kind": r.kind, "files": list(r.files), "band_hz": r.band_hz} for r in self.noise_regimes],
             "snr_range_db": list(self.snr_range_db),
             "species_pool": list(self.species_pool),
             "source_height_range_m": list(self.source_height_range_m),
@@ -180,9 +178,7 @@ class RecordingBatch:
         if missing:
             raise DataError(f"RecordingBatch.events lacks columns {missing}; expected {list(EVENT_COLUMNS)}")
         if len(self.events) != self.audio.shape[0]:
-            raise DataError(
-                f"RecordingBatch has {self.audio.shape[0]} audio events but {len(self.events)} event rows"
-            )
+            raise DataError(f"RecordingBatch has {self.audio.shape[0]} audio events but {len(self.events)} event rows")
 
     @property
     def n_events(self) -> int:

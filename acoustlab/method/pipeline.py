@@ -44,7 +44,6 @@ log = logging.getLogger(__name__)
 MIN_FIELD_CALIBRATION_POSITIONS = 3
 
 
-
 @dataclass
 class Components:
     """Everything a protocol needs, already instantiated (the configured, never-fitted plugins)."""
@@ -119,8 +118,13 @@ def crb_from_features(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
     centroid, bandwidth = med(col.spectral_centroid_hz), med(col.spectral_bandwidth_hz)
     c = event_speed_of_sound_m_s(events)
     return position_crb_m(
-        site.mic_positions_m, events[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float), med(col.snr_db),
-        np.sqrt(centroid**2 + bandwidth**2), med(col.ir_spread_s), 2 * bandwidth, c,
+        site.mic_positions_m,
+        events[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float),
+        med(col.snr_db),
+        np.sqrt(centroid**2 + bandwidth**2),
+        med(col.ir_spread_s),
+        2 * bandwidth,
+        c,
     )
 
 
@@ -138,11 +142,17 @@ def clone_for_rows(estimator: Any, n_rows: int) -> Any:
     ``Pipeline``) is clipped to the rows, with a warning.
     """
     fresh = clone(estimator)
-    too_many = {k: v for k, v in fresh.get_params(deep=True).items()
-                if k.split("__")[-1] == "n_neighbors" and isinstance(v, int) and v > n_rows}
+    too_many = {
+        k: v for k, v in fresh.get_params(deep=True).items() if k.split("__")[-1] == "n_neighbors" and isinstance(v, int) and v > n_rows
+    }
     if too_many and n_rows >= 1:
-        log.warning("%s: %s > %d training rows; clipped to %d", type(estimator).__name__,
-                    ", ".join(f"{k}={v}" for k, v in too_many.items()), n_rows, n_rows)
+        log.warning(
+            "%s: %s > %d training rows; clipped to %d",
+            type(estimator).__name__,
+            ", ".join(f"{k}={v}" for k, v in too_many.items()),
+            n_rows,
+            n_rows,
+        )
         fresh.set_params(**{k: n_rows for k in too_many})
     return fresh
 
@@ -263,7 +273,9 @@ class LocalizationPipeline:
         if limit is None or rows.size <= limit:
             return rows
         kept = cap_rows(rows, groups, int(limit), np.random.default_rng([self.c.seed, 3, rows.size]))
-        log.info("%s fits on %d of %d training rows (its max_train_rows=%d, whole positions)", type(plugin).__name__, kept.size, rows.size, limit)
+        log.info(
+            "%s fits on %d of %d training rows (its max_train_rows=%d, whole positions)", type(plugin).__name__, kept.size, rows.size, limit
+        )
         return kept
 
     def _fit_point(self, x: pd.DataFrame, truth: np.ndarray, solver_xy: np.ndarray, groups: np.ndarray) -> tuple[Any, Any]:
@@ -282,32 +294,54 @@ class LocalizationPipeline:
         g = gdop(self.c.site.mic_positions_m, pos)
         return np.clip(np.where(np.isfinite(g), g, 1e6), 1e-6, 1e6)
 
-    def _fit_gate(self, configured: Gate, rows: np.ndarray, sim: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray,
-                  features: pd.DataFrame, truth: np.ndarray, groups: np.ndarray) -> Gate:
+    def _fit_gate(
+        self,
+        configured: Gate,
+        rows: np.ndarray,
+        sim: np.ndarray,
+        solver_xy: np.ndarray,
+        model_xy: np.ndarray,
+        features: pd.DataFrame,
+        truth: np.ndarray,
+        groups: np.ndarray,
+    ) -> Gate:
         """A fresh clone of ``configured`` fitted on the simulated ones of ``rows`` (``model_xy`` indexed like ``rows``).
 
         The paper chooses τ* on simulation; field rows never teach a gate.
         """
         fit = rows[sim]
-        return clone(configured, safe=False).fit(solver_xy[fit], model_xy[sim], features.iloc[fit], self.c.site, truth[fit], groups=groups[fit])
+        return clone(configured, safe=False).fit(
+            solver_xy[fit], model_xy[sim], features.iloc[fit], self.c.site, truth[fit], groups=groups[fit]
+        )
 
-    def _support(self, rows: np.ndarray, features: pd.DataFrame, mcols: list[str], events: pd.DataFrame,
-                 solver_xy: np.ndarray, groups: np.ndarray) -> TrainingSupport | None:
+    def _support(
+        self, rows: np.ndarray, features: pd.DataFrame, mcols: list[str], events: pd.DataFrame, solver_xy: np.ndarray, groups: np.ndarray
+    ) -> TrainingSupport | None:
         """The point model's training support learned from ``rows`` (None with ``trust.enabled=false``)."""
         if not self.c.trust.enabled:
             return None
-        truth = events[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float)[rows] if col.TRUE_Z in events else np.column_stack(
-            [events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)[rows], np.full(rows.size, np.nan)])
+        truth = (
+            events[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float)[rows]
+            if col.TRUE_Z in events
+            else np.column_stack([events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)[rows], np.full(rows.size, np.nan)])
+        )
         return TrainingSupport(self.c.trust).fit(features.iloc[rows][mcols], truth, error_2d_m(solver_xy[rows], truth), groups[rows])
 
     @staticmethod
-    def _cues(rows: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, mcols: list[str],
-              support: TrainingSupport | None) -> SupportCues:
+    def _cues(
+        rows: np.ndarray,
+        solver_xy: np.ndarray,
+        model_xy: np.ndarray,
+        features: pd.DataFrame,
+        mcols: list[str],
+        support: TrainingSupport | None,
+    ) -> SupportCues:
         """``rows`` (``model_xy`` indexed like them) checked against the model's training support, once for every gate."""
         return support_cues(solver_xy[rows], model_xy, features.iloc[rows], features.iloc[rows][mcols], support)
 
-    def _decide(self, gate: Gate, rows: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame,
-                cues: SupportCues) -> TrustedDecision:
+    def _decide(
+        self, gate: Gate, rows: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, cues: SupportCues
+    ) -> TrustedDecision:
         """The gate's decision on ``rows`` (``model_xy`` indexed like them) with hand-overs to a distrusted model undone."""
         decision = gate.decide(solver_xy[rows], model_xy, features.iloc[rows], self.c.site)
         return apply_trust(decision, solver_xy[rows], cues)
@@ -366,16 +400,30 @@ class LocalizationPipeline:
         log.info("final point and error models on %d training rows", train.size)
         models = self._fit_point(features.iloc[train][split.mcols], split.truth[train], split.solver_xy[train], split.groups[train])
         support = self._support(train, features, split.mcols, events, split.solver_xy, split.groups)
-        fitted = FittedMethod(pipeline=self, mcols=split.mcols, ecols=split.ecols, point_models=models, support=support, gate=gate,
-                              floor=cal.floor, calibrated_on_field=bool(cal.domain.sum() < cal.domain.size),
-                              calibration=self._calibration_summary(cal.domain, cal.rows, split.groups[train]))
+        fitted = FittedMethod(
+            pipeline=self,
+            mcols=split.mcols,
+            ecols=split.ecols,
+            point_models=models,
+            support=support,
+            gate=gate,
+            floor=cal.floor,
+            calibrated_on_field=bool(cal.domain.sum() < cal.domain.size),
+            calibration=self._calibration_summary(cal.domain, cal.rows, split.groups[train]),
+        )
         self._fit_error_models(split, cal, fitted)
         if self.c.ellipse:
             rows = cal.rows
-            fitted.ellipse_calibration = ((cal.gate.position_m - split.truth[train])[rows], cal.gate.position_m[rows],
-                                          fitted.oof_predicted[rows], source_height_m(features.iloc[train[rows]], self.c.site))
+            fitted.ellipse_calibration = (
+                (cal.gate.position_m - split.truth[train])[rows],
+                cal.gate.position_m[rows],
+                fitted.oof_predicted[rows],
+                source_height_m(features.iloc[train[rows]], self.c.site),
+            )
         for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
-            fitted.extra_gates[name] = self._fit_gate(configured, train, split.sim, split.solver_xy, oof_model, features, split.truth, split.groups)
+            fitted.extra_gates[name] = self._fit_gate(
+                configured, train, split.sim, split.solver_xy, oof_model, features, split.truth, split.groups
+            )
         if self.c.selective is not None:
             fitted.selective = self._selective_threshold(cal.error[cal.domain], fitted.oof_predicted[cal.domain])
         return fitted
@@ -384,8 +432,13 @@ class LocalizationPipeline:
         """The training split's arrays (rows ``train`` index the tables)."""
         groups = events[col.POSITION_ID].to_numpy()
         return SplitData(
-            features=features, events=events, train=train, truth=events[[col.TRUE_X, col.TRUE_Y]].to_numpy(dtype=float), groups=groups,
-            mcols=self.model_columns(features), ecols=self.error_columns(features),
+            features=features,
+            events=events,
+            train=train,
+            truth=events[[col.TRUE_X, col.TRUE_Y]].to_numpy(dtype=float),
+            groups=groups,
+            mcols=self.model_columns(features),
+            ecols=self.error_columns(features),
             solver_xy=features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(dtype=float),
             # the paper chooses τ* on simulation: field rows never teach a gate
             sim=~events["is_field"].to_numpy(bool)[train] if "is_field" in events else np.ones(train.size, dtype=bool),
@@ -424,11 +477,12 @@ class LocalizationPipeline:
         rows = rows[cal.finite[rows]]
         return rows[self._within_limit(s.groups[s.train[rows]], plugin)]
 
-    def _out_of_fold_errors(self, s: SplitData, cal: CalibrationErrors, fit_predict: Any, plugin: Any, shape: tuple[int, ...] = (),
-                            desc: str | None = None) -> np.ndarray:
+    def _out_of_fold_errors(
+        self, s: SplitData, cal: CalibrationErrors, fit_predict: Any, plugin: Any, shape: tuple[int, ...] = (), desc: str | None = None
+    ) -> np.ndarray:
         """(train, *shape) predictions of ``fit_predict(x_fit, error_fit, x_held)`` over the calibration folds (finite errors only)."""
         out = np.empty((s.train.size, *shape))
-        for fit_idx, held_idx in (progress(s.folds, desc=desc, unit=col.FOLD, leave=False) if desc else s.folds):
+        for fit_idx, held_idx in progress(s.folds, desc=desc, unit=col.FOLD, leave=False) if desc else s.folds:
             fit_idx = self._error_fit_rows(s, cal, fit_idx, plugin)
             out[held_idx] = fit_predict(cal.x_error.iloc[fit_idx], cal.error[fit_idx], cal.x_error.iloc[held_idx])
         return out
@@ -436,17 +490,27 @@ class LocalizationPipeline:
     def _fit_error_models(self, s: SplitData, cal: CalibrationErrors, fitted: FittedMethod) -> None:
         """The error model (out-of-fold for calibration, then on every training row) and the conformal scorers, into ``fitted``."""
         log.info("error model, out-of-fold (%d folds)", len(s.folds))
-        oof_pred = np.maximum(self._out_of_fold_errors(s, cal, lambda x, y, held: clone_for_rows(self.c.error_model, len(x)).fit(x, y).predict(held),
-                                                       self.c.error_model, desc="error model, out-of-fold"), cal.floor)
+        oof_pred = np.maximum(
+            self._out_of_fold_errors(
+                s,
+                cal,
+                lambda x, y, held: clone_for_rows(self.c.error_model, len(x)).fit(x, y).predict(held),
+                self.c.error_model,
+                desc="error model, out-of-fold",
+            ),
+            cal.floor,
+        )
         rows, levels = cal.rows, self.c.levels
         positions = s.groups[s.train][rows]  # a scorer may calibrate over positions rather than events
         for name, configured in self.c.scorers.items():
             scorer = clone(configured, safe=False)
             if declared(scorer, "needs_quantiles"):  # CQR: its own quantile model, out-of-fold like the error model
-                oof_q = self._out_of_fold_errors(s, cal, lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, levels),
-                                                 scorer, shape=(len(levels),))
-                fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels,
-                                                  quantiles=np.maximum(oof_q[rows], cal.floor), groups=positions)
+                oof_q = self._out_of_fold_errors(
+                    s, cal, lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, levels), scorer, shape=(len(levels),)
+                )
+                fitted.scorers[name] = scorer.fit(
+                    cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, quantiles=np.maximum(oof_q[rows], cal.floor), groups=positions
+                )
                 x_fit, error_fit = cal.x_error.iloc[cal.finite], cal.error[cal.finite]
                 fit_quantiles = hook(scorer, "fit_quantiles")
                 if fit_quantiles is not None:  # fitted once here, applied to every chunk a season predicts
@@ -473,8 +537,9 @@ class LocalizationPipeline:
             return sigma
         source = np.column_stack([position_m, source_height_m(features, self.c.site)])
         humidity = events[col.HUMIDITY].to_numpy(float) if col.HUMIDITY in events else np.zeros(len(events))
-        sigma[field] = position_sigma_m(self.c.site.mic_positions_m, source[field], events[col.TEMPERATURE].to_numpy(float)[field],
-                                        humidity[field], stated)
+        sigma[field] = position_sigma_m(
+            self.c.site.mic_positions_m, source[field], events[col.TEMPERATURE].to_numpy(float)[field], humidity[field], stated
+        )
         return sigma
 
     def _calibration_domain(self, events: pd.DataFrame, train: np.ndarray, finite: np.ndarray) -> np.ndarray:
@@ -497,8 +562,10 @@ class LocalizationPipeline:
         if n_rows >= needed and n_positions >= MIN_FIELD_CALIBRATION_POSITIONS:
             log.info("conformal calibration on %d field events at %d positions", n_rows, n_positions)
             return field
-        why = (f"{n_rows} field events with a known position and an estimate at {n_positions} positions in training; calibration "
-               f"on the field needs at least {needed} events (level {max(self.c.levels)}) at {MIN_FIELD_CALIBRATION_POSITIONS} positions")
+        why = (
+            f"{n_rows} field events with a known position and an estimate at {n_positions} positions in training; calibration "
+            f"on the field needs at least {needed} events (level {max(self.c.levels)}) at {MIN_FIELD_CALIBRATION_POSITIONS} positions"
+        )
         if mode == "field":
             raise DataError(f"conformal.calibrate_on=field: {why} (protocol=lopo, or localize with calibration playbacks, provide them)")
         log.info("conformal calibration on all %d training events (%s)", train.size, why)
@@ -517,8 +584,13 @@ class LocalizationPipeline:
         if support is None:
             return {"enabled": False}
         reasons, counts = np.unique(trusted.reason[trusted.reason != ""].astype(str), return_counts=True)
-        return {"enabled": True, "training_region": support.description(), "overridden": {str(r): int(n) for r, n in zip(reasons, counts, strict=True)},
-                "n_novel": int((trusted.flags["novelty"] > 1).sum()), "n_solver_outside_support": int(trusted.flags["solver_outside_support"].sum())}
+        return {
+            "enabled": True,
+            "training_region": support.description(),
+            "overridden": {str(r): int(n) for r, n in zip(reasons, counts, strict=True)},
+            "n_novel": int((trusted.flags["novelty"] > 1).sum()),
+            "n_solver_outside_support": int(trusted.flags["solver_outside_support"].sum()),
+        }
 
     def _calibration_summary(self, domain: np.ndarray, cal: np.ndarray, train_groups: np.ndarray) -> dict[str, Any]:
         """Which rows calibrated, and which levels their number of positions can support.
@@ -534,15 +606,35 @@ class LocalizationPipeline:
         unsupported = [level for level, n in needed.items() if n_positions < n]
         on = "field" if domain.sum() < domain.size else "all"
         if unsupported:
-            log.warning("conformal calibration on %d %s positions cannot support level(s) %s for a new position (they need %s positions); "
-                        "their radii are the largest calibration errors or infinite", n_positions, "field" if on == "field" else "training",
-                        ", ".join(unsupported), ", ".join(str(needed[lv]) for lv in unsupported))
-        return {"on": on, "n_events": int(cal.sum()), "n_positions": n_positions, "positions_needed_by_level": needed,
-                "unsupported_levels": unsupported}
+            log.warning(
+                "conformal calibration on %d %s positions cannot support level(s) %s for a new position (they need %s positions); "
+                "their radii are the largest calibration errors or infinite",
+                n_positions,
+                "field" if on == "field" else "training",
+                ", ".join(unsupported),
+                ", ".join(str(needed[lv]) for lv in unsupported),
+            )
+        return {
+            "on": on,
+            "n_events": int(cal.sum()),
+            "n_positions": n_positions,
+            "positions_needed_by_level": needed,
+            "unsupported_levels": unsupported,
+        }
 
-    def _out_of_fold_gate(self, folds: list[tuple[np.ndarray, np.ndarray]], train: np.ndarray, sim: np.ndarray, solver_xy: np.ndarray,
-                          oof_model: np.ndarray, features: pd.DataFrame, truth: np.ndarray, groups: np.ndarray,
-                          events: pd.DataFrame, mcols: list[str]) -> GateDecision:
+    def _out_of_fold_gate(
+        self,
+        folds: list[tuple[np.ndarray, np.ndarray]],
+        train: np.ndarray,
+        sim: np.ndarray,
+        solver_xy: np.ndarray,
+        oof_model: np.ndarray,
+        features: pd.DataFrame,
+        truth: np.ndarray,
+        groups: np.ndarray,
+        events: pd.DataFrame,
+        mcols: list[str],
+    ) -> GateDecision:
         """The gate's decisions on the training events, each from a gate fitted without that event's position.
 
         A gate fitted on all training positions and applied to them decides in-sample (the learned
@@ -561,8 +653,9 @@ class LocalizationPipeline:
             position[held_idx], substituted[held_idx] = decision.position_m, decision.substituted
         return GateDecision(position, substituted)
 
-    def _error_inputs(self, x: pd.DataFrame, solver_xy: np.ndarray, model_xy: np.ndarray, decision: GateDecision,
-                      estimate_gdop: np.ndarray) -> pd.DataFrame:
+    def _error_inputs(
+        self, x: pd.DataFrame, solver_xy: np.ndarray, model_xy: np.ndarray, decision: GateDecision, estimate_gdop: np.ndarray
+    ) -> pd.DataFrame:
         """The error model's inputs: its feature columns plus, with ``error_model_gate_cues``, the gate's context.
 
         The context (columns ``gate__*``) is what the features cannot know: how far the solver's
@@ -574,12 +667,15 @@ class LocalizationPipeline:
         if not self.c.error_model_gate_cues:
             return x
         centre = self.c.site.mic_positions_m[:, :2].mean(axis=0)
-        context = pd.DataFrame({
-            col.GATE_SOLVER_MODEL_DISTANCE: np.sqrt(((solver_xy - model_xy) ** 2).sum(axis=1)),
-            col.GATE_SUBSTITUTED: decision.substituted.astype(float),
-            col.GATE_ESTIMATE_GDOP: estimate_gdop,
-            col.GATE_ESTIMATE_RANGE: np.sqrt(((decision.position_m - centre) ** 2).sum(axis=1)),
-        }, index=x.index)
+        context = pd.DataFrame(
+            {
+                col.GATE_SOLVER_MODEL_DISTANCE: np.sqrt(((solver_xy - model_xy) ** 2).sum(axis=1)),
+                col.GATE_SUBSTITUTED: decision.substituted.astype(float),
+                col.GATE_ESTIMATE_GDOP: estimate_gdop,
+                col.GATE_ESTIMATE_RANGE: np.sqrt(((decision.position_m - centre) ** 2).sum(axis=1)),
+            },
+            index=x.index,
+        )
         return pd.concat([x, context], axis=1)
 
     def _selective_threshold(self, oof_err: np.ndarray, oof_pred: np.ndarray) -> tuple[float, dict[str, Any]]:
@@ -591,12 +687,20 @@ class LocalizationPipeline:
         gross = ~(oof_err <= float(sel["gross_m"]))
         threshold, path = selective_threshold(oof_pred, gross, float(sel["delta"]), float(sel["epsilon"]))
         placed = oof_pred <= threshold
-        info = {"threshold_m": threshold, "delta": float(sel["delta"]), "epsilon": float(sel["epsilon"]), "gross_m": float(sel["gross_m"]),
-                "calibration_share_placed": float(placed.mean()),
-                "calibration_share_gross_placed": float(gross[placed].mean()) if placed.any() else float("nan")}
+        info = {
+            "threshold_m": threshold,
+            "delta": float(sel["delta"]),
+            "epsilon": float(sel["epsilon"]),
+            "gross_m": float(sel["gross_m"]),
+            "calibration_share_placed": float(placed.mean()),
+            "calibration_share_gross_placed": float(gross[placed].mean()) if placed.any() else float("nan"),
+        }
         if not np.isfinite(threshold):
-            log.warning("selective localization: no threshold certifies share(error > %g m | placed) <= %g; nothing is placed",
-                        sel["gross_m"], sel["delta"])
+            log.warning(
+                "selective localization: no threshold certifies share(error > %g m | placed) <= %g; nothing is placed",
+                sel["gross_m"],
+                sel["delta"],
+            )
         return threshold, info
 
 
@@ -660,8 +764,14 @@ class FittedMethod:
         cues = pipe._cues(rows, solver_xy, model_xy, features, self.mcols, self.support)
         trusted = pipe._decide(self.gate, rows, solver_xy, model_xy, features, cues)
         gdop_at_estimate = pipe._gdop_at(trusted.decision.position_m, features)
-        estimate = TestEstimates(model_xy, self.support, cues, trusted, gdop_at_estimate,
-                                 pipe._error_inputs(features[self.ecols], solver_xy, model_xy, trusted.decision, gdop_at_estimate))
+        estimate = TestEstimates(
+            model_xy,
+            self.support,
+            cues,
+            trusted,
+            gdop_at_estimate,
+            pipe._error_inputs(features[self.ecols], solver_xy, model_xy, trusted.decision, gdop_at_estimate),
+        )
         predicted = np.maximum(self.error_model.predict(estimate.x_error), self.floor)
         out = self._table(features, events, solver_xy, truth, estimate, predicted)
         if self.ellipse_calibration is not None:
@@ -674,8 +784,15 @@ class FittedMethod:
         self._add_radii(out, features, events, estimate, predicted)
         return out, pipe._trust_summary(self.support, trusted)
 
-    def _table(self, features: pd.DataFrame, events: pd.DataFrame, solver_xy: np.ndarray, truth: np.ndarray, t: TestEstimates,
-               predicted: np.ndarray) -> pd.DataFrame:
+    def _table(
+        self,
+        features: pd.DataFrame,
+        events: pd.DataFrame,
+        solver_xy: np.ndarray,
+        truth: np.ndarray,
+        t: TestEstimates,
+        predicted: np.ndarray,
+    ) -> pd.DataFrame:
         """One row per event: truth, every estimate and its error, the oracle, the trust check's cues, GDOPs, predicted error."""
         decision = t.trusted.decision
         solver_gdop = features[col.SOLVER_GDOP].to_numpy(dtype=float) if col.SOLVER_GDOP in features else np.full(len(features), np.nan)
@@ -716,13 +833,18 @@ class FittedMethod:
         threshold = self.selective[0]
         has_fix = np.isfinite(trusted.decision.position_m).all(axis=1)
         out[col.PLACED] = has_fix & (predicted <= threshold)
-        out[col.ABSTAIN_REASON] = np.where(~has_fix, np.where(trusted.reason != "", trusted.reason, "no estimate"),
-                                           np.where(out[col.PLACED], "", "predicted error above the certified threshold"))
+        out[col.ABSTAIN_REASON] = np.where(
+            ~has_fix,
+            np.where(trusted.reason != "", trusted.reason, "no estimate"),
+            np.where(out[col.PLACED], "", "predicted error above the certified threshold"),
+        )
 
     def _add_radii(self, out: pd.DataFrame, features: pd.DataFrame, events: pd.DataFrame, t: TestEstimates, predicted: np.ndarray) -> None:
         """``radius__<scorer>__<level>`` columns: conformal radii grown by the stated input errors where they apply."""
         c = self.pipeline.c
-        input_sigma = self.pipeline._input_sigma(t.trusted.decision.position_m, features, events, calibrated_on_field=self.calibrated_on_field)
+        input_sigma = self.pipeline._input_sigma(
+            t.trusted.decision.position_m, features, events, calibrated_on_field=self.calibrated_on_field
+        )
         out[col.INPUT_SIGMA] = input_sigma
         allowance = input_sigma[:, None] * np.array([level_factor(level) for level in c.levels])[None, :]
         for name, scorer in self.scorers.items():

@@ -61,10 +61,14 @@ def load_method(directory: Path, expected_sha256: str | None = None) -> Any:
     try:
         recorded = json.loads((directory / DIGEST_FILE).read_text())["sha256"]
     except (OSError, ValueError, KeyError, TypeError):
-        raise DataError(f"{directory / DIGEST_FILE} is missing or unreadable: the fitted method {path} cannot be verified; fit again") from None
+        raise DataError(
+            f"{directory / DIGEST_FILE} is missing or unreadable: the fitted method {path} cannot be verified; fit again"
+        ) from None
     actual = file_sha256(path)
     for wanted in {recorded, expected_sha256} - {None}:
         if actual != wanted:
-            raise DataError(f"{path}: SHA-256 {actual[:12]}… differs from the {'recorded' if wanted == recorded else 'expected'} "
-                            f"{wanted[:12]}…; the file changed after it was written, refusing to load it (fit again)")
+            raise DataError(
+                f"{path}: SHA-256 {actual[:12]}… differs from the {'recorded' if wanted == recorded else 'expected'} "
+                f"{wanted[:12]}…; the file changed after it was written, refusing to load it (fit again)"
+            )
     return joblib.load(path)

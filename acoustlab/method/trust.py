@@ -148,7 +148,9 @@ class TrainingSupport:
         good = np.asarray(solver_error_m) <= s.good_fix_m
         good_residuals = residual[good & np.isfinite(residual)] if residual is not None else np.array([])
         # an array without redundancy fits any fix exactly (residual ≈ 0): consistency cannot be shown there
-        self.residual_limit_s_ = float(s.residual_factor * np.quantile(good_residuals, s.residual_quantile)) if good_residuals.size >= 10 else None
+        self.residual_limit_s_ = (
+            float(s.residual_factor * np.quantile(good_residuals, s.residual_quantile)) if good_residuals.size >= 10 else None
+        )
         if self.residual_limit_s_ is not None and self.residual_limit_s_ < 1e-9:
             self.residual_limit_s_ = None
         return self
@@ -189,8 +191,9 @@ class TrainingSupport:
         """(B,) mean distance to the nearest training rows ÷ the novelty limit (> 1: novel; 0 without the check)."""
         if self.neighbours_ is None:
             return np.zeros(len(features))
-        distance, _ = self.neighbours_.kneighbors(self._standardise(features[self.columns_].to_numpy(float)),
-                                                  n_neighbors=self.settings.n_neighbors)
+        distance, _ = self.neighbours_.kneighbors(
+            self._standardise(features[self.columns_].to_numpy(float)), n_neighbors=self.settings.n_neighbors
+        )
         return distance.mean(axis=1) / self.novelty_limit_
 
     def outside_region(self, position_m: np.ndarray, height_m: np.ndarray | None = None) -> np.ndarray:
@@ -222,11 +225,14 @@ class TrainingSupport:
 
     def description(self) -> dict[str, Any]:
         """The training region for metrics.json: hull vertices (m), height range (m), limits."""
-        return {"hull_vertices_m": np.round(self.hull_vertices_m_, 3).tolist(),
-                "height_range_m": None if self.height_range_m_ is None else [round(v, 3) for v in self.height_range_m_],
-                "support_margin_m": self.settings.support_margin_m, "height_margin_m": self.settings.height_margin_m,
-                "residual_limit_s": self.residual_limit_s_,
-                "novelty_limit": None if not np.isfinite(self.novelty_limit_) else self.novelty_limit_}
+        return {
+            "hull_vertices_m": np.round(self.hull_vertices_m_, 3).tolist(),
+            "height_range_m": None if self.height_range_m_ is None else [round(v, 3) for v in self.height_range_m_],
+            "support_margin_m": self.settings.support_margin_m,
+            "height_margin_m": self.settings.height_margin_m,
+            "residual_limit_s": self.residual_limit_s_,
+            "novelty_limit": None if not np.isfinite(self.novelty_limit_) else self.novelty_limit_,
+        }
 
 
 @dataclass
@@ -275,8 +281,9 @@ class SupportCues:
     distrust: np.ndarray
 
 
-def support_cues(solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, model_features: pd.DataFrame,
-                 support: TrainingSupport | None) -> SupportCues:
+def support_cues(
+    solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, model_features: pd.DataFrame, support: TrainingSupport | None
+) -> SupportCues:
     """Check rows against the point model's training support (module docstring); no gate is involved yet.
 
     Parameters
@@ -293,17 +300,28 @@ def support_cues(solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataF
     n = len(solver_xy)
     if support is None:
         empty = np.zeros(n, dtype=bool)
-        return SupportCues({"novelty": np.zeros(n), "solver_outside_support": empty, "model_outside_support": empty,
-                            "solver_consistent": empty}, np.full(n, REASON_GATE, dtype=object))
+        return SupportCues(
+            {"novelty": np.zeros(n), "solver_outside_support": empty, "model_outside_support": empty, "solver_consistent": empty},
+            np.full(n, REASON_GATE, dtype=object),
+        )
     novelty = support.novelty(model_features)
     solver_outside = support.outside_region(solver_xy, solver_height(features))
     model_outside = support.outside_region(model_xy)
     consistent = support.consistent(features)
     distrust = np.full(n, REASON_GATE, dtype=object)
     # the order sets which reason is reported where several apply: the physical one first
-    for applies, why in ((model_outside, REASON_MODEL_OUTSIDE), (novelty > 1, REASON_NOVEL), (solver_outside & consistent, REASON_SOLVER_OUTSIDE)):
+    for applies, why in (
+        (model_outside, REASON_MODEL_OUTSIDE),
+        (novelty > 1, REASON_NOVEL),
+        (solver_outside & consistent, REASON_SOLVER_OUTSIDE),
+    ):
         distrust = np.where(applies & (distrust == REASON_GATE), why, distrust)
-    flags = {"novelty": novelty, "solver_outside_support": solver_outside, "model_outside_support": model_outside, "solver_consistent": consistent}
+    flags = {
+        "novelty": novelty,
+        "solver_outside_support": solver_outside,
+        "model_outside_support": model_outside,
+        "solver_consistent": consistent,
+    }
     return SupportCues(flags, distrust)
 
 

@@ -129,8 +129,12 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
         return False
     choices = metrics.get("choices", {})
     run_name = metrics.get("run_name") or f"{metrics['site']}-{choices.get('model', 'model')}"
-    tags = {"dataset_hash": metrics["dataset_hash"], "code_version": metrics["code_version"], "site": metrics["site"],
-            "run_dir": str(run_dir.resolve())}
+    tags = {
+        "dataset_hash": metrics["dataset_hash"],
+        "code_version": metrics["code_version"],
+        "site": metrics["site"],
+        "run_dir": str(run_dir.resolve()),
+    }
     if "field_dataset_hash" in metrics:
         tags["field_dataset_hash"] = metrics["field_dataset_hash"]
     pending = run_dir / PENDING_FILE
@@ -138,7 +142,9 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
     try:
         tracker.check_reachable()
         clock = metrics.get("run_time") if isinstance(metrics.get("run_time"), dict) else {}
-        tracker.start(run_name, run_params(run_dir, metrics), tags, parent_run_id=parent_run_id, start_time_ms=clock.get("started_epoch_ms"))
+        tracker.start(
+            run_name, run_params(run_dir, metrics), tags, parent_run_id=parent_run_id, start_time_ms=clock.get("started_epoch_ms")
+        )
         if col.METRICS_ERRORS in metrics:  # an evaluation; a localization run (no truth) has positions instead
             tracker.log_metrics(flat_metrics(metrics))
             tracker.log_table(error_table(metrics), "tables/errors.json")
@@ -160,7 +166,11 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
         uri = f" --tracking-uri {destination}" if destination else ""
         log.warning(
             "tracking failed (%s: %s); nothing is lost: all results are in %s. Upload them later with: python -m acoustlab.upload %s%s",
-            type(exc).__name__, exc, run_dir, run_dir, uri,
+            type(exc).__name__,
+            exc,
+            run_dir,
+            run_dir,
+            uri,
         )
         try:
             tracker.finish("FAILED")

@@ -103,7 +103,10 @@ def spearman_rho(predictions: pd.DataFrame) -> dict[str, float | None]:
     ok = np.isfinite(err_gate)
     rho: dict[str, float | None] = {}
     if ok.sum() >= 3:
-        for name, values in (("error_model", predictions[col.PREDICTED_ERROR].to_numpy(float)), ("gdop", predictions["gdop"].to_numpy(float))):
+        for name, values in (
+            ("error_model", predictions[col.PREDICTED_ERROR].to_numpy(float)),
+            ("gdop", predictions["gdop"].to_numpy(float)),
+        ):
             v = values[ok]
             rho[name] = float(spearmanr(v, err_gate[ok]).statistic) if np.ptp(v) > 0 and np.ptp(err_gate[ok]) > 0 else None
     return rho
@@ -135,8 +138,9 @@ def coverage_by_position(predictions: pd.DataFrame, levels: list[float], scorers
     return by_position
 
 
-def position_bootstrap_ci(predictions: pd.DataFrame, levels: list[float], scorers: list[str], n_boot: int = N_BOOTSTRAP,
-                          seed: int = 0) -> dict[str, Any]:
+def position_bootstrap_ci(
+    predictions: pd.DataFrame, levels: list[float], scorers: list[str], n_boot: int = N_BOOTSTRAP, seed: int = 0
+) -> dict[str, Any]:
     """95 % confidence intervals by position bootstrap for every error quantile, gross share and coverage.
 
     Source positions are the exchangeable units (events at one position share its geometry and
@@ -152,7 +156,9 @@ def position_bootstrap_ci(predictions: pd.DataFrame, levels: list[float], scorer
     codes, inverse = np.unique(groups, return_inverse=True)
     rows_of = [np.flatnonzero(inverse == k) for k in range(codes.size)]
     rng = np.random.default_rng(seed)
-    errors = {m: np.where(np.isnan(e := predictions[col.error_m(m)].to_numpy(float)), np.inf, e) for m in col.methods_in(predictions.columns)}
+    errors = {
+        m: np.where(np.isnan(e := predictions[col.error_m(m)].to_numpy(float)), np.inf, e) for m in col.methods_in(predictions.columns)
+    }
     gate_err = errors.get("gate")
     radii = {(s, lv): predictions[col.radius(s, lv)].to_numpy(float) for s in scorers for lv in levels}
     samples: dict[tuple, list[float]] = {}
@@ -180,6 +186,7 @@ def gate_gap(errors: dict[str, dict[str, float]]) -> dict[str, float]:
     Keys ``<q>_<gate>_over_oracle`` and ``p50_<gate>_over_solver`` for the configured gate
     (``gate``) and every extra gate (``gate_<name>``).
     """
+
     def ratio(a: float, b: float) -> float:
         return float(a / b) if np.isfinite(b) and b > 0 else float("nan")
 
@@ -212,9 +219,14 @@ def risk_coverage(predictions: pd.DataFrame) -> list[dict[str, float]]:
     for share in PLACED_SHARES:
         k = max(1, int(round(share * err.size)))
         kept = err[order[:k]]
-        rows.append({"share_placed": k / err.size, "threshold_m": float(pred[order[k - 1]]),
-                     **{name: _quantile_with_failures(kept, q) for name, q in (("p50", 50), ("p95", 95), ("p99", 99))},
-                     "share_gt_5m": share_gross(kept)})
+        rows.append(
+            {
+                "share_placed": k / err.size,
+                "threshold_m": float(pred[order[k - 1]]),
+                **{name: _quantile_with_failures(kept, q) for name, q in (("p50", 50), ("p95", 95), ("p99", 99))},
+                "share_gt_5m": share_gross(kept),
+            }
+        )
     return rows
 
 
@@ -243,8 +255,11 @@ def ellipse_coverage(predictions: pd.DataFrame, levels: list[float]) -> dict[str
         a, b, angle = (predictions[col.ellipse(level, p)].to_numpy(float) for p in ("a_m", "b_m", "angle_deg"))
         hit = inside_ellipse(np.nan_to_num(d, nan=np.inf), a, b, angle) & np.isfinite(d).all(axis=1)
         by_position = pd.Series(hit).groupby(predictions[col.POSITION_ID].to_numpy()).mean()
-        out[col.level_key(level)] = {col.METRICS_COVERAGE: float(hit.mean()), "worst_position": float(by_position.min()),
-                                     "median_area_m2": float(np.median(np.pi * a * b))}
+        out[col.level_key(level)] = {
+            col.METRICS_COVERAGE: float(hit.mean()),
+            "worst_position": float(by_position.min()),
+            "median_area_m2": float(np.median(np.pi * a * b)),
+        }
     return out
 
 
@@ -382,16 +397,21 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
 
 def summary_text(metrics: dict) -> str:
     """A compact, human-readable end-of-run summary: errors by method, coverage and median radius by scorer and level."""
+
     def num(v: float) -> str:
         return "inf" if v == float("inf") else "-" if np.isnan(v) else f"{v:.2f}" if abs(v) < 10 else f"{v:.0f}"
 
     lines = [f"{'method':<14}{'p50 m':>8}{'p95 m':>8}{'p99 m':>8}{'> 5 m':>8}{'failed':>8}"]
     for method, e in metrics[col.METRICS_ERRORS].items():
-        lines.append(f"{method:<14}{num(e['p50']):>8}{num(e['p95']):>8}{num(e['p99']):>8}{100 * e.get('share_gt_5m', float('nan')):>7.1f}%"
-                     f"{e['n_failed']:>8}")
+        lines.append(
+            f"{method:<14}{num(e['p50']):>8}{num(e['p95']):>8}{num(e['p99']):>8}{100 * e.get('share_gt_5m', float('nan')):>7.1f}%"
+            f"{e['n_failed']:>8}"
+        )
     levels = sorted({lv for by in metrics[col.METRICS_COVERAGE].values() for lv in by}, key=float)
     lines.append("")
-    lines.append(f"{col.METRICS_COVERAGE:<14}" + "".join(f"{'@' + lv:>10}" for lv in levels) + f"{'radius@' + levels[-1]:>14}" if levels else "")
+    lines.append(
+        f"{col.METRICS_COVERAGE:<14}" + "".join(f"{'@' + lv:>10}" for lv in levels) + f"{'radius@' + levels[-1]:>14}" if levels else ""
+    )
     for scorer, by in metrics[col.METRICS_COVERAGE].items():
         width = metrics[col.METRICS_WIDTH][scorer][levels[-1]]["median_m"]
         lines.append(f"{scorer:<14}" + "".join(f"{by[lv]:>10.3f}" for lv in levels) + f"{num(width) + ' m':>14}")

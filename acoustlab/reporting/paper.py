@@ -44,27 +44,39 @@ def deviations(config: dict[str, Any]) -> list[str]:
     if _get(config, "features.gcc.weighting") not in (None, "phat"):
         out.append(f"GCC weighting {_get(config, 'features.gcc.weighting')} (the paper: PHAT; features.gcc.weighting=phat)")
     if "TabPFN" not in str(_get(config, "model._target_") or ""):
-        out.append(f"point model {str(_get(config, 'model._target_')).rsplit('.', 1)[-1]} (the paper: TabPFN; model=tabpfn needs its weights)")
+        out.append(
+            f"point model {str(_get(config, 'model._target_')).rsplit('.', 1)[-1]} (the paper: TabPFN; model=tabpfn needs its weights)"
+        )
     if _get(config, "pipeline.error_model_gate_cues"):
-        out.append("the error model also sees the gate's context (solver–model distance, GDOP and range of the chosen estimate); "
-                   "the paper's sees the features only (pipeline.error_model_gate_cues=false)")
+        out.append(
+            "the error model also sees the gate's context (solver–model distance, GDOP and range of the chosen estimate); "
+            "the paper's sees the features only (pipeline.error_model_gate_cues=false)"
+        )
     folds = _get(config, "conformal.calibration_folds")
     if folds != -1:
-        out.append(f"conformal calibrated over {folds} folds of training positions (the paper: leave one position out; conformal.calibration_folds=-1)")
+        out.append(
+            f"conformal calibrated over {folds} folds of training positions (the paper: leave one position out; conformal.calibration_folds=-1)"
+        )
     gate = str(_get(config, "gate._target_") or "")
     if not gate.endswith("HybridGate"):
         out.append(f"gate {gate.rsplit('.', 1)[-1]} (the paper: the two-stage hybrid gate; gate=hybrid)")
     elif _get(config, "gate.tau_reference") != "solver":
-        out.append("τ* rule compared with the box-gated solver (the paper: with the bare solver; gate.tau_reference=solver), "
-                   "since against the bare solver the box alone meets the rule and the most permissive τ wins")
+        out.append(
+            "τ* rule compared with the box-gated solver (the paper: with the bare solver; gate.tau_reference=solver), "
+            "since against the bare solver the box alone meets the rule and the most permissive τ wins"
+        )
     if _get(config, "pipeline.trust.enabled"):
-        out.append("the trust check keeps the solver's fix where the point model is outside its training support (the paper has none; "
-                   "pipeline.trust.enabled=false)")
+        out.append(
+            "the trust check keeps the solver's fix where the point model is outside its training support (the paper has none; "
+            "pipeline.trust.enabled=false)"
+        )
     out.append("the simulator and data are ours, not the paper's (see the note above)")
     return out
 
 
-def paper_comparison(reference: dict[str, Any], metrics: dict[str, Any], config: dict[str, Any] | None = None) -> tuple[list[dict[str, Any]], list[str]]:
+def paper_comparison(
+    reference: dict[str, Any], metrics: dict[str, Any], config: dict[str, Any] | None = None
+) -> tuple[list[dict[str, Any]], list[str]]:
     """Rows ``quantity, paper, ours, ratio`` for every figure of ``reference`` and the Markdown table.
 
     ``reference`` has ``source`` (what the paper measured it on), ``note`` (what differs here) and
@@ -74,14 +86,28 @@ def paper_comparison(reference: dict[str, Any], metrics: dict[str, Any], config:
     rows = []
     for path, value in reference.get("figures", {}).items():
         ours = _ours(metrics, path)
-        rows.append({"quantity": path, "paper": float(value), "ours": ours,
-                     "ratio": ours / float(value) if np.isfinite(ours) and float(value) else float("nan")})
+        rows.append(
+            {
+                "quantity": path,
+                "paper": float(value),
+                "ours": ours,
+                "ratio": ours / float(value) if np.isfinite(ours) and float(value) else float("nan"),
+            }
+        )
 
     def fmt(v: float) -> str:
         return "∞" if v == float("inf") else "—" if np.isnan(v) else f"{v:.3g}"
 
-    lines = ["# This run beside the paper", "", f"Paper: {reference.get('source', '')}", "", f"Here: {reference.get('note', '')}", "",
-             "| quantity (metrics.json) | paper | this run | this ÷ paper |", "|---|---|---|---|"]
+    lines = [
+        "# This run beside the paper",
+        "",
+        f"Paper: {reference.get('source', '')}",
+        "",
+        f"Here: {reference.get('note', '')}",
+        "",
+        "| quantity (metrics.json) | paper | this run | this ÷ paper |",
+        "|---|---|---|---|",
+    ]
     lines += [f"| `{r['quantity']}` | {fmt(r['paper'])} | {fmt(r['ours'])} | {fmt(r['ratio'])} |" for r in rows]
     if config is not None:
         lines += ["", "## How this run's method differs from the paper's as written", ""] + [f"- {d}" for d in deviations(config)]

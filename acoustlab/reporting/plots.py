@@ -47,8 +47,14 @@ def error_cdf(ax: plt.Axes, errors_by_label: dict[str, np.ndarray]) -> None:
         if e.size == 0:
             continue
         # identical curves (the gate keeping every solver fix) stay visible through the line styles
-        ax.step(np.maximum(e, 1e-3), np.arange(1, e.size + 1) / e.size, where="post", label=label,
-                ls=styles[i % len(styles)], lw=2.2 if i == 0 else 1.4)
+        ax.step(
+            np.maximum(e, 1e-3),
+            np.arange(1, e.size + 1) / e.size,
+            where="post",
+            label=label,
+            ls=styles[i % len(styles)],
+            lw=2.2 if i == 0 else 1.4,
+        )
     ax.set_xscale("log")
     ax.set_xlabel("2-D localization error (m)")
     ax.set_ylabel("fraction of detections")
@@ -222,13 +228,19 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
     paths.append(_save(fig, out_dir / "error_cdf.png"))
 
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
-    coverage_calibration(ax, {s: {float(lv): v for lv, v in by.items()} for s, by in metrics[col.METRICS_COVERAGE].items()}, len(predictions))
+    coverage_calibration(
+        ax, {s: {float(lv): v for lv, v in by.items()} for s, by in metrics[col.METRICS_COVERAGE].items()}, len(predictions)
+    )
     ax.set_title("coverage calibration (pooled test detections)", fontsize=9)
     paths.append(_save(fig, out_dir / "coverage_calibration.png"))
 
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
-    predicted_vs_actual(ax, predictions[col.PREDICTED_ERROR].to_numpy(float), predictions[col.error_m("gate")].to_numpy(float),
-                        metrics.get(col.METRICS_SPEARMAN, {}).get("error_model"))
+    predicted_vs_actual(
+        ax,
+        predictions[col.PREDICTED_ERROR].to_numpy(float),
+        predictions[col.error_m("gate")].to_numpy(float),
+        metrics.get(col.METRICS_SPEARMAN, {}).get("error_model"),
+    )
     paths.append(_save(fig, out_dir / "predicted_vs_actual_error.png"))
 
     if site is not None:
@@ -259,8 +271,15 @@ def _draw_disagreements(ax: plt.Axes, placed: pd.DataFrame, radius: np.ndarray |
         return
     for (x0, y0), (x1, y1) in zip(reported[far], other[far], strict=True):
         ax.plot([x0, x1], [y0, y1], color="tab:gray", lw=0.6, ls=":", zorder=2)
-    ax.scatter(other[far, 0], other[far, 1], marker="x", color="tab:gray", s=25, zorder=3,
-               label="the other estimate (solver or model), farther than the radius")
+    ax.scatter(
+        other[far, 0],
+        other[far, 1],
+        marker="x",
+        color="tab:gray",
+        s=25,
+        zorder=3,
+        label="the other estimate (solver or model), farther than the radius",
+    )
 
 
 def write_positions_map(table: pd.DataFrame, site: Site, levels: list[float], scorers: list[str], out_dir: Path) -> Path:

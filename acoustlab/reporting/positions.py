@@ -29,13 +29,21 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     """
     out = pd.DataFrame({c: predictions[c] for c in DETECTION_FIELDS if c in predictions})
     gate_x, gate_y = col.estimate_xy("gate")
-    placed = predictions[col.PLACED].to_numpy(bool) if col.PLACED in predictions else np.isfinite(predictions[[gate_x, gate_y]].to_numpy(float)).all(1)
+    placed = (
+        predictions[col.PLACED].to_numpy(bool)
+        if col.PLACED in predictions
+        else np.isfinite(predictions[[gate_x, gate_y]].to_numpy(float)).all(1)
+    )
     substituted = predictions[col.SUBSTITUTED].to_numpy(bool)
     has_estimate = np.isfinite(predictions[[gate_x, gate_y]].to_numpy(float)).all(1)
-    solver_z = predictions[col.SOLVER_SOURCE_HEIGHT].to_numpy(float) if col.SOLVER_SOURCE_HEIGHT in predictions else np.full(len(out), np.nan)
+    solver_z = (
+        predictions[col.SOLVER_SOURCE_HEIGHT].to_numpy(float) if col.SOLVER_SOURCE_HEIGHT in predictions else np.full(len(out), np.nan)
+    )
     out[col.TRUE_X] = np.where(placed, predictions[gate_x], np.nan)
     out[col.TRUE_Y] = np.where(placed, predictions[gate_y], np.nan)
-    out[col.TRUE_Z] = np.where(placed & ~substituted, solver_z, np.nan)  # the model estimates no height: never the solver's z under its x, y
+    out[col.TRUE_Z] = np.where(
+        placed & ~substituted, solver_z, np.nan
+    )  # the model estimates no height: never the solver's z under its x, y
     for method in ("solver", "model"):
         for axis, name in zip(("x", "y"), col.estimate_xy(method), strict=True):
             out[f"{method}_{axis}_m"] = predictions[name]
@@ -45,8 +53,15 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     out[col.SOLVER_MODEL_DISTANCE] = np.sqrt(((solver_xy - predictions[list(col.estimate_xy("model"))].to_numpy(float)) ** 2).sum(axis=1))
     out["source"] = np.where(~has_estimate, "none", np.where(substituted, "model", "solver"))
     solver_fix = np.isfinite(solver_xy).all(axis=1)
-    reason = np.where(~substituted, "solver fix kept", np.where(
-        solver_fix, "the gate judged the solver's fix worse than the model's", "the solver found no fix (or one outside the plausible region)"))
+    reason = np.where(
+        ~substituted,
+        "solver fix kept",
+        np.where(
+            solver_fix,
+            "the gate judged the solver's fix worse than the model's",
+            "the solver found no fix (or one outside the plausible region)",
+        ),
+    )
     trust = predictions[col.TRUST_REASON].fillna("").astype(str).to_numpy() if col.TRUST_REASON in predictions else np.full(len(out), "")
     out["gate_reason"] = np.where(trust != "", trust, reason)  # where the trust check overrode the gate: its reason
     if col.trust_flag("solver_outside_support") in predictions:
@@ -70,12 +85,16 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
 
 def localization_summary(table: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict[str, Any]:
     """For metrics.json of a localization run: counts, share placed, and the median, mean and largest radius per scorer and level (m)."""
+
     def spread(values: pd.Series) -> dict[str, float]:
         v = values.to_numpy(float)[table[col.PLACED].to_numpy(bool)]
         v = v[np.isfinite(v)]
         return {"median": float(np.median(v)), "mean": float(np.mean(v)), "max": float(np.max(v))} if v.size else {"median": float("nan")}
 
     radii = {s: {col.level_key(lv): spread(table[f"radius_{s}_{col.level_key(lv)}_m"]) for lv in levels} for s in scorers}
-    return {"n_detections": len(table), "n_placed": int(table[col.PLACED].sum()),
-            "share_from_model": float((table["source"] == "model").mean()) if len(table) else float("nan"),
-            "radius_m": radii}
+    return {
+        "n_detections": len(table),
+        "n_placed": int(table[col.PLACED].sum()),
+        "share_from_model": float((table["source"] == "model").mean()) if len(table) else float("nan"),
+        "radius_m": radii,
+    }

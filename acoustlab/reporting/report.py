@@ -33,7 +33,6 @@ from acoustlab.reporting.metrics import GROSS_ERROR_M, gate_scalars, share_gross
 log = logging.getLogger(__name__)
 
 
-
 @dataclass
 class RunResult:
     """One run directory's results.
@@ -140,8 +139,12 @@ def error_rows(runs: list[RunResult]) -> pd.DataFrame:
             predictions = predictions[predictions[col.IN_SUMMARY].to_numpy(bool)]
         for method in r.metrics[col.METRICS_ERRORS]:  # solver, model, gate, oracle (newer runs) and any extra gates
             stats = r.metrics[col.METRICS_ERRORS][method]
-            row = {**r.identity(), "method": method, "n (detections)": stats["n"],
-                   **{f"{k} (m)": stats[k] for k in ("mean", "p50", "p90", "p95", "p99")}}
+            row = {
+                **r.identity(),
+                "method": method,
+                "n (detections)": stats["n"],
+                **{f"{k} (m)": stats[k] for k in ("mean", "p50", "p90", "p95", "p99")},
+            }
             ci = r.metrics.get(col.METRICS_CI95, {}).get(col.METRICS_ERRORS, {}).get(method, {})
             for q in ("p95", "p99"):
                 if q in ci:
@@ -178,12 +181,15 @@ def conclusion(runs: list[RunResult]) -> str:
     tied_worst = [r.label for v, r in p95 if f"{v:.3g}" == f"{worst_value:.3g}"]
     best_text = tied_best[0] if len(tied_best) == 1 else "a tie between " + " and ".join(tied_best)
     worst_text = tied_worst[0] if len(tied_worst) == 1 else "a tie between " + " and ".join(tied_worst)
-    return (f"Smallest gated p95 error: {best_text} ({best_value:.3g} m{gross_text}); largest: {worst_text} ({worst_value:.3g} m); "
-            f"see the relative table for paired 95 % intervals before calling a difference real.")
+    return (
+        f"Smallest gated p95 error: {best_text} ({best_value:.3g} m{gross_text}); largest: {worst_text} ({worst_value:.3g} m); "
+        f"see the relative table for paired 95 % intervals before calling a difference real."
+    )
 
 
-def paired_ratio_ci(first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: int = 1000, seed: int = 0,
-                    method: str = "gate") -> tuple[float, float] | None:
+def paired_ratio_ci(
+    first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: int = 1000, seed: int = 0, method: str = "gate"
+) -> tuple[float, float] | None:
     """95 % interval of the ratio of ``method``'s ``q``-th error percentile (other / first), by a
     paired bootstrap over source positions (the exchangeable unit). Events without an estimate
     count as infinite errors.
@@ -264,17 +270,19 @@ def uncertainty_rows(runs: list[RunResult]) -> pd.DataFrame:
     for r in runs:
         m = r.metrics
         rho = m.get(col.METRICS_SPEARMAN, {})
-        rows.append({
-            **r.identity(),
-            "ρ error model (Spearman)": rho.get("error_model"),
-            "ρ GDOP (Spearman)": rho.get("gdop"),
-            "AUC error model, > 5 m": m.get(col.METRICS_GROSS_AUC, {}).get("error_model"),
-            "substitution rate (%)": None if m.get(col.METRICS_SUBSTITUTION) is None else 100 * m[col.METRICS_SUBSTITUTION],
-            "gate": _gate_summary(m),
-            "CRB p50 (m)": m.get(col.CRB, {}).get("p50"),
-            "feature groups withheld": r.withheld_groups,
-            "models time (s)": m.get("timings_s", {}).get("models_s"),
-        })
+        rows.append(
+            {
+                **r.identity(),
+                "ρ error model (Spearman)": rho.get("error_model"),
+                "ρ GDOP (Spearman)": rho.get("gdop"),
+                "AUC error model, > 5 m": m.get(col.METRICS_GROSS_AUC, {}).get("error_model"),
+                "substitution rate (%)": None if m.get(col.METRICS_SUBSTITUTION) is None else 100 * m[col.METRICS_SUBSTITUTION],
+                "gate": _gate_summary(m),
+                "CRB p50 (m)": m.get(col.CRB, {}).get("p50"),
+                "feature groups withheld": r.withheld_groups,
+                "models time (s)": m.get("timings_s", {}).get("models_s"),
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -302,13 +310,18 @@ def _gate_summary(metrics: dict) -> str | None:
 
 def provenance_rows(runs: list[RunResult]) -> pd.DataFrame:
     """Where each run lives and what produced it: run dir, dataset hash, code version, choices."""
-    return pd.DataFrame([{
-        **r.identity(),
-        "run dir": str(r.run_dir),
-        "dataset hash": r.metrics.get("dataset_hash", "")[:12],
-        "code": r.metrics.get("code_version", ""),
-        "choices": ", ".join(f"{k}={v}" for k, v in sorted(r.metrics.get("choices", {}).items())),
-    } for r in runs])
+    return pd.DataFrame(
+        [
+            {
+                **r.identity(),
+                "run dir": str(r.run_dir),
+                "dataset hash": r.metrics.get("dataset_hash", "")[:12],
+                "code": r.metrics.get("code_version", ""),
+                "choices": ", ".join(f"{k}={v}" for k, v in sorted(r.metrics.get("choices", {}).items())),
+            }
+            for r in runs
+        ]
+    )
 
 
 def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
@@ -338,10 +351,16 @@ def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
     rows = -(-len(scorers) // columns)
     fig, axes = plt.subplots(rows, columns, figsize=(3.6 * columns, 3.8 * rows), squeeze=False)
     for ax, scorer in zip(axes.flat, scorers):  # one panel per scorer, one line per run: readable with conformal=all
-        coverage_calibration(ax, {r.label: {float(lv): v for lv, v in r.metrics[col.METRICS_COVERAGE][scorer].items()} for r in runs
-                                  if scorer in r.metrics[col.METRICS_COVERAGE]})
+        coverage_calibration(
+            ax,
+            {
+                r.label: {float(lv): v for lv, v in r.metrics[col.METRICS_COVERAGE][scorer].items()}
+                for r in runs
+                if scorer in r.metrics[col.METRICS_COVERAGE]
+            },
+        )
         ax.set_title(scorer, fontsize=9)
-    for ax in list(axes.flat)[len(scorers):]:
+    for ax in list(axes.flat)[len(scorers) :]:
         ax.set_visible(False)
     fig.suptitle("coverage calibration across runs", fontsize=10)
     fig.tight_layout()
@@ -401,11 +420,21 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
 
     title = title or default_title(runs)
     summary = conclusion(runs)
-    md = [f"# {title}", "", f"**{summary}**", "", f"{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
-          f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.", ""]
-    page = [f"<h1>{html.escape(title)}</h1>", f"<p><strong>{html.escape(summary)}</strong></p>",
-            f"<p>{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
-            f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.</p>"]
+    md = [
+        f"# {title}",
+        "",
+        f"**{summary}**",
+        "",
+        f"{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
+        f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.",
+        "",
+    ]
+    page = [
+        f"<h1>{html.escape(title)}</h1>",
+        f"<p><strong>{html.escape(summary)}</strong></p>",
+        f"<p>{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
+        f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.</p>",
+    ]
     for heading, table in tables:
         if table.empty:
             continue
@@ -424,12 +453,15 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
         page.append(f"<h3>Run: {html.escape(label)}</h3>")
         page += [_img_tag(p, f"{label}: {p.stem.replace('_', ' ')}") for p in plots]
     (out_dir / "report.md").write_text("\n".join(md))
-    style = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em}"
-             "table{border-collapse:collapse;font-size:13px;margin-bottom:1em}td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}"
-             "figure{display:inline-block;margin:0.5em}img{max-width:520px}figcaption{font-size:12px;color:#555}")
+    style = (
+        "body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em}"
+        "table{border-collapse:collapse;font-size:13px;margin-bottom:1em}td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}"
+        "figure{display:inline-block;margin:0.5em}img{max-width:520px}figcaption{font-size:12px;color:#555}"
+    )
     (out_dir / "report.html").write_text(
         f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{style}</style></head><body>"
-        + "\n".join(page) + "</body></html>"
+        + "\n".join(page)
+        + "</body></html>"
     )
     log.info("report written to %s and %s", out_dir / "report.md", out_dir / "report.html")
     return out_dir / "report.md"
@@ -437,7 +469,9 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m acoustlab.report PATH ... [--out DIR] [--title TEXT]``."""
-    parser = argparse.ArgumentParser(prog="python -m acoustlab.report", description="Summarise acoustlab runs (a sweep dir or run dirs) as Markdown and HTML.")
+    parser = argparse.ArgumentParser(
+        prog="python -m acoustlab.report", description="Summarise acoustlab runs (a sweep dir or run dirs) as Markdown and HTML."
+    )
     parser.add_argument("paths", nargs="+", type=Path, help="a sweep directory (searched for metrics.json) or run directories")
     parser.add_argument("--out", type=Path, help="output directory (default: <first path>/report)")
     parser.add_argument("--title", default=None, help="report heading")
@@ -449,7 +483,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"acoustlab.report: error: {exc}", file=sys.stderr)
         return 2
     if not runs:
-        print(f"acoustlab.report: error: no finished runs (metrics.json with results) under {', '.join(map(str, args.paths))}", file=sys.stderr)
+        print(
+            f"acoustlab.report: error: no finished runs (metrics.json with results) under {', '.join(map(str, args.paths))}",
+            file=sys.stderr,
+        )
         return 2
     out = args.out or args.paths[0] / "report"
     path = write_report(runs, out, title=args.title)

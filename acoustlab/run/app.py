@@ -124,7 +124,9 @@ def check_dropped_groups(feature_sets: dict[str, Any], **drops: list[str]) -> No
         unknown = sorted(set(groups) - available)
         if unknown:
             name = setting.replace("_", ".", 1)
-            raise ConfigError(f"{name} names feature groups {unknown} that the features= option does not have; available: {', '.join(sorted(available))}")
+            raise ConfigError(
+                f"{name} names feature groups {unknown} that the features= option does not have; available: {', '.join(sorted(available))}"
+            )
 
 
 def check_selective(selective: DictConfig, n_events: int) -> None:
@@ -145,8 +147,10 @@ def check_selective(selective: DictConfig, n_events: int) -> None:
             raise ConfigError(f"pipeline.selective.{name} must lie in (0, 1); got {value}")
     needed = int(np.ceil(np.log(epsilon) / np.log1p(-delta)))
     if selective.enabled and needed > n_events:
-        raise ConfigError(f"pipeline.selective: delta={delta:g}, epsilon={epsilon:g} need at least {needed} calibration events "
-                          f"to certify anything, but data.n_events={n_events}; raise data.n_events or delta")
+        raise ConfigError(
+            f"pipeline.selective: delta={delta:g}, epsilon={epsilon:g} need at least {needed} calibration events "
+            f"to certify anything, but data.n_events={n_events}; raise data.n_events or delta"
+        )
 
 
 def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRun:
@@ -187,10 +191,18 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         trust=TrustSettings(**OmegaConf.to_container(cfg.pipeline.trust, resolve=True)),
         input_uncertainty=InputUncertainty(**OmegaConf.to_container(cfg.conformal.input_uncertainty, resolve=True)),
     )
-    check_feature_requirements(feature_sets, solver=components.solver, gate=components.gate,
-                               **{f"pipeline.extra_gates.{name}": g for name, g in components.extra_gates.items()})
-    check_dropped_groups(feature_sets, features_drop=components.dropped_groups, pipeline_drop_from_model=components.dropped_from_model,
-                         pipeline_drop_from_error_model=components.dropped_from_error_model)
+    check_feature_requirements(
+        feature_sets,
+        solver=components.solver,
+        gate=components.gate,
+        **{f"pipeline.extra_gates.{name}": g for name, g in components.extra_gates.items()},
+    )
+    check_dropped_groups(
+        feature_sets,
+        features_drop=components.dropped_groups,
+        pipeline_drop_from_model=components.dropped_from_model,
+        pipeline_drop_from_error_model=components.dropped_from_error_model,
+    )
     for level in components.levels:
         if not 0 < level < 1:
             raise ConfigError(f"conformal.levels must lie in (0, 1); got {level}")
@@ -248,15 +260,17 @@ def prepare_data(cfg: DictConfig, built: BuiltRun | None = None) -> RunData | No
         None for a sharded simulation run (``data.shard_count > 1``) that filled its shard of the cache.
     """
     built = built if built is not None else build_run(cfg)
-    dataset = load_or_build_simulated(built.site, built.simulator, to_plain(cfg.simulator), built.feature_sets,
-                                      to_plain(cfg.features.groups), built.plan, built.cache)
+    dataset = load_or_build_simulated(
+        built.site, built.simulator, to_plain(cfg.simulator), built.feature_sets, to_plain(cfg.features.groups), built.plan, built.cache
+    )
     if dataset is None:
         return None
     dataset.features = solver_features(cfg, dataset.features, dataset.events, built.site, built.components.solver)
     field_data = None
     if built.field_source is not None:
-        field_data = load_or_build_field(built.site, built.field_source, to_plain(cfg.field), built.feature_sets,
-                                         to_plain(cfg.features.groups), built.cache)
+        field_data = load_or_build_field(
+            built.site, built.field_source, to_plain(cfg.field), built.feature_sets, to_plain(cfg.features.groups), built.cache
+        )
         field_data.features = solver_features(cfg, field_data.features, field_data.events, built.site, built.components.solver)
     return RunData(dataset, field_data)
 
@@ -266,8 +280,9 @@ def solver_features(cfg: DictConfig, features: pd.DataFrame, events: pd.DataFram
     return add_solver_columns(features, events, site, solver, cfg.pipeline.plausible_margin_fraction)
 
 
-def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None,
-                   run_name: str | None = None) -> dict:
+def run_experiment(
+    cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None, run_name: str | None = None
+) -> dict:
     """Run one job: build plugins, get the (cached) dataset, run the protocol, write and log results.
 
     Parameters
@@ -302,8 +317,11 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     stage_start = time.perf_counter()
     data = prepare_data(cfg, built)
     if data is None:
-        log.info("sharded simulation run: shard %d of %d is in the cache; run without data.shard_count to finish",
-                 plan.shard_index + 1, plan.shard_count)
+        log.info(
+            "sharded simulation run: shard %d of %d is in the cache; run without data.shard_count to finish",
+            plan.shard_index + 1,
+            plan.shard_count,
+        )
         return {"shard": {"index": plan.shard_index, "count": plan.shard_count}}
     dataset, field_data = data.dataset, data.field_data
     timings["data_s"] = time.perf_counter() - stage_start
@@ -313,26 +331,46 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     timings["models_s"] = time.perf_counter() - stage_start
 
     if not declared(protocol, "evaluates"):
-        return _write_localization(cfg, run_dir, predictions, result, components, site, dataset, field_data, choices, timings, started,
-                                   tracker, parent_run_id, run_name, built.field_source)
+        return _write_localization(
+            cfg,
+            run_dir,
+            predictions,
+            result,
+            components,
+            site,
+            dataset,
+            field_data,
+            choices,
+            timings,
+            started,
+            tracker,
+            parent_run_id,
+            run_name,
+            built.field_source,
+        )
     summary_rows = predictions[col.IN_SUMMARY].to_numpy(bool) if col.IN_SUMMARY in predictions else np.ones(len(predictions), bool)
-    metrics = _evaluation_metrics(run_dir, predictions, summary_rows, result, components, dataset, field_data, choices.get("gate") or type(components.gate).__name__)
+    metrics = _evaluation_metrics(
+        run_dir, predictions, summary_rows, result, components, dataset, field_data, choices.get("gate") or type(components.gate).__name__
+    )
     metrics.update({"site": site.name, "choices": choices, **({"run_name": run_name} if run_name else {})})
 
     # Results land in the run dir first (metrics before any optional artefact), so neither a tracker
     # nor a plotting failure loses them; the pending marker stays until the tracker has them.
     write_results(run_dir, cfg, predictions, metrics)
     if cfg.get("paper_reference"):
-        rows, lines = paper_comparison(OmegaConf.to_container(cfg.paper_reference, resolve=True), metrics,
-                                       OmegaConf.to_container(cfg, resolve=True))
+        rows, lines = paper_comparison(
+            OmegaConf.to_container(cfg.paper_reference, resolve=True), metrics, OmegaConf.to_container(cfg, resolve=True)
+        )
         metrics["paper_comparison"] = rows
         atomic_write_bytes(run_dir / "paper_comparison.md", ("\n".join(lines) + "\n").encode())
+
     def plot() -> None:
         from acoustlab.reporting.plots import (
             write_run_plots,  # matplotlib only when plotting
         )
 
         write_run_plots(predictions[summary_rows], metrics, site, run_dir / "plots")
+
     plot_and_time(cfg, run_dir, metrics, timings, started, "plots", plot)
     log.info("%s test detections; errors (m) and conformal coverage:\n%s", metrics[col.METRICS_ERRORS]["gate"]["n"], summary_text(metrics))
     log.info("timings (s): %s", ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in metrics["timings_s"].items()))
@@ -341,19 +379,30 @@ def run_experiment(cfg: DictConfig, run_dir: Path, choices: dict[str, str] | Non
     return metrics
 
 
-def _run_streaming(cfg: DictConfig, run_dir: Path, built: BuiltRun, choices: dict[str, str], tracker: Any, parent_run_id: str | None,
-                   run_name: str | None) -> dict:
+def _run_streaming(
+    cfg: DictConfig, run_dir: Path, built: BuiltRun, choices: dict[str, str], tracker: Any, parent_run_id: str | None, run_name: str | None
+) -> dict:
     """A streaming protocol (``protocol=season``): its stages write the positions; metrics.json gets its summary."""
     metrics = built.protocol.run_season(cfg, built, run_dir, prepare=lambda: prepare_data(cfg, built))
-    metrics.update({"site": built.site.name, "choices": choices, "code_version": code_version(), **({"run_name": run_name} if run_name else {})})
+    metrics.update(
+        {"site": built.site.name, "choices": choices, "code_version": code_version(), **({"run_name": run_name} if run_name else {})}
+    )
     atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2, default=str).encode())
     log.info("run directory: %s", run_dir)
     log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
     return metrics
 
 
-def _evaluation_metrics(run_dir: Path, predictions: pd.DataFrame, summary_rows: np.ndarray, result: Any, components: Components,
-                        dataset: Any, field_data: Any, gate_name: str) -> dict[str, Any]:
+def _evaluation_metrics(
+    run_dir: Path,
+    predictions: pd.DataFrame,
+    summary_rows: np.ndarray,
+    result: Any,
+    components: Components,
+    dataset: Any,
+    field_data: Any,
+    gate_name: str,
+) -> dict[str, Any]:
     """metrics.json of a run with ground truth: error and coverage summaries, quality flags, diagnostics, data hashes.
 
     Raises
@@ -364,8 +413,10 @@ def _evaluation_metrics(run_dir: Path, predictions: pd.DataFrame, summary_rows: 
     if not summary_rows.any():  # e.g. every field event flagged: nothing to summarise, but the predictions say why
         atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
         counts = quality_flag_counts(predictions) if col.QUALITY_FLAGS in predictions else {}
-        raise DataError(f"all {len(predictions)} test detections are flagged or from failed hardware ({counts or col.HARDWARE_FAILURE}), "
-                        f"so there are no errors to summarise; {run_dir / 'predictions.parquet'} has every detection with its flags")
+        raise DataError(
+            f"all {len(predictions)} test detections are flagged or from failed hardware ({counts or col.HARDWARE_FAILURE}), "
+            f"so there are no errors to summarise; {run_dir / 'predictions.parquet'} has every detection with its flags"
+        )
     metrics = summarise(predictions[summary_rows], components.levels, list(components.scorers))
     if not summary_rows.all():
         metrics["all_detections"] = summarise(predictions, components.levels, list(components.scorers))
@@ -375,8 +426,14 @@ def _evaluation_metrics(run_dir: Path, predictions: pd.DataFrame, summary_rows: 
     if field_data is not None:
         metrics["field_dataset_hash"] = field_data.dataset_hash
     metrics.update(split_diagnostics_summary(result.split_diagnostics, gate_name))
-    metrics.update({"dataset_hash": dataset.dataset_hash, "features_sha256": dataset.features_sha256,
-                    "n_features": int(len(dataset.features.columns)), "code_version": code_version()})
+    metrics.update(
+        {
+            "dataset_hash": dataset.dataset_hash,
+            "features_sha256": dataset.features_sha256,
+            "n_features": int(len(dataset.features.columns)),
+            "code_version": code_version(),
+        }
+    )
     return metrics
 
 
@@ -402,8 +459,9 @@ def optional_artefact(what: str, write: Callable[[], Any]) -> None:
         log.warning("%s not written (%s: %s); the metrics and predictions are saved", what, type(exc).__name__, exc)
 
 
-def plot_and_time(cfg: DictConfig, run_dir: Path, metrics: dict, timings: dict[str, float], started: float, what: str,
-                  plot: Callable[[], None]) -> None:
+def plot_and_time(
+    cfg: DictConfig, run_dir: Path, metrics: dict, timings: dict[str, float], started: float, what: str, plot: Callable[[], None]
+) -> None:
     """After the results are safe: the optional plots (``plots=true``), then the run's timings added to metrics.json."""
     stage_start = time.perf_counter()
     if bool(cfg.get("plots", True)):
@@ -413,12 +471,28 @@ def plot_and_time(cfg: DictConfig, run_dir: Path, metrics: dict, timings: dict[s
     metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
     now = time.time()  # wall clock, so a tracker shows the job's own start and duration even when it is uploaded later
     metrics["run_time"] = {"started_epoch_ms": int(1000 * (now - timings["total_before_tracking_s"])), "finished_epoch_ms": int(1000 * now)}
-    optional_artefact("timings in metrics.json", lambda: atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode()))
+    optional_artefact(
+        "timings in metrics.json", lambda: atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode())
+    )
 
 
-def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFrame, result: Any, components: Components, site: Any,
-                        dataset: Any, field_data: Any, choices: dict[str, str], timings: dict[str, float], started: float,
-                        tracker: Any, parent_run_id: str | None, run_name: str | None = None, field_source: Any = None) -> dict:
+def _write_localization(
+    cfg: DictConfig,
+    run_dir: Path,
+    predictions: pd.DataFrame,
+    result: Any,
+    components: Components,
+    site: Any,
+    dataset: Any,
+    field_data: Any,
+    choices: dict[str, str],
+    timings: dict[str, float],
+    started: float,
+    tracker: Any,
+    parent_run_id: str | None,
+    run_name: str | None = None,
+    field_source: Any = None,
+) -> dict:
     """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
     table = positions_table(predictions, components.levels, list(components.scorers))
     project = hook(field_source, "projection")
@@ -439,21 +513,36 @@ def _write_localization(cfg: DictConfig, run_dir: Path, predictions: pd.DataFram
     if col.QUALITY_FLAGS in predictions:
         metrics[col.QUALITY_FLAGS] = quality_flag_counts(predictions)
     metrics.update(split_diagnostics_summary(result.split_diagnostics, choices.get("gate") or type(components.gate).__name__))
-    metrics.update({"dataset_hash": dataset.dataset_hash, "field_dataset_hash": field_data.dataset_hash, "site": site.name,
-                    "choices": choices, "n_features": int(len(dataset.features.columns)), "code_version": code_version()})
+    metrics.update(
+        {
+            "dataset_hash": dataset.dataset_hash,
+            "field_dataset_hash": field_data.dataset_hash,
+            "site": site.name,
+            "choices": choices,
+            "n_features": int(len(dataset.features.columns)),
+            "code_version": code_version(),
+        }
+    )
     if run_name:
         metrics["run_name"] = run_name
     write_results(run_dir, cfg, predictions, metrics)
+
     def plot() -> None:
         from acoustlab.reporting.plots import (
             write_positions_map,  # matplotlib only when plotting
         )
 
         write_positions_map(table, site, components.levels, list(components.scorers), run_dir / "plots")
+
     plot_and_time(cfg, run_dir, metrics, timings, started, "the positions map", plot)
     shown = table[[col.TRUE_X, col.TRUE_Y, *([col.TRUE_Z] if col.TRUE_Z in table else []), "source", col.PLACED]].head(20)
-    log.info("positions (first %d of %d detections; all in %s):\n%s", len(shown), len(table), run_dir / "positions.csv",
-             shown.to_string(float_format=lambda v: f"{v:.2f}"))
+    log.info(
+        "positions (first %d of %d detections; all in %s):\n%s",
+        len(shown),
+        len(table),
+        run_dir / "positions.csv",
+        shown.to_string(float_format=lambda v: f"{v:.2f}"),
+    )
     log.info("run directory: %s", run_dir)
     log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
     return metrics

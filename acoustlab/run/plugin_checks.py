@@ -80,6 +80,7 @@ def _exact_scene(site: Site, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndar
 
 # --- simulators ---------------------------------------------------------------------------
 
+
 def check_simulator_chunking(option: str) -> None:
     """Events rendered together or in separate chunks are identical, bit for bit."""
     site, cfg = _site_and_node("simulator", option)
@@ -96,6 +97,7 @@ def check_simulator_chunking(option: str) -> None:
 
 
 # --- feature sets --------------------------------------------------------------------------
+
 
 def check_feature_catalog(option: str) -> None:
     """Every group's ``transform`` returns exactly its catalog's columns, in order, one float row per event."""
@@ -114,6 +116,7 @@ def check_feature_catalog(option: str) -> None:
 
 # --- solvers -------------------------------------------------------------------------------
 
+
 def check_solver_exact(option: str) -> None:
     """Noise-free TDOAs (with consistent levels and candidates) are reproduced exactly.
 
@@ -128,7 +131,9 @@ def check_solver_exact(option: str) -> None:
         src, tdoa, levels, c = _exact_scene(site, 200)
         pair_lags = np.stack([tdoa[:, j] - tdoa[:, i] for i, j in site.mic_pairs], axis=1)[..., None]
         height = assumed_source_height_m(site)
-        inputs = SolverInputs(site.mic_positions_m, tdoa, c, received_level_db=levels, pair_lag_candidates_s=pair_lags, source_height_m=height)
+        inputs = SolverInputs(
+            site.mic_positions_m, tdoa, c, received_level_db=levels, pair_lag_candidates_s=pair_lags, source_height_m=height
+        )
         result = solver.solve(inputs)
         assert result.position_m.shape == (len(src), 2), f"solver={option}: position shape {result.position_m.shape}"
         if site.n_mics > 3:
@@ -138,10 +143,13 @@ def check_solver_exact(option: str) -> None:
             fix = np.column_stack([result.position_m, np.full(len(src), height)])
             dist = np.sqrt(((fix[:, None, :] - site.mic_positions_m[None]) ** 2).sum(-1))
             mismatch = np.abs((dist - dist[:, :1]) / c - tdoa)
-            assert np.all(mismatch < 1e-9), f"solver={option} on {site_name}: fixes miss noise-free TDOAs by up to {np.nanmax(mismatch):.3g} s"
+            assert np.all(mismatch < 1e-9), (
+                f"solver={option} on {site_name}: fixes miss noise-free TDOAs by up to {np.nanmax(mismatch):.3g} s"
+            )
 
 
 # --- point and error models ----------------------------------------------------------------
+
 
 def _weights_or_skip(model: Any, what: str) -> None:
     preflight = hook(model, "preflight")  # the optional hook of models that need weights
@@ -175,6 +183,7 @@ def check_model_clone_and_fit(group: str, option: str) -> None:
 
 # --- gates ---------------------------------------------------------------------------------
 
+
 def _gate_scene(site: Site, n: int = 300) -> tuple[np.ndarray, np.ndarray, pd.DataFrame, np.ndarray]:
     src, _, levels, _ = _exact_scene(site, n, seed=1)
     solver = src[:, :2].copy()
@@ -199,7 +208,9 @@ def check_gate(option: str) -> None:
     groups = np.arange(len(solver)) // 5  # five events per source position
     gate = clone(configured, safe=False).fit(solver, model, features, site, src, groups=groups)
     assert gate is not None, f"gate={option}: fit must return the gate"
-    assert json.dumps(configured.diagnostics(), sort_keys=True, default=str) == before, f"gate={option}: fitting a copy changed the original"
+    assert json.dumps(configured.diagnostics(), sort_keys=True, default=str) == before, (
+        f"gate={option}: fitting a copy changed the original"
+    )
     decision = gate.decide(solver, model, features, site)
     assert isinstance(decision, GateDecision), f"gate={option}: decide must return a GateDecision"
     chosen = np.where(decision.substituted[:, None], model, solver)
@@ -210,6 +221,7 @@ def check_gate(option: str) -> None:
 
 
 # --- conformal scorers ---------------------------------------------------------------------
+
 
 def check_conformal(option: str) -> None:
     """Radii are finite and non-decreasing in the level; on exchangeable data they cover at least the nominal level."""
@@ -227,7 +239,9 @@ def check_conformal(option: str) -> None:
             extra_gdop, extra_predicted = rng.uniform(1.0, 5.0, size=n), rng.uniform(0.5, 3.0, size=n)
             x_extra = pd.DataFrame({"predicted": extra_predicted, "gdop": extra_gdop})
             quantiles = scorer.fit_predict_quantiles(x_extra, extra_predicted * extra_gdop * rng.exponential(1.0, size=n), x, levels)
-            fitted = clone(scorer, safe=False).fit(error[:n], predicted[:n], gdop[:n], levels, quantiles=quantiles[:n], groups=positions[:n])
+            fitted = clone(scorer, safe=False).fit(
+                error[:n], predicted[:n], gdop[:n], levels, quantiles=quantiles[:n], groups=positions[:n]
+            )
             radii = fitted.radius(predicted[n:], gdop[n:], quantiles=quantiles[n:])
         else:
             fitted = clone(scorer, safe=False).fit(error[:n], predicted[:n], gdop[:n], levels, groups=positions[:n])

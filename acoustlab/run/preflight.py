@@ -122,5 +122,6 @@ def check_output_dirs(argv: list[str]) -> None:
             raise ConfigError(f"{key}={value}: {existing} is a file, not a folder; choose a folder for the run's outputs")
         if not os.access(existing, os.W_OK | os.X_OK):
             where = "it" if existing == path else f"its parent {existing}"
-            raise ConfigError(f"{key}={value}: {where} is not writable by this user; choose a folder you can write, "
-                              f"e.g. {key}=$HOME/acoustlab-outputs")
+            raise ConfigError(
+                f"{key}={value}: {where} is not writable by this user; choose a folder you can write, e.g. {key}=$HOME/acoustlab-outputs"
+            )

@@ -117,8 +117,11 @@ class SweepTrackingCallback(Callback):
             if problems:
                 for line in problems:
                     print(f"acoustlab: error: {line}", file=sys.stderr)
-                print(f"acoustlab: {len(problems)} of {len(jobs)} sweep jobs would fail; nothing was run "
-                      "(hydra.callbacks.sweep_tracking.preflight=false runs the others anyway)", file=sys.stderr)
+                print(
+                    f"acoustlab: {len(problems)} of {len(jobs)} sweep jobs would fail; nothing was run "
+                    "(hydra.callbacks.sweep_tracking.preflight=false runs the others anyway)",
+                    file=sys.stderr,
+                )
                 sys.exit(2)
             log.info("preflight: all %d jobs of the sweep check out", len(jobs))
         if config.get("expected_duration"):
@@ -137,7 +140,9 @@ class SweepTrackingCallback(Callback):
             )
         except Exception as exc:  # noqa: BLE001 - jobs still run and keep their results
             log.warning("could not open the sweep's parent run (%s: %s); jobs are logged as separate runs", type(exc).__name__, exc)
-        (sweep_dir / SWEEP_FILE).write_text(json.dumps({"parent_run_id": run_id, "destination": destination, "overrides": overrides}, indent=2))
+        (sweep_dir / SWEEP_FILE).write_text(
+            json.dumps({"parent_run_id": run_id, "destination": destination, "overrides": overrides}, indent=2)
+        )
         # Hydra skips on_multirun_end when a job failed: report what finished and mark the parent FAILED at exit.
         self._open = (config, sweep_dir)
         atexit.register(self._close_after_failure)
@@ -157,8 +162,11 @@ class SweepTrackingCallback(Callback):
         if self._open is not None:
             config, _ = self._open
             status = "KILLED" if self._stopped else "FAILED"
-            log.warning("the sweep %s: reporting the finished jobs and marking the parent run %s",
-                        "was stopped" if self._stopped else "ended with failed jobs", status)
+            log.warning(
+                "the sweep %s: reporting the finished jobs and marking the parent run %s",
+                "was stopped" if self._stopped else "ended with failed jobs",
+                status,
+            )
             self._finish(config, status)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:

@@ -58,18 +58,26 @@ def tracker_for(run_dir: Path, tracking_uri: str | None, experiment: str | None,
     if tracking_uri is None:
         meant_for = _plain_string(tracking.get("tracking_uri"))
         if meant_for and not meant_for.startswith("sqlite:"):
-            log.warning("%s was meant for %s; uploading to the local store instead (pass --tracking-uri to send it there)", run_dir, meant_for)
+            log.warning(
+                "%s was meant for %s; uploading to the local store instead (pass --tracking-uri to send it there)", run_dir, meant_for
+            )
     node.experiment_name = experiment or _plain_string(tracking.get("experiment_name")) or node.experiment_name
     return build(node, "tracking")
 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m acoustlab.upload RUN_DIR ... [--tracking-uri URI] [--experiment NAME]``."""
-    parser = argparse.ArgumentParser(prog="python -m acoustlab.upload", description="Upload run directories to MLflow (e.g. after the server was unreachable).")
+    parser = argparse.ArgumentParser(
+        prog="python -m acoustlab.upload", description="Upload run directories to MLflow (e.g. after the server was unreachable)."
+    )
     parser.add_argument("run_dirs", nargs="+", type=Path, help="run directories (holding metrics.json), or folders searched for them")
     parser.add_argument("--tracking-uri", help="MLflow tracking URI; default: the local store <outputs_dir>/mlflow.db")
     parser.add_argument("--experiment", help="MLflow experiment name; default: the run's own")
-    parser.add_argument("--store-dir", default="outputs", help="folder of the local MLflow store (mlflow.db, artifacts) when no --tracking-uri is given; default: outputs")
+    parser.add_argument(
+        "--store-dir",
+        default="outputs",
+        help="folder of the local MLflow store (mlflow.db, artifacts) when no --tracking-uri is given; default: outputs",
+    )
     parser.add_argument("--only-pending", action="store_true", help=f"upload only runs marked with {PENDING_FILE}")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -81,7 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         found = [path] if (path / "metrics.json").exists() else sorted(p.parent for p in path.rglob("metrics.json"))
         run_dirs += [d for d in found if not args.only_pending or (d / PENDING_FILE).exists()]
     if not run_dirs:
-        print(f"acoustlab.upload: error: no run directories (with metrics.json) under {', '.join(map(str, args.run_dirs))}", file=sys.stderr)
+        print(
+            f"acoustlab.upload: error: no run directories (with metrics.json) under {', '.join(map(str, args.run_dirs))}", file=sys.stderr
+        )
         return 2
     failed = 0
     for run_dir in run_dirs:

@@ -87,18 +87,36 @@ def table_recorder(table: pd.DataFrame, recordings: RecorderFiles, recorder_colu
     return [named] * len(table)
 
 
-def _place(table: pd.DataFrame, files: Sequence[str], offset_s: np.ndarray, duration_s: np.ndarray, recordings: RecorderFiles,
-           low: np.ndarray, high: np.ndarray, label: np.ndarray, score: np.ndarray, recorders: Sequence[str | None]) -> pd.DataFrame:
+def _place(
+    table: pd.DataFrame,
+    files: Sequence[str],
+    offset_s: np.ndarray,
+    duration_s: np.ndarray,
+    recordings: RecorderFiles,
+    low: np.ndarray,
+    high: np.ndarray,
+    label: np.ndarray,
+    score: np.ndarray,
+    recorders: Sequence[str | None],
+) -> pd.DataFrame:
     """Detections in season seconds from per-file offsets."""
     if (duration_s <= 0).any():
         k = int(np.flatnonzero(duration_s <= 0)[0])
         raise DataError(f"detections: {table.attrs['path']} line {k + 2}: the detection ends before it begins ({duration_s[k]:.3f} s)")
     rows = [recordings.file_row(f, r) for f, r in zip(files, recorders, strict=True)]
     start = np.array([r[col.START] for r in rows]) + offset_s
-    return pd.DataFrame({
-        "recorder_id": [r["recorder_id"] for r in rows], col.START: start, col.END: start + duration_s, "low_hz": low, "high_hz": high,
-        "label": label.astype(str), "score": score, "source": [f"{Path(table.attrs['path']).name}:{k + 2}" for k in range(len(table))],
-    })
+    return pd.DataFrame(
+        {
+            "recorder_id": [r["recorder_id"] for r in rows],
+            col.START: start,
+            col.END: start + duration_s,
+            "low_hz": low,
+            "high_hz": high,
+            "label": label.astype(str),
+            "score": score,
+            "source": [f"{Path(table.attrs['path']).name}:{k + 2}" for k in range(len(table))],
+        }
+    )
 
 
 def read_raven(path: Path, recordings: RecorderFiles, label_column: str | None = None, recorder_column: str | None = None) -> pd.DataFrame:
@@ -110,19 +128,33 @@ def read_raven(path: Path, recordings: RecorderFiles, label_column: str | None =
         table.attrs["path"] = str(path)
     file_column = next((c for c in ("Begin File", "Begin Path") if c in table), None)
     if file_column is None:
-        raise DataError(f"detections: {path} (Raven selection table) names no audio file: add the Begin File or Begin Path column "
-                        "(Raven: View > Selection Table > Choose Columns)")
+        raise DataError(
+            f"detections: {path} (Raven selection table) names no audio file: add the Begin File or Begin Path column "
+            "(Raven: View > Selection Table > Choose Columns)"
+        )
     begin, end = _numbers(table, RAVEN_TIMES[0]), _numbers(table, RAVEN_TIMES[1])
     offset = _numbers(table, "File Offset (s)") if "File Offset (s)" in table else begin
     low = _numbers(table, "Low Freq (Hz)") if "Low Freq (Hz)" in table else np.full(len(table), np.nan)
     high = _numbers(table, "High Freq (Hz)") if "High Freq (Hz)" in table else np.full(len(table), np.nan)
     label = _label(table, label_column, ("Species", "Common Name", "Annotation", "Label"))
     score = _numbers(table, "Confidence") if "Confidence" in table else np.full(len(table), np.nan)
-    return _place(table, table[file_column].astype(str).tolist(), offset, end - begin, recordings, low, high, label, score,
-                  table_recorder(table, recordings, recorder_column))
+    return _place(
+        table,
+        table[file_column].astype(str).tolist(),
+        offset,
+        end - begin,
+        recordings,
+        low,
+        high,
+        label,
+        score,
+        table_recorder(table, recordings, recorder_column),
+    )
 
 
-def read_birdnet(path: Path, recordings: RecorderFiles, label_column: str | None = None, recorder_column: str | None = None) -> pd.DataFrame:
+def read_birdnet(
+    path: Path, recordings: RecorderFiles, label_column: str | None = None, recorder_column: str | None = None
+) -> pd.DataFrame:
     """Detections of a BirdNET-Analyzer CSV table (see the module docstring)."""
     table = _read_table(path, ",", "BirdNET table")
     _require(table, (*BIRDNET_TIMES, "Confidence"), "BirdNET table")
@@ -132,18 +164,31 @@ def read_birdnet(path: Path, recordings: RecorderFiles, label_column: str | None
         stem = path.name.split(".BirdNET")[0]
         matches = [Path(p).name for p in recordings.table["path"] if Path(p).stem == stem]
         if len(matches) != 1:
-            raise DataError(f"detections: {path} has no File column and its name does not name one audio file "
-                            f"(expected <audio name>.BirdNET.results.csv; {len(matches)} files named {stem!r})")
+            raise DataError(
+                f"detections: {path} has no File column and its name does not name one audio file "
+                f"(expected <audio name>.BirdNET.results.csv; {len(matches)} files named {stem!r})"
+            )
         files = matches * len(table)
     start, end = _numbers(table, BIRDNET_TIMES[0]), _numbers(table, BIRDNET_TIMES[1])
     label = _label(table, label_column, ("Common name", "Scientific name"))
     nan = np.full(len(table), np.nan)
-    return _place(table, files, start, end - start, recordings, nan, nan, label, _numbers(table, "Confidence"),
-                  table_recorder(table, recordings, recorder_column))
+    return _place(
+        table,
+        files,
+        start,
+        end - start,
+        recordings,
+        nan,
+        nan,
+        label,
+        _numbers(table, "Confidence"),
+        table_recorder(table, recordings, recorder_column),
+    )
 
 
-def read_opensoundscape(path: Path, recordings: RecorderFiles, classes: Sequence[str] | None, min_score: float,
-                        recorder_column: str | None = None) -> pd.DataFrame:
+def read_opensoundscape(
+    path: Path, recordings: RecorderFiles, classes: Sequence[str] | None, min_score: float, recorder_column: str | None = None
+) -> pd.DataFrame:
     """One detection per row and class whose score reaches ``min_score`` (see the module docstring)."""
     table = _read_table(path, ",", "OpenSoundscape score table")
     _require(table, ("file", "start_time", "end_time"), "OpenSoundscape score table")
@@ -160,8 +205,18 @@ def read_opensoundscape(path: Path, recordings: RecorderFiles, classes: Sequence
             sub = table[keep].reset_index(drop=True)
             sub.attrs["path"] = str(path)
             nan = np.full(int(keep.sum()), np.nan)
-            part = _place(sub, sub["file"].astype(str).tolist(), start[keep], (end - start)[keep], recordings, nan, nan,
-                          np.full(int(keep.sum()), name, dtype=object), score[keep], list(recorders[keep]))
+            part = _place(
+                sub,
+                sub["file"].astype(str).tolist(),
+                start[keep],
+                (end - start)[keep],
+                recordings,
+                nan,
+                nan,
+                np.full(int(keep.sum()), name, dtype=object),
+                score[keep],
+                list(recorders[keep]),
+            )
             part["source"] = [f"{path.name}:{k + 2}" for k in np.flatnonzero(keep)]
             parts.append(part)
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=list(DETECTION_COLUMNS))
@@ -175,8 +230,15 @@ def _label(table: pd.DataFrame, label_column: str | None, candidates: Sequence[s
     return table[found].astype(str).to_numpy() if found else np.full(len(table), "", dtype=object)
 
 
-def read_detections(paths: Sequence[str | Path], fmt: str, recordings: RecorderFiles, classes: Sequence[str] | None = None,
-                    min_score: float = 0.0, label_column: str | None = None, recorder_column: str | None = None) -> pd.DataFrame:
+def read_detections(
+    paths: Sequence[str | Path],
+    fmt: str,
+    recordings: RecorderFiles,
+    classes: Sequence[str] | None = None,
+    min_score: float = 0.0,
+    label_column: str | None = None,
+    recorder_column: str | None = None,
+) -> pd.DataFrame:
     """Every detection of the given tables, of the chosen classes and at least ``min_score``, sorted by time.
 
     Parameters

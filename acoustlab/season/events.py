@@ -22,8 +22,19 @@ from acoustlab.core import columns as col
 log = logging.getLogger(__name__)
 
 #: Columns of the events table, in order.
-EVENT_TABLE_COLUMNS = (col.EVENT_ID, col.START, col.END, "label", "n_recorders", "recorders", "score", col.BAND_LOW, col.BAND_HIGH,
-                       "too_long", "detections")
+EVENT_TABLE_COLUMNS = (
+    col.EVENT_ID,
+    col.START,
+    col.END,
+    "label",
+    "n_recorders",
+    "recorders",
+    "score",
+    col.BAND_LOW,
+    col.BAND_HIGH,
+    "too_long",
+    "detections",
+)
 
 
 def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: int = 2, max_event_s: float = 10.0) -> pd.DataFrame:
@@ -52,9 +63,14 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
         cluster = np.cumsum(new) - 1
         g = g.assign(_cluster=cluster)
         agg = g.groupby("_cluster", sort=True).agg(
-            first=(col.START, "min"), last=(col.END, "max"), n_recorders=("recorder_id", "nunique"),
-            recorders=("recorder_id", lambda r: ";".join(sorted(set(map(str, r))))), score=("score", "max"),
-            low=("low_hz", "min"), high=("high_hz", "max"), detections=("source", lambda s: ";".join(s)),
+            first=(col.START, "min"),
+            last=(col.END, "max"),
+            n_recorders=("recorder_id", "nunique"),
+            recorders=("recorder_id", lambda r: ";".join(sorted(set(map(str, r))))),
+            score=("score", "max"),
+            low=("low_hz", "min"),
+            high=("high_hz", "max"),
+            detections=("source", lambda s: ";".join(s)),
         )
         agg["label"] = label
         parts.append(agg)
@@ -65,20 +81,25 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
     if (~heard).any():
         log.info("events: %d of %d heard by fewer than %d recorders; not localized", int((~heard).sum()), len(events), min_recorders)
     events = events[heard].reset_index(drop=True)
-    out = pd.DataFrame({
-        col.EVENT_ID: np.arange(len(events), dtype=np.int64),
-        col.START: events["first"].to_numpy(float) - margin_s,
-        col.END: events["last"].to_numpy(float) + margin_s,
-        "label": events["label"].astype(str).to_numpy(),
-        "n_recorders": events["n_recorders"].to_numpy(int),
-        "recorders": events["recorders"].to_numpy(),
-        "score": events["score"].to_numpy(float),
-        col.BAND_LOW: events["low"].to_numpy(float),
-        col.BAND_HIGH: events["high"].to_numpy(float),
-    })
+    out = pd.DataFrame(
+        {
+            col.EVENT_ID: np.arange(len(events), dtype=np.int64),
+            col.START: events["first"].to_numpy(float) - margin_s,
+            col.END: events["last"].to_numpy(float) + margin_s,
+            "label": events["label"].astype(str).to_numpy(),
+            "n_recorders": events["n_recorders"].to_numpy(int),
+            "recorders": events["recorders"].to_numpy(),
+            "score": events["score"].to_numpy(float),
+            col.BAND_LOW: events["low"].to_numpy(float),
+            col.BAND_HIGH: events["high"].to_numpy(float),
+        }
+    )
     out["too_long"] = (out[col.END] - out[col.START]).to_numpy() > max_event_s
     out["detections"] = events["detections"].to_numpy()
     if out["too_long"].any():
-        log.warning("events: %d longer than max_event_s=%g s (overlapping calls merged); flagged too_long and not localized",
-                    int(out["too_long"].sum()), max_event_s)
+        log.warning(
+            "events: %d longer than max_event_s=%g s (overlapping calls merged); flagged too_long and not localized",
+            int(out["too_long"].sum()),
+            max_event_s,
+        )
     return out

@@ -75,11 +75,26 @@ class SeasonLocalize:
     evaluates = False
     streams = True
 
-    def __init__(self, recordings: dict[str, Any], detections: dict[str, Any], events: dict[str, Any], max_train_rows: int = 1000,
-                 seed: int = 0, chunk_events: int = 256, batch_events: int = 16, temperature_c: float | None = None,
-                 relative_humidity_pct: float | None = None, output_dir: str | None = None, stage: str = "all", shard: int | None = None,
-                 n_shards: int = 1, n_jobs: int = 1, progress_every_s: float = 5.0, write_csv: bool = True,
-                 quality: dict[str, float] | None = None) -> None:
+    def __init__(
+        self,
+        recordings: dict[str, Any],
+        detections: dict[str, Any],
+        events: dict[str, Any],
+        max_train_rows: int = 1000,
+        seed: int = 0,
+        chunk_events: int = 256,
+        batch_events: int = 16,
+        temperature_c: float | None = None,
+        relative_humidity_pct: float | None = None,
+        output_dir: str | None = None,
+        stage: str = "all",
+        shard: int | None = None,
+        n_shards: int = 1,
+        n_jobs: int = 1,
+        progress_every_s: float = 5.0,
+        write_csv: bool = True,
+        quality: dict[str, float] | None = None,
+    ) -> None:
         if stage not in STAGES:
             raise ConfigError(f"protocol.stage must be one of {', '.join(STAGES)}; got {stage!r}")
         if n_shards < 1 or n_jobs < 1:
@@ -108,8 +123,10 @@ class SeasonLocalize:
             return RecorderFiles.from_table(files_csv, audio_dir)
         if audio_dir:
             return RecorderFiles.from_file_names(audio_dir)
-        raise ConfigError("protocol=season needs protocol.recordings.files_csv (recorder_id, file, start_time) or "
-                          "protocol.recordings.audio_dir (one sub-folder per recorder, start times in the file names)")
+        raise ConfigError(
+            "protocol=season needs protocol.recordings.files_csv (recorder_id, file, start_time) or "
+            "protocol.recordings.audio_dir (one sub-folder per recorder, start times in the file names)"
+        )
 
     def recorder_order(self, recordings: RecorderFiles, site: Site) -> list[str]:
         """Recorder ids in the site's mic order (``protocol.recordings.recorders``, or the sorted ids)."""
@@ -118,8 +135,10 @@ class SeasonLocalize:
         if unknown:
             raise DataError(f"protocol.recordings.recorders names {unknown}, which have no files; recorders found: {recordings.recorders}")
         if len(order) != site.n_mics:
-            raise DataError(f"the season has {len(order)} recorders ({', '.join(order)}) but site {site.name} has {site.n_mics} mics; "
-                            "list the recorders in the site's mic order in protocol.recordings.recorders")
+            raise DataError(
+                f"the season has {len(order)} recorders ({', '.join(order)}) but site {site.name} has {site.n_mics} mics; "
+                "list the recorders in the site's mic order in protocol.recordings.recorders"
+            )
         return order
 
     def margin_s(self, site: Site) -> float:
@@ -138,8 +157,15 @@ class SeasonLocalize:
             paths = [paths]
         if not paths:
             raise ConfigError("protocol=season needs detector tables: protocol.detections.paths=[table or folder, ...]")
-        detections = read_detections(paths, d["format"], recordings, d.get("classes"), float(d.get("min_score") or 0.0), d.get("label_column"),
-                                     d.get("recorder_column"))
+        detections = read_detections(
+            paths,
+            d["format"],
+            recordings,
+            d.get("classes"),
+            float(d.get("min_score") or 0.0),
+            d.get("label_column"),
+            d.get("recorder_column"),
+        )
         unknown = sorted(set(detections["recorder_id"]) - set(self.recorder_order(recordings, site)))
         if unknown:
             log.warning("detections on recorders %s, which are not in the array, are ignored", unknown)
@@ -147,8 +173,10 @@ class SeasonLocalize:
         min_recorders = int(self.events_cfg.get("min_recorders", 2))
         events = group_detections(detections, self.margin_s(site), min_recorders, float(self.events_cfg.get("max_event_s", 10.0)))
         if events.empty:
-            raise DataError(f"protocol=season: {len(detections)} detections, but no event was detected on {min_recorders} or more recorders "
-                            "(protocol.events.min_recorders); nothing to localize")
+            raise DataError(
+                f"protocol=season: {len(detections)} detections, but no event was detected on {min_recorders} or more recorders "
+                "(protocol.events.min_recorders); nothing to localize"
+            )
         return events
 
     def validate(self, site: Site) -> None:
@@ -169,9 +197,17 @@ class SeasonLocalize:
     def plan(self, site: Site) -> ChunkPlan:
         """Chunking and the weather assumed for every detection (the middle of the site's ranges unless given)."""
         temperature = self.temperature_c if self.temperature_c is not None else float(np.mean(site.temperature_range_c))
-        humidity = self.relative_humidity_pct if self.relative_humidity_pct is not None else float(np.mean(site.relative_humidity_range_pct))
-        return ChunkPlan(self.chunk_events, self.batch_events, float(temperature), float(humidity),
-                         bool(self.events_cfg.get("use_detection_band", True)), self.quality)
+        humidity = (
+            self.relative_humidity_pct if self.relative_humidity_pct is not None else float(np.mean(site.relative_humidity_range_pct))
+        )
+        return ChunkPlan(
+            self.chunk_events,
+            self.batch_events,
+            float(temperature),
+            float(humidity),
+            bool(self.events_cfg.get("use_detection_band", True)),
+            self.quality,
+        )
 
     def method_key(self, cfg: DictConfig) -> str:
         """What the fitted method depends on: the whole config except the season's inputs and how it is run."""
@@ -206,27 +242,44 @@ class SeasonLocalize:
             train = np.sort(cap_rows(np.arange(len(dataset.events)), groups, self.max_train_rows, np.random.default_rng([self.seed, 1])))
             log.info("season: fitting the method on %d simulated events (once; every chunk and shard reuses it)", train.size)
             method = LocalizationPipeline(built.components).fit(dataset.features, dataset.events, train)
-            fitted = FittedSeasonMethod(method, float(cfg.simulator.sample_rate_hz), cfg.pipeline.plausible_margin_fraction,
-                                        list(built.components.levels), list(built.components.scorers))
+            fitted = FittedSeasonMethod(
+                method,
+                float(cfg.simulator.sample_rate_hz),
+                cfg.pipeline.plausible_margin_fraction,
+                list(built.components.levels),
+                list(built.components.scorers),
+            )
             digest = save_method(fitted, folder, key)
         write_manifest(folder, season_manifest(events, digest, self.plan(site), order, radii))
-        log.info("season: %d events from %d recorders' files (%d files, %s to %s) in %d chunks", len(events), len(order),
-                 len(recordings.table), recordings.origin, recordings.origin + pd.Timedelta(seconds=float(recordings.table[col.END].max())),
-                 n_chunks(len(events), self.chunk_events))
+        log.info(
+            "season: %d events from %d recorders' files (%d files, %s to %s) in %d chunks",
+            len(events),
+            len(order),
+            len(recordings.table),
+            recordings.origin,
+            recordings.origin + pd.Timedelta(seconds=float(recordings.table[col.END].max())),
+            n_chunks(len(events), self.chunk_events),
+        )
 
     def localize(self, folder: Path) -> int:
         """This process's chunks: one shard, or every chunk over ``n_jobs`` local workers."""
         manifest = read_manifest(folder)
         if self.shard is not None:
             chunks = shard_chunks(manifest["n_events"], manifest["chunk_events"], self.shard, self.n_shards)
-            return localize_chunks(folder, chunks, progress_every_s=self.progress_every_s, label=f"season shard {self.shard + 1}/{self.n_shards}")
+            return localize_chunks(
+                folder, chunks, progress_every_s=self.progress_every_s, label=f"season shard {self.shard + 1}/{self.n_shards}"
+            )
         if self.n_jobs == 1:
-            return localize_chunks(folder, range(n_chunks(manifest["n_events"], manifest["chunk_events"])), progress_every_s=self.progress_every_s)
+            return localize_chunks(
+                folder, range(n_chunks(manifest["n_events"], manifest["chunk_events"])), progress_every_s=self.progress_every_s
+            )
         from joblib import Parallel, delayed
 
         threads = max(1, free_cores() // self.n_jobs)  # workers × threads ≤ cores: oversubscribed OpenMP spin-waits
         log.info("season: %d local workers, %d thread(s) each", self.n_jobs, threads)
-        done = Parallel(n_jobs=self.n_jobs, backend="loky")(delayed(localize_shard)(str(folder), s, self.n_jobs, threads) for s in range(self.n_jobs))
+        done = Parallel(n_jobs=self.n_jobs, backend="loky")(
+            delayed(localize_shard)(str(folder), s, self.n_jobs, threads) for s in range(self.n_jobs)
+        )
         return int(sum(done))
 
     def run_season(self, cfg: DictConfig, built: Any, run_dir: Path, prepare: Any) -> dict[str, Any]:
@@ -249,7 +302,9 @@ class SeasonLocalize:
                 atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
             radii = read_manifest(folder)["radii"]
             metrics[col.METRICS_LOCALIZATION] = localization_summary(table, radii["levels"], radii["scorers"])
-            log.info("season: %d detections, %d placed; positions in %s", len(table), int(table[col.PLACED].sum()), run_dir / "positions.parquet")
+            log.info(
+                "season: %d detections, %d placed; positions in %s", len(table), int(table[col.PLACED].sum()), run_dir / "positions.parquet"
+            )
         if (folder / "season.json").is_file():
             manifest = read_manifest(folder)
             metrics["dataset_hash"] = manifest["events_sha256"]  # what the positions were computed from: the events and the method

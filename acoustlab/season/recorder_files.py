@@ -52,8 +52,10 @@ def timestamp_from_name(name: str) -> pd.Timestamp:
     """
     match = TIMESTAMP_PATTERN.search(Path(name).stem)
     if match is None:
-        raise DataError(f"recordings: file name {name!r} holds no start time; expected YYYYMMDD_HHMMSS (e.g. 20260501_053000.WAV) "
-                        "or give a files table with recorder_id, file, start_time")
+        raise DataError(
+            f"recordings: file name {name!r} holds no start time; expected YYYYMMDD_HHMMSS (e.g. 20260501_053000.WAV) "
+            "or give a files table with recorder_id, file, start_time"
+        )
     try:
         return pd.Timestamp(*(int(g) for g in match.groups()))
     except ValueError as exc:
@@ -121,8 +123,10 @@ class RecorderFiles:
         rates = np.asarray(rates, dtype=float)
         if np.unique(rates).size > 1:
             odd = table["path"].to_numpy()[rates != np.median(rates)][0]
-            raise DataError(f"recordings: files differ in sample rate ({sorted(set(rates.astype(int)))} Hz), e.g. {odd}; "
-                            "resample them to one rate first")
+            raise DataError(
+                f"recordings: files differ in sample rate ({sorted(set(rates.astype(int)))} Hz), e.g. {odd}; "
+                "resample them to one rate first"
+            )
         self._index(table, float(rates[0]))
 
     def _index(self, table: pd.DataFrame, sample_rate_hz: float, max_open_files: int = 64) -> None:
@@ -151,8 +155,10 @@ class RecorderFiles:
         if bad.size:
             k = bad[0]
             overlap_s = t[col.END].iloc[k] - t[col.START].iloc[k + 1]
-            raise DataError(f"recordings: recorder {t['recorder_id'].iloc[k]}: {t['path'].iloc[k + 1]} starts at {t['start'].iloc[k + 1]}, "
-                            f"before {t['path'].iloc[k]} ends ({overlap_s:.3f} s overlap); check the start times")
+            raise DataError(
+                f"recordings: recorder {t['recorder_id'].iloc[k]}: {t['path'].iloc[k + 1]} starts at {t['start'].iloc[k + 1]}, "
+                f"before {t['path'].iloc[k]} ends ({overlap_s:.3f} s overlap); check the start times"
+            )
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -173,14 +179,18 @@ class RecorderFiles:
         has_offset = text.str.contains(r"(?:Z|[+-]\d{2}:?\d{2})$", regex=True).to_numpy()
         if has_offset.any() and not has_offset.all():
             line = int(np.flatnonzero(has_offset != has_offset[0])[0])
-            raise DataError(f"recordings.files_csv: {path} line {line + 2}, column start_time: {text.iloc[line]!r} "
-                            f"{'has' if has_offset[line] else 'lacks'} a UTC offset and line 2 {'does not' if has_offset[line] else 'does'}; "
-                            "give every time with an offset or none")
+            raise DataError(
+                f"recordings.files_csv: {path} line {line + 2}, column start_time: {text.iloc[line]!r} "
+                f"{'has' if has_offset[line] else 'lacks'} a UTC offset and line 2 {'does not' if has_offset[line] else 'does'}; "
+                "give every time with an offset or none"
+            )
         start = pd.to_datetime(text, errors="coerce", format="ISO8601", utc=bool(has_offset.all()))
         if start.isna().any():
             line = int(np.flatnonzero(start.isna().to_numpy())[0])
-            raise DataError(f"recordings.files_csv: {path} line {line + 2}, column start_time: {table['start_time'].iloc[line]!r} is not "
-                            "an ISO 8601 time (e.g. 2026-05-01T05:30:00)")
+            raise DataError(
+                f"recordings.files_csv: {path} line {line + 2}, column start_time: {table['start_time'].iloc[line]!r} is not "
+                "an ISO 8601 time (e.g. 2026-05-01T05:30:00)"
+            )
         if start.dt.tz is not None:  # every time had an offset: all in UTC
             start = start.dt.tz_localize(None)
         base = Path(audio_dir) if audio_dir is not None else path.parent
@@ -199,8 +209,11 @@ class RecorderFiles:
         root = Path(audio_dir)
         if not root.is_dir():
             raise DataError(f"recordings.audio_dir: {root} is not a folder")
-        rows = [{"recorder_id": f.parent.name, "path": str(f), "start": timestamp_from_name(f.name)}
-                for f in sorted(root.glob("*/*")) if f.suffix.lower() in AUDIO_SUFFIXES]
+        rows = [
+            {"recorder_id": f.parent.name, "path": str(f), "start": timestamp_from_name(f.name)}
+            for f in sorted(root.glob("*/*"))
+            if f.suffix.lower() in AUDIO_SUFFIXES
+        ]
         if not rows:
             raise DataError(f"recordings.audio_dir: no .wav/.flac files in sub-folders of {root} (one sub-folder per recorder)")
         return cls(pd.DataFrame(rows))
@@ -242,8 +255,10 @@ class RecorderFiles:
             raise DataError(f"detections: file {text!r}{within} is not among the season's recordings ({len(self.table)} files indexed)")
         if len(rows) > 1:
             owners = sorted(self.table["recorder_id"].iloc[rows])
-            raise DataError(f"detections: file name {Path(text).name!r} is used by recorders {', '.join(owners)}: give the recorder "
-                            "(protocol.detections.recorder_column, one table per recorder named or foldered by its id, or Begin Path)")
+            raise DataError(
+                f"detections: file name {Path(text).name!r} is used by recorders {', '.join(owners)}: give the recorder "
+                "(protocol.detections.recorder_column, one table per recorder named or foldered by its id, or Begin Path)"
+            )
         return self.table.iloc[rows[0]]
 
     # -- reading ------------------------------------------------------------------------------
@@ -283,7 +298,7 @@ class RecorderFiles:
             handle = self._handle(files.path[k])
             handle.seek(first + lo)
             n_read = _read_into(handle, hi - lo, int(files.channel[k]), out[lo:hi])
-            covered[lo:lo + n_read] = True
+            covered[lo : lo + n_read] = True
         flags = []
         if not covered.all():  # in clip samples, with the same rounding as the reads: where the recorder's first file begins, its last ends
             first_k, last_k = 0, int(files.end_s.argmax())
@@ -309,8 +324,8 @@ def _read_into(handle: sf.SoundFile, n_frames: int, channel: int, out: np.ndarra
     """
     if handle.subtype == "PCM_16":
         data = handle.read(n_frames, dtype="int16", always_2d=True)[:, channel]
-        np.multiply(data, PCM16_SCALE, out=out[:len(data)])
+        np.multiply(data, PCM16_SCALE, out=out[: len(data)])
     else:
         data = handle.read(n_frames, dtype="float32", always_2d=True)[:, channel]
-        out[:len(data)] = data
+        out[: len(data)] = data
     return len(data)

@@ -106,12 +106,20 @@ def shard_chunks(n_events: int, chunk_events: int, shard: int, n_shards: int) ->
     return list(range(shard, n_chunks(n_events, chunk_events), n_shards))
 
 
-def season_manifest(events: pd.DataFrame, method_sha256: str | None, plan: ChunkPlan, recorders: list[str],
-                    radii: dict[str, list[Any]]) -> dict[str, Any]:
+def season_manifest(
+    events: pd.DataFrame, method_sha256: str | None, plan: ChunkPlan, recorders: list[str], radii: dict[str, list[Any]]
+) -> dict[str, Any]:
     """What a season's parts are made from: the events' digest, the method's digest, the chunking, the recorders, the radii."""
-    return {"events_sha256": frame_sha256(events), "n_events": len(events), "method_sha256": method_sha256,
-            "chunk_events": plan.chunk_events, "batch_events": plan.batch_events, "recorders": recorders, "radii": radii,
-            "plan": {k: v for k, v in plan.__dict__.items() if k != "quality"} | {"quality": plan.quality.__dict__}}
+    return {
+        "events_sha256": frame_sha256(events),
+        "n_events": len(events),
+        "method_sha256": method_sha256,
+        "chunk_events": plan.chunk_events,
+        "batch_events": plan.batch_events,
+        "recorders": recorders,
+        "radii": radii,
+        "plan": {k: v for k, v in plan.__dict__.items() if k != "quality"} | {"quality": plan.quality.__dict__},
+    }
 
 
 def check_manifest(directory: Path, manifest: dict[str, Any], unknown: tuple[str, ...] = ()) -> None:
@@ -129,8 +137,10 @@ def check_manifest(directory: Path, manifest: dict[str, Any], unknown: tuple[str
     differs = [k for k in manifest if k not in unknown and old.get(k) != manifest[k]]
     parts = sorted((directory / PARTS).glob("part-*.parquet"))
     if differs and parts:
-        raise DataError(f"{directory} holds {len(parts)} parts of a season run made with other {', '.join(differs)}; "
-                        "choose another protocol.output_dir, or delete the folder to start again")
+        raise DataError(
+            f"{directory} holds {len(parts)} parts of a season run made with other {', '.join(differs)}; "
+            "choose another protocol.output_dir, or delete the folder to start again"
+        )
 
 
 def write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
@@ -147,8 +157,9 @@ def read_manifest(directory: Path) -> dict[str, Any]:
     return json.loads(path.read_text())
 
 
-def _clip(recordings: RecorderFiles, recorder: str, start_s: float, length_s: float, sample_rate_hz: float,
-          thresholds: QualityThresholds) -> tuple[np.ndarray, list[str]]:
+def _clip(
+    recordings: RecorderFiles, recorder: str, start_s: float, length_s: float, sample_rate_hz: float, thresholds: QualityThresholds
+) -> tuple[np.ndarray, list[str]]:
     """One recorder's clip at the method's sample rate, and its quality flags."""
     n_file = int(round(length_s * recordings.sample_rate_hz))
     read = recordings.read(recorder, start_s, n_file)
@@ -161,13 +172,17 @@ def _clip(recordings: RecorderFiles, recorder: str, start_s: float, length_s: fl
     return clip, [*read.flags, *reasons]
 
 
-def read_batch(recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str], sample_rate_hz: float, plan: ChunkPlan) -> RecordingBatch:
+def read_batch(
+    recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str], sample_rate_hz: float, plan: ChunkPlan
+) -> RecordingBatch:
     """The clips of ``events`` on every recorder (in the site's mic order) as a batch, flagged per clip."""
     lengths_s = np.where(events["too_long"].to_numpy(bool), TOO_LONG_STAND_IN_S, (events[col.END] - events[col.START]).to_numpy(float))
     n_max = next_fast_len(int(round(lengths_s.max() * sample_rate_hz)) + 1)  # every transform of the batch at an FFT-friendly length
     audio = np.zeros((len(events), len(recorders), n_max), dtype=np.float32)
     flags = []
-    for e, (start, length, too_long) in enumerate(zip(events[col.START].to_numpy(float), lengths_s, events["too_long"].to_numpy(bool), strict=True)):
+    for e, (start, length, too_long) in enumerate(
+        zip(events[col.START].to_numpy(float), lengths_s, events["too_long"].to_numpy(bool), strict=True)
+    ):
         if too_long:
             flags.append("too_long")
             continue
@@ -178,22 +193,38 @@ def read_batch(recordings: RecorderFiles, events: pd.DataFrame, recorders: list[
             if reasons:
                 parts.append(f"mic {recorder}: {', '.join(reasons)}")
         flags.append("; ".join(parts))
-    rows = pd.DataFrame({
-        col.EVENT_ID: events[col.EVENT_ID].to_numpy(np.int64),
-        col.POSITION_ID: events[col.EVENT_ID].to_numpy(np.int64) + FIELD_POSITION_OFFSET,
-        col.TRUE_X: np.nan, col.TRUE_Y: np.nan, col.TRUE_Z: np.nan,
-        col.TEMPERATURE: plan.temperature_c, col.HUMIDITY: plan.relative_humidity_pct,
-        col.START: events[col.START].to_numpy(float), col.END: events[col.END].to_numpy(float),
-        col.QUALITY_FLAGS: flags, "quality_ok": [not f for f in flags], col.HARDWARE_FAILURE: False, "is_field": True,
-    })
+    rows = pd.DataFrame(
+        {
+            col.EVENT_ID: events[col.EVENT_ID].to_numpy(np.int64),
+            col.POSITION_ID: events[col.EVENT_ID].to_numpy(np.int64) + FIELD_POSITION_OFFSET,
+            col.TRUE_X: np.nan,
+            col.TRUE_Y: np.nan,
+            col.TRUE_Z: np.nan,
+            col.TEMPERATURE: plan.temperature_c,
+            col.HUMIDITY: plan.relative_humidity_pct,
+            col.START: events[col.START].to_numpy(float),
+            col.END: events[col.END].to_numpy(float),
+            col.QUALITY_FLAGS: flags,
+            "quality_ok": [not f for f in flags],
+            col.HARDWARE_FAILURE: False,
+            "is_field": True,
+        }
+    )
     if plan.use_detection_band:
         rows[col.BAND_LOW] = events[col.BAND_LOW].to_numpy(float)
         rows[col.BAND_HIGH] = events[col.BAND_HIGH].to_numpy(float)
     return RecordingBatch(audio=audio, sample_rate_hz=sample_rate_hz, events=rows)
 
 
-def localize_events(fitted: FittedSeasonMethod, recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str],
-                    plan: ChunkPlan, origin: pd.Timestamp, on_batch: Callable[[int], None] | None = None) -> pd.DataFrame:
+def localize_events(
+    fitted: FittedSeasonMethod,
+    recordings: RecorderFiles,
+    events: pd.DataFrame,
+    recorders: list[str],
+    plan: ChunkPlan,
+    origin: pd.Timestamp,
+    on_batch: Callable[[int], None] | None = None,
+) -> pd.DataFrame:
     """Positions of ``events`` (one chunk): audio and features batch by batch, the method on the chunk's features at once.
 
     ``on_batch(n)`` is called after each batch with the number of its events (progress).
@@ -201,7 +232,7 @@ def localize_events(fitted: FittedSeasonMethod, recordings: RecorderFiles, event
     c = fitted.method.pipeline.c
     features, rows = [], []
     for first in range(0, len(events), plan.batch_events):  # peak memory: one batch's audio and its transforms
-        batch = read_batch(recordings, events.iloc[first: first + plan.batch_events], recorders, float(fitted.sample_rate_hz), plan)
+        batch = read_batch(recordings, events.iloc[first : first + plan.batch_events], recorders, float(fitted.sample_rate_hz), plan)
         features.append(extract_features(batch, c.site, c.feature_sets))
         rows.append(batch.events)
         if on_batch is not None:
@@ -217,8 +248,9 @@ def localize_events(fitted: FittedSeasonMethod, recordings: RecorderFiles, event
     return table
 
 
-def localize_chunks(directory: Path, chunks: Iterable[int], fitted: FittedSeasonMethod | None = None, progress_every_s: float = 5.0,
-                    label: str = "season") -> int:
+def localize_chunks(
+    directory: Path, chunks: Iterable[int], fitted: FittedSeasonMethod | None = None, progress_every_s: float = 5.0, label: str = "season"
+) -> int:
     """Compute the listed chunks whose part is not yet written; return how many were computed.
 
     Everything is read from ``directory`` (the method verified by its digest), so a shard on
@@ -228,7 +260,9 @@ def localize_chunks(directory: Path, chunks: Iterable[int], fitted: FittedSeason
     manifest = read_manifest(directory)
     fitted = fitted if fitted is not None else load_method(directory, manifest["method_sha256"])
     recordings = RecorderFiles.load(directory / FILES)
-    plan = ChunkPlan(**{k: v for k, v in manifest["plan"].items() if k != "quality"}, quality=QualityThresholds(**manifest["plan"]["quality"]))
+    plan = ChunkPlan(
+        **{k: v for k, v in manifest["plan"].items() if k != "quality"}, quality=QualityThresholds(**manifest["plan"]["quality"])
+    )
     todo = [k for k in chunks if not part_path(directory, k).is_file()]
     total = sum(min(plan.chunk_events, manifest["n_events"] - k * plan.chunk_events) for k in todo)
     progress = _RateLog(total, progress_every_s, label)
@@ -255,8 +289,14 @@ class _RateLog:
         if now - self.last >= self.every_s or self.done >= self.total:
             self.last = now
             rate = self.done / max(now - self.started, 1e-9)
-            log.info("%s: %d/%d detections, %.1f detections/s, about %.0f s left", self.label, self.done, self.total, rate,
-                     (self.total - self.done) / max(rate, 1e-9))
+            log.info(
+                "%s: %d/%d detections, %.1f detections/s, about %.0f s left",
+                self.label,
+                self.done,
+                self.total,
+                rate,
+                (self.total - self.done) / max(rate, 1e-9),
+            )
 
 
 def write_events(directory: Path, events: pd.DataFrame, chunk_events: int) -> None:
@@ -270,7 +310,7 @@ def read_chunk(directory: Path, k: int, chunk_events: int) -> pd.DataFrame:
     sizes = [events.metadata.row_group(g).num_rows for g in range(events.metadata.num_row_groups)]
     if all(n == chunk_events for n in sizes[:-1]) and k < len(sizes):
         return events.read_row_group(k).to_pandas()
-    return pd.read_parquet(directory / EVENTS).iloc[k * chunk_events: (k + 1) * chunk_events].reset_index(drop=True)
+    return pd.read_parquet(directory / EVENTS).iloc[k * chunk_events : (k + 1) * chunk_events].reset_index(drop=True)
 
 
 def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1) -> int:
@@ -280,8 +320,11 @@ def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1) 
     directory_path = Path(directory)
     manifest = read_manifest(directory_path)
     with threadpool_limits(limits=threads):
-        return localize_chunks(directory_path, shard_chunks(manifest["n_events"], manifest["chunk_events"], shard, n_shards),
-                               label=f"season shard {shard + 1}/{n_shards}")
+        return localize_chunks(
+            directory_path,
+            shard_chunks(manifest["n_events"], manifest["chunk_events"], shard, n_shards),
+            label=f"season shard {shard + 1}/{n_shards}",
+        )
 
 
 def missing_chunks(directory: Path) -> list[int]:
@@ -300,8 +343,10 @@ def merge_parts(directory: Path) -> pd.DataFrame:
     """
     missing = missing_chunks(directory)
     if missing:
-        raise DataError(f"{directory}: {len(missing)} chunks not computed yet (e.g. {missing[:5]}); run the localize stage "
-                        "for every shard first (protocol.stage=localize), then merge")
+        raise DataError(
+            f"{directory}: {len(missing)} chunks not computed yet (e.g. {missing[:5]}); run the localize stage "
+            "for every shard first (protocol.stage=localize), then merge"
+        )
     manifest = read_manifest(directory)
     parts = [pd.read_parquet(part_path(directory, k)) for k in range(n_chunks(manifest["n_events"], manifest["chunk_events"]))]
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()

@@ -74,7 +74,9 @@ class SyntheticSeason:
     def for_site(cls, site: Site, **settings: Any) -> SyntheticSeason:
         """A season of ``site``: its mics, its source heights, sound at the middle of its weather ranges (what a season run assumes)."""
         speed = speed_of_sound_m_s(float(np.mean(site.temperature_range_c)), float(np.mean(site.relative_humidity_range_pct)))
-        return cls(mics_m=site.mic_positions_m, source_height_m=tuple(site.source_height_range_m), speed_of_sound_m_s=float(speed), **settings)
+        return cls(
+            mics_m=site.mic_positions_m, source_height_m=tuple(site.source_height_range_m), speed_of_sound_m_s=float(speed), **settings
+        )
 
 
 def _call(rng: np.random.Generator, sample_rate_hz: float) -> tuple[np.ndarray, float, float]:
@@ -127,9 +129,9 @@ def write_season(settings: SyntheticSeason, directory: Path) -> pd.DataFrame:
             inside = np.flatnonzero((arrival[:, m] * fs < t0 + n_file) & ((arrival[:, m] + 0.5) * fs > t0))
             for e in inside:
                 start = int(np.floor(arrival[e, m] * fs))
-                shaped = delay_and_scale(calls[e], np.array([arrival[e, m] - start / fs]), gain[e, m:m + 1], fs, calls[e].size + 2)[0]
+                shaped = delay_and_scale(calls[e], np.array([arrival[e, m] - start / fs]), gain[e, m : m + 1], fs, calls[e].size + 2)[0]
                 a, b = max(start, t0), min(start + shaped.size, t0 + n_file)
-                audio[a - t0:b - t0] += shaped[a - start:b - start]
+                audio[a - t0 : b - t0] += shaped[a - start : b - start]
             sf.write(folder / names[k], np.clip(audio, -1, 1).astype(np.float32), int(fs), subtype="PCM_16")
     raven = directory / "raven"
     raven.mkdir(parents=True, exist_ok=True)
@@ -137,13 +139,29 @@ def write_season(settings: SyntheticSeason, directory: Path) -> pd.DataFrame:
         begin = arrival[:, m] - 0.02
         end = arrival[:, m] + np.array([c.size for c in calls]) / fs + 0.02
         file_index = np.clip((begin // s.file_s).astype(int), 0, n_files - 1)
-        table = pd.DataFrame({
-            "Selection": np.arange(1, s.n_calls + 1), "View": "Spectrogram 1", "Channel": 1,
-            "Begin Time (s)": begin, "End Time (s)": end,
-            "Low Freq (Hz)": [b[0] - 300 for b in bands], "High Freq (Hz)": [min(b[1] + 300, fs / 2) for b in bands],
-            "Begin File": [names[k] for k in file_index], "File Offset (s)": begin - file_index * s.file_s, "Species": "synthetic_sweep",
-        })
+        table = pd.DataFrame(
+            {
+                "Selection": np.arange(1, s.n_calls + 1),
+                "View": "Spectrogram 1",
+                "Channel": 1,
+                "Begin Time (s)": begin,
+                "End Time (s)": end,
+                "Low Freq (Hz)": [b[0] - 300 for b in bands],
+                "High Freq (Hz)": [min(b[1] + 300, fs / 2) for b in bands],
+                "Begin File": [names[k] for k in file_index],
+                "File Offset (s)": begin - file_index * s.file_s,
+                "Species": "synthetic_sweep",
+            }
+        )
         table.to_csv(raven / f"R{m}.Table.1.selections.txt", sep="\t", index=False)
-    return pd.DataFrame({"call_id": np.arange(s.n_calls), "emission_s": emission, col.TRUE_X: xy[:, 0], col.TRUE_Y: xy[:, 1], col.TRUE_Z: z,
-                         "low_hz": [b[0] for b in bands], "high_hz": [b[1] for b in bands]})
-
+    return pd.DataFrame(
+        {
+            "call_id": np.arange(s.n_calls),
+            "emission_s": emission,
+            col.TRUE_X: xy[:, 0],
+            col.TRUE_Y: xy[:, 1],
+            col.TRUE_Z: z,
+            "low_hz": [b[0] for b in bands],
+            "high_hz": [b[1] for b in bands],
+        }
+    )

@@ -101,8 +101,10 @@ def storage_error(path: Path, exc: BaseException) -> StorageError:
         free = "free space unknown"
     full = getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT) or "requested and" in str(exc)  # numpy's short write
     what = "no space left on the device (or quota exceeded)" if full else f"{type(exc).__name__}: {exc}"
-    return StorageError(f"cannot write {path}: {what}; {free} on {_existing_parent(path)}. Free some space or point "
-                        "cache.dir / paths.outputs_dir at a disk with room")
+    return StorageError(
+        f"cannot write {path}: {what}; {free} on {_existing_parent(path)}. Free some space or point "
+        "cache.dir / paths.outputs_dir at a disk with room"
+    )
 
 
 def _existing_parent(path: Path) -> Path:
@@ -203,7 +205,9 @@ class StageCache:
         except ValueError:
             raise ConfigError(f"cache.file_mode must be an octal permission such as '0644'; got {file_mode!r}") from None
         if not 0 <= self.file_mode <= 0o777 or not self.file_mode & 0o600 == 0o600:
-            raise ConfigError(f"cache.file_mode must be a permission in 0600..0777 that the owner can read and write; got {oct(self.file_mode)}")
+            raise ConfigError(
+                f"cache.file_mode must be a permission in 0600..0777 that the owner can read and write; got {oct(self.file_mode)}"
+            )
         self._scratch: list[Path] = []
 
     @staticmethod

@@ -102,9 +102,7 @@ class SimulationPlan:
         if self.chunk_size < 1:
             raise ConfigError(f"data.chunk_size must be >= 1; got {self.chunk_size}")
         if self.shard_count < 1 or not 0 <= self.shard_index < self.shard_count:
-            raise ConfigError(
-                f"data.shard_index must be in [0, data.shard_count); got {self.shard_index} of {self.shard_count}"
-            )
+            raise ConfigError(f"data.shard_index must be in [0, data.shard_count); got {self.shard_index} of {self.shard_count}")
 
     def chunks(self) -> list[tuple[int, int]]:
         """[start, stop) event ranges of the chunks."""
@@ -210,8 +208,9 @@ def _render_simulation(site: Site, simulator: Simulator, plan: SimulationPlan, c
     return cache.commit("simulation", key, work)
 
 
-def _read_chunk_or_render(site: Site, simulator: Simulator, plan: SimulationPlan, start: int, stop: int,
-                          work: Path) -> tuple[np.ndarray, pd.DataFrame]:
+def _read_chunk_or_render(
+    site: Site, simulator: Simulator, plan: SimulationPlan, start: int, stop: int, work: Path
+) -> tuple[np.ndarray, pd.DataFrame]:
     """A rendered chunk of the work directory; one that cannot be read (damaged after an interruption) is rendered again."""
     name = _chunk_name(start, stop)
     try:
@@ -294,8 +293,14 @@ def _features_to_cache(sim_dir: Path, site: Site, feature_sets: dict[str, Featur
         delayed(_chunk_features)(sim_dir, name, float(manifest["sample_rate_hz"]), site, feature_sets) for name in names
     )
     results = list(progress(jobs, total=len(names), desc="features", unit="chunk"))
-    return _store_tables(cache, "features", key, pd.concat([r[0] for r in results], ignore_index=True),
-                         pd.concat([r[1] for r in results], ignore_index=True), manifest["dataset_hash"])
+    return _store_tables(
+        cache,
+        "features",
+        key,
+        pd.concat([r[0] for r in results], ignore_index=True),
+        pd.concat([r[1] for r in results], ignore_index=True),
+        manifest["dataset_hash"],
+    )
 
 
 def load_or_build_simulated(
@@ -321,6 +326,7 @@ def load_or_build_simulated(
             "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},
         }
     )
+
     def build() -> Path | None:
         sim_dir = simulate_to_cache(site, simulator, simulator_cfg, plan, cache)
         return None if sim_dir is None else _features_to_cache(sim_dir, site, feature_sets, plan.n_jobs, cache, feat_key)
@@ -331,7 +337,12 @@ def load_or_build_simulated(
 
 
 def load_or_build_field(
-    site: Site, field_source: Any, field_cfg: dict[str, Any], feature_sets: dict[str, FeatureSet], features_cfg: dict[str, Any], cache: StageCache
+    site: Site,
+    field_source: Any,
+    field_cfg: dict[str, Any],
+    feature_sets: dict[str, FeatureSet],
+    features_cfg: dict[str, Any],
+    cache: StageCache,
 ) -> Dataset:
     """Feature and event tables of a field source's recordings, cached like the simulated ones."""
     input_files = hook(field_source, "input_files")
@@ -348,6 +359,7 @@ def load_or_build_field(
             "plugins": {name: plugin_version(fs) for name, fs in feature_sets.items()},
         }
     )
+
     def build() -> Path:
         batch = field_source.load(site)
         digest = _DataHasher()

@@ -35,17 +35,13 @@ def _read_csv(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataF
         raise DataError(f"site.{field}: cannot read {path} as CSV ({exc})") from None
     missing = [c for c in required if c not in table.columns]
     if missing:
-        raise DataError(
-            f"site.{field}: {path} lacks columns {missing}; expected columns {list(required)}, "
-            f"found {list(table.columns)}"
-        )
+        raise DataError(f"site.{field}: {path} lacks columns {missing}; expected columns {list(required)}, found {list(table.columns)}")
     values = table[list(required)]
     bad = ~np.isfinite(values.apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float))
     if bad.any():
         row, position = np.argwhere(bad)[0]
         raise DataError(
-            f"site.{field}: {path} row {row + 2} column {required[position]!r} is not a finite number "
-            f"({values.iloc[row, position]!r})"
+            f"site.{field}: {path} row {row + 2} column {required[position]!r} is not a finite number ({values.iloc[row, position]!r})"
         )
     return table
 
@@ -121,9 +117,7 @@ def site_from_config(cfg: Mapping[str, Any]) -> Site:
     if mics.shape[0] < 3:
         raise ConfigError(f"site {name!r} has {mics.shape[0]} microphones; 2-D TDOA localization needs at least 3")
     if collinearity_ratio(mics[:, :2]) < COLLINEAR_TOLERANCE:
-        raise ConfigError(
-            f"site {name!r}: the microphones are collinear in x-y; 2-D localization needs a non-degenerate array"
-        )
+        raise ConfigError(f"site {name!r}: the microphones are collinear in x-y; 2-D localization needs a non-degenerate array")
     trees, diameters = load_trees(cfg)
     ground = cfg.get("ground") or {}
     noise = cfg.get("noise") or {}
@@ -156,9 +150,7 @@ def site_from_config(cfg: Mapping[str, Any]) -> Site:
         tree_positions_m=trees,
         trunk_diameters_m=diameters,
         temperature_range_c=require_range("site.temperature_c", cfg.get("temperature_c"), lower=-80.0, upper=60.0),
-        relative_humidity_range_pct=require_range(
-            "site.relative_humidity_pct", cfg.get("relative_humidity_pct"), lower=0.0, upper=100.0
-        ),
+        relative_humidity_range_pct=require_range("site.relative_humidity_pct", cfg.get("relative_humidity_pct"), lower=0.0, upper=100.0),
         ground_type=str(ground.get("type", "unspecified")),
         ground_flow_resistivity_kpa_s_m2=sigma,
         ground_impedance_model=impedance_model,

@@ -189,9 +189,7 @@ class CallPool:
         species = [str(s) for s in species]
         unknown = [s for s in species if s != SYNTHETIC and s not in set(catalog()["species"])]
         if unknown:
-            raise ConfigError(
-                f"unknown species {unknown} in the call pool; known: {sorted(set(catalog()['species']))} or 'synthetic'"
-            )
+            raise ConfigError(f"unknown species {unknown} in the call pool; known: {sorted(set(catalog()['species']))} or 'synthetic'")
         self.synthetic = SYNTHETIC in species
         self.real: list[Call] = []
         for row in table[table["species"].isin(species)].itertuples():

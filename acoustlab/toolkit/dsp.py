@@ -17,9 +17,7 @@ def next_fast_len(n: int) -> int:
     return int(sfft.next_fast_len(int(n), real=True))
 
 
-def delay_and_scale(
-    signal: np.ndarray, delays_s: np.ndarray, gains: np.ndarray, sample_rate_hz: float, n_out: int
-) -> np.ndarray:
+def delay_and_scale(signal: np.ndarray, delays_s: np.ndarray, gains: np.ndarray, sample_rate_hz: float, n_out: int) -> np.ndarray:
     """Copies of a signal delayed by fractional amounts and scaled, via an FFT phase ramp.
 
     The signal is zero-padded to cover ``n_out`` plus the largest delay, so the phase ramp's
@@ -142,7 +140,7 @@ def gcc(
         full = sfft.irfft(cross, n=n_out, axis=-1)
         if scale is not None:
             full *= np.float32(scale)
-        cc[:, k, :half] = full[:, n_out - half:]
+        cc[:, k, :half] = full[:, n_out - half :]
         cc[:, k, half:] = full[:, : half + 1]
     lags_s = np.arange(-half, half + 1) / rate_hz
     return cc, lags_s
@@ -173,8 +171,9 @@ class GccLengths:
     scale: float | None
 
 
-def gcc_lengths(n_samples: int, sample_rate_hz: float, upsample: int, max_lag_s: float | None, band_hz=None,
-                band_limited: bool = False) -> GccLengths:
+def gcc_lengths(
+    n_samples: int, sample_rate_hz: float, upsample: int, max_lag_s: float | None, band_hz=None, band_limited: bool = False
+) -> GccLengths:
     """The lengths :func:`gcc` uses for ``n_samples``-long signals (see its parameters)."""
     max_lag_samples = n_samples if max_lag_s is None else min(n_samples, int(np.ceil(max_lag_s * sample_rate_hz)) + 2)
     # twice the signal length, always: a (β-)PHAT weighting depends on the spectral resolution (a transform
@@ -245,7 +244,9 @@ def weighted_spectra(audio: np.ndarray, weighting: str, beta: float) -> np.ndarr
     return spectra
 
 
-def event_band_hz(events: pd.DataFrame, default: tuple[float, float] | None, sample_rate_hz: float) -> tuple[float, float] | np.ndarray | None:
+def event_band_hz(
+    events: pd.DataFrame, default: tuple[float, float] | None, sample_rate_hz: float
+) -> tuple[float, float] | np.ndarray | None:
     """The GCC band of every event: its own detection band (``band_low_hz``, ``band_high_hz``) where given, else ``default``.
 
     Returns ``default`` unchanged when no event has a band of its own (so batches without
@@ -300,8 +301,9 @@ def parabolic_peak(values: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, n
     return offset, height
 
 
-def coloured_noise(rng: np.random.Generator, shape: tuple[int, ...], kind: str, sample_rate_hz: float,
-                   band_hz: tuple[float, float] | None = None) -> np.ndarray:
+def coloured_noise(
+    rng: np.random.Generator, shape: tuple[int, ...], kind: str, sample_rate_hz: float, band_hz: tuple[float, float] | None = None
+) -> np.ndarray:
     """Unit-variance Gaussian noise: ``white``, ``pink`` (1/f power) or ``band`` (band-limited white).
 
     Parameters

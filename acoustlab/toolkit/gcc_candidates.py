@@ -77,37 +77,92 @@ def pair_candidates(
         return batch.derived(key, lambda: _coarse_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, beta))
     if device != "cpu":
         key = (*key, device)
-        return batch.derived(key, lambda: _torch_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta,
-                                                                 band_limited, device, device_memory_gb))
-    return batch.derived(key, lambda: _compute_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta,
-                                                               band_limited))
+        return batch.derived(
+            key,
+            lambda: _torch_pair_candidates(
+                batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta, band_limited, device, device_memory_gb
+            ),
+        )
+    return batch.derived(
+        key, lambda: _compute_pair_candidates(batch, site, n_candidates, margin_s, band_hz, weighting, upsample, beta, band_limited)
+    )
 
 
-def _torch_pair_candidates(batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz, weighting: str,
-                           upsample: int, beta: float, band_limited: bool, device: str, memory_gb: float) -> PairCandidates:
+def _torch_pair_candidates(
+    batch: RecordingBatch,
+    site: Site,
+    n_candidates: int,
+    margin_s: float,
+    band_hz,
+    weighting: str,
+    upsample: int,
+    beta: float,
+    band_limited: bool,
+    device: str,
+    memory_gb: float,
+) -> PairCandidates:
     from acoustlab.toolkit.gcc_torch import pair_candidates_torch
 
-    lags, heights, sidelobe = pair_candidates_torch(batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, margin_s),
-                                                    n_candidates, weighting, band_hz, upsample, beta, band_limited, device, memory_gb)
+    lags, heights, sidelobe = pair_candidates_torch(
+        batch.audio,
+        site.mic_pairs,
+        batch.sample_rate_hz,
+        lag_windows_s(site, margin_s),
+        n_candidates,
+        weighting,
+        band_hz,
+        upsample,
+        beta,
+        band_limited,
+        device,
+        memory_gb,
+    )
     return PairCandidates(lags, heights, sidelobe)
 
 
-def _coarse_pair_candidates(batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz, weighting: str,
-                            beta: float) -> PairCandidates:
+def _coarse_pair_candidates(
+    batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz, weighting: str, beta: float
+) -> PairCandidates:
     shared = batch.derived("gcc_spectra", dict)  # the weighted spectra, shared with the other bands of the batch
-    lags, heights, sidelobe = coarse_pair_candidates(batch.audio, site.mic_pairs, batch.sample_rate_hz, lag_windows_s(site, margin_s),
-                                                     n_candidates, weighting, band_hz, beta, spectra_cache=shared)
+    lags, heights, sidelobe = coarse_pair_candidates(
+        batch.audio,
+        site.mic_pairs,
+        batch.sample_rate_hz,
+        lag_windows_s(site, margin_s),
+        n_candidates,
+        weighting,
+        band_hz,
+        beta,
+        spectra_cache=shared,
+    )
     return PairCandidates(lags, heights, sidelobe)
 
 
 def _compute_pair_candidates(
-    batch: RecordingBatch, site: Site, n_candidates: int, margin_s: float, band_hz: tuple[float, float] | None, weighting: str,
-    upsample: int, beta: float, band_limited: bool = False,
+    batch: RecordingBatch,
+    site: Site,
+    n_candidates: int,
+    margin_s: float,
+    band_hz: tuple[float, float] | None,
+    weighting: str,
+    upsample: int,
+    beta: float,
+    band_limited: bool = False,
 ) -> PairCandidates:
     windows = lag_windows_s(site, margin_s)
     shared = batch.derived("gcc_spectra", dict)  # one transform of the audio for every band and candidate count
-    cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, weighting, band_hz, upsample, beta, max_lag_s=float(windows.max()),
-                   spectra_cache=shared, band_limited=band_limited)
+    cc, lags = gcc(
+        batch.audio,
+        site.mic_pairs,
+        batch.sample_rate_hz,
+        weighting,
+        band_hz,
+        upsample,
+        beta,
+        max_lag_s=float(windows.max()),
+        spectra_cache=shared,
+        band_limited=band_limited,
+    )
     step = lags[1] - lags[0]
     e, p = cc.shape[:2]
     out_lags = np.full((e, p, n_candidates), np.nan)
@@ -117,7 +172,7 @@ def _compute_pair_candidates(
         inside = np.flatnonzero(np.abs(lags) <= max_lag)  # one contiguous run of lags
         # events along the fast axis, as boolean indexing laid it out before: float32 sums depend on the layout,
         # and the features stay bit-identical to those already cached
-        seg = np.asfortranarray(cc[:, k, inside[0]:inside[-1] + 1])
+        seg = np.asfortranarray(cc[:, k, inside[0] : inside[-1] + 1])
         first_lag = lags[inside[0]]
         sidelobe[:, k] = np.sqrt(np.mean(seg**2, axis=-1))
         masked = np.where(local_maxima(seg), seg, -np.inf)  # local maxima (edges allowed), then the K highest

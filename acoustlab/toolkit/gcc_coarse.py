@@ -52,8 +52,10 @@ def check_search(search: str, upsample: int, band_limited: bool = False, device:
     if search not in ("fine", "coarse"):
         raise ConfigError(f"features.gcc.search must be 'fine' or 'coarse'; got {search!r}")
     if search == "coarse" and (device != "cpu" or int(upsample) != 2 or band_limited):
-        raise ConfigError(f"features.gcc.search=coarse refines on the grid of upsample=2 with the CPU path; got upsample={upsample}, "
-                          f"device={device}, band_limited={band_limited} (use search=fine there)")
+        raise ConfigError(
+            f"features.gcc.search=coarse refines on the grid of upsample=2 with the CPU path; got upsample={upsample}, "
+            f"device={device}, band_limited={band_limited} (use search=fine there)"
+        )
     return search
 
 
@@ -75,9 +77,17 @@ def half_samples(values: np.ndarray, index: np.ndarray, kernel: np.ndarray) -> n
     return gathered @ kernel
 
 
-def coarse_pair_candidates(audio: np.ndarray, pairs: list[tuple[int, int]], sample_rate_hz: float, windows_s: np.ndarray,
-                           n_candidates: int, weighting: str, band_hz, beta: float, spectra_cache: dict | None = None
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def coarse_pair_candidates(
+    audio: np.ndarray,
+    pairs: list[tuple[int, int]],
+    sample_rate_hz: float,
+    windows_s: np.ndarray,
+    n_candidates: int,
+    weighting: str,
+    band_hz,
+    beta: float,
+    spectra_cache: dict | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """K best peaks of every pair on the default's 1/(2 fs) grid, searched on the 1/fs grid (module docstring).
 
     Parameters
@@ -119,10 +129,10 @@ def coarse_pair_candidates(audio: np.ndarray, pairs: list[tuple[int, int]], samp
     for k, max_lag in enumerate(windows_s):  # the peaks of every window, then one refinement for all pairs
         inside = np.flatnonzero(np.abs(lags) <= max_lag)
         firsts[k] = inside[0]
-        seg = cc[:, k, inside[0]:inside[-1] + 1]
+        seg = cc[:, k, inside[0] : inside[-1] + 1]
         centre, is_peak, sum_of_squares = _centres(seg)
         sidelobe[:, k] = np.sqrt(sum_of_squares / seg.shape[-1]) * 0.5
-        centres[:, k, :centre.shape[-1]], valid[:, k, :centre.shape[-1]] = centre + firsts[k], is_peak
+        centres[:, k, : centre.shape[-1]], valid[:, k, : centre.shape[-1]] = centre + firsts[k], is_peak
     fine_peak, offset, value, height = _refine(cc, centres, half_sample_kernel())
     rank = np.where(valid & np.isfinite(value), value, -np.inf)
     fine_peak = fine_peak - 2 * firsts[:, None]  # fine steps from each window's first lag
@@ -179,7 +189,7 @@ def _fine_samples(rows: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> n
         return _assemble(_clamped_windows(rows, centre, taps), kernel)
     start = centre - taps // 2
     clamped = (start < 0) | (start > n - taps - 1)
-    e, p = np.ogrid[:rows.shape[0], :rows.shape[1]]
+    e, p = np.ogrid[: rows.shape[0], : rows.shape[1]]
     windows = sliding_window_view(rows, taps + 1, axis=-1)[e[..., None], p[..., None], np.clip(start, 0, n - taps - 1)]
     fine = _assemble(windows, kernel)
     if clamped.any():  # whole rows of centres again, clamped: the products then run in the same blocks as everywhere else

@@ -49,11 +49,15 @@ def check_device(device: str) -> str:
     try:
         import torch
     except ImportError as exc:
-        raise ConfigError(f"features.gcc.device={name} needs torch (pip install -e \".[tabpfn]\", or torch for your CUDA); "
-                          "it is not installed. Use features.gcc.device=cpu") from exc
+        raise ConfigError(
+            f'features.gcc.device={name} needs torch (pip install -e ".[tabpfn]", or torch for your CUDA); '
+            "it is not installed. Use features.gcc.device=cpu"
+        ) from exc
     if not torch.cuda.is_available():
-        raise ConfigError(f"features.gcc.device={name}: torch {torch.__version__} sees no CUDA GPU "
-                          "(a CPU-only build, or no driver). Use features.gcc.device=cpu")
+        raise ConfigError(
+            f"features.gcc.device={name}: torch {torch.__version__} sees no CUDA GPU "
+            "(a CPU-only build, or no driver). Use features.gcc.device=cpu"
+        )
     index = int(name[5:]) if ":" in name else 0
     if index >= torch.cuda.device_count():
         raise ConfigError(f"features.gcc.device={name}: only {torch.cuda.device_count()} CUDA device(s) visible")
@@ -76,10 +80,20 @@ def window_bounds(lags_s: np.ndarray, windows_s: np.ndarray) -> tuple[np.ndarray
     return first, last
 
 
-def pair_candidates_torch(audio: np.ndarray, pairs: list[tuple[int, int]], sample_rate_hz: float, windows_s: np.ndarray,
-                          n_candidates: int, weighting: str, band_hz: Any, upsample: int, beta: float,
-                          band_limited: bool = False, device: str = "cuda", memory_gb: float = 4.0
-                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pair_candidates_torch(
+    audio: np.ndarray,
+    pairs: list[tuple[int, int]],
+    sample_rate_hz: float,
+    windows_s: np.ndarray,
+    n_candidates: int,
+    weighting: str,
+    band_hz: Any,
+    upsample: int,
+    beta: float,
+    band_limited: bool = False,
+    device: str = "cuda",
+    memory_gb: float = 4.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """K best GCC peaks of every pair (module docstring), computed on ``device``.
 
     Parameters
@@ -132,8 +146,22 @@ def pair_candidates_torch(audio: np.ndarray, pairs: list[tuple[int, int]], sampl
     parts = []
     for start in range(0, audio.shape[0], per_pass):
         stop = start + per_pass
-        parts.append(_one_pass(audio[start:stop], pairs, sample_rate_hz, size, weighting, band_hz[start:stop] if banded else band_hz,
-                               beta, first, last, n_candidates, dev, memory_gb))
+        parts.append(
+            _one_pass(
+                audio[start:stop],
+                pairs,
+                sample_rate_hz,
+                size,
+                weighting,
+                band_hz[start:stop] if banded else band_hz,
+                beta,
+                first,
+                last,
+                n_candidates,
+                dev,
+                memory_gb,
+            )
+        )
     offset, height, order, valid, sidelobe = (np.concatenate(arrays) for arrays in zip(*parts, strict=True))
     step = lags_s[1] - lags_s[0]
     rel = order - first[None, :, None]
@@ -155,24 +183,46 @@ def events_per_pass(memory_gb: float, n_mics: int, n_pairs: int, size: GccLength
     return max(1, int(memory_gb * 2**30 // per_event))
 
 
-def _one_pass(audio: np.ndarray, pairs: list[tuple[int, int]], sample_rate_hz: float, size: GccLengths, weighting: str, band_hz: Any,
-              beta: float, first: np.ndarray, last: np.ndarray, n_candidates: int, dev: Any, memory_gb: float) -> tuple[np.ndarray, ...]:
+def _one_pass(
+    audio: np.ndarray,
+    pairs: list[tuple[int, int]],
+    sample_rate_hz: float,
+    size: GccLengths,
+    weighting: str,
+    band_hz: Any,
+    beta: float,
+    first: np.ndarray,
+    last: np.ndarray,
+    n_candidates: int,
+    dev: Any,
+    memory_gb: float,
+) -> tuple[np.ndarray, ...]:
     """Peaks of one pass of events on ``dev``, as host arrays: offsets, heights, indices, validity (E, P, K), RMS (E, P)."""
     import torch
 
     try:
         with torch.no_grad():
-            cc = _correlation(torch.as_tensor(np.ascontiguousarray(audio, dtype=np.float32), device=dev), pairs, sample_rate_hz, size,
-                              weighting, band_hz, beta)
+            cc = _correlation(
+                torch.as_tensor(np.ascontiguousarray(audio, dtype=np.float32), device=dev),
+                pairs,
+                sample_rate_hz,
+                size,
+                weighting,
+                band_hz,
+                beta,
+            )
             peaks = _peaks(cc, torch.as_tensor(first, device=dev), torch.as_tensor(last, device=dev), n_candidates)
             return tuple(t.cpu().numpy() for t in peaks)
     except torch.cuda.OutOfMemoryError as exc:  # torch.OutOfMemoryError from torch 2.5; the extra allows 2.3
-        raise ConfigError(f"features.gcc.device={dev}: a pass of {audio.shape[0]} events ran the GPU out of memory; "
-                          f"lower features.gcc.device_memory_gb (now {memory_gb} GiB)") from exc
+        raise ConfigError(
+            f"features.gcc.device={dev}: a pass of {audio.shape[0]} events ran the GPU out of memory; "
+            f"lower features.gcc.device_memory_gb (now {memory_gb} GiB)"
+        ) from exc
 
 
-def _correlation(x: Any, pairs: list[tuple[int, int]], sample_rate_hz: float, size: GccLengths, weighting: str, band_hz: Any,
-                 beta: float) -> Any:
+def _correlation(
+    x: Any, pairs: list[tuple[int, int]], sample_rate_hz: float, size: GccLengths, weighting: str, band_hz: Any, beta: float
+) -> Any:
     """(E, P, 2·half + 1) weighted cross-correlation of every pair over lags −half … +half (steps 1 and 2 of the module docstring)."""
     import torch
 
@@ -194,7 +244,7 @@ def _correlation(x: Any, pairs: list[tuple[int, int]], sample_rate_hz: float, si
     del cross
     if size.scale is not None:
         full = full * np.float32(size.scale)
-    return torch.cat([full[..., size.n_out - size.half:], full[..., : size.half + 1]], dim=-1)
+    return torch.cat([full[..., size.n_out - size.half :], full[..., : size.half + 1]], dim=-1)
 
 
 def _band_mask(band_hz: Any, n_fft: int, n_kept: int, sample_rate_hz: float, dev: Any) -> Any:

@@ -75,9 +75,7 @@ def source_region(mic_positions_m: np.ndarray, hull_expansion: float) -> tuple[n
     return hull_polygon(xy), float(hull_expansion * d)
 
 
-def sample_in_expanded_hull(
-    rng: np.random.Generator, mic_positions_m: np.ndarray, hull_expansion: float, n: int
-) -> np.ndarray:
+def sample_in_expanded_hull(rng: np.random.Generator, mic_positions_m: np.ndarray, hull_expansion: float, n: int) -> np.ndarray:
     """Draw points uniformly inside the mics' convex hull grown by a buffer (rejection sampling).
 
     Parameters

@@ -58,8 +58,13 @@ class InputUncertainty:
         return self.temperature_c == 0 and self.mic_position_m == 0 and self.clock_offset_s == 0
 
 
-def position_sigma_m(mic_positions_m: np.ndarray, source_m: np.ndarray, temperature_c: np.ndarray, relative_humidity_pct: np.ndarray,
-                     stated: InputUncertainty) -> np.ndarray:
+def position_sigma_m(
+    mic_positions_m: np.ndarray,
+    source_m: np.ndarray,
+    temperature_c: np.ndarray,
+    relative_humidity_pct: np.ndarray,
+    stated: InputUncertainty,
+) -> np.ndarray:
     """(B,) per-axis RMS horizontal position error (m) from the stated input errors (module docstring).
 
     Parameters
@@ -78,7 +83,8 @@ def position_sigma_m(mic_positions_m: np.ndarray, source_m: np.ndarray, temperat
     temperature_c = np.asarray(temperature_c, dtype=float)
     c = np.asarray(speed_of_sound_m_s(temperature_c, relative_humidity_pct), dtype=float)
     dc_dt = np.asarray(speed_of_sound_m_s(temperature_c + 0.5, relative_humidity_pct), dtype=float) - np.asarray(
-        speed_of_sound_m_s(temperature_c - 0.5, relative_humidity_pct), dtype=float)
+        speed_of_sound_m_s(temperature_c - 0.5, relative_humidity_pct), dtype=float
+    )
     sigma_c = np.abs(dc_dt) * stated.temperature_c
     offset = src[:, None, :] - mics[None, :, :]
     r = np.sqrt((offset**2).sum(-1))  # (B, M)

@@ -18,15 +18,11 @@ _GAS_CONSTANT_DRY_AIR_FACTOR = 20.05  # c = 20.05 * sqrt(T_v) m/s, T_v in K
 
 def _check_temperature(temperature_c: np.ndarray) -> None:
     if np.any(~np.isfinite(temperature_c)) or np.any(temperature_c <= -KELVIN_OFFSET):
-        raise ValueError(
-            f"temperature_c must be finite and above absolute zero (-273.15 °C); got {temperature_c}"
-        )
+        raise ValueError(f"temperature_c must be finite and above absolute zero (-273.15 °C); got {temperature_c}")
 
 
 def _check_humidity(relative_humidity_pct: np.ndarray) -> None:
-    if np.any(~np.isfinite(relative_humidity_pct)) or np.any(
-        (relative_humidity_pct < 0) | (relative_humidity_pct > 100)
-    ):
+    if np.any(~np.isfinite(relative_humidity_pct)) or np.any((relative_humidity_pct < 0) | (relative_humidity_pct > 100)):
         raise ValueError(f"relative_humidity_pct must lie in [0, 100] %; got {relative_humidity_pct}")
 
 
@@ -130,11 +126,7 @@ def air_absorption_db_per_m(
         * f**2
         * (
             1.84e-11 / p_rel * t_rel**0.5
-            + t_rel**-2.5
-            * (
-                0.01275 * np.exp(-2239.1 / t_k) / (f_ro + f**2 / f_ro)
-                + 0.1068 * np.exp(-3352.0 / t_k) / (f_rn + f**2 / f_rn)
-            )
+            + t_rel**-2.5 * (0.01275 * np.exp(-2239.1 / t_k) / (f_ro + f**2 / f_ro) + 0.1068 * np.exp(-3352.0 / t_k) / (f_rn + f**2 / f_rn))
         )
     )
     return float(alpha) if alpha.ndim == 0 else alpha

@@ -160,12 +160,7 @@ def cylinder_scattering_magnitude(ka: np.ndarray, angle_rad: np.ndarray) -> np.n
     step = phi_grid[1] - phi_grid[0]
     j = np.clip((ang / step).astype(int), 0, phi_grid.size - 2)
     tj = (ang - phi_grid[j]) / step
-    return (
-        mag[i, j] * (1 - ti) * (1 - tj)
-        + mag[i + 1, j] * ti * (1 - tj)
-        + mag[i, j + 1] * (1 - ti) * tj
-        + mag[i + 1, j + 1] * ti * tj
-    )
+    return mag[i, j] * (1 - ti) * (1 - tj) + mag[i + 1, j] * ti * (1 - tj) + mag[i, j + 1] * (1 - ti) * tj + mag[i + 1, j + 1] * ti * tj
 
 
 def segment_trunk_clearance(a_xy: np.ndarray, b_xy: np.ndarray, trees_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

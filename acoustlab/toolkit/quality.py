@@ -39,8 +39,9 @@ class QualityThresholds:
     clip_share: float = 0.001
 
 
-def clip_quality(signal: np.ndarray, start: int, length: int, thresholds: QualityThresholds,
-                 margin: int = 0) -> tuple[np.ndarray, list[str]]:
+def clip_quality(
+    signal: np.ndarray, start: int, length: int, thresholds: QualityThresholds, margin: int = 0
+) -> tuple[np.ndarray, list[str]]:
     """Cut ``length`` samples from ``start`` (may be negative or past the end) and say what is wrong with them.
 
     Parameters

@@ -137,5 +137,10 @@ def solve_3d(mics: np.ndarray, rd: np.ndarray, n_iterations: int = 30, residual_
     height_gdop = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
     none = ~valid.any(axis=1)
     height_gdop[none] = np.nan
-    return {"position_m": position, "cost_m2": cost[rows, choice], "height_ambiguous": ambiguous.astype(float),
-            "height_gdop": height_gdop, "n_roots": valid.sum(axis=1).astype(float)}
+    return {
+        "position_m": position,
+        "cost_m2": cost[rows, choice],
+        "height_ambiguous": ambiguous.astype(float),
+        "height_gdop": height_gdop,
+        "n_roots": valid.sum(axis=1).astype(float),
+    }

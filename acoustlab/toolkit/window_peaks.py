@@ -122,8 +122,7 @@ def _kernel(values, m, m_sum):
                     floor = kept[m - 1]
             if m_sum > 0 and i < n - 1:
                 s = row[i] + row[i + 1]
-                if (s > floor_sum and (i == 0 or s >= row[i - 1] + row[i])
-                        and (i == n - 2 or s > row[i + 1] + row[i + 2])):
+                if s > floor_sum and (i == 0 or s >= row[i - 1] + row[i]) and (i == n - 2 or s > row[i + 1] + row[i + 2]):
                     count_sum = _insert(kept_sum, top_sum[r], count_sum, m_sum, s, i)
                     if count_sum == m_sum:
                         floor_sum = kept_sum[m_sum - 1]

@@ -49,8 +49,10 @@ class ConformalizedQuantile:
             raise ConfigError(f"conformal cqr: model must be a scikit-learn regressor; got {type(model).__name__}")
         self.model = model
         if self._quantile_key() is None:
-            raise ConfigError(f"conformal cqr: {type(model).__name__} is not a quantile regressor (XGBoost with objective "
-                              "reg:quantileerror, or an estimator with a quantile or alpha parameter)")
+            raise ConfigError(
+                f"conformal cqr: {type(model).__name__} is not a quantile regressor (XGBoost with objective "
+                "reg:quantileerror, or an estimator with a quantile or alpha parameter)"
+            )
 
     def _quantile_key(self) -> str | None:
         params = self.model.get_params()
@@ -84,8 +86,15 @@ class ConformalizedQuantile:
             raise ValueError(f"cqr: quantiles of shape {quantiles.shape}; expected {(len(predicted_m), len(self.levels_))}")
         return quantiles
 
-    def fit(self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float],
-            quantiles: np.ndarray | None = None, groups: np.ndarray | None = None) -> ConformalizedQuantile:
+    def fit(
+        self,
+        error_m: np.ndarray,
+        predicted_m: np.ndarray,
+        gdop: np.ndarray,
+        levels: list[float],
+        quantiles: np.ndarray | None = None,
+        groups: np.ndarray | None = None,
+    ) -> ConformalizedQuantile:
         """Calibrate one correction per level from calibration errors and their out-of-fold quantile predictions (``groups`` unused)."""
         self.levels_ = [float(v) for v in levels]
         scores = np.asarray(error_m, dtype=float)[:, None] - self._quantiles(predicted_m, quantiles)

@@ -62,8 +62,16 @@ class SplitConformal:
         calibration on a few field playback spots whose events are not exchangeable across spots.
     """
 
-    def __init__(self, normaliser: str = "none", binning: str = "none", n_bins: int = 3, score: str = "signed",
-                 use_error_model: bool = True, gdop_cap_quantile: float | None = 0.95, calibration_unit: str = "event") -> None:
+    def __init__(
+        self,
+        normaliser: str = "none",
+        binning: str = "none",
+        n_bins: int = 3,
+        score: str = "signed",
+        use_error_model: bool = True,
+        gdop_cap_quantile: float | None = 0.95,
+        calibration_unit: str = "event",
+    ) -> None:
         if calibration_unit not in ("event", "position"):
             raise ConfigError(f"conformal calibration_unit must be 'event' or 'position'; got {calibration_unit!r}")
         self.calibration_unit = calibration_unit
@@ -104,8 +112,9 @@ class SplitConformal:
         value = self._clip_gdop(gdop) if self.binning == "gdop" else np.asarray(predicted_m, dtype=float)
         return np.searchsorted(self.edges_, value, side="right")
 
-    def fit(self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float],
-            groups: np.ndarray | None = None) -> SplitConformal:
+    def fit(
+        self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float], groups: np.ndarray | None = None
+    ) -> SplitConformal:
         """Calibrate ``quantiles_`` (bins × levels) on calibration errors, predictions, GDOPs (and positions, ``groups``)."""
         error_m, predicted_m, gdop = (np.asarray(a, dtype=float) for a in (error_m, predicted_m, gdop))
         q = self.gdop_cap_quantile

@@ -72,7 +72,9 @@ class Environment:
         cols = {
             col.ENV_TEMPERATURE: t,
             col.ENV_HUMIDITY: rh,
-            col.ENV_SPEED_OF_SOUND: np.where(np.isfinite(t) & np.isfinite(rh), speed_of_sound_m_s(np.nan_to_num(t, nan=10.0), np.nan_to_num(rh, nan=50.0)), np.nan),
+            col.ENV_SPEED_OF_SOUND: np.where(
+                np.isfinite(t) & np.isfinite(rh), speed_of_sound_m_s(np.nan_to_num(t, nan=10.0), np.nan_to_num(rh, nan=50.0)), np.nan
+            ),
         }
         levels = np.sort(frame_levels_db(batch.audio, batch.sample_rate_hz), axis=-1)
         k = levels.shape[-1]

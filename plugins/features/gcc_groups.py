@@ -55,8 +55,17 @@ class _GccGroup:
     """
 
     cache_version = "1"
-    DEFAULTS = {"n_candidates": 3, "max_lag_margin_s": 0.002, "weighting": "beta_phat", "beta": 0.8, "upsample": 2, "band_hz": (300.0, 10000.0),
-                "device": "cpu", "device_memory_gb": 4.0, "search": "fine"}
+    DEFAULTS = {
+        "n_candidates": 3,
+        "max_lag_margin_s": 0.002,
+        "weighting": "beta_phat",
+        "beta": 0.8,
+        "upsample": 2,
+        "band_hz": (300.0, 10000.0),
+        "device": "cpu",
+        "device_memory_gb": 4.0,
+        "search": "fine",
+    }
 
     def __init__(self, gcc: Mapping[str, Any] | None = None, **settings: Any) -> None:
         unknown = sorted((set(gcc or {}) | set(settings)) - set(self.DEFAULTS))
@@ -84,8 +93,19 @@ class _GccGroup:
 
     def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
         band = event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz) if band_hz is None else band_hz
-        return pair_candidates(batch, site, self.n_candidates, self.max_lag_margin_s, band, self.weighting, self.upsample, self.beta,
-                               device=self.device, device_memory_gb=self.device_memory_gb, search=self.search)
+        return pair_candidates(
+            batch,
+            site,
+            self.n_candidates,
+            self.max_lag_margin_s,
+            band,
+            self.weighting,
+            self.upsample,
+            self.beta,
+            device=self.device,
+            device_memory_gb=self.device_memory_gb,
+            search=self.search,
+        )
 
 
 class TdoaCandidates(_GccGroup):
@@ -113,8 +133,13 @@ class XcorrConfidence(_GccGroup):
 
     cache_version = "2"  # 2: extra bands sampled at their own rate (band_limited)
 
-    def __init__(self, gcc: Mapping[str, Any] | None = None, extra_bands_hz: Sequence[Sequence[float]] = ((1000.0, 4000.0),),
-                 extra_bands_band_limited: bool = True, **settings: Any) -> None:
+    def __init__(
+        self,
+        gcc: Mapping[str, Any] | None = None,
+        extra_bands_hz: Sequence[Sequence[float]] = ((1000.0, 4000.0),),
+        extra_bands_band_limited: bool = True,
+        **settings: Any,
+    ) -> None:
         super().__init__(gcc, **settings)
         self.extra_bands_hz = [(float(lo), float(hi)) for lo, hi in extra_bands_hz]
         self.extra_bands_band_limited = bool(extra_bands_band_limited)
@@ -125,15 +150,34 @@ class XcorrConfidence(_GccGroup):
             for k in range(self.n_candidates):
                 rows.append((col.xcorr_peak(i, j, k + 1), "1", f"GCC height of peak rank {k + 1}"))
             for lo, hi in self.extra_bands_hz:
-                rows.append((f"xcorr__peak_{i}_{j}_{lo:.0f}_{hi:.0f}hz", "1", f"dominant GCC height with the cross-spectrum limited to {lo:.0f}–{hi:.0f} Hz"))
+                rows.append(
+                    (
+                        f"xcorr__peak_{i}_{j}_{lo:.0f}_{hi:.0f}hz",
+                        "1",
+                        f"dominant GCC height with the cross-spectrum limited to {lo:.0f}–{hi:.0f} Hz",
+                    )
+                )
         return rows
 
     def transform(self, batch: RecordingBatch, site: Site) -> pd.DataFrame:
         cand = self._candidates(batch, site)
         cols = {}
-        banded = [pair_candidates(batch, site, 1, self.max_lag_margin_s, b, self.weighting, self.upsample, self.beta, self.extra_bands_band_limited,
-                                  device=self.device, device_memory_gb=self.device_memory_gb)
-                  for b in self.extra_bands_hz]
+        banded = [
+            pair_candidates(
+                batch,
+                site,
+                1,
+                self.max_lag_margin_s,
+                b,
+                self.weighting,
+                self.upsample,
+                self.beta,
+                self.extra_bands_band_limited,
+                device=self.device,
+                device_memory_gb=self.device_memory_gb,
+            )
+            for b in self.extra_bands_hz
+        ]
         for p, (i, j) in enumerate(site.mic_pairs):
             for k in range(self.n_candidates):
                 cols[col.xcorr_peak(i, j, k + 1)] = cand.heights[:, p, k]

@@ -19,7 +19,9 @@ from acoustlab.toolkit.event_physics import assumed_source_height_m, event_speed
 from acoustlab.toolkit.geometry import bounding_box
 
 
-def _steered_power(cc: np.ndarray, lag0_s: float, step_s: float, grid: np.ndarray, mics: np.ndarray, pairs, height: float, c: np.ndarray) -> np.ndarray:
+def _steered_power(
+    cc: np.ndarray, lag0_s: float, step_s: float, grid: np.ndarray, mics: np.ndarray, pairs, height: float, c: np.ndarray
+) -> np.ndarray:
     """(E, G) summed GCC over pairs at the lags implied by grid points (E, G, 2) for sound speeds c (E,)."""
     src = np.concatenate([grid, np.full(grid.shape[:-1] + (1,), height)], axis=-1)
     dist = np.sqrt(((src[..., None, :] - mics) ** 2).sum(-1))  # (E, G, M)
@@ -52,8 +54,14 @@ class SrpPhat:
     group = "srp"
     cache_version = "1"
 
-    def __init__(self, coarse_step_m: float = 2.0, fine_step_m: float = 0.2, fine_half_width_m: float = 3.0,
-                 box_margin_fraction: float = 0.25, band_hz=(300.0, 10000.0)) -> None:
+    def __init__(
+        self,
+        coarse_step_m: float = 2.0,
+        fine_step_m: float = 0.2,
+        fine_half_width_m: float = 3.0,
+        box_margin_fraction: float = 0.25,
+        band_hz=(300.0, 10000.0),
+    ) -> None:
         self.coarse_step_m = float(coarse_step_m)
         self.fine_step_m = float(fine_step_m)
         self.fine_half_width_m = float(fine_half_width_m)

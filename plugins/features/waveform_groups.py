@@ -219,7 +219,7 @@ class EnvelopeDelays:
         cols = {}
         for (i, j), window_s in zip(site.mic_pairs, windows, strict=True):
             full = sfft.irfft(np.conj(spec[:, i]) * spec[:, j], n=n_fft, axis=-1)
-            cc = np.concatenate([full[:, n_fft - max_lag:], full[:, : max_lag + 1]], axis=-1)
+            cc = np.concatenate([full[:, n_fft - max_lag :], full[:, : max_lag + 1]], axis=-1)
             window = np.abs(lags) <= window_s
             cols[f"envelope__lag_{i}_{j}_s"] = lags[window][np.argmax(cc[:, window], axis=-1)]
         return pd.DataFrame(cols)

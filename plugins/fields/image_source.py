@@ -79,18 +79,34 @@ class ImageSourceField:
         Seed of positions and renders (independent of the training simulation's).
     """
 
-    def __init__(self, sample_rate_hz: float = 24000.0, duration_s: float = 1.1, n_positions: int = 60, events_per_position: int = 5,
-                 inside_expansion: float = 0.2, outside_share: float = 0.3, outside_expansion: float = 0.6, ground_energy_absorption: float = 0.4,
-                 snr_db: Sequence[float] = (5.0, 30.0), onset_s: Sequence[float] = (0.05, 0.25), include_share_alike: bool = False,
-                 temperature_error_c: float = 0.0, seed: int = 2000) -> None:
+    def __init__(
+        self,
+        sample_rate_hz: float = 24000.0,
+        duration_s: float = 1.1,
+        n_positions: int = 60,
+        events_per_position: int = 5,
+        inside_expansion: float = 0.2,
+        outside_share: float = 0.3,
+        outside_expansion: float = 0.6,
+        ground_energy_absorption: float = 0.4,
+        snr_db: Sequence[float] = (5.0, 30.0),
+        onset_s: Sequence[float] = (0.05, 0.25),
+        include_share_alike: bool = False,
+        temperature_error_c: float = 0.0,
+        seed: int = 2000,
+    ) -> None:
         if n_positions < 2 or events_per_position < 1:
-            raise ConfigError(f"field.n_positions must be >= 2 and field.events_per_position >= 1; got {n_positions}, {events_per_position}")
+            raise ConfigError(
+                f"field.n_positions must be >= 2 and field.events_per_position >= 1; got {n_positions}, {events_per_position}"
+            )
         if not 0 <= outside_share <= 1:
             raise ConfigError(f"field.outside_share must lie in [0, 1]; got {outside_share}")
         if not 0 <= ground_energy_absorption <= 1:
             raise ConfigError(f"field.ground_energy_absorption must lie in [0, 1]; got {ground_energy_absorption}")
         if len(snr_db) != 2 or snr_db[0] > snr_db[1] or len(onset_s) != 2 or not 0 <= onset_s[0] <= onset_s[1] < duration_s:
-            raise ConfigError(f"field.snr_db and field.onset_s must be [low, high] ranges (onset within duration_s); got {snr_db}, {onset_s}")
+            raise ConfigError(
+                f"field.snr_db and field.onset_s must be [low, high] ranges (onset within duration_s); got {snr_db}, {onset_s}"
+            )
         self.sample_rate_hz = float(sample_rate_hz)
         self.duration_s = float(duration_s)
         self.n_positions = int(n_positions)
@@ -112,7 +128,9 @@ class ImageSourceField:
         try:
             import pyroomacoustics  # noqa: F401
         except ImportError:
-            raise ConfigError("field=image_source renders with pyroomacoustics, which is not installed: pip install -e \".[crosssim]\"") from None
+            raise ConfigError(
+                'field=image_source renders with pyroomacoustics, which is not installed: pip install -e ".[crosssim]"'
+            ) from None
 
     def source_positions(self, site: Site) -> np.ndarray:
         """(K, 3) source positions in m: inside the inner region, and ``outside_share`` of them around it."""
@@ -128,8 +146,9 @@ class ImageSourceField:
         height = rng.uniform(*site.source_height_range_m, size=len(xy))
         return np.column_stack([xy, height])
 
-    def _render(self, site: Site, source_m: np.ndarray, signal: np.ndarray, onset_s: float, temperature_c: float,
-                humidity_pct: float) -> tuple[np.ndarray, float]:
+    def _render(
+        self, site: Site, source_m: np.ndarray, signal: np.ndarray, onset_s: float, temperature_c: float, humidity_pct: float
+    ) -> tuple[np.ndarray, float]:
         """(M, S) clean recording of ``signal`` emitted at ``onset_s`` from ``source_m``, and pyroomacoustics' speed of sound."""
         import pyroomacoustics as pra
 
@@ -137,10 +156,23 @@ class ImageSourceField:
         offset = np.array([points[:, 0].min() - _ROOM_MARGIN_M, points[:, 1].min() - _ROOM_MARGIN_M, 0.0])
         size = np.array([np.ptp(points[:, 0]), np.ptp(points[:, 1]), points[:, 2].max()]) + np.array([2, 2, 1]) * _ROOM_MARGIN_M
         walls = pra.Material(1.0)
-        materials = {"floor": pra.Material(self.ground_energy_absorption), "ceiling": walls,
-                     "east": walls, "west": walls, "north": walls, "south": walls}
-        room = pra.ShoeBox(size, fs=int(self.sample_rate_hz), max_order=1, materials=materials, air_absorption=True,
-                           temperature=float(temperature_c), humidity=float(humidity_pct))
+        materials = {
+            "floor": pra.Material(self.ground_energy_absorption),
+            "ceiling": walls,
+            "east": walls,
+            "west": walls,
+            "north": walls,
+            "south": walls,
+        }
+        room = pra.ShoeBox(
+            size,
+            fs=int(self.sample_rate_hz),
+            max_order=1,
+            materials=materials,
+            air_absorption=True,
+            temperature=float(temperature_c),
+            humidity=float(humidity_pct),
+        )
         room.add_source(source_m - offset, signal=signal, delay=float(onset_s))
         room.add_microphone_array((site.mic_positions_m - offset).T)
         room.simulate()
@@ -173,16 +205,30 @@ class ImageSourceField:
             nearest = int(np.argmin(np.sqrt(((site.mic_positions_m - source) ** 2).sum(-1))))
             noise_std = noise_std_for_snr(clean[nearest], call.signal.size / self.sample_rate_hz, self.sample_rate_hz, snr_db)
             audio[event_id] = clean + noise_std * noise_matrix(rng, site, regime, n_out, self.sample_rate_hz)
-            rows.append({
-                col.EVENT_ID: event_id, col.POSITION_ID: pid, col.TRUE_X: source[0], col.TRUE_Y: source[1], col.TRUE_Z: source[2],
-                col.TEMPERATURE: weather.temperature_c + self.temperature_error_c, col.HUMIDITY: weather.relative_humidity_pct,
-                # what a user computes from a thermometer (off by temperature_error_c); the renderer used its own formula
-                # and the true temperature (simulator_speed_of_sound_m_s)
-                col.SPEED_OF_SOUND: float(speed_of_sound_m_s(weather.temperature_c + self.temperature_error_c, weather.relative_humidity_pct)),
-                "simulator_speed_of_sound_m_s": simulator_c,
-                col.SNR: snr_db, "noise_regime": site.noise_regimes[regime].kind, "call": call.label, "call_licence": call.licence,
-                col.EMISSION_TIME: onset, "outside_simulated_region": bool(outside_site[pid]),
-                col.HARDWARE_FAILURE: False, "source": "pyroomacoustics_image_source",
-            })
+            rows.append(
+                {
+                    col.EVENT_ID: event_id,
+                    col.POSITION_ID: pid,
+                    col.TRUE_X: source[0],
+                    col.TRUE_Y: source[1],
+                    col.TRUE_Z: source[2],
+                    col.TEMPERATURE: weather.temperature_c + self.temperature_error_c,
+                    col.HUMIDITY: weather.relative_humidity_pct,
+                    # what a user computes from a thermometer (off by temperature_error_c); the renderer used its own formula
+                    # and the true temperature (simulator_speed_of_sound_m_s)
+                    col.SPEED_OF_SOUND: float(
+                        speed_of_sound_m_s(weather.temperature_c + self.temperature_error_c, weather.relative_humidity_pct)
+                    ),
+                    "simulator_speed_of_sound_m_s": simulator_c,
+                    col.SNR: snr_db,
+                    "noise_regime": site.noise_regimes[regime].kind,
+                    "call": call.label,
+                    "call_licence": call.licence,
+                    col.EMISSION_TIME: onset,
+                    "outside_simulated_region": bool(outside_site[pid]),
+                    col.HARDWARE_FAILURE: False,
+                    "source": "pyroomacoustics_image_source",
+                }
+            )
         log.info("image-source field: %d events at %d positions rendered with pyroomacoustics", len(rows), len(positions))
         return RecordingBatch(audio=audio, sample_rate_hz=self.sample_rate_hz, events=pd.DataFrame(rows))

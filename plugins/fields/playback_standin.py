@@ -133,17 +133,28 @@ class PlaybackStandIn:
                 for stim_id, (region, call) in enumerate(stimuli):
                     ev_rng = np.random.default_rng([self.seed, _EVENT_STREAM, event_id])
                     rec, row = self.simulator.render_event(
-                        site, speaker, ev_rng, call=call, snr_offset_db=offset,
-                        forced_failure=self.failure if failed else None, gains_db=gains,
+                        site,
+                        speaker,
+                        ev_rng,
+                        call=call,
+                        snr_offset_db=offset,
+                        forced_failure=self.failure if failed else None,
+                        gains_db=gains,
                     )
                     audio.append(rec)
                     rows.append(
                         {
-                            col.EVENT_ID: event_id, col.POSITION_ID: pid,
-                            col.TRUE_X: speaker[0], col.TRUE_Y: speaker[1], col.TRUE_Z: speaker[2],
+                            col.EVENT_ID: event_id,
+                            col.POSITION_ID: pid,
+                            col.TRUE_X: speaker[0],
+                            col.TRUE_Y: speaker[1],
+                            col.TRUE_Z: speaker[2],
                             **row,
-                            "setting": setting, "stimulus": stim_id, "stimulus_region": region,
-                            col.HARDWARE_FAILURE: failed, "source": "synthetic_playback_standin",
+                            "setting": setting,
+                            "stimulus": stim_id,
+                            "stimulus_region": region,
+                            col.HARDWARE_FAILURE: failed,
+                            "source": "synthetic_playback_standin",
                         }
                     )
                     event_id += 1

@@ -67,8 +67,9 @@ def _read(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataFrame
     return table
 
 
-def _numeric(table: pd.DataFrame, field: str, columns: tuple[str, ...], finite: bool = True,
-             lower: float | None = None, upper: float | None = None) -> None:
+def _numeric(
+    table: pd.DataFrame, field: str, columns: tuple[str, ...], finite: bool = True, lower: float | None = None, upper: float | None = None
+) -> None:
     """Convert ``columns`` to float in place; a cell that is not a number (or not finite, or out of range) names its line."""
     for name in columns:
         if name not in table:
@@ -85,16 +86,19 @@ def _numeric(table: pd.DataFrame, field: str, columns: tuple[str, ...], finite: 
             expected = "a finite number" if finite else "a number or empty"
             if lower is not None or upper is not None:
                 expected += f" in [{lower}, {upper}]"
-            raise DataError(f"field.{field}: {table.attrs.get('path', field)}, line {i + 2}, column {name!r}: "
-                            f"{raw.iloc[i]!r} is not {expected}")
+            raise DataError(
+                f"field.{field}: {table.attrs.get('path', field)}, line {i + 2}, column {name!r}: {raw.iloc[i]!r} is not {expected}"
+            )
         table[name] = values
 
 
 def _unique(table: pd.DataFrame, field: str, column: str) -> None:
     duplicated = table[column][table[column].duplicated()]
     if not duplicated.empty:
-        raise DataError(f"field.{field}: {table.attrs.get('path', field)}, column {column!r}: "
-                        f"{duplicated.iloc[0]!r} appears more than once; every row needs its own {column}")
+        raise DataError(
+            f"field.{field}: {table.attrs.get('path', field)}, column {column!r}: "
+            f"{duplicated.iloc[0]!r} appears more than once; every row needs its own {column}"
+        )
 
 
 class RecordingFolder:
@@ -201,21 +205,27 @@ class RecordingFolder:
         for name in (col.EVENT_ID, col.POSITION_ID):
             if name in events and (events[name] != np.round(events[name])).any():
                 i = int(np.flatnonzero((events[name] != np.round(events[name])).to_numpy())[0])
-                raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}, column {name!r}: "
-                                f"{events[name].iloc[i]!r} is not a whole number")
+                raise DataError(
+                    f"field.events_csv: {events.attrs.get('path')}, line {i + 2}, column {name!r}: "
+                    f"{events[name].iloc[i]!r} is not a whole number"
+                )
         events[col.EVENT_ID] = events[col.EVENT_ID].astype(np.int64)
         _unique(events, "events_csv", col.EVENT_ID)
         too_short = events[col.END] <= events[col.START]
         if too_short.any():
             i = int(np.flatnonzero(too_short.to_numpy())[0])
-            raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: end_s {events[col.END].iloc[i]} "
-                            f"is not after start_s {events[col.START].iloc[i]}")
+            raise DataError(
+                f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: end_s {events[col.END].iloc[i]} "
+                f"is not after start_s {events[col.START].iloc[i]}"
+            )
         too_long = (events[col.END] - events[col.START]) > self.max_event_s
         if too_long.any():
             i = int(np.flatnonzero(too_long.to_numpy())[0])
-            raise DataError(f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: the event lasts "
-                            f"{events[col.END].iloc[i] - events[col.START].iloc[i]:g} s, more than field.max_event_s={self.max_event_s:g} s "
-                            f"(raise it if the event really is that long)")
+            raise DataError(
+                f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: the event lasts "
+                f"{events[col.END].iloc[i] - events[col.START].iloc[i]:g} s, more than field.max_event_s={self.max_event_s:g} s "
+                f"(raise it if the event really is that long)"
+            )
         if "file" not in mics and "file" not in events:
             raise DataError("field: the mics table has no 'file' column, so events_csv needs one (multichannel files)")
         if "file" in events:
@@ -231,25 +241,38 @@ class RecordingFolder:
         _numeric(det, "detections_csv", tuple(classes))
         coords["file"] = coords["file"].astype(str).str.strip()
         det["file"] = det["file"].astype(str).str.strip()
-        mics = pd.DataFrame({"file": coords["file"], col.MIC_X: coords["x"], col.MIC_Y: coords["y"],
-                             col.MIC_Z: coords["z"] if "z" in coords else 0.0})
+        mics = pd.DataFrame(
+            {"file": coords["file"], col.MIC_X: coords["x"], col.MIC_Y: coords["y"], col.MIC_Z: coords["z"] if "z" in coords else 0.0}
+        )
         mics.attrs["path"] = coords.attrs["path"]
         known = det["file"].isin(set(mics["file"]))
         if not known.any():
-            raise DataError(f"field.detections_csv: none of its files ({det['file'].iloc[0]!r}, …) is in the coords table "
-                            f"{coords.attrs['path']} ({mics['file'].iloc[0]!r}, …); the file names must match")
+            raise DataError(
+                f"field.detections_csv: none of its files ({det['file'].iloc[0]!r}, …) is in the coords table "
+                f"{coords.attrs['path']} ({mics['file'].iloc[0]!r}, …); the file names must match"
+            )
         if not known.all():
-            log.warning("field.detections_csv: %d detections name files not in the coords table and are ignored (first: %r)",
-                        int((~known).sum()), det.loc[~known, "file"].iloc[0])
+            log.warning(
+                "field.detections_csv: %d detections name files not in the coords table and are ignored (first: %r)",
+                int((~known).sum()),
+                det.loc[~known, "file"].iloc[0],
+            )
         hit = det[classes].max(axis=1) > 0 if classes else pd.Series(True, index=det.index)
         det = det[hit & known]
         windows = det.groupby(["start_time", "end_time"])["file"].nunique().reset_index()
         windows = windows[windows["file"] >= self.min_receivers]
         if windows.empty:
-            raise DataError(f"field.detections_csv: no time window was detected by at least field.min_receivers={self.min_receivers} "
-                            f"receivers, so there is nothing to localize")
-        events = pd.DataFrame({col.EVENT_ID: np.arange(len(windows)), col.START: windows["start_time"].to_numpy(float),
-                               col.END: windows["end_time"].to_numpy(float)})
+            raise DataError(
+                f"field.detections_csv: no time window was detected by at least field.min_receivers={self.min_receivers} "
+                f"receivers, so there is nothing to localize"
+            )
+        events = pd.DataFrame(
+            {
+                col.EVENT_ID: np.arange(len(windows)),
+                col.START: windows["start_time"].to_numpy(float),
+                col.END: windows["end_time"].to_numpy(float),
+            }
+        )
         events.attrs["path"] = det.attrs.get("path", self.detections_csv)
         return mics, events
 
@@ -259,8 +282,10 @@ class RecordingFolder:
         root = resolve_path(self.audio_dir)
         path = (root / str(file)).resolve()
         if not self.allow_outside_audio_dir and not path.is_relative_to(root.resolve()):
-            raise DataError(f"field: the file {file!r} resolves to {path}, outside field.audio_dir={root}; "
-                            "set field.allow_outside_audio_dir=true to read it anyway")
+            raise DataError(
+                f"field: the file {file!r} resolves to {path}, outside field.audio_dir={root}; "
+                "set field.allow_outside_audio_dir=true to read it anyway"
+            )
         if not path.is_file():
             raise DataError(f"field: audio file {path} does not exist")
         return path
@@ -296,23 +321,29 @@ class RecordingFolder:
         if site is not None:
             positions = mics[list(col.MIC_XYZ)].to_numpy(float)
             if positions.shape != site.mic_positions_m.shape or not np.allclose(positions, site.mic_positions_m, atol=1e-3):
-                raise DataError(f"field: the recordings' {len(positions)} mic positions do not match site {site.name!r} "
-                                f"({site.n_mics} mics); build the site from the same mics table")
+                raise DataError(
+                    f"field: the recordings' {len(positions)} mic positions do not match site {site.name!r} "
+                    f"({site.n_mics} mics); build the site from the same mics table"
+                )
         for file in self._audio_files(mics, events):
             path = self.audio_path(file)
             info = self._header(path)
             if "file" not in mics and info.channels < len(mics):
                 raise DataError(f"field: {path} has {info.channels} channels but the mics table lists {len(mics)} mics")
             if self.recorder_sample_rate_hz is not None and info.samplerate != self.recorder_sample_rate_hz:
-                raise DataError(f"field: {path} declares {info.samplerate} Hz but field.recorder_sample_rate_hz is "
-                                f"{self.recorder_sample_rate_hz:g} Hz; fix the file's header (or the setting)")
+                raise DataError(
+                    f"field: {path} declares {info.samplerate} Hz but field.recorder_sample_rate_hz is "
+                    f"{self.recorder_sample_rate_hz:g} Hz; fix the file's header (or the setting)"
+                )
             if "file" in mics:
                 self._check_channels(mics, file, path, info.channels)
         n = int(((events[col.END] - events[col.START]).max() + 2 * self.pad_s) * self.sample_rate_hz) + 1
         size = len(events) * len(mics) * n * 4
         if size > MAX_AUDIO_BYTES:
-            raise DataError(f"field: {len(events)} events × {len(mics)} mics × {n} samples need {size / 2**30:.1f} GiB; "
-                            f"split the events table (at most {MAX_AUDIO_BYTES / 2**30:.0f} GiB at once)")
+            raise DataError(
+                f"field: {len(events)} events × {len(mics)} mics × {n} samples need {size / 2**30:.1f} GiB; "
+                f"split the events table (at most {MAX_AUDIO_BYTES / 2**30:.0f} GiB at once)"
+            )
         return mics, events
 
     @staticmethod
@@ -322,18 +353,23 @@ class RecordingFolder:
         names = mics["mic_id"].astype(str) if "mic_id" in mics else pd.Series([str(k) for k in range(len(mics))], index=mics.index)
         if "channel" not in mics:
             if len(users) > 1:
-                raise DataError(f"field.mics_csv: mics {', '.join(names[users])} all name {path} ({n_channels} channel(s)); add a "
-                                f"'channel' column (0-based) saying which channel each mic is, or give each mic its own file")
+                raise DataError(
+                    f"field.mics_csv: mics {', '.join(names[users])} all name {path} ({n_channels} channel(s)); add a "
+                    f"'channel' column (0-based) saying which channel each mic is, or give each mic its own file"
+                )
             return
         channel = pd.to_numeric(mics.loc[users, "channel"], errors="coerce")
         bad = ~channel.between(0, n_channels - 1) | (channel != np.round(channel))
         if bad.any():
             k = bad.idxmax()
-            raise DataError(f"field.mics_csv: mic {names[k]} reads channel {mics.loc[k, 'channel']!r} of {path}, which has "
-                            f"channels 0–{n_channels - 1}")
+            raise DataError(
+                f"field.mics_csv: mic {names[k]} reads channel {mics.loc[k, 'channel']!r} of {path}, which has channels 0–{n_channels - 1}"
+            )
         if channel.duplicated().any():
-            raise DataError(f"field.mics_csv: mics {', '.join(names[users[channel.duplicated(keep=False).to_numpy()]])} read the same "
-                            f"channel of {path}; each mic is its own channel")
+            raise DataError(
+                f"field.mics_csv: mics {', '.join(names[users[channel.duplicated(keep=False).to_numpy()]])} read the same "
+                f"channel of {path}; each mic is its own channel"
+            )
 
     def projection(self) -> tuple[np.ndarray, np.ndarray, str] | None:
         """The rigid map from the site's local frame to the mics table's projected coordinates, or None without them.
@@ -366,8 +402,10 @@ class RecordingFolder:
         residual = np.linalg.norm(local @ rotation.T + translation - projected, axis=1)
         if residual.max() > 0.5:
             worst = int(residual.argmax())
-            raise DataError(f"field.mics_csv: {mics.attrs.get('path')}, line {worst + 2}: x_m, y_m and easting_m, northing_m disagree "
-                            f"by {residual[worst]:.2f} m after the best rotation and shift; both must describe the same mic positions in metres")
+            raise DataError(
+                f"field.mics_csv: {mics.attrs.get('path')}, line {worst + 2}: x_m, y_m and easting_m, northing_m disagree "
+                f"by {residual[worst]:.2f} m after the best rotation and shift; both must describe the same mic positions in metres"
+            )
         crs = str(mics["crs"].dropna().iloc[0]) if "crs" in mics and mics["crs"].notna().any() else ""
         return rotation, translation, crs
 
@@ -401,13 +439,20 @@ class RecordingFolder:
                 reasons[k, m] = [*reasons[k, m], "duplicate"]
         flags = [_describe(row, mics) for row in reasons]
         position = events[col.POSITION_ID].to_numpy(int) if col.POSITION_ID in events else events[col.EVENT_ID].to_numpy(int)
-        failed = (events[col.HARDWARE_FAILURE].astype(str).str.strip().str.lower().isin(["1", "1.0", "true", "yes"]).to_numpy()
-                  if col.HARDWARE_FAILURE in events else np.zeros(len(events), bool))
+        failed = (
+            events[col.HARDWARE_FAILURE].astype(str).str.strip().str.lower().isin(["1", "1.0", "true", "yes"]).to_numpy()
+            if col.HARDWARE_FAILURE in events
+            else np.zeros(len(events), bool)
+        )
         failed = failed | _dead_at_position(reasons, position)
         n_flagged = sum(bool(f) for f in flags)
         if n_flagged:
-            log.warning("field: %d of %d events flagged (%s); they are kept in the predictions and left out of summaries",
-                        n_flagged, len(events), "; ".join(f"event {e}: {f}" for e, f in zip(events[col.EVENT_ID], flags) if f)[:300])
+            log.warning(
+                "field: %d of %d events flagged (%s); they are kept in the predictions and left out of summaries",
+                n_flagged,
+                len(events),
+                "; ".join(f"event {e}: {f}" for e, f in zip(events[col.EVENT_ID], flags) if f)[:300],
+            )
         rows = pd.DataFrame(
             {
                 col.EVENT_ID: events[col.EVENT_ID].to_numpy(int),
@@ -415,9 +460,12 @@ class RecordingFolder:
                 col.TRUE_X: events[col.TRUE_X].to_numpy(float) if col.TRUE_X in events else np.nan,
                 col.TRUE_Y: events[col.TRUE_Y].to_numpy(float) if col.TRUE_Y in events else np.nan,
                 col.TRUE_Z: events[col.TRUE_Z].to_numpy(float) if col.TRUE_Z in events else np.nan,
-                col.TEMPERATURE: events[col.TEMPERATURE].fillna(self.temperature_c).to_numpy(float) if col.TEMPERATURE in events else self.temperature_c,
+                col.TEMPERATURE: events[col.TEMPERATURE].fillna(self.temperature_c).to_numpy(float)
+                if col.TEMPERATURE in events
+                else self.temperature_c,
                 col.HUMIDITY: events[col.HUMIDITY].fillna(self.relative_humidity_pct).to_numpy(float)
-                if col.HUMIDITY in events else self.relative_humidity_pct,
+                if col.HUMIDITY in events
+                else self.relative_humidity_pct,
                 col.START: events[col.START].to_numpy(float),
                 col.END: events[col.END].to_numpy(float),
                 col.QUALITY_FLAGS: flags,
@@ -431,8 +479,9 @@ class RecordingFolder:
 def _describe(reasons_per_mic: np.ndarray, mics: pd.DataFrame) -> str:
     """One event's flags as text, e.g. ``"mic 2: dead; mic 4: truncated, clipped"`` (empty when every clip is fine)."""
     names = mics["mic_id"].astype(str).tolist() if "mic_id" in mics else [str(m) for m in range(len(mics))]
-    parts = [f"mic {names[m]}: {', '.join(r for r in QUALITY_REASONS if r in reasons)}"
-             for m, reasons in enumerate(reasons_per_mic) if reasons]
+    parts = [
+        f"mic {names[m]}: {', '.join(r for r in QUALITY_REASONS if r in reasons)}" for m, reasons in enumerate(reasons_per_mic) if reasons
+    ]
     return "; ".join(parts)
 
 

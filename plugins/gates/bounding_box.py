@@ -23,9 +23,7 @@ class BoundingBoxGate(StatelessGate):
     def __init__(self, margin_fraction: float = 0.25) -> None:
         self.margin_fraction = float(margin_fraction)
 
-    def decide(
-        self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site
-    ) -> GateDecision:
+    def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
         """See :class:`acoustlab.core.contracts.Gate`."""
         low, high = bounding_box(site.mic_positions_m, self.margin_fraction)
         finite = np.isfinite(solver_position_m).all(axis=1)

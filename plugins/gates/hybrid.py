@@ -33,7 +33,9 @@ from acoustlab.toolkit.tdoa import energy_residual_db
 log = logging.getLogger(__name__)
 
 
-def select_tau(solver_err: np.ndarray, gated_err_by_tau: np.ndarray, taus: np.ndarray, p99_factor: float = 3.0, p50_tolerance: float = 0.2) -> tuple[float, pd.DataFrame, bool]:
+def select_tau(
+    solver_err: np.ndarray, gated_err_by_tau: np.ndarray, taus: np.ndarray, p99_factor: float = 3.0, p50_tolerance: float = 0.2
+) -> tuple[float, pd.DataFrame, bool]:
     """The τ* rule on precomputed errors.
 
     Parameters
@@ -89,10 +91,19 @@ class HybridGate:
 
     required_feature_groups = ("environment",)
 
-    def __init__(self, margin_fraction: float = 0.25, tau_db: float | None = None, tau_grid_db=None,
-                 p99_factor: float = 3.0, p50_tolerance: float = 0.2, tau_reference: str = "box") -> None:
+    def __init__(
+        self,
+        margin_fraction: float = 0.25,
+        tau_db: float | None = None,
+        tau_grid_db=None,
+        p99_factor: float = 3.0,
+        p50_tolerance: float = 0.2,
+        tau_reference: str = "box",
+    ) -> None:
         if tau_reference not in ("box", "solver"):
-            raise ConfigError(f"gate.tau_reference must be 'box' (the box-gated solver) or 'solver' (the bare solver); got {tau_reference!r}")
+            raise ConfigError(
+                f"gate.tau_reference must be 'box' (the box-gated solver) or 'solver' (the bare solver); got {tau_reference!r}"
+            )
         self.tau_reference = tau_reference
         self.margin_fraction = float(margin_fraction)
         self.tau_db = None if tau_db is None else float(tau_db)
@@ -115,8 +126,15 @@ class HybridGate:
         low, high = bounding_box(site.mic_positions_m, self.margin_fraction)
         return np.isfinite(position_m).all(1) & (position_m >= low).all(1) & (position_m <= high).all(1)
 
-    def fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
-            groups: np.ndarray | None = None) -> HybridGate:
+    def fit(
+        self,
+        solver_position_m: np.ndarray,
+        model_position_m: np.ndarray,
+        features: pd.DataFrame,
+        site: Site,
+        truth_m: np.ndarray,
+        groups: np.ndarray | None = None,
+    ) -> HybridGate:
         """Choose τ* on training events with known positions (unless ``tau_db`` is fixed); return self.
 
         Stores ``tau_`` (dB), ``tau_grid_`` (the rule's table) and ``tau_rule_met_``.
@@ -137,13 +155,20 @@ class HybridGate:
             taus = np.unique(np.quantile(usable, np.linspace(0.05, 1.0, 20))) if usable.size else np.array([np.inf])
         gated = np.stack([err(np.where((inside & (energy <= t))[:, None], solver_position_m, model_position_m)) for t in taus])
         subs = np.array([np.mean(~(inside & (energy <= t))) for t in taus])
-        reference = err(np.where(inside[:, None], solver_position_m, model_position_m)) if self.tau_reference == "box" else err(solver_position_m)
+        reference = (
+            err(np.where(inside[:, None], solver_position_m, model_position_m)) if self.tau_reference == "box" else err(solver_position_m)
+        )
         tau, grid, met = select_tau(reference, gated, taus, self.p99_factor, self.p50_tolerance)
         grid["substitution_rate"] = subs
         self.tau_, self.tau_grid_, self.tau_rule_met_ = tau, grid, met
         if not met:
-            log.warning("no τ on the grid gives %.0f× lower p99 than the %s within +%.0f %% median; using τ=%.3g dB (lowest p99)",
-                        self.p99_factor, "box alone" if self.tau_reference == "box" else "bare solver", 100 * self.p50_tolerance, tau)
+            log.warning(
+                "no τ on the grid gives %.0f× lower p99 than the %s within +%.0f %% median; using τ=%.3g dB (lowest p99)",
+                self.p99_factor,
+                "box alone" if self.tau_reference == "box" else "bare solver",
+                100 * self.p50_tolerance,
+                tau,
+            )
         log.info("τ* = %.3g dB (rule met: %s)", tau, met)
         return self
 
@@ -153,9 +178,12 @@ class HybridGate:
             return {}
         if self.tau_grid_ is None:
             return {"tau_star_db": float(self.tau_)}
-        return {"tau_star_db": float(self.tau_), "tau_rule_met": bool(self.tau_rule_met_), "tau_reference": self.tau_reference,
-                "tau_grid": self.tau_grid_.to_dict(orient="records")}
-
+        return {
+            "tau_star_db": float(self.tau_),
+            "tau_rule_met": bool(self.tau_rule_met_),
+            "tau_reference": self.tau_reference,
+            "tau_grid": self.tau_grid_.to_dict(orient="records"),
+        }
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
         """See :class:`acoustlab.core.contracts.Gate`."""

@@ -48,8 +48,11 @@ def gate_cues(solver_position_m: np.ndarray, model_position_m: np.ndarray, featu
     pandas.DataFrame
         One row per event; NaN where a cue is unavailable (e.g. no solver fix).
     """
-    cues = {name: features[name].to_numpy(float) for name in features.columns
-            if col.group_of(name) == "solver" and name not in col.SOLVER_ESTIMATE_COLUMNS}
+    cues = {
+        name: features[name].to_numpy(float)
+        for name in features.columns
+        if col.group_of(name) == "solver" and name not in col.SOLVER_ESTIMATE_COLUMNS
+    }
     cues[col.SOLVER_MODEL_DISTANCE] = np.sqrt(((solver_position_m - model_position_m) ** 2).sum(axis=1))
     centre = site.mic_positions_m[:, :2].mean(axis=0)
     cues["solver_range_from_centre_m"] = np.sqrt(((solver_position_m - centre) ** 2).sum(axis=1))
@@ -103,9 +106,20 @@ class LearnedGate:
 
     required_feature_groups: tuple[str, ...] = ()
 
-    def __init__(self, margin_fraction: float = 0.25, p50_tolerance: float = 0.05, n_folds: int = 5, max_iter: int = 200,
-                 learning_rate: float = 0.05, max_leaf_nodes: int = 15, stakes_cap_m: float | None = 20.0, min_auc: float = 0.6,
-                 min_class_events: int = 10, seed: int = 0, n_threads: int = 1) -> None:
+    def __init__(
+        self,
+        margin_fraction: float = 0.25,
+        p50_tolerance: float = 0.05,
+        n_folds: int = 5,
+        max_iter: int = 200,
+        learning_rate: float = 0.05,
+        max_leaf_nodes: int = 15,
+        stakes_cap_m: float | None = 20.0,
+        min_auc: float = 0.6,
+        min_class_events: int = 10,
+        seed: int = 0,
+        n_threads: int = 1,
+    ) -> None:
         if n_folds < 2:
             raise ConfigError(f"gate.n_folds must be >= 2; got {n_folds}")
         if p50_tolerance < 0:
@@ -127,22 +141,37 @@ class LearnedGate:
         self.n_threads = max(1, int(n_threads))
 
     def _classifier(self) -> HistGradientBoostingClassifier:
-        return HistGradientBoostingClassifier(max_iter=self.max_iter, learning_rate=self.learning_rate, max_leaf_nodes=self.max_leaf_nodes,
-                                              random_state=self.seed)
+        return HistGradientBoostingClassifier(
+            max_iter=self.max_iter, learning_rate=self.learning_rate, max_leaf_nodes=self.max_leaf_nodes, random_state=self.seed
+        )
 
     def _failed(self, solver_position_m: np.ndarray, site: Site) -> np.ndarray:
         low, high = bounding_box(site.mic_positions_m, self.margin_fraction)
         finite = np.isfinite(solver_position_m).all(axis=1)
         return ~finite | ~np.where(finite[:, None], (solver_position_m >= low) & (solver_position_m <= high), False).all(axis=1)
 
-    def fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
-            groups: np.ndarray | None = None) -> LearnedGate:
+    def fit(
+        self,
+        solver_position_m: np.ndarray,
+        model_position_m: np.ndarray,
+        features: pd.DataFrame,
+        site: Site,
+        truth_m: np.ndarray,
+        groups: np.ndarray | None = None,
+    ) -> LearnedGate:
         """Train the classifier and choose the threshold on simulated events (out-of-fold by position)."""
         with threadpool_limits(limits=self.n_threads, user_api="openmp"):
             return self._fit(solver_position_m, model_position_m, features, site, truth_m, groups)
 
-    def _fit(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site, truth_m: np.ndarray,
-             groups: np.ndarray | None) -> LearnedGate:
+    def _fit(
+        self,
+        solver_position_m: np.ndarray,
+        model_position_m: np.ndarray,
+        features: pd.DataFrame,
+        site: Site,
+        truth_m: np.ndarray,
+        groups: np.ndarray | None,
+    ) -> LearnedGate:
         if groups is None:
             raise DataError("the learned gate needs the events' source positions (groups) to train out-of-fold")
         cues = gate_cues(solver_position_m, model_position_m, features, site)
@@ -157,15 +186,21 @@ class LearnedGate:
         cues = cues[self.columns_]
         smallest_class = int(min(label[use].sum(), (1 - label[use]).sum()))
         if use.sum() < 20 or smallest_class < self.min_class_events or np.unique(groups[use]).size < self.n_folds:
-            return self._fall_back(f"too few usable training events ({int(use.sum())}) or positions, or a class with fewer than "
-                                   f"{self.min_class_events} events ({smallest_class})")
+            return self._fall_back(
+                f"too few usable training events ({int(use.sum())}) or positions, or a class with fewer than "
+                f"{self.min_class_events} events ({smallest_class})"
+            )
         x, y, g = cues[use], label[use], groups[use]
         w = self._weights(err_solver[use], err_model[use])
         oof = np.empty(use.sum())
         for fit_idx, held_idx in GroupKFold(n_splits=self.n_folds).split(x, y, g):
             # a cue missing for every event of this fold's training part is left out of this fold's classifier
             cols = [c for c in x.columns if np.isfinite(x[c].to_numpy(float)[fit_idx]).any()]
-            clf = self._classifier().fit(x.iloc[fit_idx][cols], y[fit_idx], sample_weight=None if w is None else w[fit_idx]) if np.unique(y[fit_idx]).size > 1 else None
+            clf = (
+                self._classifier().fit(x.iloc[fit_idx][cols], y[fit_idx], sample_weight=None if w is None else w[fit_idx])
+                if np.unique(y[fit_idx]).size > 1
+                else None
+            )
             oof[held_idx] = clf.predict_proba(x.iloc[held_idx][cols])[:, 1] if clf is not None else float(y[fit_idx][0])
         auc = float(roc_auc_score(y, oof))
         if auc < self.min_auc:
@@ -173,8 +208,12 @@ class LearnedGate:
         threshold, grid = self._choose_threshold(oof, err_solver[use], err_model[use], err_model[~use])
         chosen, reference = grid.loc[grid["threshold"] == threshold].iloc[0], grid.iloc[-1]  # the last row: never substitute (inf)
         if chosen["p95_m"] > reference["p95_m"] or chosen["p99_m"] > reference["p99_m"]:
-            return self._fall_back(f"its out-of-fold p95/p99 ({chosen['p95_m']:.3g}/{chosen['p99_m']:.3g} m) would exceed the box-gated "
-                                   f"solver's ({reference['p95_m']:.3g}/{reference['p99_m']:.3g} m)", auc, grid)
+            return self._fall_back(
+                f"its out-of-fold p95/p99 ({chosen['p95_m']:.3g}/{chosen['p99_m']:.3g} m) would exceed the box-gated "
+                f"solver's ({reference['p95_m']:.3g}/{reference['p99_m']:.3g} m)",
+                auc,
+                grid,
+            )
         self.oof_auc_, self.threshold_, self.threshold_grid_, self.fallback_ = auc, threshold, grid, None
         self.classifier_ = self._classifier().fit(x, y, sample_weight=w)
         log.info("learned gate: out-of-fold AUC %.3f, threshold %.3f", self.oof_auc_, self.threshold_)
@@ -195,17 +234,24 @@ class LearnedGate:
             return None
         return np.clip(np.abs(err_solver - err_model), 1e-3, self.stakes_cap_m)
 
-    def _choose_threshold(self, prob: np.ndarray, err_solver: np.ndarray, err_model: np.ndarray, err_failed: np.ndarray
-                          ) -> tuple[float, pd.DataFrame]:
+    def _choose_threshold(
+        self, prob: np.ndarray, err_solver: np.ndarray, err_model: np.ndarray, err_failed: np.ndarray
+    ) -> tuple[float, pd.DataFrame]:
         """Lowest gated p95 with the median within tolerance of the box-gated solver's (failures take the model)."""
         thresholds = np.unique(np.concatenate([np.quantile(prob, np.linspace(0, 1, 101)), [np.inf]]))
         reference_p50 = np.median(np.concatenate([err_solver, err_failed]))
         rows = []
         for t in thresholds:
             gated = np.concatenate([np.where(prob > t, err_model, err_solver), err_failed])
-            rows.append({"threshold": float(t), "p50_m": float(np.median(gated)), "p95_m": float(np.percentile(gated, 95)),
-                         "p99_m": float(np.percentile(gated, 99)),
-                         "substitution_rate": float(np.mean(np.concatenate([prob > t, np.ones(err_failed.size, bool)])))})
+            rows.append(
+                {
+                    "threshold": float(t),
+                    "p50_m": float(np.median(gated)),
+                    "p95_m": float(np.percentile(gated, 95)),
+                    "p99_m": float(np.percentile(gated, 99)),
+                    "substitution_rate": float(np.mean(np.concatenate([prob > t, np.ones(err_failed.size, bool)]))),
+                }
+            )
         grid = pd.DataFrame(rows)
         ok = grid["p50_m"] <= (1 + self.p50_tolerance) * reference_p50
         if not ok.any():

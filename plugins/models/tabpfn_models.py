@@ -51,8 +51,9 @@ def check_checkpoint(path: Path, sha256: str | None, setting: str) -> None:
     if sha256 is not None:
         actual = file_sha256(path)
         if actual != sha256.lower():
-            raise ConfigError(f"{setting}.checkpoint_sha256: {path} has SHA-256 {actual}, expected {sha256}; "
-                              "the file is not the checkpoint you named")
+            raise ConfigError(
+                f"{setting}.checkpoint_sha256: {path} has SHA-256 {actual}, expected {sha256}; the file is not the checkpoint you named"
+            )
     if path.suffix != ".safetensors":
         import pickle
 
@@ -62,8 +63,10 @@ def check_checkpoint(path: Path, sha256: str | None, setting: str) -> None:
             torch.load(str(path), map_location="cpu", weights_only=True)
         except (pickle.UnpicklingError, RuntimeError, AttributeError, TypeError, ValueError, EOFError) as exc:
             reason = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
-            raise ConfigError(f"{setting}.model_path: {path} cannot be loaded as weights only (torch.load(weights_only=True): {reason}); "
-                              "it may hold code. Use the .safetensors file of the same model, or a checkpoint from Prior Labs") from None
+            raise ConfigError(
+                f"{setting}.model_path: {path} cannot be loaded as weights only (torch.load(weights_only=True): {reason}); "
+                "it may hold code. Use the .safetensors file of the same model, or a checkpoint from Prior Labs"
+            ) from None
     _CHECKED[key] = None
 
 
@@ -71,7 +74,9 @@ def _tabpfn():
     try:
         import tabpfn
     except ImportError:
-        raise ConfigError('model=tabpfn needs the optional dependencies: pip install -e ".[tabpfn]" (on a CPU-only machine install the CPU torch first, e.g. pip install torch --index-url https://download.pytorch.org/whl/cpu, or pip pulls a multi-GB CUDA build)') from None
+        raise ConfigError(
+            'model=tabpfn needs the optional dependencies: pip install -e ".[tabpfn]" (on a CPU-only machine install the CPU torch first, e.g. pip install torch --index-url https://download.pytorch.org/whl/cpu, or pip pulls a multi-GB CUDA build)'
+        ) from None
     return tabpfn
 
 
@@ -110,14 +115,27 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
     #: the config group its settings live in (named in error messages)
     config_group = "model"
 
-    def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
-                 ignore_pretraining_limits: bool = False, max_train_rows: int | None = 1000, batch_size: int = 2000,
-                 random_state: int = 0, checkpoint_sha256: str | None = None) -> None:
+    def __init__(
+        self,
+        model_path: str = "auto",
+        model_version: str | None = None,
+        n_estimators: int = 4,
+        device: str = "auto",
+        ignore_pretraining_limits: bool = False,
+        max_train_rows: int | None = 1000,
+        batch_size: int = 2000,
+        random_state: int = 0,
+        checkpoint_sha256: str | None = None,
+    ) -> None:
         if max_train_rows is not None and (max_train_rows < 2 or (max_train_rows > 1000 and not ignore_pretraining_limits)):
-            raise ConfigError(f"{self.config_group}.max_train_rows must be between 2 and 1000 for TabPFN (its pretraining limit) unless "
-                              f"{self.config_group}.ignore_pretraining_limits=true; got {max_train_rows}")
+            raise ConfigError(
+                f"{self.config_group}.max_train_rows must be between 2 and 1000 for TabPFN (its pretraining limit) unless "
+                f"{self.config_group}.ignore_pretraining_limits=true; got {max_train_rows}"
+            )
         if max_train_rows is None and not ignore_pretraining_limits:
-            raise ConfigError(f"{self.config_group}.max_train_rows=null (every row) needs {self.config_group}.ignore_pretraining_limits=true for TabPFN")
+            raise ConfigError(
+                f"{self.config_group}.max_train_rows=null (every row) needs {self.config_group}.ignore_pretraining_limits=true for TabPFN"
+            )
         self.model_path = model_path
         self.model_version = model_version
         self.n_estimators = n_estimators
@@ -155,8 +173,11 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
     def _regressor(self):
         tabpfn = _tabpfn()
         return tabpfn.TabPFNRegressor(
-            model_path=str(self.resolved_path()), n_estimators=int(self.n_estimators), device=self._device(),
-            ignore_pretraining_limits=bool(self.ignore_pretraining_limits), random_state=self.random_state,
+            model_path=str(self.resolved_path()),
+            n_estimators=int(self.n_estimators),
+            device=self._device(),
+            ignore_pretraining_limits=bool(self.ignore_pretraining_limits),
+            random_state=self.random_state,
         )
 
     def fit(self, X: Any, y: np.ndarray) -> TabPFNPointModel:
@@ -164,7 +185,9 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
         self.preflight()
         X = np.asarray(X, dtype=np.float32)
         if X.shape[0] > 1000 and not self.ignore_pretraining_limits:
-            raise ConfigError(f"TabPFN got {X.shape[0]} training rows; cap them at 1,000 or set {self.config_group}.ignore_pretraining_limits=true deliberately")
+            raise ConfigError(
+                f"TabPFN got {X.shape[0]} training rows; cap them at 1,000 or set {self.config_group}.ignore_pretraining_limits=true deliberately"
+            )
         self.regressor_ = self._regressor().fit(X, np.asarray(y, dtype=np.float32))
         self.n_features_in_ = X.shape[1]
         return self
@@ -199,11 +222,30 @@ class TabPFNErrorModel(TabPFNPointModel):
 
     config_group = "error_model"
 
-    def __init__(self, model_path: str = "auto", model_version: str | None = None, n_estimators: int = 4, device: str = "auto",
-                 ignore_pretraining_limits: bool = False, max_train_rows: int | None = 1000, batch_size: int = 2000, random_state: int = 0,
-                 quantile: float = 0.5, checkpoint_sha256: str | None = None) -> None:
-        super().__init__(model_path, model_version, n_estimators, device, ignore_pretraining_limits, max_train_rows, batch_size, random_state,
-                         checkpoint_sha256)
+    def __init__(
+        self,
+        model_path: str = "auto",
+        model_version: str | None = None,
+        n_estimators: int = 4,
+        device: str = "auto",
+        ignore_pretraining_limits: bool = False,
+        max_train_rows: int | None = 1000,
+        batch_size: int = 2000,
+        random_state: int = 0,
+        quantile: float = 0.5,
+        checkpoint_sha256: str | None = None,
+    ) -> None:
+        super().__init__(
+            model_path,
+            model_version,
+            n_estimators,
+            device,
+            ignore_pretraining_limits,
+            max_train_rows,
+            batch_size,
+            random_state,
+            checkpoint_sha256,
+        )
         self.quantile = quantile
 
     def predict(self, X: Any) -> np.ndarray:

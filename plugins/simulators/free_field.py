@@ -29,9 +29,7 @@ _POSITION_STREAM = 0
 _EVENT_STREAM = 1
 
 
-def synthetic_chirp(
-    f_start_hz: float, f_end_hz: float, duration_s: float, sample_rate_hz: float, method: str = "linear"
-) -> np.ndarray:
+def synthetic_chirp(f_start_hz: float, f_end_hz: float, duration_s: float, sample_rate_hz: float, method: str = "linear") -> np.ndarray:
     """A frequency-modulated sweep with 20 % Tukey tapers, unit peak amplitude (synthetic call).
 
     Parameters
@@ -59,7 +57,13 @@ def synthetic_chirp(
 DEFAULT_CALLS = (
     {"name": "up_sweep", "method": "linear", "f_start_hz": (1500.0, 3000.0), "f_end_hz": (4000.0, 6500.0), "duration_s": (0.08, 0.3)},
     {"name": "down_sweep", "method": "linear", "f_start_hz": (4000.0, 6500.0), "f_end_hz": (1500.0, 3000.0), "duration_s": (0.08, 0.3)},
-    {"name": "log_whistle", "method": "logarithmic", "f_start_hz": (2000.0, 3000.0), "f_end_hz": (3500.0, 5000.0), "duration_s": (0.15, 0.35)},
+    {
+        "name": "log_whistle",
+        "method": "logarithmic",
+        "f_start_hz": (2000.0, 3000.0),
+        "f_end_hz": (3500.0, 5000.0),
+        "duration_s": (0.15, 0.35),
+    },
 )
 
 
@@ -101,10 +105,7 @@ class FreeFieldSimulator:
             raise ConfigError("simulator.calls is empty; the call pool needs at least one call")
         self._call_ranges = []
         for i, c in enumerate(self.calls):
-            ranges = {
-                k: require_range(f"simulator.calls[{i}].{k}", c.get(k), lower=0.0)
-                for k in ("f_start_hz", "f_end_hz", "duration_s")
-            }
+            ranges = {k: require_range(f"simulator.calls[{i}].{k}", c.get(k), lower=0.0) for k in ("f_start_hz", "f_end_hz", "duration_s")}
             nyquist = self.sample_rate_hz / 2
             if max(ranges["f_start_hz"][1], ranges["f_end_hz"][1]) >= nyquist:
                 raise ConfigError(
@@ -129,9 +130,7 @@ class FreeFieldSimulator:
             )
         for regime in site.noise_regimes:
             if regime.kind == "band" and regime.band_hz[1] >= self.sample_rate_hz / 2:
-                raise ConfigError(
-                    f"site noise band {regime.band_hz} Hz reaches the Nyquist frequency of {self.sample_rate_hz} Hz"
-                )
+                raise ConfigError(f"site noise band {regime.band_hz} Hz reaches the Nyquist frequency of {self.sample_rate_hz} Hz")
 
     def simulate(self, site: Site, event_ids: np.ndarray, position_ids: np.ndarray, seed: int) -> RecordingBatch:
         """Render events; see :class:`acoustlab.core.contracts.Simulator`."""

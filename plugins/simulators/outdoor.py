@@ -154,9 +154,7 @@ class OutdoorSimulator:
         if not self.sample_rate_hz > 0:
             raise ConfigError(f"simulator.sample_rate_hz must be positive; got {sample_rate_hz}")
         if self.sample_rate_hz < 8000:
-            raise ConfigError(
-                f"simulator.sample_rate_hz={self.sample_rate_hz} Hz is below twice the 4 kHz band of bird calls; use >= 8000"
-            )
+            raise ConfigError(f"simulator.sample_rate_hz={self.sample_rate_hz} Hz is below twice the 4 kHz band of bird calls; use >= 8000")
         self.duration_s = float(duration_s)
         if not self.duration_s > 0:
             raise ConfigError(f"simulator.duration_s must be positive; got {duration_s}")
@@ -302,7 +300,9 @@ class OutdoorSimulator:
             out["ground"] = q * path(r2, detour, speed[:, 1])
         else:
             out["ground"] = np.zeros((m, freqs_hz.size), complex)
-        out["trunks"] = self._trunk_transfer(site, source_m, r1, c, alpha, freqs_hz, n_fft, emission_s, clock, speed[:, 2], temperature_c, humidity_pct)
+        out["trunks"] = self._trunk_transfer(
+            site, source_m, r1, c, alpha, freqs_hz, n_fft, emission_s, clock, speed[:, 2], temperature_c, humidity_pct
+        )
         return out
 
     def _trunk_transfer(self, site, source_m, r1, c, alpha, freqs_hz, n_fft, emission_s, clock, speed, temperature_c, humidity_pct):
@@ -446,7 +446,9 @@ class OutdoorSimulator:
         emission = rng.uniform(*self._onset)
         clock = rng.normal(0, imp.clock_offset_std_s, m) if imp.clock_offset_std_s else np.zeros(m)
         speed = 1 + rng.normal(0, imp.sound_speed_perturbation, (m, 3)) if imp.sound_speed_perturbation else np.ones((m, 3))
-        h = self.transfer_functions(site, source_m, weather.temperature_c, weather.relative_humidity_pct, freqs, n_fft, emission, clock, speed)
+        h = self.transfer_functions(
+            site, source_m, weather.temperature_c, weather.relative_humidity_pct, freqs, n_fft, emission, clock, speed
+        )
         spectrum = sfft.rfft(call.signal, n=n_fft)
         clean = np.zeros((m, n_out))
         clean[:, :n_prop] = sfft.irfft(spectrum[None, :] * (h["direct"] + h["ground"] + h["trunks"]), n=n_fft, axis=-1)[:, :n_prop]
@@ -494,5 +496,14 @@ class OutdoorSimulator:
         for k, (eid, pid) in enumerate(zip(event_ids, position_ids, strict=True)):
             source = draw_source(site, seed, int(pid))
             audio[k], row = self.render_event(site, source, event_rng(seed, int(eid)), gains_db=gains_db)
-            rows.append({col.EVENT_ID: int(eid), col.POSITION_ID: int(pid), col.TRUE_X: source[0], col.TRUE_Y: source[1], col.TRUE_Z: source[2], **row})
+            rows.append(
+                {
+                    col.EVENT_ID: int(eid),
+                    col.POSITION_ID: int(pid),
+                    col.TRUE_X: source[0],
+                    col.TRUE_Y: source[1],
+                    col.TRUE_Z: source[2],
+                    **row,
+                }
+            )
         return RecordingBatch(audio=audio, sample_rate_hz=self.sample_rate_hz, events=pd.DataFrame(rows))

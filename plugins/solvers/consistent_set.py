@@ -55,15 +55,19 @@ def checked_weights(weights: np.ndarray, candidates_s: np.ndarray) -> np.ndarray
     """
     weights = np.asarray(weights, dtype=float)
     if weights.shape != candidates_s.shape:
-        raise DataError(f"pair_lag_weights must have the shape of pair_lag_candidates_s {candidates_s.shape} (events, pairs, candidates); "
-                        f"got {weights.shape}")
+        raise DataError(
+            f"pair_lag_weights must have the shape of pair_lag_candidates_s {candidates_s.shape} (events, pairs, candidates); "
+            f"got {weights.shape}"
+        )
     if not np.isinf(weights).any():  # the usual case, in one pass
         return weights
     infinite = np.isinf(weights) & np.isfinite(candidates_s)
     if infinite.any():
         event, pair, rank = np.argwhere(infinite)[0]
-        raise DataError(f"pair_lag_weights must be finite GCC heights (NaN counts as 0); got {weights[event, pair, rank]} at event {event}, "
-                        f"pair {pair}, candidate {rank} ({int(infinite.sum())} infinite heights in all)")
+        raise DataError(
+            f"pair_lag_weights must be finite GCC heights (NaN counts as 0); got {weights[event, pair, rank]} at event {event}, "
+            f"pair {pair}, candidate {rank} ({int(infinite.sum())} infinite heights in all)"
+        )
     return weights
 
 
@@ -106,9 +110,18 @@ class ConsistentSetSolver:
     cache_version = "1"
     required_feature_groups = ("tdoa",)
 
-    def __init__(self, source_height_m: float | None = None, tolerance_s: float = 2.5e-4, max_hypotheses: int = 10_000_000,
-                 chunk_events: int = 16, n_iterations: int = 30, dimensions: int | str = "auto", prior_weight: float = 0.0,
-                 prior_tolerance_s: float = 2e-3, search: str = "auto") -> None:
+    def __init__(
+        self,
+        source_height_m: float | None = None,
+        tolerance_s: float = 2.5e-4,
+        max_hypotheses: int = 10_000_000,
+        chunk_events: int = 16,
+        n_iterations: int = 30,
+        dimensions: int | str = "auto",
+        prior_weight: float = 0.0,
+        prior_tolerance_s: float = 2e-3,
+        search: str = "auto",
+    ) -> None:
         if search not in ("auto", "pruned", "exhaustive"):
             raise ConfigError(f"solver.search must be 'auto', 'pruned' or 'exhaustive'; got {search!r}")
         self.search = search
@@ -211,7 +224,9 @@ class ConsistentSetSolver:
         return m, k
 
     @staticmethod
-    def _fit_times(lags: np.ndarray, use: np.ndarray, trusted: np.ndarray, fallback: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray) -> np.ndarray:
+    def _fit_times(
+        lags: np.ndarray, use: np.ndarray, trusted: np.ndarray, fallback: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray
+    ) -> np.ndarray:
         """Least-squares arrival times from the used pair lags (B, P), batched normal equations (sum of times = 0)."""
         bsz, m = trusted.shape
         incidence = np.zeros((len(i_idx), m))
@@ -242,9 +257,14 @@ class ConsistentSetSolver:
         cands = np.asarray(inputs.pair_lag_candidates_s, dtype=float)
         weights = np.ones_like(cands) if inputs.pair_lag_weights is None else checked_weights(inputs.pair_lag_weights, cands)
         prior = self._prior_lags(inputs, mics, c, height)
-        parts = [self.select(cands[s : s + self.chunk_events], weights[s : s + self.chunk_events],
-                             None if prior is None else prior[s : s + self.chunk_events])
-                 for s in range(0, cands.shape[0], self.chunk_events)]
+        parts = [
+            self.select(
+                cands[s : s + self.chunk_events],
+                weights[s : s + self.chunk_events],
+                None if prior is None else prior[s : s + self.chunk_events],
+            )
+            for s in range(0, cands.shape[0], self.chunk_events)
+        ]
         chosen = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
         return self._solve_subsets(base, mics, chosen, c, inputs.received_level_db)
 
@@ -263,8 +283,9 @@ class ConsistentSetSolver:
         masks, group = np.unique(trusted, axis=0, return_inverse=True)
         return [(mask, np.flatnonzero(group.ravel() == g)) for g, mask in enumerate(masks)]
 
-    def _solve_subsets(self, base: HyperbolicSolver, mics: np.ndarray, chosen: dict[str, np.ndarray], c: np.ndarray,
-                       levels: np.ndarray | None) -> SolverResult:
+    def _solve_subsets(
+        self, base: HyperbolicSolver, mics: np.ndarray, chosen: dict[str, np.ndarray], c: np.ndarray, levels: np.ndarray | None
+    ) -> SolverResult:
         """Solve each group of events that trusts the same mics in one batch."""
         trusted = chosen["trusted"]
         bsz, m = trusted.shape
@@ -275,10 +296,17 @@ class ConsistentSetSolver:
         for mask, rows in self._groups_by_trusted(trusted):
             sub = np.flatnonzero(mask)
             times = chosen["times_s"][np.ix_(rows, sub)]
-            sub_inputs = SolverInputs(mics[sub], times - times[:, :1], c[rows],
-                                      received_level_db=None if levels is None else np.asarray(levels, dtype=float)[np.ix_(rows, sub)])
-            solver = base if base.dimensions == 2 or len(sub) >= 4 else HyperbolicSolver(
-                source_height_m=base.source_height_m, n_iterations=base.n_iterations)  # 3 mics: height assumed
+            sub_inputs = SolverInputs(
+                mics[sub],
+                times - times[:, :1],
+                c[rows],
+                received_level_db=None if levels is None else np.asarray(levels, dtype=float)[np.ix_(rows, sub)],
+            )
+            solver = (
+                base
+                if base.dimensions == 2 or len(sub) >= 4
+                else HyperbolicSolver(source_height_m=base.source_height_m, n_iterations=base.n_iterations)
+            )  # 3 mics: height assumed
             result = solver.solve(sub_inputs)
             position[rows] = result.position_m
             residual[rows] = result.residual_m

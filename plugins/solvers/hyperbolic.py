@@ -54,8 +54,15 @@ class HyperbolicSolver:
     cache_version = "1"
     required_feature_groups = ("tdoa",)
 
-    def __init__(self, source_height_m: float | None = None, box_margin_fraction: float = 0.25, residual_tie_m: float = 0.05, n_iterations: int = 30,
-                 dimensions: int = 2, fallback_2d: bool = True) -> None:
+    def __init__(
+        self,
+        source_height_m: float | None = None,
+        box_margin_fraction: float = 0.25,
+        residual_tie_m: float = 0.05,
+        n_iterations: int = 30,
+        dimensions: int = 2,
+        fallback_2d: bool = True,
+    ) -> None:
         if n_iterations < 0:
             raise ConfigError(f"solver.n_iterations must be >= 0; got {n_iterations}")
         if dimensions not in (2, 3):
@@ -122,7 +129,8 @@ class HyperbolicSolver:
         step = np.full(valid.shape, np.inf)
         b_idx, r_idx = np.nonzero(valid)  # only real roots are refined
         refined[b_idx, r_idx], cost[b_idx, r_idx], step[b_idx, r_idx] = levenberg_marquardt(
-            cand[b_idx, r_idx], mics, heights[b_idx, r_idx], rd[b_idx], self.n_iterations)
+            cand[b_idx, r_idx], mics, heights[b_idx, r_idx], rd[b_idx], self.n_iterations
+        )
         residual = np.sqrt(cost / (mics.shape[0] - 1))
         residual = np.where(valid, residual, np.inf)
         low, high = bounding_box(mics, self.box_margin_fraction)
@@ -144,7 +152,11 @@ class HyperbolicSolver:
         # fall back to LM from the centroid where the closed form gave nothing
         if none_valid.any():
             p_fb, cost_fb, _ = levenberg_marquardt(
-                np.broadcast_to(mics[:, :2].mean(axis=0), (none_valid.sum(), 2)), mics, np.full(none_valid.sum(), height), rd[none_valid], max(self.n_iterations, 50)
+                np.broadcast_to(mics[:, :2].mean(axis=0), (none_valid.sum(), 2)),
+                mics,
+                np.full(none_valid.sum(), height),
+                rd[none_valid],
+                max(self.n_iterations, 50),
             )
             position[none_valid] = p_fb
             res[none_valid] = np.sqrt(cost_fb / (mics.shape[0] - 1))
@@ -179,11 +191,17 @@ class HyperbolicSolver:
         low, high = bounding_box(mics, 1.0)
         xy, z = fix3.position_m, fix3.diagnostics["source_height_m"]
         usable = np.isfinite(xy).all(axis=1) & ((xy >= low) & (xy <= high)).all(axis=1) & (z >= 0)
-        out = SolverResult(fix3.position_m.copy(), fix3.residual_m.copy(), fix3.converged.copy(),
-                           {**{k: np.array(v, dtype=float) for k, v in fix3.diagnostics.items()}, "dimensions_used": np.where(usable, 3.0, 2.0)})
+        out = SolverResult(
+            fix3.position_m.copy(),
+            fix3.residual_m.copy(),
+            fix3.converged.copy(),
+            {**{k: np.array(v, dtype=float) for k, v in fix3.diagnostics.items()}, "dimensions_used": np.where(usable, 3.0, 2.0)},
+        )
         if usable.all():
             return out
-        fix2 = HyperbolicSolver(self.source_height_m, self.box_margin_fraction, self.residual_tie_m, self.n_iterations, dimensions=2).solve(inputs)
+        fix2 = HyperbolicSolver(self.source_height_m, self.box_margin_fraction, self.residual_tie_m, self.n_iterations, dimensions=2).solve(
+            inputs
+        )
         bad = ~usable
         out.position_m[bad], out.residual_m[bad], out.converged[bad] = fix2.position_m[bad], fix2.residual_m[bad], fix2.converged[bad]
         for name in out.diagnostics:

@@ -53,11 +53,11 @@ class PairLayout:
     """Index arrays of the pairs of M mics, and the slots (other mics in increasing order) of every reference mic."""
 
     n_mics: int
-    i_idx: np.ndarray        # (P,) first mic of each pair (i < j)
-    j_idx: np.ndarray        # (P,) second mic of each pair
-    pair_index: np.ndarray   # (M, M) pair index of {a, b} (0 on the diagonal, never used)
-    ref_pair: np.ndarray     # (R, M) pair index of (r, n) (−1 for n = r)
-    ref_sign: np.ndarray     # (R, M) +1 where t_n − t_r = τ_pair, −1 where it is −τ_pair, 0 for n = r
+    i_idx: np.ndarray  # (P,) first mic of each pair (i < j)
+    j_idx: np.ndarray  # (P,) second mic of each pair
+    pair_index: np.ndarray  # (M, M) pair index of {a, b} (0 on the diagonal, never used)
+    ref_pair: np.ndarray  # (R, M) pair index of (r, n) (−1 for n = r)
+    ref_sign: np.ndarray  # (R, M) +1 where t_n − t_r = τ_pair, −1 where it is −τ_pair, 0 for n = r
     mic_of_slot: np.ndarray  # (R, M−1) slot s of reference r is mic s + (s >= r)
 
 
@@ -73,8 +73,15 @@ def pair_layout(n_mics: int) -> PairLayout:
     ref_sign = np.where(other, np.where(np.arange(n_mics)[:, None] < np.arange(n_mics)[None, :], 1.0, -1.0), 0.0)
     slots = np.arange(n_mics - 1)
     mic_of_slot = slots[None, :] + (slots[None, :] >= np.arange(n_mics)[:, None])
-    return PairLayout(n_mics, np.array([p[0] for p in pairs], dtype=np.intp), np.array([p[1] for p in pairs], dtype=np.intp),
-                      pair_index, ref_pair, ref_sign, mic_of_slot)
+    return PairLayout(
+        n_mics,
+        np.array([p[0] for p in pairs], dtype=np.intp),
+        np.array([p[1] for p in pairs], dtype=np.intp),
+        pair_index,
+        ref_pair,
+        ref_sign,
+        mic_of_slot,
+    )
 
 
 @dataclass(frozen=True)
@@ -83,7 +90,7 @@ class HypothesisDesign:
 
     layout: PairLayout
     k: int
-    time_index: np.ndarray   # (H, M) flat index into the (R, M, K) arrival times
+    time_index: np.ndarray  # (H, M) flat index into the (R, M, K) arrival times
     table_sum: sparse.csr_matrix  # (R·P·K·K, H): column h sums the P pair-table entries of hypothesis h
 
 
@@ -102,8 +109,9 @@ def hypothesis_design(n_mics: int, k: int) -> HypothesisDesign:
             table_rows.append(((ref * n_pairs + np.arange(n_pairs)) * k + rank[i_idx]) * k + rank[j_idx])
     table_index = np.array(table_rows)
     n_hyp = len(table_index)
-    table_sum = sparse.csr_matrix((np.ones(table_index.size), (table_index.ravel(), np.repeat(np.arange(n_hyp), n_pairs))),
-                                  shape=(n_mics * n_pairs * k * k, n_hyp))
+    table_sum = sparse.csr_matrix(
+        (np.ones(table_index.size), (table_index.ravel(), np.repeat(np.arange(n_hyp), n_pairs))), shape=(n_mics * n_pairs * k * k, n_hyp)
+    )
     return HypothesisDesign(layout, k, np.array(time_rows), table_sum)
 
 
@@ -123,8 +131,9 @@ def _deviation(times: np.ndarray, relative: np.ndarray) -> np.ndarray:
     return np.abs(times - times[..., :1] - relative).max(-1)
 
 
-def _score(raw: np.ndarray, flat_arrival: np.ndarray, design: HypothesisDesign, hyp: np.ndarray, tolerance_s: float
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _score(
+    raw: np.ndarray, flat_arrival: np.ndarray, design: HypothesisDesign, hyp: np.ndarray, tolerance_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Final scores of the hypotheses ``hyp`` (B, L), index order: the winner's times (B, M), its score and the runner-up's."""
     rows = np.arange(raw.shape[0])
     times = flat_arrival[rows[:, None, None], design.time_index[hyp]]  # (B, L, M)
@@ -159,7 +168,9 @@ def exhaustive_best(table: np.ndarray, arrival: np.ndarray, design: HypothesisDe
         unsure = np.isfinite(outside) & ~((best_score > outside) & (runner_up > outside))
         if unsure.any():
             every = np.broadcast_to(np.arange(n_hyp), (int(unsure.sum()), n_hyp))
-            best_times[unsure], best_score[unsure], runner_up[unsure] = _score(raw[unsure], flat_arrival[unsure], design, every, tolerance_s)
+            best_times[unsure], best_score[unsure], runner_up[unsure] = _score(
+                raw[unsure], flat_arrival[unsure], design, every, tolerance_s
+            )
     dead = ~np.isfinite(raw).any(axis=1)  # every hypothesis misses an arrival: the first one
     best_times[dead] = flat_arrival[dead][:, design.time_index[0]]
     return best_times, _margin(best_score, runner_up)
@@ -247,7 +258,9 @@ def _bound_terms(table: np.ndarray, layout: PairLayout) -> tuple[np.ndarray, np.
         edges[:, :, t] = edges[:, :, t + 1] + per_slot[:, :, :, t]
     best_pair = _chain(np.maximum, np.moveaxis(given_first, -1, 0))  # (B, R, P)
     s1, s2 = np.triu_indices(m - 1, 1)
-    pair_terms = best_pair[:, ref[:, :, 0], layout.pair_index[layout.mic_of_slot[:, s1], layout.mic_of_slot[:, s2]]]  # (B, R, pairs of slots)
+    pair_terms = best_pair[
+        :, ref[:, :, 0], layout.pair_index[layout.mic_of_slot[:, s1], layout.mic_of_slot[:, s2]]
+    ]  # (B, R, pairs of slots)
     pairs_open = np.zeros((bsz, n_ref, m))
     for t in range(m - 2, -1, -1):
         pairs_open[:, :, t] = pairs_open[:, :, t + 1] + _sum_columns(pair_terms, s1 == t)
@@ -259,8 +272,9 @@ def _sum_columns(values: np.ndarray, columns: np.ndarray) -> np.ndarray:
     return _chain(np.add, np.moveaxis(values[..., columns], -1, 0)) if columns.any() else np.zeros(values.shape[:-1])
 
 
-def _enumerate(table: np.ndarray, theta: np.ndarray, layout: PairLayout, edges: np.ndarray, pairs_open: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _enumerate(
+    table: np.ndarray, theta: np.ndarray, layout: PairLayout, edges: np.ndarray, pairs_open: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Event (N,), reference (N,) and ranks by slot (N, M−1) of every hypothesis whose bound is ≥ θ and finite (step 2).
 
     Nodes are (event, reference, ranks of the slots assigned so far); every lookup is a gather from
@@ -303,8 +317,16 @@ def _enumerate(table: np.ndarray, theta: np.ndarray, layout: PairLayout, edges: 
     return base // n_ref, ref, ranks[:, :n_slots]
 
 
-def _best_of(table_flat: np.ndarray, flat_arrival: np.ndarray, layout: PairLayout, k: int, ev: np.ndarray, ref: np.ndarray,
-             slot_ranks: np.ndarray, tolerance_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _best_of(
+    table_flat: np.ndarray,
+    flat_arrival: np.ndarray,
+    layout: PairLayout,
+    k: int,
+    ev: np.ndarray,
+    ref: np.ndarray,
+    slot_ranks: np.ndarray,
+    tolerance_s: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Exact scores of enumerated hypotheses (step 3): per event found, its winner's times, score and the runner-up's."""
     m = layout.n_mics
     order = np.lexsort((ref * k ** (m - 1) + slot_ranks @ (k ** np.arange(m - 2, -1, -1)), ev))  # event, then hypothesis index
@@ -356,7 +378,9 @@ def pruned_best(table: np.ndarray, arrival: np.ndarray, layout: PairLayout, tole
         theta = np.maximum(guess, certified[pending])
         final = (guess <= certified[pending]) | (delta[pending] > span[pending])  # certified, or below every finite hypothesis
         ev, ref, slot_ranks = _enumerate(table[pending], theta, layout, edges[pending], pairs_open[pending])
-        found, winner, win_score, runner_up = _best_of(table_flat[pending], flat_arrival[pending], layout, k, ev, ref, slot_ranks, tolerance_s)
+        found, winner, win_score, runner_up = _best_of(
+            table_flat[pending], flat_arrival[pending], layout, k, ev, ref, slot_ranks, tolerance_s
+        )
         done = np.zeros(len(pending), dtype=bool)
         done[found] = (win_score >= theta[found]) & (runner_up >= theta[found])
         done |= final

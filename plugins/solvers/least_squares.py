@@ -37,8 +37,9 @@ class LeastSquaresSolver:
     cache_version = "1"
     required_feature_groups = ("tdoa",)
 
-    def __init__(self, source_height_m: float | None = None, n_iterations: int = 100, tolerance_m: float = 1e-4,
-                 tie_tolerance_m: float = 0.05) -> None:
+    def __init__(
+        self, source_height_m: float | None = None, n_iterations: int = 100, tolerance_m: float = 1e-4, tie_tolerance_m: float = 0.05
+    ) -> None:
         if n_iterations < 1:
             raise ConfigError(f"solver.n_iterations must be >= 1; got {n_iterations}")
         self.source_height_m = source_height_m

@@ -57,5 +57,9 @@ class PerReferenceMicSolver:
         pick = lambda values: np.stack(values, axis=1)[rows, best]  # noqa: E731
         diagnostics = {name: pick([r.diagnostics[name] for r in results]) for name in results[0].diagnostics}
         diagnostics["reference_mic"] = best.astype(float)
-        return SolverResult(position_m=pick([r.position_m for r in results]), residual_m=pick([r.residual_m for r in results]),
-                            converged=pick([r.converged for r in results]), diagnostics=diagnostics)
+        return SolverResult(
+            position_m=pick([r.position_m for r in results]),
+            residual_m=pick([r.residual_m for r in results]),
+            converged=pick([r.converged for r in results]),
+            diagnostics=diagnostics,
+        )

@@ -74,8 +74,14 @@ class MlflowTracker:
                 mlflow.create_experiment(self.experiment_name, artifact_location=(store.parent / "mlartifacts").resolve().as_uri())
         mlflow.set_experiment(self.experiment_name)
 
-    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None,
-              start_time_ms: int | None = None) -> None:
+    def start(
+        self,
+        run_name: str,
+        params: dict[str, Any],
+        tags: dict[str, str],
+        parent_run_id: str | None = None,
+        start_time_ms: int | None = None,
+    ) -> None:
         """Open the run (a child of ``parent_run_id`` when given) and log params and tags.
 
         Parameter values longer than MLflow allows are truncated. Without ``parent_run_id`` the
@@ -91,12 +97,21 @@ class MlflowTracker:
         else:
             client = mlflow.MlflowClient(self.tracking_uri)
             experiment = client.get_experiment_by_name(self.experiment_name)
-            created = client.create_run(experiment.experiment_id, start_time=int(start_time_ms), run_name=run_name,
-                                        tags={**tags, **({"mlflow.parentRunId": parent} if parent else {})})
+            created = client.create_run(
+                experiment.experiment_id,
+                start_time=int(start_time_ms),
+                run_name=run_name,
+                tags={**tags, **({"mlflow.parentRunId": parent} if parent else {})},
+            )
             self._run = mlflow.start_run(run_id=created.info.run_id)
         mlflow.log_params(_clean_params(params))
-        log.info("MLflow run %s in %s (experiment %r%s)", self._run.info.run_id, self.tracking_uri, self.experiment_name,
-                 f", child of {parent}" if parent else "")
+        log.info(
+            "MLflow run %s in %s (experiment %r%s)",
+            self._run.info.run_id,
+            self.tracking_uri,
+            self.experiment_name,
+            f", child of {parent}" if parent else "",
+        )
 
     @property
     def run_id(self) -> str | None:

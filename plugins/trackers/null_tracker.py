@@ -15,8 +15,14 @@ class NullTracker:
     def check_reachable(self) -> None:
         """Nothing to reach."""
 
-    def start(self, run_name: str, params: dict[str, Any], tags: dict[str, str], parent_run_id: str | None = None,
-              start_time_ms: int | None = None) -> None:
+    def start(
+        self,
+        run_name: str,
+        params: dict[str, Any],
+        tags: dict[str, str],
+        parent_run_id: str | None = None,
+        start_time_ms: int | None = None,
+    ) -> None:
         """Do nothing."""
 
     def log_metrics(self, metrics: dict[str, float]) -> None:

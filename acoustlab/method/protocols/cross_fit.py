@@ -37,7 +37,6 @@ class CrossFitProtocol:
         Seed of the fold assignment and the caps.
     """
 
-
     def __init__(self, n_folds: int = 10, max_train_rows: int = 1000, seed: int = 0) -> None:
         if n_folds < 2:
             raise ConfigError(f"protocol.n_folds must be >= 2; got {n_folds}")

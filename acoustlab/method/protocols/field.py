@@ -40,8 +40,10 @@ def combine(sim: Dataset, field_recordings: Dataset, need_truth: bool = True) ->
         if name not in fev:
             fev[name] = np.nan
     if need_truth and fev[[col.TRUE_X, col.TRUE_Y]].isna().any().any():
-        raise DataError("field evaluation needs true positions for every field event (x_m, y_m); to localize recordings "
-                        "without them use protocol=localize (python -m acoustlab localize +site=NAME field=recordings)")
+        raise DataError(
+            "field evaluation needs true positions for every field event (x_m, y_m); to localize recordings "
+            "without them use protocol=localize (python -m acoustlab localize +site=NAME field=recordings)"
+        )
     if col.POSITION_ID not in fev or fev[col.POSITION_ID].isna().any():
         fev[col.POSITION_ID] = np.arange(len(fev))  # unknown positions: every detection its own group
     fev[col.POSITION_ID] = fev[col.POSITION_ID].astype(np.int64) + FIELD_POSITION_OFFSET
@@ -103,7 +105,9 @@ class LopoProtocol:
 
     needs_field = True
 
-    def __init__(self, field_fraction: float = 0.2, max_train_rows: int = 1000, exclude_failed_from_summary: bool = True, seed: int = 0) -> None:
+    def __init__(
+        self, field_fraction: float = 0.2, max_train_rows: int = 1000, exclude_failed_from_summary: bool = True, seed: int = 0
+    ) -> None:
         if not 0 <= field_fraction < 1:
             raise ConfigError(f"protocol.field_fraction must be in [0, 1); got {field_fraction}")
         self.field_fraction = float(field_fraction)

@@ -24,8 +24,16 @@ from acoustlab.stages.dataset import Dataset
 log = logging.getLogger(__name__)
 
 #: Solver-stage columns copied into the positions table as quality flags.
-QUALITY_COLUMNS = (col.SOLVER_FAILURE, col.SOLVER_SOURCE_HEIGHT, col.SOLVER_HEIGHT_GDOP, col.SOLVER_HEIGHT_AMBIGUOUS, col.SOLVER_RESIDUAL,
-                   col.SOLVER_CONSISTENCY, col.SOLVER_N_MICS_USED, col.SOLVER_GDOP)
+QUALITY_COLUMNS = (
+    col.SOLVER_FAILURE,
+    col.SOLVER_SOURCE_HEIGHT,
+    col.SOLVER_HEIGHT_GDOP,
+    col.SOLVER_HEIGHT_AMBIGUOUS,
+    col.SOLVER_RESIDUAL,
+    col.SOLVER_CONSISTENCY,
+    col.SOLVER_N_MICS_USED,
+    col.SOLVER_GDOP,
+)
 
 
 class LocalizeProtocol:
@@ -62,16 +70,25 @@ class LocalizeProtocol:
         usable = known & events["quality_ok"].fillna(True).to_numpy(bool)[all_field_rows] if "quality_ok" in events else known
         calibration_rows, field_rows = all_field_rows[usable], all_field_rows[~known]
         if field_rows.size == 0:
-            raise ConfigError("protocol=localize: every detection has a known position (x_m, y_m), so there is nothing to localize; "
-                              "to evaluate on them use protocol=field_eval or protocol=lopo")
+            raise ConfigError(
+                "protocol=localize: every detection has a known position (x_m, y_m), so there is nothing to localize; "
+                "to evaluate on them use protocol=field_eval or protocol=lopo"
+            )
         rng = np.random.default_rng([self.seed, 1])
         n_calibration = min(calibration_rows.size, int(round(self.calibration_fraction * self.max_train_rows)))
         calibration = cap_rows(calibration_rows, groups, n_calibration, rng) if n_calibration else np.array([], int)
         train = np.concatenate([cap_rows(sim_rows, groups, self.max_train_rows - calibration.size, rng), calibration])
-        log.info("localize: training on %d simulated events%s, placing %d detections", train.size - calibration.size,
-                 f" and {calibration.size} calibration playbacks with known positions" if calibration.size else "", field_rows.size)
+        log.info(
+            "localize: training on %d simulated events%s, placing %d detections",
+            train.size - calibration.size,
+            f" and {calibration.size} calibration playbacks with known positions" if calibration.size else "",
+            field_rows.size,
+        )
         result = pipeline.fit_predict(features, events, np.sort(train), field_rows)
-        result.split_diagnostics[0]["training"] = {"n_simulated": int(train.size - calibration.size), "n_calibration_playbacks": int(calibration.size)}
+        result.split_diagnostics[0]["training"] = {
+            "n_simulated": int(train.size - calibration.size),
+            "n_calibration_playbacks": int(calibration.size),
+        }
         placed_events = field_recordings.events.iloc[field_rows - sim_rows.size]
         predictions = without_truth(result.predictions, features.iloc[field_rows], placed_events)
         return MethodResult(predictions, result.split_diagnostics)
@@ -96,10 +113,15 @@ def without_truth(predictions: pd.DataFrame, features: pd.DataFrame, detections:
     for name in keep:  # the detection's own fields (file, start time, …)
         predictions[name] = detections[name].to_numpy()
     if "quality_ok" in predictions:  # a clip out of its file, dead, truncated, …: no position, and why
-        has_fix = predictions[col.PLACED].to_numpy(bool) if col.PLACED in predictions else np.isfinite(
-            predictions[list(col.estimate_xy("gate"))].to_numpy(float)).all(1)
+        has_fix = (
+            predictions[col.PLACED].to_numpy(bool)
+            if col.PLACED in predictions
+            else np.isfinite(predictions[list(col.estimate_xy("gate"))].to_numpy(float)).all(1)
+        )
         good = predictions["quality_ok"].to_numpy(bool)
-        reason = predictions[col.ABSTAIN_REASON].to_numpy(object) if col.ABSTAIN_REASON in predictions else np.where(has_fix, "", "no estimate")
+        reason = (
+            predictions[col.ABSTAIN_REASON].to_numpy(object) if col.ABSTAIN_REASON in predictions else np.where(has_fix, "", "no estimate")
+        )
         predictions[col.PLACED] = has_fix & good
         predictions[col.ABSTAIN_REASON] = np.where(good, reason, "quality: " + predictions[col.QUALITY_FLAGS].astype(str))
     return predictions

@@ -30,7 +30,6 @@ class SimOnlyProtocol:
         Seed of the split.
     """
 
-
     def __init__(self, test_fraction: float = 0.1, max_train_rows: int = 1000, seed: int = 0) -> None:
         if not 0 < test_fraction < 1:
             raise ConfigError(f"protocol.test_fraction must be in (0, 1); got {test_fraction}")
