@@ -58,34 +58,56 @@ def test_no_upward_import(module):
         assert target in allowed, f"{module} (layer {own}) imports {imported} from the layer above, {target}"
 
 
+PLUGINS = PACKAGE.parent / "plugins"
+#: The layers a plugin may import: the data model and contracts, and the pure functions. A plugin that
+#: needed a stage, the method or the app would be part of the pipeline, not a choice Hydra makes.
+PLUGIN_LAYERS = ("core", "toolkit")
+
+
+def plugin_modules() -> list[str]:
+    modules = []
+    for path in sorted(PLUGINS.rglob("*.py")):
+        parts = list(path.relative_to(PLUGINS.parent).with_suffix("").parts)
+        modules.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    return modules
+
+
+@pytest.mark.parametrize("module", plugin_modules())
+def test_plugins_import_only_core_and_toolkit(module):
+    for imported in internal_imports(module):
+        if imported.split(".")[0] == "plugins":
+            continue  # a plugin may build on another plugin (the consistent-set solver on the hyperbolic one)
+        assert layer_of(imported) in PLUGIN_LAYERS, f"{module} imports {imported}: plugins import only acoustlab.core and acoustlab.toolkit"
+
+
 def test_the_layer_test_sees_imports():
     """The walker finds real edges (a test that finds none would pass vacuously)."""
     assert "acoustlab.core.contracts" in internal_imports("acoustlab.method.pipeline")
     assert "acoustlab.stages.solver_columns" in internal_imports("acoustlab.run.app")
     assert layer_of("acoustlab.run.app") == "run" and layer_of("acoustlab.report") == ENTRY
+    assert "acoustlab.toolkit.tdoa" in internal_imports("plugins.solvers.consistent_set")  # plugins are walked too
 
 
 def test_package_root_imports_nothing():
     assert not internal_imports("acoustlab"), "acoustlab/__init__.py must stay metadata only (every layer may import it)"
 
 
-def test_no_function_in_acoustlab_is_longer_than_60_lines():
-    """A function one reads in a sitting: at most 60 lines of code after its docstring."""
+def test_no_function_in_acoustlab_has_more_than_45_statements():
+    """A function one reads in a sitting: at most 45 statements after its docstring, counted on the syntax tree
+    (nested statements included), so the formatter's line breaks do not move the limit."""
     import ast
-    from pathlib import Path
-
-    import acoustlab
 
     long = []
-    for path in Path(acoustlab.__file__).parent.rglob("*.py"):
+    for path in PACKAGE.rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                statements = sum(isinstance(n, ast.stmt) for n in ast.walk(node)) - 1  # the def itself
                 body = node.body
-                has_docstring = isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) and len(body) > 1
-                lines = node.end_lineno - (body[1] if has_docstring else body[0]).lineno + 1
-                if lines > 60:
-                    long.append(f"{path.name}:{node.lineno} {node.name} ({lines} lines)")
-    assert not long, "functions over 60 lines: " + ", ".join(long)
+                if isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) and len(body) > 1:
+                    statements -= 1  # the docstring
+                if statements > 45:
+                    long.append(f"{path.name}:{node.lineno} {node.name} ({statements} statements)")
+    assert not long, "functions over 45 statements: " + ", ".join(long)
 
 
 #: Literals that share a column's spelling but are something else: config keys and settings fields.
