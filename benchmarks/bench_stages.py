@@ -66,7 +66,7 @@ class Features:
 class Solvers:
     """Each solver on the same events' TDOA candidates."""
 
-    params = [["frozen_lake", "forest"], ["consistent_set", "hyperbolic", "least_squares", "per_reference_mic"], [256]]
+    params = [["frozen_lake", "forest"], ["consistent_set", "hyperbolic", "least_squares", "baseline_per_reference_mic"], [256]]
     param_names = ["site", "solver", "n_events"]
 
     def setup(self, site_name: str, solver: str, n_events: int) -> None:

@@ -38,10 +38,10 @@ log = logging.getLogger("bench_first_stage")
 #: (label, GCC weighting, solver option, solver overrides): the previous default first, the peer heuristic on the same inputs.
 VARIANTS = (
     ("hyperbolic, PHAT (before)", "phat", "hyperbolic", ()),
-    ("robust, PHAT", "phat", "robust", ()),
-    ("per_reference_mic (peer), PHAT", "phat", "per_reference_mic", ()),
+    ("robust, PHAT", "phat", "baseline_robust", ()),
+    ("per_reference_mic (peer), PHAT", "phat", "baseline_per_reference_mic", ()),
     ("consistent_set, PHAT", "phat", "consistent_set", ()),
-    ("per_reference_mic (peer), β-PHAT", "beta_phat", "per_reference_mic", ()),
+    ("per_reference_mic (peer), β-PHAT", "beta_phat", "baseline_per_reference_mic", ()),
     ("consistent_set, β-PHAT, 2-D", "beta_phat", "consistent_set", ("solver.dimensions=2",)),
     ("consistent_set, β-PHAT (default: 3-D with ≥ 4 mics)", "beta_phat", "consistent_set", ()),
 )

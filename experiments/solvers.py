@@ -22,7 +22,7 @@ from acoustlab.run.app import build_run, prepare_data, solver_features
 from acoustlab.run.registry import build
 
 log = logging.getLogger("bench_solvers")
-SOLVERS = ("least_squares", "hyperbolic", "robust")
+SOLVERS = ("least_squares", "hyperbolic", "baseline_robust")
 
 
 def evaluate(site_name: str, n_events: int) -> dict:

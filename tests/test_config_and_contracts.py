@@ -146,10 +146,10 @@ def test_a_gate_needing_a_missing_feature_group_fails_in_preflight(compose_cfg):
     from acoustlab.core.errors import ConfigError
     from acoustlab.run.app import build_run
 
-    cfg = compose_cfg(["+site=frozen_lake", "features=gcc_phat", "gate=hybrid", "tracking=none"])
+    cfg = compose_cfg(["+site=frozen_lake", "features=baseline_gcc_phat", "gate=hybrid", "tracking=none"])
     with pytest.raises(ConfigError, match=r"gate HybridGate needs the feature groups \['environment'\]"):
         build_run(cfg)
-    build_run(compose_cfg(["+site=frozen_lake", "features=gcc_phat", "gate=bounding_box", "tracking=none"]))
+    build_run(compose_cfg(["+site=frozen_lake", "features=baseline_gcc_phat", "gate=bounding_box", "tracking=none"]))
 
 
 def test_shared_gcc_settings_reach_all_three_groups(compose_cfg):
