@@ -1,4 +1,4 @@
-"""``python -m acoustlab.catalog``: regenerate docs/features.md (see :mod:`acoustlab.run.catalog`)."""
+"""``python -m acoustlab.catalog``: regenerate docs/features.md (see ``acoustlab.run.catalog``)."""
 
 from acoustlab.run.catalog import main
 

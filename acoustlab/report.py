@@ -1,4 +1,4 @@
-"""``python -m acoustlab.report PATHS ...``: a Markdown and HTML report of runs (see :mod:`acoustlab.reporting.report`)."""
+"""``python -m acoustlab.report PATHS ...``: a Markdown and HTML report of runs (see ``acoustlab.reporting.report``)."""
 
 import sys
 

@@ -1,7 +1,7 @@
 """``python -m acoustlab.synthetic_season --site forest --calls 200 --out DIR``: a synthetic season to try ``protocol=season`` on.
 
 Writes one folder of long files per recorder (named by their start time), a Raven selection table
-per recorder and ``truth.csv`` (:mod:`acoustlab.season.synthetic`).
+per recorder and ``truth.csv`` (``acoustlab.season.synthetic``).
 """
 
 from __future__ import annotations

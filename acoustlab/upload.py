@@ -1,4 +1,4 @@
-"""``python -m acoustlab.upload RUN_DIR ...``: send run directories to MLflow after the fact (see :mod:`acoustlab.run.upload`)."""
+"""``python -m acoustlab.upload RUN_DIR ...``: send run directories to MLflow after the fact (see ``acoustlab.run.upload``)."""
 
 import sys
 

@@ -1,6 +1,6 @@
 """A season localized end to end as a user runs it: detections per second of CPU and peak memory.
 
-A synthetic season (:mod:`acoustlab.season.synthetic`: calls rendered into long noise files, one
+A synthetic season (``acoustlab.season.synthetic``: calls rendered into long noise files, one
 folder per recorder, a Raven table per recorder) is fitted once per case, then localized with
 ``python -m acoustlab season protocol.stage=localize`` in its own process. Detections per second
 count the CPU time (user + system) of that process above the same command with nothing left to do

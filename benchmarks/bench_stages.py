@@ -81,3 +81,30 @@ class Solvers:
 
     def time_solve(self, site_name: str, solver: str, n_events: int) -> None:
         self.solver.solve(self.inputs)
+
+
+class FeaturesOnGpu:
+    """The lean feature stage with the GCC on a CUDA GPU (``+features.gcc.device=cuda``) beside the same on the CPU."""
+
+    params = [["frozen_lake", "forest"], ["cpu", "cuda"], [64]]
+    param_names = ["site", "device", "n_events"]
+
+    def setup(self, site_name: str, device: str, n_events: int) -> None:
+        from acoustlab.run.registry import build_feature_sets
+
+        if device == "cuda":
+            try:
+                import torch
+            except ImportError as exc:
+                raise NotImplementedError(f"torch is not installed ({exc})") from exc
+            if not torch.cuda.is_available():
+                raise NotImplementedError("no CUDA GPU")
+        overrides = ["features=physics_lean", *([f"+features.gcc.device={device}"] if device == "cuda" else [])]
+        cfg, self.site, self.batch = _simulated(site_name, n_events, overrides)
+        self.sets = build_feature_sets(cfg.features)
+
+    def time_extract(self, site_name: str, device: str, n_events: int) -> None:
+        from acoustlab.core.types import RecordingBatch
+        from acoustlab.stages.dataset import extract_features
+
+        extract_features(RecordingBatch(self.batch.audio, self.batch.sample_rate_hz, self.batch.events), self.site, self.sets)

@@ -48,8 +48,8 @@ MACHINE_KEY = "_machine"
 
 
 def machine_record() -> dict:
-    """The CPU model (``/proc/cpuinfo``'s model name, else :func:`platform.processor`), Python's version and the releases a
-    result records (:func:`common.package_versions`)."""
+    """The CPU model (``/proc/cpuinfo``'s model name, else ``platform.processor``), Python's version and the releases a
+    result records (``common.package_versions``)."""
     import platform
 
     from common import package_versions

@@ -76,7 +76,7 @@ PACKAGES = (
 
 
 def package_versions() -> dict[str, str]:
-    """Installed versions of :data:`PACKAGES` (those not installed are left out)."""
+    """Installed versions of ``PACKAGES`` (those not installed are left out)."""
     from importlib import metadata
 
     versions = {}

@@ -55,7 +55,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.distance import pdist
 
-#: The acoustlab side is imported in :func:`main` only: the driver runs in OpenSoundscape's interpreter.
+#: The acoustlab side is imported in ``main`` only: the driver runs in OpenSoundscape's interpreter.
 log = logging.getLogger("bench_opensoundscape")
 CLASS = "call"
 #: Silence before the first and after the last event, s: OpenSoundscape reads each receiver's window widened by the largest delay.

@@ -38,7 +38,7 @@ CONFIGS = {"defaults": [], "physics_lean": ["features=physics_lean"], "season_fa
 
 
 def site_runs(site: str, n_positions: int, folder: Path) -> tuple[list, dict[str, float]]:
-    """The three jobs of one site (each a run folder under ``folder``), in :data:`CONFIGS`' order, and their wall times, s."""
+    """The three jobs of one site (each a run folder under ``folder``), in ``CONFIGS``' order, and their wall times, s."""
     seconds = {}
     for name, extra in CONFIGS.items():
         args = [

@@ -3,7 +3,7 @@
 Feature columns are ``<group>__<name>`` with the unit at the end of the name. Prediction tables
 (``predictions.parquet``) hold ``<method>_x_m`` / ``<method>_y_m`` / ``error_<method>_m`` per
 method and ``radius__<scorer>__<level>`` per conformal scorer and nominal level. Metrics key
-levels by :func:`level_key`. A module that needs one of these names calls a function here instead
+levels by ``level_key``. A module that needs one of these names calls a function here instead
 of repeating an f-string, so a rename happens in one place.
 """
 
@@ -83,7 +83,7 @@ GATE_SOLVER_MODEL_DISTANCE = "gate__solver_model_distance_m"
 GATE_SUBSTITUTED = "gate__substituted"
 GATE_ESTIMATE_GDOP = "gate__estimate_gdop"
 GATE_ESTIMATE_RANGE = "gate__estimate_range_m"
-#: Why the trust check overrode a gate's choice ('' where it did not; :mod:`acoustlab.method.trust`).
+#: Why the trust check overrode a gate's choice ('' where it did not; ``acoustlab.method.trust``).
 TRUST_REASON = "trust_reason"
 #: The extra-gate name under which the configured gate's choice before the trust check is reported (method ``gate_without_trust``).
 GATE_WITHOUT_TRUST = "without_trust"
@@ -237,7 +237,7 @@ def extra_gate_method(name: str) -> str:
 
 
 def methods_in(columns: Iterable[str]) -> list[str]:
-    """Every method with an error column: :data:`METHODS` present, then the extra gates in column order."""
+    """Every method with an error column: ``METHODS`` present, then the extra gates in column order."""
     present = set(columns)
     extras = [m.group(1) for c in columns if (m := re.fullmatch(rf"error_({EXTRA_GATE_PREFIX}\w+)_m", c))]
     return [m for m in METHODS if error_m(m) in present] + extras

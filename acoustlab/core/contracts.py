@@ -1,4 +1,4 @@
-"""Plugin contracts as :class:`typing.Protocol` s.
+"""Plugin contracts as ``typing.Protocol`` s.
 
 Every plugin is a class registered by a YAML file with a ``_target_`` in its Hydra config group
 (see ``conf/``). The runner only ever talks to plugins through these contracts; runtime inputs
@@ -18,7 +18,7 @@ from acoustlab.core.types import RecordingBatch, Site
 
 #: Optional properties a plugin may declare (as a class or instance attribute), and the value every
 #: plugin that declares none is taken to have, as scikit-learn's estimator tags. Read them with
-#: :func:`declared`; a name not listed here is a programming error (a test scans for others).
+#: ``declared``; a name not listed here is a programming error (a test scans for others).
 OPTIONAL_PROPERTIES: dict[str, Any] = {
     # learned plugins (point and error models, CQR): fit on whole source positions up to this many rows (None: every row)
     "max_train_rows": None,
@@ -37,7 +37,7 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
     "last_run_id": None,
     "tracking_uri": None,
 }
-#: Optional hooks a plugin may define; a plugin without one is taken to need nothing there. Get them with :func:`hook`.
+#: Optional hooks a plugin may define; a plugin without one is taken to need nothing there. Get them with ``hook``.
 #: ``preflight()`` (models: check what must exist before anything is simulated, e.g. weights), ``validate(site)``
 #: (field sources and protocol=season: check tables and headers), ``input_files()`` (field sources: the files whose contents key the
 #: cache), ``projection()`` (field sources: the rigid map to projected coordinates, or None), ``fit_quantiles(x, error, levels)``
@@ -46,7 +46,7 @@ OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection", "fit_qua
 
 
 def declared(plugin: Any, name: str) -> Any:
-    """The optional property ``name`` of ``plugin``: its own value, or the default of :data:`OPTIONAL_PROPERTIES`.
+    """The optional property ``name`` of ``plugin``: its own value, or the default of ``OPTIONAL_PROPERTIES``.
 
     Raises
     ------
@@ -82,7 +82,7 @@ class Simulator(Protocol):
     sample_rate_hz: float
 
     def validate(self, site: Site) -> None:
-        """Raise :class:`acoustlab.core.errors.ConfigError` if this simulator cannot run at ``site``."""
+        """Raise ``acoustlab.core.errors.ConfigError`` if this simulator cannot run at ``site``."""
 
     def simulate(self, site: Site, event_ids: np.ndarray, position_ids: np.ndarray, seed: int) -> RecordingBatch:
         """Render events ``event_ids`` (int array) at source positions ``position_ids`` with base seed ``seed``.
@@ -218,9 +218,9 @@ class Gate(Protocol):
     """Chooses, per event, between the solver's and the point model's estimate.
 
     The pipeline works on a fresh copy of the configured gate for every split: it calls
-    :meth:`fit` on the split's out-of-fold training predictions (a no-op for gates with nothing to
-    learn), then :meth:`decide`, and reports :meth:`diagnostics` per split.
-    ``required_feature_groups`` names the feature groups :meth:`decide` reads (checked before
+    ``fit`` on the split's out-of-fold training predictions (a no-op for gates with nothing to
+    learn), then ``decide``, and reports ``diagnostics`` per split.
+    ``required_feature_groups`` names the feature groups ``decide`` reads (checked before
     anything runs).
     """
 
@@ -249,7 +249,7 @@ class Gate(Protocol):
 
 
 class StatelessGate:
-    """Mixin for gates that learn nothing: :meth:`fit` returns self, :meth:`diagnostics` is empty."""
+    """Mixin for gates that learn nothing: ``fit`` returns self, ``diagnostics`` is empty."""
 
     required_feature_groups: tuple[str, ...] = ()
 
@@ -274,7 +274,7 @@ class StatelessGate:
 class ErrorModel(Protocol):
     """Predicts the scale of the hybrid estimate's 2-D error (m) from features (scikit-learn style).
 
-    May set ``max_train_rows`` as a :class:`PointModel` may.
+    May set ``max_train_rows`` as a ``PointModel`` may.
     """
 
     def fit(self, X: pd.DataFrame, error_m: np.ndarray) -> Any: ...
@@ -300,13 +300,13 @@ class ConformalScorer(Protocol):
 class EvaluationProtocol(Protocol):
     """Decides which events train, calibrate and test, and runs the localization pipeline on them.
 
-    May declare ``needs_field`` and ``evaluates`` (:data:`OPTIONAL_PROPERTIES`). ``dataset`` and
-    ``field_recordings`` are :class:`acoustlab.stages.dataset.Dataset` s, ``pipeline`` a
-    :class:`acoustlab.method.pipeline.LocalizationPipeline` (typed loosely: this layer is below both).
+    May declare ``needs_field`` and ``evaluates`` (``OPTIONAL_PROPERTIES``). ``dataset`` and
+    ``field_recordings`` are ``acoustlab.stages.dataset.Dataset`` s, ``pipeline`` a
+    ``acoustlab.method.pipeline.LocalizationPipeline`` (typed loosely: this layer is below both).
     """
 
     def run(self, dataset: Any, pipeline: Any, field_recordings: Any = None) -> Any:
-        """Fit and predict; returns a :class:`acoustlab.method.pipeline.MethodResult`."""
+        """Fit and predict; returns a ``acoustlab.method.pipeline.MethodResult``."""
 
 
 @runtime_checkable
@@ -321,8 +321,8 @@ class FieldSource(Protocol):
 class Tracker(Protocol):
     """Records a run's parameters, metrics, tables and artifacts (e.g. in MLflow).
 
-    A sweep (Hydra multirun) gets one parent run opened by :meth:`open_sweep` before its jobs and
-    closed by :meth:`close_sweep` after them; each job's run names it as ``parent_run_id``.
+    A sweep (Hydra multirun) gets one parent run opened by ``open_sweep`` before its jobs and
+    closed by ``close_sweep`` after them; each job's run names it as ``parent_run_id``.
     """
 
     #: Where runs go, for messages (e.g. the tracking URI); None when nothing is recorded.

@@ -7,10 +7,10 @@ kernel zeroes them, which shows as system time. Raising the mmap threshold to it
 value (32 MiB on 64-bit systems) and the trim threshold keeps freed blocks in the heap, where the
 next batch finds them. The peak resident memory is unchanged (it is set by one batch's arrays);
 what changes is that memory freed after the peak stays with the process, up to
-:data:`KEEP_FREED_BYTES`.
+``KEEP_FREED_BYTES``.
 
 No library does this: numpy's allocator caches only small blocks, and the glibc settings are a
-C call (``mallopt``), reached here through :mod:`ctypes`. Elsewhere (macOS, musl) nothing changes.
+C call (``mallopt``), reached here through ``ctypes``. Elsewhere (macOS, musl) nothing changes.
 """
 
 from __future__ import annotations

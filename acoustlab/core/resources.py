@@ -10,7 +10,7 @@ PROJECT_ROOT = Path(__file__).resolve().parents[2]
 CONF_DIR = PROJECT_ROOT / "conf"
 #: The package's data folder (calls, noise, sites, examples; see NOTICE.md for licences).
 PACKAGE_DATA = Path(__file__).resolve().parents[1] / "data"
-#: Prefix of config paths that point into :data:`PACKAGE_DATA`.
+#: Prefix of config paths that point into ``PACKAGE_DATA``.
 URI_PREFIX = "acoustlab://"
 
 

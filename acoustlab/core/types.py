@@ -158,7 +158,7 @@ class RecordingBatch:
     sample_rate_hz : float
         Sampling rate in Hz.
     events : pandas.DataFrame
-        One row per event with at least :data:`EVENT_COLUMNS`: ``event_id``, ``position_id`` (the
+        One row per event with at least ``EVENT_COLUMNS``: ``event_id``, ``position_id`` (the
         exchangeable group), true source position ``x_m, y_m, z_m`` (NaN when unknown),
         ``temperature_c`` and ``relative_humidity_pct``; further columns are metadata.
     """
@@ -166,7 +166,7 @@ class RecordingBatch:
     audio: np.ndarray
     sample_rate_hz: float
     events: pd.DataFrame = field(default_factory=pd.DataFrame)
-    #: Results derived from this batch's audio that several stages share (see :meth:`derived`).
+    #: Results derived from this batch's audio that several stages share (see ``derived``).
     _derived: dict[Hashable, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:

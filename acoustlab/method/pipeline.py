@@ -65,7 +65,7 @@ class Components:
     selective: dict[str, Any] | None = None
     #: gates evaluated beside ``gate`` on the same predictions (reported as methods ``gate_<name>``)
     extra_gates: dict[str, Gate] = field(default_factory=dict)
-    #: also calibrate a 2-D error ellipse per detection and level (:mod:`acoustlab.toolkit.regions`)
+    #: also calibrate a 2-D error ellipse per detection and level (``acoustlab.toolkit.regions``)
     ellipse: bool = False
     #: which training rows calibrate conformal and selective localization: "auto", "all" or "field"
     calibrate_on: str = "auto"
@@ -73,7 +73,7 @@ class Components:
     error_model_gate_cues: bool = True
     #: the run's seed (which whole positions a model with its own row limit fits on)
     seed: int = 0
-    #: where the point model counts as outside its training support (:mod:`acoustlab.method.trust`)
+    #: where the point model counts as outside its training support (``acoustlab.method.trust``)
     trust: TrustSettings = field(default_factory=TrustSettings)
     #: the stated errors of the inputs a user measures, carried into the radii of field detections
     input_uncertainty: InputUncertainty = field(default_factory=InputUncertainty)
@@ -86,7 +86,7 @@ class MethodResult:
     Attributes
     ----------
     predictions : pandas.DataFrame
-        One row per test event (see :meth:`LocalizationPipeline.fit_predict`).
+        One row per test event (see ``LocalizationPipeline.fit_predict``).
     split_diagnostics : list of dict
         One entry per split, in order: ``{"gate": gate.diagnostics()}`` (plus ``split``, the
         withheld position, where a protocol has several splits).
@@ -357,7 +357,7 @@ class LocalizationPipeline:
     def fit_predict(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray, test: np.ndarray) -> MethodResult:
         """Fit on rows ``train`` and predict rows ``test`` (integer positions into the tables).
 
-        The same as :meth:`fit` on the training rows followed by :meth:`FittedMethod.predict` on
+        The same as ``fit`` on the training rows followed by ``FittedMethod.predict`` on
         the test rows (a test row's prediction depends on the fitted method and its own row only,
         so predicting in chunks gives the same rows). No position may be on both sides.
 
@@ -390,7 +390,7 @@ class LocalizationPipeline:
         -------
         FittedMethod
             What predicting needs, and nothing of the training tables beyond the calibration
-            events' errors (it can be saved and loaded: :mod:`acoustlab.method.saved`).
+            events' errors (it can be saved and loaded: ``acoustlab.method.saved``).
         """
         split = self._split(features, events, train)
         oof_model = self._out_of_fold_point(split)
@@ -716,7 +716,7 @@ class FittedMethod:
     #: the point model's and the error model's input columns
     mcols: list[str]
     ecols: list[str]
-    #: fitted point models for x and y (targets relative to :meth:`LocalizationPipeline._offset`)
+    #: fitted point models for x and y (targets relative to ``LocalizationPipeline._offset``)
     point_models: tuple[Any, Any]
     support: TrainingSupport | None
     gate: Gate

@@ -1,8 +1,8 @@
 """A fitted method saved once and loaded by every shard of a run, verified by its SHA-256.
 
 The fitted method holds scikit-learn, XGBoost (and TabPFN) estimators, which have no safe
-serialisation format of their own that keeps every plugin; it is written with :mod:`joblib`
-(pickle). Unpickling runs code from the file, so :func:`load_method` refuses a file whose SHA-256
+serialisation format of their own that keeps every plugin; it is written with ``joblib``
+(pickle). Unpickling runs code from the file, so ``load_method`` refuses a file whose SHA-256
 differs from the digest recorded when it was written, and the file is only ever read from the run
 directory that wrote it: never load a fitted method someone sent you; fit your own.
 """

@@ -7,7 +7,7 @@ error radius calibrated on events it *did* know. A gate that hands over to the m
 a good physical fix for an extrapolated guess. This module gives the model an applicability
 domain and checks every gate's decision against it:
 
-* **Training support** (:class:`TrainingSupport`): the convex hull of the training sources'
+* **Training support** (``TrainingSupport``): the convex hull of the training sources'
   horizontal positions and their height range, each grown by a margin, and a novelty score of
   the detection's feature row (distance to its nearest training rows in robustly standardised
   feature space, compared with the same distance among the training rows themselves).
@@ -16,7 +16,7 @@ domain and checks every gate's decision against it:
   An array without redundant measurements (3 mics in 2-D: the residual is always 0) cannot
   show consistency; there no fix counts as consistent, and neither does a fix from exactly as
   many mics as unknowns + 1 (``solver__n_mics_used`` < ``solver__dimensions_used`` + 2).
-* **The rule** (:func:`support_cues` once per rows, :func:`apply_trust` per gate): where the gate substituted the model's estimate but the
+* **The rule** (``support_cues`` once per rows, ``apply_trust`` per gate): where the gate substituted the model's estimate but the
   model is outside its support (its input is novel, its own estimate lies outside the training
   hull, or the solver's consistent fix lies outside it), the solver's fix is kept and the row
   says why. With no solver fix and the model outside its support, the method abstains (NaN).
@@ -335,7 +335,7 @@ def apply_trust(decision: GateDecision, solver_xy: np.ndarray, cues: SupportCues
     solver_xy : numpy.ndarray
         (B, 2) the solver's estimates, m.
     cues : SupportCues
-        The rows checked against the training support (:func:`support_cues`).
+        The rows checked against the training support (``support_cues``).
     """
     distrusted = cues.distrust != REASON_GATE
     solver_fix = np.isfinite(solver_xy).all(axis=1)

@@ -1,7 +1,7 @@
 """Log a finished run directory to the experiment tracker (MLflow); mark it when the tracker failed.
 
 A run writes everything to its run directory first (``metrics.json``, ``predictions.parquet``,
-``config_resolved.yaml``, ``plots/``); :func:`log_run_dir` then sends that directory to the tracker.
+``config_resolved.yaml``, ``plots/``); ``log_run_dir`` then sends that directory to the tracker.
 When the tracker fails, the directory keeps a ``TRACKING_PENDING.json`` marker and the warning names
 the command that uploads it later::
 
@@ -109,7 +109,7 @@ def log_run_dir(tracker: Any, run_dir: Path, parent_run_id: str | None = None) -
     Parameters
     ----------
     tracker : Tracker
-        The tracker plugin (see :class:`acoustlab.core.contracts.Tracker`).
+        The tracker plugin (see ``acoustlab.core.contracts.Tracker``).
     run_dir : pathlib.Path
         A run directory holding at least ``metrics.json``.
     parent_run_id : str, optional

@@ -29,7 +29,7 @@ def _quantile_with_failures(values: np.ndarray, q: float) -> float:
 
 
 def share_gross(errors_m: np.ndarray) -> float:
-    """Share of errors above :data:`GROSS_ERROR_M`; a failure (NaN or inf) counts as gross."""
+    """Share of errors above ``GROSS_ERROR_M``; a failure (NaN or inf) counts as gross."""
     return float(np.mean(~(np.asarray(errors_m, dtype=float) <= GROSS_ERROR_M)))
 
 
@@ -62,7 +62,7 @@ def error_summary(errors_m: np.ndarray) -> dict[str, float]:
 
 
 def errors_by_method(predictions: pd.DataFrame) -> dict[str, dict[str, float]]:
-    """:func:`error_summary` of every method's error column."""
+    """``error_summary`` of every method's error column."""
     return {m: error_summary(predictions[col.error_m(m)].to_numpy()) for m in col.methods_in(predictions.columns)}
 
 
@@ -207,7 +207,7 @@ PLACED_SHARES = (1.0, 0.99, 0.95, 0.91, 0.9, 0.8, 0.7, 0.6, 0.5)
 def risk_coverage(predictions: pd.DataFrame) -> list[dict[str, float]]:
     """Error of the gate's estimate among the events placed when only the lowest predicted errors are kept.
 
-    For each share in :data:`PLACED_SHARES`, events are placed in order of the error model's
+    For each share in ``PLACED_SHARES``, events are placed in order of the error model's
     prediction (lowest first); reported: the predicted-error threshold (m), the share placed, and
     p50 / p95 / p99 and the share > 5 m among the placed (failures count as infinite errors).
     """
@@ -304,7 +304,7 @@ def split_diagnostics_summary(split_diagnostics: list[dict[str, Any]], gate_name
     Parameters
     ----------
     split_diagnostics : list of dict
-        One entry per split, as :class:`~acoustlab.method.pipeline.MethodResult` has them.
+        One entry per split, as ``MethodResult`` has them.
     gate_name : str
         The configured gate's name (its ``gate=`` option).
     """

@@ -81,7 +81,7 @@ def paper_comparison(
 
     ``reference`` has ``source`` (what the paper measured it on), ``note`` (what differs here) and
     ``figures``: {dotted metrics path: the paper's value}. With the run's resolved ``config`` the
-    page also lists every deviation from the paper's method as written (:func:`deviations`).
+    page also lists every deviation from the paper's method as written (``deviations``).
     """
     rows = []
     for path, value in reference.get("figures", {}).items():

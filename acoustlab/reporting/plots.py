@@ -109,9 +109,9 @@ MIN_CIRCLE_FRACTION = 0.015
 
 
 def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column: str | None) -> None:
-    """Mics, trunks, true and gated positions of the first :data:`MAP_EVENTS` events, with conformal circles.
+    """Mics, trunks, true and gated positions of the first ``MAP_EVENTS`` events, with conformal circles.
 
-    Circles below :data:`MIN_CIRCLE_FRACTION` of the map are drawn at that size (dashed), and an
+    Circles below ``MIN_CIRCLE_FRACTION`` of the map are drawn at that size (dashed), and an
     inset shows the event with the median radius at true scale, so 0.3 m circles on a 70 m map are seen.
     """
     if len(site.tree_positions_m):
@@ -157,7 +157,7 @@ INSET_CORNERS = ((0.02, 0.02, 0.32, 0.32), (0.66, 0.02, 0.32, 0.32), (0.02, 0.66
 
 
 def inset_corner(ax: plt.Axes, mics_xy: np.ndarray, points_xy: np.ndarray) -> tuple[float, float, float, float]:
-    """The corner of :data:`INSET_CORNERS` covering no microphone and the fewest other points (call after the limits are set)."""
+    """The corner of ``INSET_CORNERS`` covering no microphone and the fewest other points (call after the limits are set)."""
     (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
 
     def covered(xy: np.ndarray, box: tuple[float, float, float, float]) -> int:

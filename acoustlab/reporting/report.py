@@ -244,7 +244,7 @@ def relative_rows(runs: list[RunResult], method: str = "gate") -> pd.DataFrame:
 
 
 def model_relative_rows(runs: list[RunResult]) -> pd.DataFrame:
-    """:func:`relative_rows` for the point model: where feature groups show (the gate mostly keeps the solver's fix)."""
+    """``relative_rows`` for the point model: where feature groups show (the gate mostly keeps the solver's fix)."""
     return relative_rows(runs, method="model")
 
 
@@ -391,11 +391,11 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
     Parameters
     ----------
     runs : list of RunResult
-        The runs (from :func:`collect_runs`); must not be empty.
+        The runs (from ``collect_runs``); must not be empty.
     out_dir : pathlib.Path
         Output directory (created).
     title : str, optional
-        The report's heading (default: the site(s) and the options that vary, :func:`default_title`).
+        The report's heading (default: the site(s) and the options that vary, ``default_title``).
 
     Returns
     -------

@@ -80,7 +80,7 @@ def require_site(cfg: DictConfig) -> None:
 
 @dataclass
 class BuiltRun:
-    """Everything a run needs, built and checked from its config (see :func:`build_run`)."""
+    """Everything a run needs, built and checked from its config (see ``build_run``)."""
 
     site: Any
     simulator: Any
@@ -137,7 +137,7 @@ def check_selective(selective: DictConfig, n_events: int) -> None:
     ConfigError
         For ``gross_m`` not a positive number, ``delta`` or ``epsilon`` outside (0, 1), or (when
         enabled) a certificate that needs more calibration events than the run simulates
-        (n ≥ log ε / log(1 − δ); see :func:`acoustlab.toolkit.conformal.selective_threshold`).
+        (n ≥ log ε / log(1 − δ); see ``acoustlab.toolkit.conformal.selective_threshold``).
     """
     gross_m, delta, epsilon = float(selective.gross_m), float(selective.delta), float(selective.epsilon)
     if not (np.isfinite(gross_m) and gross_m > 0):
@@ -156,11 +156,11 @@ def check_selective(selective: DictConfig, n_events: int) -> None:
 def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRun:
     """Build and check every plugin of a config without running anything expensive (the preflight).
 
-    Everything that can be wrong in a config fails here with a :class:`ConfigError` or
-    :class:`DataError` naming the field: site files, simulator settings and call/noise pools,
+    Everything that can be wrong in a config fails here with a ``ConfigError`` or
+    ``DataError`` naming the field: site files, simulator settings and call/noise pools,
     plugin options, feature groups a solver or gate needs, conformal levels, TabPFN weights,
     sharding settings. Types of the non-plugin nodes were checked when Hydra composed the config
-    (:mod:`acoustlab.run.schema`).
+    (``acoustlab.run.schema``).
     """
     require_site(cfg)
     check_selective(cfg.pipeline.selective, int(cfg.data.n_events))
@@ -252,7 +252,7 @@ def prepare_data(cfg: DictConfig, built: BuiltRun | None = None) -> RunData | No
     cfg : omegaconf.DictConfig
         The composed config.
     built : BuiltRun, optional
-        The checked plugins (:func:`build_run`); built from ``cfg`` when not given.
+        The checked plugins (``build_run``); built from ``cfg`` when not given.
 
     Returns
     -------
@@ -294,7 +294,7 @@ def run_experiment(
     choices : dict, optional
         The chosen option of each config group (Hydra's runtime choices).
     parent_run_id : str, optional
-        The sweep's parent run in the tracker (set by :class:`acoustlab.run.sweep.SweepTrackingCallback`).
+        The sweep's parent run in the tracker (set by ``acoustlab.run.sweep.SweepTrackingCallback``).
     run_name : str, optional
         The run's name in the tracker (the CLI names it by the overrides that vary; default ``<site>-<model>``).
 

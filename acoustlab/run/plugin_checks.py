@@ -1,13 +1,13 @@
 """Behavioural checks of plugins, one generator per contract (in the spirit of scikit-learn's ``check_estimator``).
 
-:func:`plugin_checks` yields ``(group, option, check name, check)`` for every YAML option of every
+``plugin_checks`` yields ``(group, option, check name, check)`` for every YAML option of every
 plugin group under ``conf/``; each check builds the option as a run would and tests what it
 *does*: a simulator's output does not depend on chunking, a feature set produces exactly the
 columns its catalog names, a solver is exact on a noise-free scene, a gate only ever returns one
 of its two inputs and learns on a copy, conformal radii grow with the level and cover on
 exchangeable data, learned models survive ``clone()``. A new plugin is checked the moment its
 YAML exists. A check raises ``AssertionError`` naming the plugin and what it got wrong, or
-:class:`CheckSkipped` when it cannot run here (e.g. model weights are missing).
+``CheckSkipped`` when it cannot run here (e.g. model weights are missing).
 
 The checks use small, fast scenes on the embedded frozen-lake site (3 mics) and, where the
 number of mics matters, the forest site (6 mics).

@@ -158,7 +158,7 @@ class _TypedRoot:
     expected_duration: str | None = None
 
 
-#: The root: the typed nodes above plus one free-form node per plugin group in :data:`FREE_FORM_GROUPS`.
+#: The root: the typed nodes above plus one free-form node per plugin group in ``FREE_FORM_GROUPS``.
 AcoustlabConfig = make_dataclass("AcoustlabConfig", [(g, Any, None) for g in FREE_FORM_GROUPS], bases=(_TypedRoot,))
 
 

@@ -1,6 +1,6 @@
 """Sweeps (Hydra multirun): one parent run in the tracker with the jobs as children, and a report.
 
-:class:`SweepTrackingCallback` is registered in ``conf/config.yaml`` under ``hydra.callbacks``. Before
+``SweepTrackingCallback`` is registered in ``conf/config.yaml`` under ``hydra.callbacks``. Before
 the jobs start it opens the parent run and writes its id to ``<sweep dir>/.acoustlab_sweep.json``;
 each job (in this process, a joblib worker or a SLURM node: the sweep dir is on the shared file
 system) reads that file and logs its run as a child. After the jobs it writes the sweep's report
@@ -55,7 +55,7 @@ def sweep_jobs(config: DictConfig) -> list[list[str]]:
 
 
 def preflight_jobs(jobs: list[list[str]]) -> list[str]:
-    """Build and check every job's config (:func:`acoustlab.run.app.build_run`) without running it.
+    """Build and check every job's config (``acoustlab.run.app.build_run``) without running it.
 
     Returns
     -------

@@ -1,7 +1,7 @@
 """Detector tables in: Raven selection tables, BirdNET result tables, OpenSoundscape score tables.
 
 Every reader returns the same table, one row per detection on one recorder, in season seconds
-(:class:`acoustlab.season.recorder_files.RecorderFiles`):
+(``acoustlab.season.recorder_files.RecorderFiles``):
 
 ``recorder_id, start_s, end_s, low_hz, high_hz, label, score, source``
 

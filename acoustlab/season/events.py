@@ -43,7 +43,7 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
     Parameters
     ----------
     detections : pandas.DataFrame
-        :data:`acoustlab.season.detections.DETECTION_COLUMNS`, season seconds.
+        ``acoustlab.season.detections.DETECTION_COLUMNS``, season seconds.
     margin_s : float
         The array's largest travel time (plus a margin), s: the linkage distance and the clip's
         widening on each side.

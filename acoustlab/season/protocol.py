@@ -6,9 +6,9 @@ runs four stages (``protocol.stage``):
 ``fit``
     index the recordings (headers only), read the detector tables, group detections into events,
     fit the method once on the site's simulation and save it with its SHA-256
-    (:mod:`acoustlab.method.saved`);
+    (``acoustlab.method.saved``);
 ``localize``
-    place the events chunk by chunk (:mod:`acoustlab.season.stream`): every chunk with
+    place the events chunk by chunk (``acoustlab.season.stream``): every chunk with
     ``protocol.shard``/``protocol.n_shards`` given (a SLURM array task through Hydra's submitit
     launcher: ``-m protocol.shard=0,1,2,3``), or all of them over ``protocol.n_jobs`` local
     worker processes; finished chunks are never recomputed (a killed run resumes);
@@ -186,7 +186,7 @@ class SeasonLocalize:
             self.events(recordings, site)
 
     def run(self, *args: Any, **kwargs: Any) -> Any:
-        """Not an in-memory protocol: the app runs :meth:`run_season`."""
+        """Not an in-memory protocol: the app runs ``run_season``."""
         raise ConfigError("protocol=season streams its results; run it with python -m acoustlab season +site=NAME ...")
 
     # -- stages -----------------------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """Which recorder's file covers which absolute time, and clips cut by absolute time across files.
 
 A season is many files per recorder (an AudioMoth writes one file per hour, a Song Meter one per
-schedule slot), each starting at its own timestamp. :class:`RecorderFiles` indexes them from
+schedule slot), each starting at its own timestamp. ``RecorderFiles`` indexes them from
 
 - a table ``recorder_id, file, start_time`` (ISO 8601 times, e.g. ``2026-05-01T05:30:00``; a file
   may also have a ``channel``), or
@@ -11,7 +11,7 @@ schedule slot), each starting at its own timestamp. :class:`RecorderFiles` index
 
 Times inside a season are seconds since the season's origin (the earliest file start), a float64
 that keeps a resolution of nanoseconds over years. Only the audio headers are read to index;
-samples are read per clip (:meth:`RecorderFiles.read`), from as many files as the clip crosses: a
+samples are read per clip (``RecorderFiles.read``), from as many files as the clip crosses: a
 clip across a file boundary is stitched, a stretch no file covers is zeros and flagged (``gap``
 between two files, ``out_of_range`` before the first or after the last).
 """
@@ -219,14 +219,14 @@ class RecorderFiles:
         return cls(pd.DataFrame(rows))
 
     def save(self, path: Path) -> None:
-        """Write the index (files, recorders, start times, lengths) as Parquet; :meth:`load` reads it without opening any audio."""
+        """Write the index (files, recorders, start times, lengths) as Parquet; ``load`` reads it without opening any audio."""
         table = self.table.assign(start=self.table["start"].astype("datetime64[ns]"))
         atomic_write_bytes(path, table.to_parquet(index=False))
         atomic_write_bytes(path.with_suffix(".json"), json.dumps({"sample_rate_hz": self.sample_rate_hz}).encode())
 
     @classmethod
     def load(cls, path: Path) -> RecorderFiles:
-        """The index written by :meth:`save` (headers are not read again)."""
+        """The index written by ``save`` (headers are not read again)."""
         self = cls.__new__(cls)
         self._index(pd.read_parquet(path), float(json.loads(path.with_suffix(".json").read_text())["sample_rate_hz"]))
         return self

@@ -3,11 +3,11 @@
 A season's output folder holds
 
 ``files.parquet``
-    the recorders' files and their start times (:class:`~acoustlab.season.recorder_files.RecorderFiles`);
+    the recorders' files and their start times (``RecorderFiles``);
 ``events.parquet``
-    the events to place (:func:`~acoustlab.season.events.group_detections`);
+    the events to place (``group_detections``);
 ``method.joblib`` + ``method.sha256.json``
-    the method fitted once on the site's simulation (:mod:`acoustlab.method.saved`);
+    the method fitted once on the site's simulation (``acoustlab.method.saved``);
 ``season.json``
     what the parts were made from (digests of the events and the method, chunk sizes);
 ``parts/part-NNNNNN.parquet``
@@ -16,7 +16,7 @@ A season's output folder holds
 Chunk k is always events ``[k · chunk_events, (k + 1) · chunk_events)`` and is computed in batches
 of ``batch_events`` events, so the same chunk gives the same rows whichever shard or resumed run
 computes it. Shard s of n computes the chunks k with k mod n = s; a finished part is never
-recomputed; :func:`merge_parts` joins the parts in chunk order. Peak memory is one batch's audio
+recomputed; ``merge_parts`` joins the parts in chunk order. Peak memory is one batch's audio
 (``batch_events`` × mics × clip samples × 4 bytes) and its transforms, the rows of one chunk, and
 the fitted method: it does not grow with the season.
 """
@@ -144,7 +144,7 @@ def check_manifest(directory: Path, manifest: dict[str, Any], unknown: tuple[str
 
 
 def write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
-    """Write ``season.json`` after :func:`check_manifest` (parts of other inputs are never mixed)."""
+    """Write ``season.json`` after ``check_manifest`` (parts of other inputs are never mixed)."""
     check_manifest(directory, manifest)
     atomic_write_bytes(directory / MANIFEST, json.dumps(manifest, indent=2).encode())
 

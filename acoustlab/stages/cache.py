@@ -13,7 +13,7 @@ Every entry's ``manifest.json`` lists the SHA-256 of each of its files; a lookup
 truncated, bit-flipped or half-deleted entry is logged, discarded and rebuilt, never read. Files
 are made ``cache.file_mode`` (group-readable ``0644`` by default) when an entry is committed, so a
 cluster group can share one cache. A write that fails (disk full, quota, permissions) raises
-:class:`StorageError` naming the path and the free space.
+``StorageError`` naming the path and the free space.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def plugin_version(obj: Any) -> str:
     """A version string for a plugin's code: its class path, ``cache_version`` and a source digest.
 
     The digest covers the plugin's module and every acoustlab or plugins module it reaches through
-    imports (:func:`acoustlab.core.imports.import_closure`), so an edit to, say, the propagation
+    imports (``acoustlab.core.imports.import_closure``), so an edit to, say, the propagation
     physics a simulator uses invalidates the entries that simulator produced.
     """
     cls = obj if isinstance(obj, type) else type(obj)
@@ -94,7 +94,7 @@ class StorageError(AcoustlabError):
 
 
 def storage_error(path: Path, exc: BaseException) -> StorageError:
-    """A one-line :class:`StorageError` for a failed write of ``path``: what failed, where, and how much space is free."""
+    """A one-line ``StorageError`` for a failed write of ``path``: what failed, where, and how much space is free."""
     try:
         free = f"{shutil.disk_usage(_existing_parent(path)).free / 2**20:,.0f} MiB free"
     except OSError:
@@ -151,12 +151,12 @@ def _atomic_write(path: Path, write: Callable[[Any], None]) -> None:
 
 
 def atomic_save_npy(path: Path, array: np.ndarray) -> None:
-    """Write an .npy file so that ``path`` either does not exist or is complete (:class:`StorageError` when it cannot)."""
+    """Write an .npy file so that ``path`` either does not exist or is complete (``StorageError`` when it cannot)."""
     _atomic_write(path, lambda fh: np.save(fh, array))
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write bytes so that ``path`` either does not exist or is complete (:class:`StorageError` when it cannot)."""
+    """Write bytes so that ``path`` either does not exist or is complete (``StorageError`` when it cannot)."""
     _atomic_write(path, lambda fh: fh.write(data))
 
 
@@ -244,8 +244,8 @@ class StageCache:
     def building(self, stage: str, key: str) -> Iterator[None]:
         """Hold the entry's build lock (an exclusive POSIX lock on ``<key>.lock``; no-op when bypassed).
 
-        POSIX record locks (:func:`fcntl.lockf`) also work across nodes on NFS; on Lustre the file
-        system must be mounted with ``flock``. :meth:`get_or_build` looks the entry up again inside:
+        POSIX record locks (``fcntl.lockf``) also work across nodes on NFS; on Lustre the file
+        system must be mounted with ``flock``. ``get_or_build`` looks the entry up again inside:
         another job may have built it while this one waited.
         """
         if not self.enabled:

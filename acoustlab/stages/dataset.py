@@ -3,7 +3,7 @@
 Simulation streams chunk by chunk to ``<cache>/simulation/<key>/`` (audio as .npy, events as
 parquet) so memory stays bounded by one chunk; features are computed chunk by chunk from there
 and stored as one parquet table in ``<cache>/features/<key>/``. Keys hash exactly the config that
-determines a stage plus the plugin code version (:func:`acoustlab.stages.cache.plugin_version`).
+determines a stage plus the plugin code version (``acoustlab.stages.cache.plugin_version``).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ class Dataset:
     Attributes
     ----------
     events : pandas.DataFrame
-        One row per event (see :data:`acoustlab.core.types.EVENT_COLUMNS`).
+        One row per event (see ``acoustlab.core.types.EVENT_COLUMNS``).
     features : pandas.DataFrame
         One row per event, columns ``group__name``.
     dataset_hash : str

@@ -1,4 +1,4 @@
-"""Build and validate :class:`~acoustlab.core.types.Site` objects from configs and CSV files.
+"""Build and validate ``Site`` objects from configs and CSV files.
 
 A site config holds either inline mic coordinates (``mics``) or a CSV (``mics_csv``) with
 columns ``x_m, y_m, z_m`` (``mic_id`` optional), and optionally a tree CSV (``trees_csv``) with

@@ -114,7 +114,7 @@ def add_solver_columns(
 ) -> pd.DataFrame:
     """Run the solver on every event and append its estimate and diagnostics as group ``solver``.
 
-    With ``plausible_margin_fraction`` a fix outside the plausible region (see :func:`bound_fixes`)
+    With ``plausible_margin_fraction`` a fix outside the plausible region (see ``bound_fixes``)
     is never emitted as a number: its position is NaN and ``solver__failure`` says why.
     """
     result = solver.solve(solver_inputs_for(features, events, site))

@@ -14,7 +14,7 @@ from acoustlab.core.resources import resolve_path
 
 
 def _read(path_text: str) -> tuple[np.ndarray, float]:
-    """(S, C) float32 samples and the file's rate; a :class:`DataError` naming the file when it cannot be read."""
+    """(S, C) float32 samples and the file's rate; a ``DataError`` naming the file when it cannot be read."""
     path = resolve_path(path_text)
     try:
         data, rate = sf.read(str(path), dtype="float32", always_2d=True)

@@ -88,7 +88,7 @@ def gcc(
         whitened up to the level of the call's bins), or plain cross-correlation.
     band_hz : tuple of float or numpy.ndarray, optional
         Keep only this (low, high) band of the cross-spectrum, in Hz; an (E, 2) array gives every
-        event its own band (see :func:`event_band_hz`).
+        event its own band (see ``event_band_hz``).
     upsample : int
         Lag-resolution factor: the cross-spectrum is zero-padded so lags are spaced by
         1/(upsample × sample_rate_hz), which shrinks the bias of parabolic peak interpolation.
@@ -148,7 +148,7 @@ def gcc(
 
 @dataclass(frozen=True)
 class GccLengths:
-    """Transform lengths and the lag grid of :func:`gcc` (shared with the GPU path, :mod:`acoustlab.toolkit.gcc_torch`).
+    """Transform lengths and the lag grid of ``gcc`` (shared with the GPU path, ``acoustlab.toolkit.gcc_torch``).
 
     Attributes
     ----------
@@ -174,7 +174,7 @@ class GccLengths:
 def gcc_lengths(
     n_samples: int, sample_rate_hz: float, upsample: int, max_lag_s: float | None, band_hz=None, band_limited: bool = False
 ) -> GccLengths:
-    """The lengths :func:`gcc` uses for ``n_samples``-long signals (see its parameters)."""
+    """The lengths ``gcc`` uses for ``n_samples``-long signals (see its parameters)."""
     max_lag_samples = n_samples if max_lag_s is None else min(n_samples, int(np.ceil(max_lag_s * sample_rate_hz)) + 2)
     # twice the signal length, always: a (β-)PHAT weighting depends on the spectral resolution (a transform
     # only as long as the lags need, signal + largest lag, was tried: more gross first-stage errors on the frozen lake)
@@ -213,7 +213,7 @@ def _band_selection(band_hz: tuple[float, float] | np.ndarray | None, n_fft: int
 def _band_spectra(spectra: np.ndarray, in_band: slice | np.ndarray | None) -> tuple[slice, np.ndarray]:
     """The bins of (E, M, F) spectra that any event's band holds, as a slice, and the spectra there, zero outside each event's band.
 
-    ``in_band`` as :func:`_band_selection` gives it. conj(X_i) X_j of these is the cross-spectrum of
+    ``in_band`` as ``_band_selection`` gives it. conj(X_i) X_j of these is the cross-spectrum of
     pair (i, j) on the slice's bins (the same products as the whole spectra's, masked); every other
     bin of it is zero.
     """
@@ -230,7 +230,7 @@ def _band_spectra(spectra: np.ndarray, in_band: slice | np.ndarray | None) -> tu
 
 
 def weighted_spectra(audio: np.ndarray, weighting: str, beta: float) -> np.ndarray:
-    """(E, M, F) spectra of ``audio`` over twice its length, (β-)PHAT weighted per mic (see :func:`gcc`)."""
+    """(E, M, F) spectra of ``audio`` over twice its length, (β-)PHAT weighted per mic (see ``gcc``)."""
     spectra = sfft.rfft(audio, n=next_fast_len(2 * audio.shape[-1]), axis=-1)
     if weighting != "none":  # in place: the same operations as out-of-place ones, without three spectrum-sized temporaries
         magnitude = np.abs(spectra)

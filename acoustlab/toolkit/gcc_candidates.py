@@ -3,7 +3,7 @@
 For each pair (i, j) the correlation is searched only within that pair's physical lag window
 ±(d_ij / c_max + margin); the K highest local maxima are kept (sub-sample lag by parabolic
 interpolation on an upsampled correlation), with their heights and the peak-to-sidelobe ratio.
-Results are kept in the batch's own cache (:meth:`RecordingBatch.derived`), so several feature
+Results are kept in the batch's own cache (``RecordingBatch.derived``), so several feature
 groups on one batch compute the GCC once.
 """
 
@@ -62,11 +62,11 @@ def pair_candidates(
     """The K best GCC peaks of every mic pair of every event (see the module docstring).
 
     ``band_limited`` samples the correlation at ``upsample`` × twice the band's upper edge (see
-    :func:`acoustlab.toolkit.dsp.gcc`). ``device="cuda"`` computes the same on a GPU with torch
-    (:mod:`acoustlab.toolkit.gcc_torch`: equal up to single-precision rounding); ``"cpu"`` is the
+    ``acoustlab.toolkit.dsp.gcc``). ``device="cuda"`` computes the same on a GPU with torch
+    (``acoustlab.toolkit.gcc_torch``: equal up to single-precision rounding); ``"cpu"`` is the
     numpy/SciPy path; ``device_memory_gb`` bounds the GPU memory of one pass of events there.
     ``search="coarse"`` (CPU, ``upsample=2``, not band-limited) searches the peaks on the 1/fs grid
-    and refines them on the 1/(2 fs) grid (:mod:`acoustlab.toolkit.gcc_coarse`: cheaper, and nearly always the
+    and refines them on the 1/(2 fs) grid (``acoustlab.toolkit.gcc_coarse``: cheaper, and nearly always the
     same dominant lag).
     """
     check_search(search, upsample, band_limited, device)

@@ -1,16 +1,16 @@
 """GCC peak candidates searched on the 1/fs lag grid and refined on the default 1/(2 fs) grid (``features.gcc.search=coarse``).
 
-The default GCC (:func:`acoustlab.toolkit.gcc_candidates.pair_candidates`, ``upsample=2``) inverse
+The default GCC (``acoustlab.toolkit.gcc_candidates.pair_candidates``, ``upsample=2``) inverse
 transforms every pair's cross-spectrum at twice the sampling rate and picks the K highest local
 maxima of that grid. Here the inverse transforms run at the sampling rate (half as long), and only
 the neighbourhoods of likely peaks are brought to the finer grid:
 
-1. the correlation on the 1/fs grid (:func:`acoustlab.toolkit.dsp.gcc` with ``upsample=1``), halved
+1. the correlation on the 1/fs grid (``acoustlab.toolkit.dsp.gcc`` with ``upsample=1``), halved
    to the default's amplitude (an inverse transform half as long);
 2. per pair window, the M highest local maxima, and the M highest local maxima of the sums of
    neighbouring samples (a peak half-way between two samples, neither of them a maximum), each
    centred on a sample, with the window's sum of squares, in one compiled pass
-   (:func:`acoustlab.toolkit.window_peaks.window_peaks`; ties go to the lower lag);
+   (``acoustlab.toolkit.window_peaks.window_peaks``; ties go to the lower lag);
 3. the two half-sample values beside each centre by band-limited interpolation: a Kaiser-windowed
    sinc (the cross-spectrum is zero above the band, so the correlation is a band-limited function
    of lag); with the centre and its two neighbours that gives the five samples of the fine grid
@@ -44,7 +44,7 @@ TAPS = 32
 
 
 def check_search(search: str, upsample: int, band_limited: bool = False, device: str = "cpu") -> str:
-    """``search`` if the GCC can search that way with these settings, else a :class:`ConfigError` naming ``features.gcc.search``.
+    """``search`` if the GCC can search that way with these settings, else a ``ConfigError`` naming ``features.gcc.search``.
 
     ``fine`` always works; ``coarse`` refines on the grid of ``upsample=2``, with the CPU path and
     the main band (not band-limited).
@@ -103,9 +103,9 @@ def coarse_pair_candidates(
     n_candidates : int
         Peaks kept per pair (K).
     weighting, band_hz, beta
-        As :func:`acoustlab.toolkit.dsp.gcc`.
+        As ``acoustlab.toolkit.dsp.gcc``.
     spectra_cache : dict, optional
-        Shared weighted spectra of ``audio`` (see :func:`acoustlab.toolkit.dsp.gcc`).
+        Shared weighted spectra of ``audio`` (see ``acoustlab.toolkit.dsp.gcc``).
 
     Returns
     -------
@@ -147,7 +147,7 @@ def coarse_pair_candidates(
 
 def _centres(seg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Samples (E, C) of a window to refine around (the top local maxima, then the top maxima of two-sample sums on their
-    higher sample), which of them are maxima, and the window's sum of squares (E,) (:func:`window_peaks`)."""
+    higher sample), which of them are maxima, and the window's sum of squares (E,) (``window_peaks``)."""
     from acoustlab.toolkit.window_peaks import window_peaks  # numba: imported by the first coarse search only
 
     n = seg.shape[-1]
@@ -179,7 +179,7 @@ def _refine(rows: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> tuple[n
 
 def _fine_samples(rows: np.ndarray, centre: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """(E, P, C, 5) the fine grid around each centre of ``rows`` (E, P, L): values at centre − 1, − ½, 0, + ½, + 1 (samples beyond the
-    ends clamped, as :func:`half_samples`).
+    ends clamped, as ``half_samples``).
 
     Both half samples and the three samples lie in the taps + 1 samples from centre − taps/2 on: one gather of those windows (a view
     of every window, indexed), not three gathers through index arrays; centres whose window crosses an end are gathered with clamping.

@@ -1,7 +1,7 @@
 """GCC peak candidates computed with torch, for a GPU: the CPU path's computation, batched over pairs.
 
-:func:`acoustlab.toolkit.gcc_candidates.pair_candidates` with ``device="cuda"`` lands here. The
-steps are those of :func:`acoustlab.toolkit.dsp.gcc` and the CPU peak picking, written as whole-
+``acoustlab.toolkit.gcc_candidates.pair_candidates`` with ``device="cuda"`` lands here. The
+steps are those of ``acoustlab.toolkit.dsp.gcc`` and the CPU peak picking, written as whole-
 batch tensor operations so that a GPU runs them without a Python loop over pairs:
 
 1. one real FFT per mic over twice the signal length, (β-)PHAT weighted per mic (floor 10⁻⁶ of
@@ -19,8 +19,8 @@ the heights of two candidates are not within that rounding of each other. The
 lags themselves are assembled on the host in double precision exactly as the CPU path does.
 
 The events go through in passes of as many as fit ``memory_gb`` of GPU memory (an estimate of the
-pass' largest tensors, :func:`events_per_pass`), so a large feature chunk does not run a small GPU
-out of memory; a GPU that still runs out stops with a :class:`ConfigError` naming the setting.
+pass' largest tensors, ``events_per_pass``), so a large feature chunk does not run a small GPU
+out of memory; a GPU that still runs out stops with a ``ConfigError`` naming the setting.
 
 torch is an optional dependency (``pip install -e ".[tabpfn]"`` brings it); it is imported only
 when this path is asked for.
@@ -37,7 +37,7 @@ from acoustlab.toolkit.dsp import GccLengths, _band_selection, gcc_lengths
 
 
 def check_device(device: str) -> str:
-    """``device`` if the GCC can run there, else a :class:`ConfigError` that says what is missing.
+    """``device`` if the GCC can run there, else a ``ConfigError`` that says what is missing.
 
     ``cpu`` always works; ``cuda`` / ``cuda:N`` need torch with a visible CUDA GPU.
     """
@@ -65,7 +65,7 @@ def check_device(device: str) -> str:
 
 
 def check_memory_gb(memory_gb: float) -> float:
-    """``memory_gb`` as a float if it is a usable bound (> 0 GiB), else a :class:`ConfigError` naming ``features.gcc.device_memory_gb``."""
+    """``memory_gb`` as a float if it is a usable bound (> 0 GiB), else a ``ConfigError`` naming ``features.gcc.device_memory_gb``."""
     value = float(memory_gb)
     if not value > 0:
         raise ConfigError(f"features.gcc.device_memory_gb must be > 0; got {memory_gb}")
@@ -109,11 +109,11 @@ def pair_candidates_torch(
     n_candidates : int
         Peaks kept per pair (K).
     weighting, band_hz, upsample, beta, band_limited
-        As :func:`acoustlab.toolkit.dsp.gcc`.
+        As ``acoustlab.toolkit.dsp.gcc``.
     device : str
         A torch device (``cuda``, ``cuda:1``; ``cpu`` runs this path on the CPU, for tests).
     memory_gb : float
-        GPU memory, GiB, that one pass of events may take (see :func:`events_per_pass`).
+        GPU memory, GiB, that one pass of events may take (see ``events_per_pass``).
 
     Returns
     -------
@@ -248,7 +248,7 @@ def _correlation(
 
 
 def _band_mask(band_hz: Any, n_fft: int, n_kept: int, sample_rate_hz: float, dev: Any) -> Any:
-    """(1, 1, F) or (E, 1, F) float mask of the bins in the band (the CPU path's :func:`acoustlab.toolkit.dsp._band_selection`)."""
+    """(1, 1, F) or (E, 1, F) float mask of the bins in the band (the CPU path's ``acoustlab.toolkit.dsp._band_selection``)."""
     import torch
 
     selection = _band_selection(band_hz, n_fft, sample_rate_hz)

@@ -2,7 +2,7 @@
 
 Conventions follow the project's physics notes: time factor e^{−iωt}, k = 2πf/c; R1 is the
 direct path, R2 the path via the ground image. Functions return transfer functions in that
-convention; :func:`to_fft_convention` converts to NumPy's FFT convention (e^{−i2πft}).
+convention; ``to_fft_convention`` converts to NumPy's FFT convention (e^{−i2πft}).
 All inputs in SI units (Hz, m, m/s) except flow resistivity in kPa·s·m⁻² as tabulated.
 """
 
@@ -149,7 +149,7 @@ def cylinder_scattering_table(ka_max: float = 150.0, n_ka: int = 400, n_angles: 
 
 
 def cylinder_scattering_magnitude(ka: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
-    """|A(φ, ka)| by bilinear interpolation in (log ka, φ) of :func:`cylinder_scattering_table`."""
+    """|A(φ, ka)| by bilinear interpolation in (log ka, φ) of ``cylinder_scattering_table``."""
     ka_grid, phi_grid, table = cylinder_scattering_table()
     mag = np.abs(table)
     lk = np.log(np.clip(ka, ka_grid[0], ka_grid[-1]))

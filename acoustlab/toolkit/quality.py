@@ -3,8 +3,8 @@
 A field recorder fails in a handful of ways that all produce numbers a TDOA solver happily
 turns into a position hundreds of metres away: a dead channel (digital zeros or a constant), a
 file cut short (the event lies partly or wholly past its end, or before its start), non-finite
-samples from a damaged file, and clipping. :func:`clip_quality` names each of these per clip so
-the caller can flag the event instead of localizing it from zeros. :func:`duplicate_channels`
+samples from a damaged file, and clipping. ``clip_quality`` names each of these per clip so
+the caller can flag the event instead of localizing it from zeros. ``duplicate_channels``
 finds mics whose clips are the same samples (one channel wired or listed twice): their TDOA is 0
 whatever the source, and every fix collapses onto one point with a radius of 0.
 """
@@ -64,7 +64,7 @@ def clip_quality(
         (length,) float32; samples outside the recording and non-finite samples are 0, the rest
         at their true offset (never shifted).
     reasons : list of str
-        Members of :data:`QUALITY_REASONS` that apply; empty for a good clip.
+        Members of ``QUALITY_REASONS`` that apply; empty for a good clip.
     """
     clip = np.zeros(length, dtype=np.float32)
     lo, hi = max(start, 0), min(start + length, signal.size)

@@ -14,7 +14,7 @@ r_0 = |p|, squaring r_j = r_0 + d_j gives −2 q_j·p − 2 d_j r_0 = d_j² − 
   in r_0 (up to two roots, as in 2-D).
 
 Each candidate is polished by Levenberg–Marquardt on all range differences (3 unknowns), batched.
-Hand-written for the same reason as :mod:`acoustlab.toolkit.tdoa`: SciPy solves one problem per call.
+Hand-written for the same reason as ``acoustlab.toolkit.tdoa``: SciPy solves one problem per call.
 """
 
 from __future__ import annotations

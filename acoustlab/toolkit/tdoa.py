@@ -17,7 +17,7 @@ def solver_inputs(inputs: SolverInputs, own_height_m: float | None = None) -> tu
     Parameters
     ----------
     inputs : SolverInputs
-        The batch (see :class:`acoustlab.core.contracts.SolverInputs`).
+        The batch (see ``acoustlab.core.contracts.SolverInputs``).
     own_height_m : float, optional
         The solver's own configured source height, m; it takes precedence over
         ``inputs.source_height_m``; with neither, the mean mic height is assumed.

@@ -1,19 +1,19 @@
 """The highest local maxima of a correlation window in one pass (compiled with numba), for the GCC's coarse search.
 
-:mod:`acoustlab.toolkit.gcc_coarse` refines, per pair window, the M highest local maxima of the
+``acoustlab.toolkit.gcc_coarse`` refines, per pair window, the M highest local maxima of the
 correlation and the M highest local maxima of its two-sample sums, and reports the window's RMS.
 In numpy that takes some 25 passes over the window (the two peak masks, a masked copy for each,
 two ``argpartition`` selections, a double-precision square for the RMS), a large share of a coarse
-event's time. :func:`window_peaks` does it in one pass per row, keeping the M best of each kind in
+event's time. ``window_peaks`` does it in one pass per row, keeping the M best of each kind in
 a small sorted buffer.
 
 Written by hand because no library selects the top-M local maxima of a sequence without
 materialising the peak mask and a masked copy (``scipy.signal.find_peaks`` treats plateaus
 differently and returns every peak; ``numpy.argpartition`` needs the masked copy). The peak rule is
-:func:`acoustlab.toolkit.dsp.local_maxima`'s (≥ the left neighbour, > the right one, edges allowed);
+``acoustlab.toolkit.dsp.local_maxima``'s (≥ the left neighbour, > the right one, edges allowed);
 ties are resolved deterministically: higher value first, the lower index first among equal values.
 
-This module imports numba; :mod:`acoustlab.toolkit.gcc_coarse` imports it on its first coarse search
+This module imports numba; ``acoustlab.toolkit.gcc_coarse`` imports it on its first coarse search
 only. The compiled kernel is cached beside this module (``cache=True``): it compiles once per
 installation.
 """
@@ -27,7 +27,7 @@ import numpy as np
 
 
 class WindowPeaks(NamedTuple):
-    """What :func:`window_peaks` finds in each row of a window (E rows).
+    """What ``window_peaks`` finds in each row of a window (E rows).
 
     Attributes
     ----------

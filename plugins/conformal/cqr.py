@@ -10,8 +10,8 @@ coverage ≥ α over exchangeable source positions. Quantile crossings are remov
 running maximum over increasing levels (rearrangement, Chernozhukov et al. 2010), which keeps
 coverage and makes radii grow with the level.
 
-The pipeline (:mod:`acoustlab.method.pipeline`) sees ``needs_quantiles`` and calls
-:meth:`ConformalizedQuantile.fit_predict_quantiles` out-of-fold over training positions for the
+The pipeline (``acoustlab.method.pipeline``) sees ``needs_quantiles`` and calls
+``ConformalizedQuantile.fit_predict_quantiles`` out-of-fold over training positions for the
 calibration quantiles and on all training rows for the test quantiles, on the error model's
 features. Without quantiles (``quantiles=None``) the scorer falls back to ê for every level,
 which is ``fixed``.
@@ -69,7 +69,7 @@ class ConformalizedQuantile:
 
     @staticmethod
     def predict_quantiles(fitted: Any, x_predict: pd.DataFrame, levels: list[float]) -> np.ndarray:
-        """(n_predict, L) error quantiles, m, from :meth:`fit_quantiles`' model(s)."""
+        """(n_predict, L) error quantiles, m, from ``fit_quantiles``' model(s)."""
         if isinstance(fitted, list):
             return np.column_stack([model.predict(x_predict) for model in fitted]).astype(float)
         return np.asarray(fitted.predict(x_predict), dtype=float).reshape(len(x_predict), len(levels))

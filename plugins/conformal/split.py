@@ -58,7 +58,7 @@ class SplitConformal:
         scales or bins anything (None: no clipping).
     calibration_unit : {"event", "position"}
         ``event``: the usual quantile over calibration events. ``position``: a guarantee over
-        source positions (:func:`acoustlab.toolkit.conformal.grouped_conformal_quantile`), for
+        source positions (``acoustlab.toolkit.conformal.grouped_conformal_quantile``), for
         calibration on a few field playback spots whose events are not exchangeable across spots.
     """
 

@@ -22,7 +22,7 @@ class _GccGroup:
 
     The settings come as one mapping ``gcc`` (``features.gcc`` in the config, so the three groups
     cannot drift apart) and/or as keyword arguments, which take precedence. The GCC itself is
-    computed once per batch and kept in the batch's cache (:meth:`RecordingBatch.derived`).
+    computed once per batch and kept in the batch's cache (``RecordingBatch.derived``).
 
     Parameters
     ----------
@@ -33,7 +33,7 @@ class _GccGroup:
     max_lag_margin_s : float
         Lag window margin, s, beyond mic distance over the fastest sound speed.
     weighting : {"phat", "beta_phat", "none"}
-        Cross-spectrum weighting (see :func:`acoustlab.toolkit.dsp.gcc`).
+        Cross-spectrum weighting (see ``acoustlab.toolkit.dsp.gcc``).
     beta : float
         β-PHAT exponent in [0, 1] (used with ``weighting="beta_phat"``).
     upsample : int
@@ -50,7 +50,7 @@ class _GccGroup:
     search : {"fine", "coarse"}
         ``fine``: the peaks of the 1/(2 fs) lag grid (default). ``coarse``: searched on the 1/fs
         grid and refined on the 1/(2 fs) grid by band-limited interpolation, cheaper on the
-        CPU with nearly the same first-stage fixes (:mod:`acoustlab.toolkit.gcc_coarse`); for the CPU
+        CPU with nearly the same first-stage fixes (``acoustlab.toolkit.gcc_coarse``); for the CPU
         path with ``upsample: 2``. Not in the default config; set, it is part of the key.
     """
 

@@ -27,7 +27,7 @@ def _hilbert_magnitude(audio: np.ndarray, sample_rate_hz: float, band_hz: tuple[
 
     The 4th-order Butterworth band-pass applied forward and backward is its squared magnitude
     response; the analytic signal keeps the positive frequencies, doubled. Both are one product
-    with the recording's spectrum (zero-padded by :data:`ENVELOPE_PAD_S`), followed by one inverse
+    with the recording's spectrum (zero-padded by ``ENVELOPE_PAD_S``), followed by one inverse
     transform: the same envelope as ``sosfiltfilt`` then ``scipy.signal.hilbert`` away from the
     clip's first and last 50 ms (which those pad differently), at half the cost; in single
     precision, a third of that again.

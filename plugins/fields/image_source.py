@@ -48,7 +48,7 @@ _ROOM_MARGIN_M = 5.0
 
 
 class ImageSourceField:
-    """Labelled events rendered with pyroomacoustics (a :class:`acoustlab.core.contracts.FieldSource`).
+    """Labelled events rendered with pyroomacoustics (a ``acoustlab.core.contracts.FieldSource``).
 
     Parameters
     ----------

@@ -59,12 +59,12 @@ def build_stimuli(rng: np.random.Generator, sample_rate_hz: float, region: str, 
 
 
 class PlaybackStandIn:
-    """Field-playback stand-in (a :class:`acoustlab.core.contracts.FieldSource`).
+    """Field-playback stand-in (a ``acoustlab.core.contracts.FieldSource``).
 
     Parameters
     ----------
     simulator : mapping
-        Keyword arguments of :class:`plugins.simulators.outdoor.OutdoorSimulator` for the field
+        Keyword arguments of ``plugins.simulators.outdoor.OutdoorSimulator`` for the field
         renders (impairments on, perturbations set).
     n_positions : int
         Number of fixed loudspeaker positions K.

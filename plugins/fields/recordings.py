@@ -17,13 +17,13 @@ OpenSoundscape layout (so its users can switch)
 
 Unknown true positions are NaN; events without a ``position_id`` each get their own.
 
-Checks. :meth:`RecordingFolder.validate` (run by the preflight, before any simulation) reads the
+Checks. ``RecordingFolder.validate`` (run by the preflight, before any simulation) reads the
 tables and the audio files' headers only: numbers where numbers belong, unique event ids, files
 that exist inside ``audio_dir``, readable headers, enough channels, events no longer than
 ``max_event_s``. Problems of the samples themselves are per clip and do not stop a run:
-:meth:`RecordingFolder.load` flags each event (``quality_flags``, e.g. ``"mic 2: dead"``) whose
+``RecordingFolder.load`` flags each event (``quality_flags``, e.g. ``"mic 2: dead"``) whose
 clip on some mic is out of the file, truncated, non-finite, dead or clipped
-(:mod:`acoustlab.toolkit.quality`); flagged events stay in the predictions and are left out of
+(``acoustlab.toolkit.quality``); flagged events stay in the predictions and are left out of
 summaries, and a mic dead in every event of a position sets that position's ``hardware_failure``.
 """
 
@@ -126,7 +126,7 @@ class RecordingFolder:
     allow_outside_audio_dir : bool
         Accept file names that resolve outside ``audio_dir`` (``../``, absolute paths, links).
     quality : dict, optional
-        :class:`acoustlab.toolkit.quality.QualityThresholds` fields (``dead_peak_to_peak``,
+        ``acoustlab.toolkit.quality.QualityThresholds`` fields (``dead_peak_to_peak``,
         ``clip_level``, ``clip_share``).
     recorder_sample_rate_hz : float, optional
         The rate the recorders were set to; every audio file's header must declare it (a file whose
@@ -416,7 +416,7 @@ class RecordingFolder:
         return tables + [self.audio_path(f) for f in self._audio_files(mics, events)]
 
     def load(self, site: Site) -> RecordingBatch:
-        """Cut every event from the recordings, flagging bad clips; see :class:`acoustlab.core.contracts.FieldSource`."""
+        """Cut every event from the recordings, flagging bad clips; see ``acoustlab.core.contracts.FieldSource``."""
         mics, events = self.validate(site)
         fs = self.sample_rate_hz
         pad = int(self.pad_s * fs)

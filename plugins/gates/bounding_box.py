@@ -24,7 +24,7 @@ class BoundingBoxGate(StatelessGate):
         self.margin_fraction = float(margin_fraction)
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
-        """See :class:`acoustlab.core.contracts.Gate`."""
+        """See ``acoustlab.core.contracts.Gate``."""
         low, high = bounding_box(site.mic_positions_m, self.margin_fraction)
         finite = np.isfinite(solver_position_m).all(axis=1)
         inside = finite & (solver_position_m >= low).all(axis=1) & (solver_position_m <= high).all(axis=1)

@@ -186,7 +186,7 @@ class HybridGate:
         }
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
-        """See :class:`acoustlab.core.contracts.Gate`."""
+        """See ``acoustlab.core.contracts.Gate``."""
         tau = self.tau_db if self.tau_db is not None else getattr(self, "tau_", None)
         if tau is None:
             raise DataError("the hybrid gate has no τ: set gate.tau_db or fit the gate on simulated events first")

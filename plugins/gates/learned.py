@@ -278,7 +278,7 @@ class LearnedGate:
         return prob
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
-        """See :class:`acoustlab.core.contracts.Gate`."""
+        """See ``acoustlab.core.contracts.Gate``."""
         prob = self.probability(solver_position_m, model_position_m, features, site)
         substitute = self._failed(solver_position_m, site) | (prob > self.threshold_)
         return GateDecision(np.where(substitute[:, None], model_position_m, solver_position_m), substitute)

@@ -13,7 +13,7 @@ class SolverOnlyGate(StatelessGate):
     """Keep the solver's estimate everywhere (the model's only where the solver gave none)."""
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
-        """See :class:`acoustlab.core.contracts.Gate`."""
+        """See ``acoustlab.core.contracts.Gate``."""
         missing = ~np.isfinite(solver_position_m).all(axis=1)
         return GateDecision(np.where(missing[:, None], model_position_m, solver_position_m), missing)
 
@@ -22,5 +22,5 @@ class ModelOnlyGate(StatelessGate):
     """Take the point model's estimate everywhere."""
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
-        """See :class:`acoustlab.core.contracts.Gate`."""
+        """See ``acoustlab.core.contracts.Gate``."""
         return GateDecision(np.asarray(model_position_m, dtype=float).copy(), np.ones(len(model_position_m), dtype=bool))

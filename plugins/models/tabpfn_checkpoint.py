@@ -28,7 +28,7 @@ def build_random_checkpoint(path: str | Path, size: dict | None = None, seed: in
     path : str or pathlib.Path
         Target ``.ckpt`` file; keep version strings out of the name (it is then read as v2).
     size : dict, optional
-        Architecture sizes (:data:`TINY` by default, :data:`FULL_SIZE` for timing).
+        Architecture sizes (``TINY`` by default, ``FULL_SIZE`` for timing).
     seed : int
         torch seed of the random weights.
     """

@@ -2,7 +2,7 @@
 
 One regressor per coordinate (the pipeline clones the point model for x and for y). TabPFN is
 an in-context learner: ``fit`` stores the training rows, ``predict`` runs the transformer, in
-batches. Weights are never downloaded here: :meth:`TabPFNPointModel.preflight` checks that the
+batches. Weights are never downloaded here: ``TabPFNPointModel.preflight`` checks that the
 checkpoint exists before any simulation runs and otherwise stops with one message on how to get it.
 """
 
@@ -109,7 +109,7 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
     checkpoint_sha256 : str or None
         SHA-256 (hex) the checkpoint file must have; checked before it is loaded (for a user's own
         or a shared checkpoint). Every ``.ckpt`` is also loaded with ``weights_only=True`` first
-        (:func:`check_checkpoint`).
+        (``check_checkpoint``).
     """
 
     #: the config group its settings live in (named in error messages)
@@ -156,7 +156,7 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
         return resolve_model_path(path, "regressor", version)[0][0]
 
     def preflight(self) -> None:
-        """Raise one clear :class:`ConfigError` if the weights are missing, differ from ``checkpoint_sha256`` or
+        """Raise one clear ``ConfigError`` if the weights are missing, differ from ``checkpoint_sha256`` or
         hold more than weights (called before any simulation)."""
         path = self.resolved_path()
         if not path.is_file():
@@ -212,7 +212,7 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
 class TabPFNErrorModel(TabPFNPointModel):
     """TabPFN error model: predicts a quantile (default the median) of the hybrid estimate's error, m.
 
-    The other parameters are :class:`TabPFNPointModel`'s.
+    The other parameters are ``TabPFNPointModel``'s.
 
     Parameters
     ----------

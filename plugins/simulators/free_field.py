@@ -41,7 +41,7 @@ def synthetic_chirp(f_start_hz: float, f_end_hz: float, duration_s: float, sampl
     sample_rate_hz : float
         Sampling rate in Hz.
     method : str
-        Any method of :func:`scipy.signal.chirp` (``linear``, ``logarithmic``, ``quadratic``…).
+        Any method of ``scipy.signal.chirp`` (``linear``, ``logarithmic``, ``quadratic``…).
 
     Returns
     -------
@@ -81,7 +81,7 @@ class FreeFieldSimulator:
     calls : sequence of mapping
         The call pool. Each entry: ``name``, ``method`` (scipy chirp method), and [low, high]
         ranges ``f_start_hz``, ``f_end_hz``, ``duration_s`` sampled per event (default
-        :data:`DEFAULT_CALLS`, as ``conf/simulator/free_field.yaml``).
+        ``DEFAULT_CALLS``, as ``conf/simulator/free_field.yaml``).
     """
 
     cache_version = "1"
@@ -133,7 +133,7 @@ class FreeFieldSimulator:
                 raise ConfigError(f"site noise band {regime.band_hz} Hz reaches the Nyquist frequency of {self.sample_rate_hz} Hz")
 
     def simulate(self, site: Site, event_ids: np.ndarray, position_ids: np.ndarray, seed: int) -> RecordingBatch:
-        """Render events; see :class:`acoustlab.core.contracts.Simulator`."""
+        """Render events; see ``acoustlab.core.contracts.Simulator``."""
         event_ids = np.asarray(event_ids, dtype=np.int64)
         position_ids = np.asarray(position_ids, dtype=np.int64)
         n_samples = int(round(self.duration_s * self.sample_rate_hz))

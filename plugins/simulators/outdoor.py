@@ -128,7 +128,7 @@ class OutdoorSimulator:
     diffuse_noise_fraction : float
         Fraction of the noise power shared by all mics.
     impairments : mapping
-        :class:`acoustlab.toolkit.impairments.ImpairmentConfig` fields (all off by default).
+        ``acoustlab.toolkit.impairments.ImpairmentConfig`` fields (all off by default).
     perturbation : mapping
         Mismatch knobs for field stand-ins: ``flow_resistivity_factor`` and ``absorption_factor``.
     """
@@ -486,7 +486,7 @@ class OutdoorSimulator:
         return rec.astype(np.float32), row
 
     def simulate(self, site: Site, event_ids: np.ndarray, position_ids: np.ndarray, seed: int) -> RecordingBatch:
-        """Render events; see :class:`acoustlab.core.contracts.Simulator`."""
+        """Render events; see ``acoustlab.core.contracts.Simulator``."""
         event_ids = np.asarray(event_ids, dtype=np.int64)
         position_ids = np.asarray(position_ids, dtype=np.int64)
         _, n_out, _, _, _ = self._audio_setup(site)

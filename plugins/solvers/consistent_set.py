@@ -8,7 +8,7 @@ reference mic itself is the corrupted one. This solver therefore looks at every 
    each pair (r, m), the arrival times t_m − t_r follow. That is M · K^(M−1) hypotheses per event
    (forest, 6 mics, K = 3: 1,458), scored together as arrays for a chunk of events; on larger
    arrays (12 mics: 2.1 million) an exact branch and bound finds the same best hypothesis while
-   scoring a few dozen (:mod:`plugins.solvers.hypothesis_search`).
+   scoring a few dozen (``plugins.solvers.hypothesis_search``).
 2. **Consistency (closure).** A pair (i, j) is consistent with a hypothesis when one of its own
    candidates lies within ``tolerance_s`` of t_j − t_i (τ_ij + τ_jk ≈ τ_ik). The score is the total
    GCC height of the consistent pairs; ties go to the earliest arrivals (the direct path arrives
@@ -19,7 +19,7 @@ reference mic itself is the corrupted one. This solver therefore looks at every 
 4. **Refinement.** The arrival times of the trusted mics are the least-squares fit to the chosen
    lags of all their consistent pairs (averaging the redundant measurements), and the position is
    solved in closed form on the trusted mics with Levenberg–Marquardt polish
-   (:class:`plugins.solvers.hyperbolic.HyperbolicSolver`).
+   (``plugins.solvers.hyperbolic.HyperbolicSolver``).
 
 Diagnostics per event: ``consistent_pairs``, ``consistency`` (share of the pairs among trusted
 mics that are consistent), ``score_margin`` (best minus runner-up score, in GCC-height units),
@@ -42,12 +42,12 @@ from plugins.solvers.hypothesis_search import exhaustive_best, hypothesis_design
 #: and bound, which scores a few dozen, wins from 10 mics (196,830) on. Both make the same choice.
 EXHAUSTIVE_UP_TO = 20_000
 
-#: Diagnostics this solver adds to the hyperbolic solver's (catalogued in :data:`acoustlab.core.columns.SOLVER_CATALOG`).
+#: Diagnostics this solver adds to the hyperbolic solver's (catalogued in ``acoustlab.core.columns.SOLVER_CATALOG``).
 EXTRA_DIAGNOSTICS = ("consistent_pairs", "consistency", "score_margin", "n_mics_used", "closure_rms_s")
 
 
 def checked_weights(weights: np.ndarray, candidates_s: np.ndarray) -> np.ndarray:
-    """``weights`` (the GCC heights of ``candidates_s``, (B, P, K)) as floats, or a :class:`DataError` saying what is wrong with them.
+    """``weights`` (the GCC heights of ``candidates_s``, (B, P, K)) as floats, or a ``DataError`` saying what is wrong with them.
 
     A NaN height counts as 0 and a missing candidate's height is not read, but an infinite height of
     a candidate that exists would make every score containing it infinite (or NaN beside another),
@@ -101,8 +101,8 @@ class ConsistentSetSolver:
     search : {"auto", "pruned", "exhaustive"}
         How the best hypothesis is found: every hypothesis scored, or an exact branch and bound
         that scores a few dozen; both give the same choice, bit for bit
-        (:mod:`plugins.solvers.hypothesis_search`). "auto" scores every one up to
-        :data:`EXHAUSTIVE_UP_TO` hypotheses per event (up to 8 mics with 3 candidates, where that
+        (``plugins.solvers.hypothesis_search``). "auto" scores every one up to
+        ``EXHAUSTIVE_UP_TO`` hypotheses per event (up to 8 mics with 3 candidates, where that
         is faster in numpy) and prunes above, where the exhaustive search's index arrays grow to
         gigabytes (12 mics: 2.1 million hypotheses × 66 pairs).
     """
@@ -245,7 +245,7 @@ class ConsistentSetSolver:
     # --- solving --------------------------------------------------------------------------
 
     def solve(self, inputs: SolverInputs) -> SolverResult:
-        """See :class:`acoustlab.core.contracts.Solver`; uses ``pair_lag_candidates_s`` (and weights) when present."""
+        """See ``acoustlab.core.contracts.Solver``; uses ``pair_lag_candidates_s`` (and weights) when present."""
         mics, tdoa, c, height = solver_inputs(inputs, self.source_height_m)
         dimensions = (3 if len(mics) >= 4 else 2) if self.dimensions == "auto" else self.dimensions
         base = HyperbolicSolver(source_height_m=height, n_iterations=self.n_iterations, dimensions=dimensions)

@@ -42,7 +42,7 @@ class HyperbolicSolver:
         Levenberg–Marquardt iterations after the closed form.
     dimensions : int
         2: solve x, y at the assumed source height. 3: solve x, y and the height as well
-        (≥ 4 mics; :mod:`acoustlab.toolkit.solve3d`); ``source_height_m`` then reports the
+        (≥ 4 mics; ``acoustlab.toolkit.solve3d``); ``source_height_m`` then reports the
         estimate, with ``height_gdop`` and ``height_ambiguous`` beside it. Where the 3-D fix fails
         or is implausible the 2-D fix replaces it (``dimensions_used``).
     fallback_2d : bool
@@ -107,7 +107,7 @@ class HyperbolicSolver:
         return cand, valid
 
     def solve(self, inputs: SolverInputs) -> SolverResult:
-        """See :class:`acoustlab.core.contracts.Solver`; ``inputs.received_level_db`` enables energy disambiguation."""
+        """See ``acoustlab.core.contracts.Solver``; ``inputs.received_level_db`` enables energy disambiguation."""
         mics, tdoa, c, height = solver_inputs(inputs, self.source_height_m)
         received_level_db = inputs.received_level_db
         bsz = tdoa.shape[0]
@@ -212,7 +212,7 @@ class HyperbolicSolver:
         return out
 
     def _solve_3d(self, mics: np.ndarray, rd: np.ndarray, c: np.ndarray, finite: np.ndarray) -> SolverResult:
-        """x, y and height from ≥ 4 mics (see :func:`acoustlab.toolkit.solve3d.solve_3d`)."""
+        """x, y and height from ≥ 4 mics (see ``acoustlab.toolkit.solve3d.solve_3d``)."""
         if mics.shape[0] < 4:
             raise ValueError(f"solver.dimensions=3 needs at least 4 mics; this array has {mics.shape[0]} (use dimensions=2)")
         fix = solve_3d(mics, rd, max(self.n_iterations, 1), self.residual_tie_m)

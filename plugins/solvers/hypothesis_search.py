@@ -10,8 +10,8 @@ earliest). The winner is the first hypothesis in index order with the highest fi
 first hypothesis where every score is −inf); the runner-up is the best final score among
 hypotheses whose arrival pattern differs from the winner's by more than the tolerance.
 
-:func:`exhaustive_best` scores every hypothesis; its cost and memory grow as K^(M−1).
-:func:`pruned_best` gives the same answer, bit for bit, while scoring a few dozen per event:
+``exhaustive_best`` scores every hypothesis; its cost and memory grow as K^(M−1).
+``pruned_best`` gives the same answer, bit for bit, while scoring a few dozen per event:
 
 1. **Seeds.** The hypotheses with at most one candidate other than each pair's best are scored.
    Their winner h₁ (final f₁) and the best seed h₂ (final f₂) whose pattern differs from h₁'s by
@@ -63,7 +63,7 @@ class PairLayout:
 
 @functools.lru_cache(maxsize=32)
 def pair_layout(n_mics: int) -> PairLayout:
-    """:class:`PairLayout` of ``n_mics`` mics (cached)."""
+    """``PairLayout`` of ``n_mics`` mics (cached)."""
     pairs = pairs_of(n_mics)
     pair_index = np.zeros((n_mics, n_mics), dtype=np.intp)
     for n, (i, j) in enumerate(pairs):
@@ -96,7 +96,7 @@ class HypothesisDesign:
 
 @functools.lru_cache(maxsize=16)
 def hypothesis_design(n_mics: int, k: int) -> HypothesisDesign:
-    """:class:`HypothesisDesign` for ``n_mics`` mics and ``k`` candidates per pair (cached)."""
+    """``HypothesisDesign`` for ``n_mics`` mics and ``k`` candidates per pair (cached)."""
     layout = pair_layout(n_mics)
     i_idx, j_idx = layout.i_idx, layout.j_idx
     time_rows, table_rows = [], []
@@ -352,7 +352,7 @@ def _best_of(
 
 
 def pruned_best(table: np.ndarray, arrival: np.ndarray, layout: PairLayout, tolerance_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Same result as :func:`exhaustive_best`, bit for bit, by branch and bound (module docstring).
+    """Same result as ``exhaustive_best``, bit for bit, by branch and bound (module docstring).
 
     The threshold is lowered step by step from the root's bound (θ = U − δ, δ = 1, 4, 16, … × the
     largest table entry) until the winner and the runner-up both score ≥ θ — then nothing below θ

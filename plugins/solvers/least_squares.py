@@ -1,6 +1,6 @@
 """Batch least-squares TDOA solver (Levenberg–Marquardt from several starts), vectorised in NumPy.
 
-Written by hand rather than with :func:`scipy.optimize.least_squares` because that solves one
+Written by hand rather than with ``scipy.optimize.least_squares`` because that solves one
 event per call (≈4 ms each); here every event and every start point iterate together as arrays.
 """
 
@@ -55,7 +55,7 @@ class LeastSquaresSolver:
         return np.vstack([centroid[None], near, beyond])  # (S, 2)
 
     def solve(self, inputs: SolverInputs) -> SolverResult:
-        """See :class:`acoustlab.core.contracts.Solver`."""
+        """See ``acoustlab.core.contracts.Solver``."""
         mics, tdoa, c, height = solver_inputs(inputs, self.source_height_m)
         b = tdoa.shape[0]
         rd = (c[:, None] * (tdoa[:, 1:] - tdoa[:, :1]))[:, None, :]  # (B, 1, M-1)

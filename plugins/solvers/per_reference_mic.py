@@ -4,7 +4,7 @@ OpenSoundscape's localization (as its documentation describes it) estimates one 
 reference receiver from that receiver's pairwise TDOAs and keeps the best-fitting one. This
 plugin re-implements that idea from the description for side-by-side comparisons: for every
 reference mic r the TDOAs t_m − t_r come from the highest GCC peak of the pairs (r, m); each set
-is solved with the closed form and polish of :class:`plugins.solvers.hyperbolic.HyperbolicSolver`
+is solved with the closed form and polish of ``plugins.solvers.hyperbolic.HyperbolicSolver``
 (mics reordered so r comes first) and the fix with the smallest RMS range-difference residual
 wins. With three mics every set fits exactly, so the choice is by the order of the mics.
 """
@@ -37,7 +37,7 @@ class PerReferenceMicSolver:
         self.n_iterations = int(n_iterations)
 
     def solve(self, inputs: SolverInputs) -> SolverResult:
-        """See :class:`acoustlab.core.contracts.Solver`; needs ``pair_lag_candidates_s`` for references other than mic 0."""
+        """See ``acoustlab.core.contracts.Solver``; needs ``pair_lag_candidates_s`` for references other than mic 0."""
         mics, tdoa, c, height = solver_inputs(inputs, self.source_height_m)
         base = HyperbolicSolver(source_height_m=height, n_iterations=self.n_iterations)
         if inputs.pair_lag_candidates_s is None:

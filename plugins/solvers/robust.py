@@ -43,7 +43,7 @@ class ConsistentCandidatesSolver:
         self.max_hypotheses = int(max_hypotheses)
 
     def solve(self, inputs: SolverInputs) -> SolverResult:
-        """See :class:`acoustlab.core.contracts.Solver`; ``inputs.pair_lag_candidates_s`` is (B, P, K) over the pairs i < j."""
+        """See ``acoustlab.core.contracts.Solver``; ``inputs.pair_lag_candidates_s`` is (B, P, K) over the pairs i < j."""
         mics, _, c, height = solver_inputs(inputs, self.source_height_m)
         base = HyperbolicSolver(source_height_m=height, n_iterations=10)
         received_level_db, pair_lag_candidates_s = inputs.received_level_db, inputs.pair_lag_candidates_s

@@ -125,7 +125,7 @@ class MlflowTracker:
         mlflow.log_metrics({k: float(v) for k, v in metrics.items()})
 
     def log_table(self, table: pd.DataFrame, artifact_file: str) -> None:
-        """Log a table with :func:`mlflow.log_table` (shown in the MLflow UI's evaluation view)."""
+        """Log a table with ``mlflow.log_table`` (shown in the MLflow UI's evaluation view)."""
         import mlflow
 
         mlflow.log_table(data=table, artifact_file=artifact_file)

@@ -98,7 +98,7 @@ class LopoProtocol:
     max_train_rows : int
         Training cap, field rows included.
     exclude_failed_from_summary : bool
-        As in :class:`FieldEvalProtocol`.
+        As in ``FieldEvalProtocol``.
     seed : int
         Seed of the subsamples.
     """
