@@ -77,6 +77,49 @@ def test_a_season_is_localized_from_raven_tables_near_the_truth(season):
     ] == N_CALLS
 
 
+def test_a_season_s_answer_does_not_depend_on_how_it_is_cut(season):
+    """Batch size, chunk boundaries and an event's neighbours leave every column of every row as it was, bit for bit:
+    each clip is padded by its own length only, and every later step is per event."""
+    from dataclasses import replace
+
+    from acoustlab.season.recorder_files import RecorderFiles
+    from acoustlab.season.stream import EVENTS, FILES, ChunkPlan, batches_by_length, localize_events
+    from acoustlab.toolkit.quality import QualityThresholds
+
+    root, _, _, _ = season
+    directory = root / "out"
+    manifest = read_manifest(directory)
+    fitted = load_method(directory, manifest["method_sha256"])
+    recordings = RecorderFiles.load(directory / FILES)
+    settings = manifest["plan"]
+    plan = ChunkPlan(**{k: v for k, v in settings.items() if k != "quality"}, quality=QualityThresholds(**settings["quality"]))
+    events = pd.read_parquet(directory / EVENTS)
+
+    def placed(table: pd.DataFrame, batch_events: int) -> pd.DataFrame:
+        return localize_events(
+            fitted,
+            recordings,
+            table.reset_index(drop=True),
+            manifest["recorders"],
+            replace(plan, batch_events=batch_events),
+            recordings.origin,
+        )
+
+    whole = placed(events, 64)
+    assert len({round(e - s, 6) for s, e in zip(events["start_s"], events["end_s"], strict=True)}) > 1  # clips of several lengths
+    for batch_events in (1, 5):
+        pd.testing.assert_frame_equal(placed(events, batch_events), whole)
+    cut = pd.concat([placed(events.iloc[:7], 3), placed(events.iloc[7:], 3)], ignore_index=True)
+    pd.testing.assert_frame_equal(cut, whole)
+    copies = pd.concat([events.iloc[[0, 0, 0]], events.iloc[::-1]], ignore_index=True)  # one call three times, beside others
+    again = placed(copies, 4)
+    for k in range(3):
+        pd.testing.assert_series_equal(again.iloc[k], whole.iloc[0], check_names=False)
+    pd.testing.assert_frame_equal(again.iloc[3:].iloc[::-1].reset_index(drop=True), whole)
+    recordings.close()
+    assert [list(b) for b in batches_by_length(np.array([8, 9, 8, 8, 9]), 2)] == [[0, 2], [1, 4], [3]]
+
+
 def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path):
     root, _, _, _ = season
     unsharded = pd.read_parquet(root / "run" / "positions.parquet")

@@ -172,12 +172,37 @@ def _clip(
     return clip, [*read.flags, *reasons]
 
 
+def clip_lengths_s(events: pd.DataFrame) -> np.ndarray:
+    """Each event's clip length, s (a ``too_long`` event's stand-in: it is flagged, not read)."""
+    return np.where(events["too_long"].to_numpy(bool), TOO_LONG_STAND_IN_S, (events[col.END] - events[col.START]).to_numpy(float))
+
+
+def padded_samples(lengths_s: np.ndarray, sample_rate_hz: float) -> np.ndarray:
+    """The FFT-friendly length, in samples, each clip is zero-padded to: a function of the clip's own length only."""
+    return np.array([next_fast_len(int(round(length * sample_rate_hz)) + 1) for length in lengths_s], dtype=np.int64)
+
+
+def batches_by_length(padded: np.ndarray, batch_events: int) -> list[np.ndarray]:
+    """Row positions of the batches: clips of one padded length together, in their order, at most ``batch_events`` each.
+
+    Every feature is computed on the batch's (events, mics, samples) array, whose length is the
+    clips' padded length. Padding a clip to a longer batch-mate's length would change its spectra
+    (a PHAT weighting, a noise floor over frames), so an event's answer would depend on which events
+    were computed beside it; batching clips of one length makes it depend on the event alone.
+    """
+    batches = []
+    for length in np.unique(padded):
+        rows = np.flatnonzero(padded == length)
+        batches += [rows[i : i + batch_events] for i in range(0, rows.size, batch_events)]
+    return sorted(batches, key=lambda rows: rows[0])
+
+
 def read_batch(
     recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str], sample_rate_hz: float, plan: ChunkPlan
 ) -> RecordingBatch:
     """The clips of ``events`` on every recorder (in the site's mic order) as a batch, flagged per clip."""
-    lengths_s = np.where(events["too_long"].to_numpy(bool), TOO_LONG_STAND_IN_S, (events[col.END] - events[col.START]).to_numpy(float))
-    n_max = next_fast_len(int(round(lengths_s.max() * sample_rate_hz)) + 1)  # every transform of the batch at an FFT-friendly length
+    lengths_s = clip_lengths_s(events)
+    n_max = int(padded_samples(lengths_s, sample_rate_hz).max())  # one length per batch: see batches_by_length
     audio = np.zeros((len(events), len(recorders), n_max), dtype=np.float32)
     flags = []
     for e, (start, length, too_long) in enumerate(
@@ -230,14 +255,18 @@ def localize_events(
     ``on_batch(n)`` is called after each batch with the number of its events (progress).
     """
     c = fitted.method.pipeline.c
+    fs = float(fitted.sample_rate_hz)
+    batches = batches_by_length(padded_samples(clip_lengths_s(events), fs), plan.batch_events)
     features, rows = [], []
-    for first in range(0, len(events), plan.batch_events):  # peak memory: one batch's audio and its transforms
-        batch = read_batch(recordings, events.iloc[first : first + plan.batch_events], recorders, float(fitted.sample_rate_hz), plan)
+    for positions in batches:  # peak memory: one batch's audio and its transforms
+        batch = read_batch(recordings, events.iloc[positions], recorders, fs, plan)
         features.append(extract_features(batch, c.site, c.feature_sets))
         rows.append(batch.events)
         if on_batch is not None:
             on_batch(batch.n_events)
-    table_features, detections = pd.concat(features, ignore_index=True), pd.concat(rows, ignore_index=True)
+    order = np.argsort(np.concatenate(batches), kind="stable")  # back to the chunk's order
+    table_features = pd.concat(features, ignore_index=True).iloc[order].reset_index(drop=True)
+    detections = pd.concat(rows, ignore_index=True).iloc[order].reset_index(drop=True)
     table_features = add_solver_columns(table_features, detections, c.site, c.solver, fitted.plausible_margin_fraction)
     predictions, _ = fitted.method.predict(table_features, detections)
     detections = detections.drop(columns=["is_field"]).assign(label=events["label"].to_numpy())
