@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import types
 import typing
 from pathlib import Path
 from typing import Any
@@ -39,7 +40,7 @@ def _typed_field(key: str) -> type | None:
             return None
         node = hints[part]
         args = [a for a in typing.get_args(node) if a is not type(None)]
-        if typing.get_origin(node) is typing.Union and len(args) == 1:  # Optional[X]
+        if typing.get_origin(node) in (typing.Union, types.UnionType) and len(args) == 1:  # X | None, Optional[X]
             node = args[0]
     return node if node in (int, float) else None
 
