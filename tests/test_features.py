@@ -224,3 +224,25 @@ def test_one_transform_envelope_equals_filtfilt_then_hilbert_away_from_the_edges
         peak = textbook.max(axis=-1, keepdims=True)
         assert np.max(np.abs(ours - textbook)[..., edge:-edge] / peak) < 2e-3
         np.testing.assert_array_equal(np.argmax(ours, axis=-1), np.argmax(textbook, axis=-1))
+
+
+def test_an_event_s_features_do_not_depend_on_the_longer_events_beside_it(clean_batches):
+    """Recordings of events of different lengths are zero-padded to the longest; with each clip's own length given
+    (``clip_samples``), an event's features are those it has alone, bit for bit, whatever else is in the table."""
+    import pandas as pd
+
+    from acoustlab.core import columns as col
+    from acoustlab.core.types import RecordingBatch
+
+    site, batch, sets = clean_batches["frozen_lake"]
+    short = int(batch.audio.shape[-1] * 0.7)
+    audio = batch.audio[:4].copy()
+    audio[1:3, :, short:] = 0.0  # events 1 and 2 end early; 0 and 3 fill the batch
+    events = batch.events.iloc[:4].reset_index(drop=True).assign(**{col.CLIP_SAMPLES: [audio.shape[-1], short, short, audio.shape[-1]]})
+    together = extract_features(RecordingBatch(audio, batch.sample_rate_hz, events), site, sets)
+    alone = extract_features(RecordingBatch(audio[1:2, :, :short], batch.sample_rate_hz, batch.events.iloc[1:2].reset_index(drop=True)), site, sets)
+    pd.testing.assert_frame_equal(together.iloc[[1]].reset_index(drop=True), alone)
+    padded = extract_features(RecordingBatch(audio, batch.sample_rate_hz, events.drop(columns=[col.CLIP_SAMPLES])), site, sets)
+    assert not padded.iloc[[1]].reset_index(drop=True).equals(alone)  # the padding would have changed it
+    first_alone = extract_features(RecordingBatch(audio[:1], batch.sample_rate_hz, batch.events.iloc[:1].reset_index(drop=True)), site, sets)
+    pd.testing.assert_frame_equal(together.iloc[[0]].reset_index(drop=True), first_alone)

@@ -67,6 +67,8 @@ WITHHELD_POSITION = "withheld_position"
 IN_SUMMARY = "in_summary"
 QUALITY_FLAGS = "quality_flags"
 HARDWARE_FAILURE = "hardware_failure"
+#: Samples of an event's own clip in a batch padded to its longest (the features see only these).
+CLIP_SAMPLES = "clip_samples"
 #: The solver's point estimate (withheld from the error model).
 SOLVER_X, SOLVER_Y = "solver__x_m", "solver__y_m"
 SOLVER_ESTIMATE_COLUMNS = (SOLVER_X, SOLVER_Y)

@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 from joblib import Parallel, delayed
 
+from acoustlab.core import columns as col
 from acoustlab.core.contracts import FeatureSet, Simulator, hook
 from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import ConfigError, DataError
@@ -236,7 +237,33 @@ def _chunk_features(sim_dir: Path, name: str, sample_rate_hz: float, site: Site,
 
 
 def extract_features(batch: RecordingBatch, site: Site, feature_sets: dict[str, FeatureSet]) -> pd.DataFrame:
-    """Every feature group on one batch, concatenated column-wise in the configured group order."""
+    """Every feature group on one batch, concatenated column-wise in the configured group order.
+
+    Where the events give their own clip lengths (``clip_samples``: recordings of events of different
+    lengths, zero-padded to the longest), each length is computed as a batch of its own, cut to that
+    length: the padding would change an event's spectra (a PHAT weighting, a noise floor over frames),
+    so its features would depend on the other events in the table.
+    """
+    if col.CLIP_SAMPLES in batch.events:
+        return _features_by_clip_length(batch, site, feature_sets)
+    return _features_of(batch, site, feature_sets)
+
+
+def _features_by_clip_length(batch: RecordingBatch, site: Site, feature_sets: dict[str, FeatureSet]) -> pd.DataFrame:
+    """``extract_features`` per clip length, cut to that length, in the batch's row order."""
+    lengths = batch.events[col.CLIP_SAMPLES].to_numpy(np.int64)
+    groups = [np.flatnonzero(lengths == n) for n in np.unique(lengths)]
+    tables = []
+    for rows in groups:
+        events = batch.events.iloc[rows].drop(columns=[col.CLIP_SAMPLES]).reset_index(drop=True)
+        audio = batch.audio[rows, :, : int(lengths[rows[0]])]
+        tables.append(_features_of(RecordingBatch(audio, batch.sample_rate_hz, events), site, feature_sets))
+    order = np.argsort(np.concatenate(groups), kind="stable")
+    return pd.concat(tables, ignore_index=True).iloc[order].reset_index(drop=True)
+
+
+def _features_of(batch: RecordingBatch, site: Site, feature_sets: dict[str, FeatureSet]) -> pd.DataFrame:
+    """Every feature group on one batch whose clips all fill its samples."""
     tables = []
     for name, fs in feature_sets.items():
         table = fs.transform(batch, site)

@@ -471,6 +471,7 @@ class RecordingFolder:
                 col.QUALITY_FLAGS: flags,
                 "quality_ok": [not f for f in flags],
                 col.HARDWARE_FAILURE: failed,
+                col.CLIP_SAMPLES: lengths,
             }
         )
         return RecordingBatch(audio=audio, sample_rate_hz=fs, events=rows)
