@@ -101,12 +101,12 @@ def measure(module: str, bench: Any, method: str, case: tuple, repeat: int) -> d
     return {"unit": "MiB", "value": queue.get()}
 
 
-def run_module(name: str, quick: bool, repeat: int) -> list[dict[str, Any]]:
-    """Every case of every benchmark in ``benchmarks/bench_<name>.py``."""
+def run_module(name: str, quick: bool, repeat: int, only: set[str] | None = None) -> list[dict[str, Any]]:
+    """Every case of every benchmark class in ``benchmarks/bench_<name>.py`` (of the classes in ``only``, when given)."""
     module = importlib.import_module(f"bench_{name}")
     rows = []
     for cls_name, cls in inspect.getmembers(module, inspect.isclass):
-        if cls.__module__ != module.__name__:
+        if cls.__module__ != module.__name__ or (only and cls_name not in only):
             continue
         methods = [m for m in dir(cls) if m.startswith(("time_", "track_", "peakmem_"))]
         for case in cases(cls, quick):
@@ -143,19 +143,24 @@ def log_to_mlflow(name: str, rows: list[dict[str, Any]], about: dict[str, Any]) 
 def main(argv: list[str] | None = None) -> int:
     names = sorted(p.stem.removeprefix("bench_") for p in HERE.glob("bench_*.py"))
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {', '.join(names)}")
+    parser.add_argument(
+        "names", nargs="*", metavar="NAME", help=f"benchmarks to run, NAME or NAME.Class (default: all): {', '.join(names)}"
+    )
     parser.add_argument("--quick", action="store_true", help="one small case per benchmark class, once (checks that they run)")
     parser.add_argument("--repeat", type=int, default=5, help="timed calls per time_* case")
     parser.add_argument("--mlflow", action="store_true", help="also log the figures to outputs/mlflow.db (experiment 'benchmarks')")
     opts = parser.parse_args(argv)
-    unknown = sorted(set(opts.names) - set(names))
-    if unknown:
-        parser.error(f"no benchmark named {', '.join(unknown)}; there are: {', '.join(names)}")
+    wanted: dict[str, set[str]] = {}
+    for given in opts.names:
+        name, _, cls_name = given.partition(".")
+        if name not in names:
+            parser.error(f"no benchmark named {name!r}; there are: {', '.join(names)}")
+        wanted.setdefault(name, set()).update([cls_name] if cls_name else [])
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     sys.path.insert(0, str(HERE))
     about = machine()
-    for name in opts.names or names:
-        rows = run_module(name, opts.quick, opts.repeat)
+    for name in wanted or names:
+        rows = run_module(name, opts.quick, opts.repeat, wanted.get(name))
         RESULTS.mkdir(exist_ok=True)
         out = RESULTS / f"{name}.json"
         out.write_text(

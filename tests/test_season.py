@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -183,6 +184,71 @@ def test_a_changed_method_file_is_refused_and_other_inputs_never_mix(season, com
     with pytest.raises(DataError, match="holds 5 parts of a season run made with other .*chunk_events"):
         run_experiment(cfg, tmp_path / "run")
     assert {p.name: p.read_bytes() for p in other.iterdir() if p.is_file()} == before  # refused before anything was rewritten
+
+
+def test_damaged_foreign_or_orphan_parts_are_recomputed_or_refused_in_one_line(season, tmp_path):
+    """An empty or damaged part is computed again; a part of other events, or parts without the season's manifest, stop."""
+    from acoustlab.season.stream import MANIFEST, check_manifest
+
+    root, _, _, _ = season
+    expected = pd.read_parquet(root / "run" / "positions.parquet")
+    folder = tmp_path / "damaged"
+    shutil.copytree(root / "out", folder)
+    part_path(folder, 1).write_bytes(b"")  # a 0-byte part
+    part_path(folder, 3).write_bytes(part_path(folder, 3).read_bytes()[:100])  # a cut-off part
+    with pytest.raises(DataError, match=r"part-000001.parquet cannot be read; run protocol.stage=localize again"):
+        merge_parts(folder)
+    assert localize_chunks(folder, range(5)) == 2
+    pd.testing.assert_frame_equal(merge_parts(folder), expected)
+    shutil.copy(part_path(folder, 0), part_path(folder, 2))  # another chunk's (or season's) part under this chunk's name
+    with pytest.raises(DataError, match="part-000002.parquet holds other events than chunk 2"):
+        localize_chunks(folder, range(5))
+    with pytest.raises(DataError, match="holds other events than chunk 2"):
+        merge_parts(folder)
+    (folder / MANIFEST).unlink()
+    with pytest.raises(DataError, match="holds 5 parts but no season.json"):
+        check_manifest(folder, read_manifest(root / "out"))
+
+
+def test_a_recording_changed_since_the_fit_is_refused(season, tmp_path):
+    """A file rewritten between a kill and its resume would mix two recordings into one season: the localize stage and a
+    new fit over old parts both stop, naming it."""
+    import soundfile as sf
+
+    from acoustlab.season.recorder_files import RecorderFiles
+    from acoustlab.season.stream import FILES
+
+    root, _, _, _ = season
+    audio = tmp_path / "audio"
+    shutil.copytree(root / "audio", audio)
+    indexed = RecorderFiles.from_file_names(audio)
+    indexed.check_unchanged()
+    path = Path(indexed.table["path"].iloc[1])
+    samples, rate = sf.read(path, dtype="float32")
+    sf.write(path, samples[::-1].copy(), rate)  # same length, other samples
+    with pytest.raises(DataError, match=f"{path.name} changed since the season was fitted"):
+        indexed.check_unchanged()
+    folder = tmp_path / "season"
+    shutil.copytree(root / "out", folder)
+    indexed.save(folder / FILES)  # as fitted from the original files
+    with pytest.raises(DataError, match="changed since the season was fitted"):
+        localize_chunks(folder, range(5))
+    again = RecorderFiles.from_file_names(audio)  # a new fit indexes the new file: its digest differs from the parts' run
+    from acoustlab.season.stream import season_manifest
+
+    manifest = read_manifest(folder)
+    assert (
+        season_manifest(pd.DataFrame(), None, _plan(manifest), [], {}, again)["recordings"]
+        != (season_manifest(pd.DataFrame(), None, _plan(manifest), [], {}, indexed)["recordings"])
+    )
+
+
+def _plan(manifest):
+    from acoustlab.season.stream import ChunkPlan
+    from acoustlab.toolkit.quality import QualityThresholds
+
+    settings = manifest["plan"]
+    return ChunkPlan(**{k: v for k, v in settings.items() if k != "quality"}, quality=QualityThresholds(**settings["quality"]))
 
 
 def test_shards_as_a_hydra_multirun_then_merge(season, run_cli, tmp_path):

@@ -226,7 +226,9 @@ class SeasonLocalize:
         events = self.events(recordings, site)
         order = self.recorder_order(recordings, site)
         radii = {"levels": list(built.components.levels), "scorers": list(built.components.scorers)}
-        check_manifest(folder, season_manifest(events, None, self.plan(site), order, radii), unknown=("method_sha256",))  # before writing
+        check_manifest(
+            folder, season_manifest(events, None, self.plan(site), order, radii, recordings), unknown=("method_sha256",)
+        )  # before writing
         folder.mkdir(parents=True, exist_ok=True)
         recordings.save(folder / FILES)
         write_events(folder, events, self.chunk_events)
@@ -250,7 +252,7 @@ class SeasonLocalize:
                 list(built.components.scorers),
             )
             digest = save_method(fitted, folder, key)
-        write_manifest(folder, season_manifest(events, digest, self.plan(site), order, radii))
+        write_manifest(folder, season_manifest(events, digest, self.plan(site), order, radii, recordings))
         log.info(
             "season: %d events from %d recorders' files (%d files, %s to %s) in %d chunks",
             len(events),

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -120,6 +121,9 @@ class RecorderFiles:
             frames.append(info.frames)
             rates.append(info.samplerate)
         table["n_frames"] = frames
+        stats = [os.stat(path) for path in table["path"]]
+        table["size_bytes"] = [s.st_size for s in stats]  # what the season was indexed from: a resume checks it
+        table["mtime_ns"] = [s.st_mtime_ns for s in stats]
         rates = np.asarray(rates, dtype=float)
         if np.unique(rates).size > 1:
             odd = table["path"].to_numpy()[rates != np.median(rates)][0]
@@ -230,6 +234,30 @@ class RecorderFiles:
         self = cls.__new__(cls)
         self._index(pd.read_parquet(path), float(json.loads(path.with_suffix(".json").read_text())["sample_rate_hz"]))
         return self
+
+    def check_unchanged(self) -> None:
+        """Refuse files rewritten, resized or removed since the season was indexed (at the fit).
+
+        A resumed or sharded season reads its clips from these files; a file changed in between would
+        mix positions computed from two recordings into one season, silently.
+
+        Raises
+        ------
+        DataError
+            Naming the first changed or missing file.
+        """
+        if "mtime_ns" not in self.table:  # indexed by an earlier version: nothing recorded to compare
+            return
+        for path, size, mtime in zip(self.table["path"], self.table["size_bytes"], self.table["mtime_ns"], strict=True):
+            try:
+                now = os.stat(path)
+            except OSError:
+                raise DataError(f"recordings: {path} is gone since the season was fitted; restore it, or fit a new season") from None
+            if now.st_size != size or now.st_mtime_ns != mtime:
+                raise DataError(
+                    f"recordings: {path} changed since the season was fitted (size or modification time); its positions would "
+                    "mix two recordings: restore the file, or fit the season again in a new protocol.output_dir"
+                )
 
     # -- lookups ------------------------------------------------------------------------------
     def seconds(self, time: pd.Timestamp | str) -> float:

@@ -107,11 +107,20 @@ def shard_chunks(n_events: int, chunk_events: int, shard: int, n_shards: int) ->
 
 
 def season_manifest(
-    events: pd.DataFrame, method_sha256: str | None, plan: ChunkPlan, recorders: list[str], radii: dict[str, list[Any]]
+    events: pd.DataFrame,
+    method_sha256: str | None,
+    plan: ChunkPlan,
+    recorders: list[str],
+    radii: dict[str, list[Any]],
+    recordings: RecorderFiles | None = None,
 ) -> dict[str, Any]:
-    """What a season's parts are made from: the events' digest, the method's digest, the chunking, the recorders, the radii."""
+    """What a season's parts are made from: the events' and the audio files' digests, the method's, the chunking, the recorders,
+    the radii. The files' digest covers each file's path, length, size and modification time, so a file rewritten between a
+    kill and its resume is not mixed in."""
+    files = None if recordings is None else frame_sha256(recordings.table[["path", "n_frames", "size_bytes", "mtime_ns"]])
     return {
         "events_sha256": frame_sha256(events),
+        "recordings": files,
         "n_events": len(events),
         "method_sha256": method_sha256,
         "chunk_events": plan.chunk_events,
@@ -131,11 +140,16 @@ def check_manifest(directory: Path, manifest: dict[str, Any], unknown: tuple[str
         When the folder already holds parts made from different inputs.
     """
     path = directory / MANIFEST
+    parts = sorted((directory / PARTS).glob("part-*.parquet"))
     if not path.is_file():
+        if parts:
+            raise DataError(
+                f"{directory} holds {len(parts)} parts but no {MANIFEST}: they are not this run's; "
+                "choose another protocol.output_dir, or delete the folder to start again"
+            )
         return
     old = json.loads(path.read_text())
     differs = [k for k in manifest if k not in unknown and old.get(k) != manifest[k]]
-    parts = sorted((directory / PARTS).glob("part-*.parquet"))
     if differs and parts:
         raise DataError(
             f"{directory} holds {len(parts)} parts of a season run made with other {', '.join(differs)}; "
@@ -277,6 +291,35 @@ def localize_events(
     return table
 
 
+def chunk_event_ids(directory: Path, chunk_events: int) -> list[np.ndarray]:
+    """The event ids of every chunk, in order (what each part must hold)."""
+    ids = pd.read_parquet(directory / EVENTS, columns=[col.EVENT_ID])[col.EVENT_ID].to_numpy(np.int64)
+    return [ids[i : i + chunk_events] for i in range(0, ids.size, chunk_events)]
+
+
+def read_part(directory: Path, k: int, event_ids: np.ndarray, columns: list[str] | None = None) -> pd.DataFrame | None:
+    """Chunk ``k``'s part (``columns`` of it), or None where it cannot be read (an empty or damaged file: the chunk is computed again).
+
+    Raises
+    ------
+    DataError
+        When the part reads but holds other events than chunk ``k``: it was copied in from another season.
+    """
+    path = part_path(directory, k)
+    try:
+        table = pd.read_parquet(path, columns=columns)
+    except (OSError, ValueError) as exc:
+        log.warning("%s cannot be read (%s); chunk %d is computed again", path, str(exc).splitlines()[0][:120], k)
+        return None
+    held = table[col.EVENT_ID].to_numpy(np.int64) if col.EVENT_ID in table else np.array([], dtype=np.int64)
+    if not np.array_equal(held, event_ids):
+        raise DataError(
+            f"{path} holds other events than chunk {k} of this season (it is not this run's part); "
+            "delete it and run protocol.stage=localize again"
+        )
+    return table
+
+
 def localize_chunks(
     directory: Path, chunks: Iterable[int], fitted: FittedSeasonMethod | None = None, progress_every_s: float = 5.0, label: str = "season"
 ) -> int:
@@ -292,7 +335,9 @@ def localize_chunks(
     plan = ChunkPlan(
         **{k: v for k, v in manifest["plan"].items() if k != "quality"}, quality=QualityThresholds(**manifest["plan"]["quality"])
     )
-    todo = [k for k in chunks if not part_path(directory, k).is_file()]
+    recordings.check_unchanged()
+    chunk_ids = chunk_event_ids(directory, plan.chunk_events)
+    todo = [k for k in chunks if not part_path(directory, k).is_file() or read_part(directory, k, chunk_ids[k], [col.EVENT_ID]) is None]
     total = sum(min(plan.chunk_events, manifest["n_events"] - k * plan.chunk_events) for k in todo)
     progress = _RateLog(total, progress_every_s, label)
     for k in todo:
@@ -377,5 +422,12 @@ def merge_parts(directory: Path) -> pd.DataFrame:
             "for every shard first (protocol.stage=localize), then merge"
         )
     manifest = read_manifest(directory)
-    parts = [pd.read_parquet(part_path(directory, k)) for k in range(n_chunks(manifest["n_events"], manifest["chunk_events"]))]
+    parts = []
+    for k, event_ids in enumerate(chunk_event_ids(directory, manifest["chunk_events"])):
+        part = read_part(directory, k, event_ids)
+        if part is None:
+            raise DataError(
+                f"{part_path(directory, k)} cannot be read; run protocol.stage=localize again (it computes that chunk anew), then merge"
+            )
+        parts.append(part)
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
