@@ -134,7 +134,7 @@ def raven_table(path, rows):
     lines = [header]
     for k, (begin_file, offset, duration, species) in enumerate(rows, start=1):
         for view in ("Spectrogram 1", "Waveform 1"):  # Raven repeats every selection per view
-            lines.append(f"{k}\t{view}\t1\t{offset}\t{offset + duration}\t2000\t6000\t{begin_file}\t{offset}\t{species}")
+            lines.append(f"{k}\t{view}\t1\t{offset}\t{offset + duration}\t1000\t3000\t{begin_file}\t{offset}\t{species}")
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -146,7 +146,7 @@ def test_raven_tables_per_recorder_place_selections_by_file_start_and_offset(two
     raven_table(folder / "R1.Table.1.selections.txt", [("20260501_050000.wav", 12.1, 0.5, "wren")])
     det = read_detections([folder / "R0.Table.1.selections.txt", folder / "R1.Table.1.selections.txt"], "raven", files)
     assert det[["recorder_id", "start_s", "label"]].values.tolist() == [["R0", 12.0, "wren"], ["R1", 12.1, "wren"], ["R0", 63.0, "tit"]]
-    assert det["low_hz"].tolist() == [2000.0] * 3 and np.allclose(det["end_s"] - det["start_s"], [0.5, 0.5, 0.4])
+    assert det["low_hz"].tolist() == [1000.0] * 3 and np.allclose(det["end_s"] - det["start_s"], [0.5, 0.5, 0.4])
     only = read_detections([folder / "R0.Table.1.selections.txt"], "raven", files, classes=["tit"])
     assert only["label"].tolist() == ["tit"]
 
@@ -176,6 +176,10 @@ def test_birdnet_and_opensoundscape_tables_with_class_and_score_thresholds(two_r
     ).to_csv(folder / "R0" / "birdnet.csv", index=False)
     det = read_detections([folder / "R0" / "birdnet.csv"], "birdnet", files, classes=["Eurasian Wren"], min_score=0.5)
     assert det[["recorder_id", "start_s", "end_s", "score"]].values.tolist() == [["R0", 60.0, 63.0, 0.9]]
+    bad = pd.read_csv(folder / "R0" / "birdnet.csv").assign(Confidence=[0.9, 1.5, 0.8])
+    bad.to_csv(folder / "R0" / "bad.csv", index=False)
+    with pytest.raises(DataError, match=r"bad.csv line 3, column 'Confidence': 1.5 is not a score in \[0, 1\]"):
+        read_detections([folder / "R0" / "bad.csv"], "birdnet", files)
     pd.DataFrame(
         {"file": ["20260501_050000.wav"] * 2, "start_time": [0.0, 5.0], "end_time": [5.0, 10.0], "wren": [0.2, 4.0], "tit": [3.0, -1.0]}
     ).to_csv(folder / "R1.scores.csv", index=False)
@@ -197,6 +201,18 @@ def test_birdnet_and_opensoundscape_tables_with_class_and_score_thresholds(two_r
             "line 2: the detection ends before it begins",
         ),
         ("Selection\tBegin Time (s)\tEnd Time (s)\tBegin File\n1\t3.0\t4.0\tother.wav\n", "file 'other.wav' of recorder R0 is not among"),
+        (
+            "Selection\tBegin Time (s)\tEnd Time (s)\tLow Freq (Hz)\tHigh Freq (Hz)\tBegin File\n1\t3.0\t4.0\t2000\t60000\t20260501_050000.wav\n",
+            r"line 2: High Freq \(Hz\) is above the recordings' Nyquist frequency, 4000 Hz \(low 2000 Hz, high 60000 Hz\)",
+        ),
+        (
+            "Selection\tBegin Time (s)\tEnd Time (s)\tLow Freq (Hz)\tHigh Freq (Hz)\tBegin File\n1\t3.0\t4.0\t3000\t1000\t20260501_050000.wav\n",
+            r"line 2: Low Freq \(Hz\) is not below High Freq \(Hz\)",
+        ),
+        (
+            "Selection\tBegin Time (s)\tEnd Time (s)\tLow Freq (Hz)\tHigh Freq (Hz)\tBegin File\n1\t3.0\t4.0\t-5\t1000\t20260501_050000.wav\n",
+            r"line 2: Low Freq \(Hz\) is negative",
+        ),
     ],
 )
 def test_malformed_raven_tables_stop_with_one_line(two_recorders, content, message):

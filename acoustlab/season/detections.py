@@ -103,6 +103,7 @@ def _place(
     if (duration_s <= 0).any():
         k = int(np.flatnonzero(duration_s <= 0)[0])
         raise DataError(f"detections: {table.attrs['path']} line {k + 2}: the detection ends before it begins ({duration_s[k]:.3f} s)")
+    _check_band(table, low, high, recordings.sample_rate_hz)
     rows = [recordings.file_row(f, r) for f, r in zip(files, recorders, strict=True)]
     start = np.array([r[col.START] for r in rows]) + offset_s
     return pd.DataFrame(
@@ -117,6 +118,25 @@ def _place(
             "source": [f"{Path(table.attrs['path']).name}:{k + 2}" for k in range(len(table))],
         }
     )
+
+
+def _check_band(table: pd.DataFrame, low: np.ndarray, high: np.ndarray, sample_rate_hz: float) -> None:
+    """A detection's band must be a band of the recordings: 0 ≤ low < high ≤ the Nyquist frequency.
+
+    The band sets the event's GCC band; one outside the recordings' spectrum would leave the GCC
+    nothing but noise and place the call anywhere, with no warning.
+    """
+    nyquist = sample_rate_hz / 2
+    known_low, known_high = np.isfinite(low), np.isfinite(high)
+    problems = (
+        (known_low & (low < 0), "Low Freq (Hz) is negative"),
+        (known_high & (high > nyquist), f"High Freq (Hz) is above the recordings' Nyquist frequency, {nyquist:g} Hz"),
+        (known_low & known_high & (low >= high), "Low Freq (Hz) is not below High Freq (Hz)"),
+    )
+    for bad, what in problems:
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise DataError(f"detections: {table.attrs['path']} line {k + 2}: {what} (low {low[k]:g} Hz, high {high[k]:g} Hz)")
 
 
 def read_raven(path: Path, recordings: RecorderFiles, label_column: str | None = None, recorder_column: str | None = None) -> pd.DataFrame:
@@ -170,6 +190,11 @@ def read_birdnet(
             )
         files = matches * len(table)
     start, end = _numbers(table, BIRDNET_TIMES[0]), _numbers(table, BIRDNET_TIMES[1])
+    confidence = _numbers(table, "Confidence")
+    outside = ~((confidence >= 0) & (confidence <= 1))
+    if outside.any():
+        k = int(np.flatnonzero(outside)[0])
+        raise DataError(f"detections: {path} line {k + 2}, column 'Confidence': {confidence[k]:g} is not a score in [0, 1]")
     label = _label(table, label_column, ("Common name", "Scientific name"))
     nan = np.full(len(table), np.nan)
     return _place(
@@ -181,7 +206,7 @@ def read_birdnet(
         nan,
         nan,
         label,
-        _numbers(table, "Confidence"),
+        confidence,
         table_recorder(table, recordings, recorder_column),
     )
 
