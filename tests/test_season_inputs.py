@@ -80,6 +80,26 @@ def test_gaps_and_times_outside_the_recordings_are_flagged(season_files):
     assert files.origin == pd.Timestamp("2026-05-01 05:00:00")
 
 
+def test_a_damaged_stretch_of_a_flac_file_flags_its_clips_and_the_rest_is_read(tmp_path):
+    """A decoder error inside a file costs the clips that touch it (flagged ``unreadable``, not placed), not the season."""
+    (tmp_path / "A").mkdir()
+    rng = np.random.default_rng(3)
+    samples = rng.uniform(-0.5, 0.5, 20 * FS).astype(np.float32)
+    path = tmp_path / "A" / "20260501_050000.flac"
+    sf.write(path, samples, FS)
+    files = RecorderFiles.from_file_names(tmp_path)
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 3000] = rng.integers(0, 256, 3000, dtype=np.uint8).tobytes()  # garbage in the middle frames
+    path.write_bytes(bytes(data))
+    damaged = files.read("A", 9.0, 2 * FS)
+    assert len(damaged.flags) == 1 and damaged.flags[0].startswith("unreadable (20260501_050000.flac: ")
+    assert not damaged.samples.any()
+    early = files.read("A", 0.5, FS)  # before the damage: read as written
+    assert early.flags == [] and np.allclose(early.samples, samples[FS // 2 : FS // 2 + FS], atol=1e-4)
+    files.close()
+
+
 def test_bad_timestamps_stop_with_one_line_naming_the_file(tmp_path):
     (tmp_path / "A").mkdir()
     sf.write(tmp_path / "A" / "morning_take.wav", np.zeros(100, np.float32), FS)

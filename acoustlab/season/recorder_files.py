@@ -72,7 +72,8 @@ class ClipRead:
     samples : numpy.ndarray
         (S,) float32 samples (zeros where no file covers the time).
     flags : list of str
-        ``gap`` (between two files), ``out_of_range`` (before the first or after the last file).
+        ``gap`` (between two files), ``out_of_range`` (before the first or after the last file),
+        ``unreadable (file: reason)`` (a damaged file; the clip is not placed).
     """
 
     samples: np.ndarray
@@ -299,6 +300,12 @@ class RecorderFiles:
         self._open[path] = handle
         return handle
 
+    def _forget(self, path: str) -> None:
+        """Close and drop a file's handle after a failed read (its position is unknown)."""
+        handle = self._open.pop(path, None)
+        if handle is not None:
+            handle.close()
+
     def close(self) -> None:
         """Close every open file."""
         while self._open:
@@ -317,18 +324,25 @@ class RecorderFiles:
         fs = self.sample_rate_hz
         out = np.zeros(n_samples, dtype=np.float32)
         covered = np.zeros(n_samples, dtype=bool)
+        damaged: list[str] = []
         end_s = start_s + n_samples / fs
         for k in np.flatnonzero((files.start_s < end_s) & (files.end_s > start_s)):
             first = int(round((start_s - files.start_s[k]) * fs))  # file sample of clip sample 0
             lo, hi = max(0, -first), min(n_samples, int(files.n_frames[k]) - first)
             if hi <= lo:
                 continue
-            handle = self._handle(files.path[k])
-            handle.seek(first + lo)
-            n_read = _read_into(handle, hi - lo, int(files.channel[k]), out[lo:hi])
+            try:
+                handle = self._handle(files.path[k])
+                handle.seek(first + lo)
+                n_read = _read_into(handle, hi - lo, int(files.channel[k]), out[lo:hi])
+            except (sf.LibsndfileError, RuntimeError, OSError) as exc:  # a damaged stretch costs this clip, not the season
+                self._forget(files.path[k])
+                out[lo:hi] = 0.0
+                damaged.append(f"{Path(files.path[k]).name}: {str(exc).splitlines()[0][:80]}")
+                continue
             covered[lo : lo + n_read] = True
-        flags = []
-        if not covered.all():  # in clip samples, with the same rounding as the reads: where the recorder's first file begins, its last ends
+        flags = [f"unreadable ({'; '.join(damaged)})"] if damaged else []
+        if not covered.all() and not damaged:  # in clip samples, with the same rounding as the reads: where the recorder's first file begins, its last ends
             first_k, last_k = 0, int(files.end_s.argmax())
             lead = -int(round((start_s - files.start_s[first_k]) * fs))
             tail = int(files.n_frames[last_k]) - int(round((start_s - files.start_s[last_k]) * fs))
