@@ -58,3 +58,36 @@ def test_a_position_on_both_sides_is_refused(compose_cfg, tmp_path):
     rows = np.arange(len(data.events))
     with pytest.raises(DataError, match="a source position appears in both training and test rows"):
         LocalizationPipeline(built.components).fit_predict(data.features, data.events, rows, rows[:5])
+
+
+def test_a_method_is_loaded_only_with_this_user_s_signature(tmp_path, monkeypatch):
+    """Unpickling runs code: a method file and digest replaced together (a received or tampered folder) are refused before
+    anything is unpickled; the same folder loads with the key that wrote it."""
+    import hashlib
+    import json
+    import pickle
+
+    from acoustlab.core.errors import DataError
+    from acoustlab.method.saved import DIGEST_FILE, METHOD_FILE, load_method, method_key_path, save_method
+
+    monkeypatch.setenv("ACOUSTLAB_KEY_FILE", str(tmp_path / "mine.key"))
+    digest = save_method({"a fitted": "method"}, tmp_path / "run", "config-key")
+    assert load_method(tmp_path / "run", digest) == {"a fitted": "method"}
+    assert method_key_path().stat().st_mode & 0o777 == 0o600
+
+    class Payload:  # what an attacker would ship: code that runs when unpickled
+        def __reduce__(self):
+            return (open, (str(tmp_path / "pwned"), "w"))
+
+    evil = pickle.dumps(Payload())
+    (tmp_path / "run" / METHOD_FILE).write_bytes(evil)
+    record = json.loads((tmp_path / "run" / DIGEST_FILE).read_text())
+    record["sha256"] = hashlib.sha256(evil).hexdigest()  # the digest beside it updated too
+    (tmp_path / "run" / DIGEST_FILE).write_text(json.dumps(record))
+    with pytest.raises(DataError, match="was not written with this user's key"):
+        load_method(tmp_path / "run", record["sha256"])
+    assert not (tmp_path / "pwned").exists()
+    save_method({"a fitted": "method"}, tmp_path / "theirs", "config-key")
+    monkeypatch.setenv("ACOUSTLAB_KEY_FILE", str(tmp_path / "someone_else.key"))  # a folder made by another user
+    with pytest.raises(DataError, match="fit again"):
+        load_method(tmp_path / "theirs")

@@ -1,16 +1,23 @@
-"""A fitted method saved once and loaded by every shard of a run, verified by its SHA-256.
+"""A fitted method saved once and loaded by every shard of a run, signed with this user's key.
 
 The fitted method holds scikit-learn, XGBoost (and TabPFN) estimators, which have no safe
 serialisation format of their own that keeps every plugin; it is written with ``joblib``
-(pickle). Unpickling runs code from the file, so ``load_method`` refuses a file whose SHA-256
-differs from the digest recorded when it was written, and the file is only ever read from the run
-directory that wrote it: never load a fitted method someone sent you; fit your own.
+(pickle), and unpickling runs code from the file. So a method is loaded only when it carries an
+HMAC-SHA-256 made with this user's secret key (``method_key_path``, created on first use, readable
+by its owner only): a digest stored beside the file proves nothing, since whoever replaces the file
+can replace the digest. A folder received from someone else, or edited, is refused before anything
+is unpickled; fit again. Shards on other machines of a cluster share the key through the home folder
+(or ``ACOUSTLAB_KEY_FILE``).
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import io
 import json
+import os
+import secrets
 from pathlib import Path
 from typing import Any
 
@@ -24,14 +31,49 @@ METHOD_FILE = "method.joblib"
 DIGEST_FILE = "method.sha256.json"
 
 
+def method_key_path() -> Path:
+    """Where this user's signing key lives: ``$ACOUSTLAB_KEY_FILE``, else ``$XDG_CONFIG_HOME/acoustlab/method.key``
+    (``~/.config/acoustlab/method.key``)."""
+    given = os.environ.get("ACOUSTLAB_KEY_FILE")
+    if given:
+        return Path(given).expanduser()
+    config = Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config")
+    return config / "acoustlab" / "method.key"
+
+
+def _signing_key() -> bytes:
+    """This user's secret key, created (32 random bytes, mode 0600) the first time a method is saved or loaded."""
+    path = method_key_path()
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:  # another process made it first
+            return path.read_bytes()
+        with os.fdopen(descriptor, "wb") as handle:
+            handle.write(secrets.token_bytes(32))
+    return path.read_bytes()
+
+
+def _signature(path: Path) -> str:
+    """HMAC-SHA-256 of a file's bytes under this user's key."""
+    mac = hmac.new(_signing_key(), digestmod=hashlib.sha256)
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            mac.update(block)
+    return mac.hexdigest()
+
+
 def save_method(method: Any, directory: Path, key: str) -> str:
-    """Write ``method`` to ``directory/method.joblib`` and its digest and ``key`` (what it was fitted from); return the digest."""
+    """Write ``method`` to ``directory/method.joblib`` with its digest, its signature and ``key`` (what it was fitted from);
+    return the digest."""
     directory.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     joblib.dump(method, buffer, compress=3)
     atomic_write_bytes(directory / METHOD_FILE, buffer.getvalue())
     digest = file_sha256(directory / METHOD_FILE)
-    atomic_write_bytes(directory / DIGEST_FILE, json.dumps({"sha256": digest, "key": key}, indent=2).encode())
+    record = {"sha256": digest, "key": key, "hmac_sha256": _signature(directory / METHOD_FILE)}
+    atomic_write_bytes(directory / DIGEST_FILE, json.dumps(record, indent=2).encode())
     return digest
 
 
@@ -59,7 +101,8 @@ def load_method(directory: Path, expected_sha256: str | None = None) -> Any:
     if not path.is_file():
         raise DataError(f"no fitted method at {path}: run the fit stage first (protocol.stage=fit)")
     try:
-        recorded = json.loads((directory / DIGEST_FILE).read_text())["sha256"]
+        record = json.loads((directory / DIGEST_FILE).read_text())
+        recorded = record["sha256"]
     except (OSError, ValueError, KeyError, TypeError):
         raise DataError(
             f"{directory / DIGEST_FILE} is missing or unreadable: the fitted method {path} cannot be verified; fit again"
@@ -71,4 +114,9 @@ def load_method(directory: Path, expected_sha256: str | None = None) -> Any:
                 f"{path}: SHA-256 {actual[:12]}… differs from the {'recorded' if wanted == recorded else 'expected'} "
                 f"{wanted[:12]}…; the file changed after it was written, refusing to load it (fit again)"
             )
+    if not hmac.compare_digest(str(record.get("hmac_sha256", "")), _signature(path)):
+        raise DataError(
+            f"{path} was not written with this user's key ({method_key_path()}): loading a method runs code, so acoustlab "
+            "loads only methods it saved itself; fit again (protocol.stage=fit), or give shards on other machines that key file"
+        )
     return joblib.load(path)
