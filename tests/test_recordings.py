@@ -54,6 +54,36 @@ def test_opensoundscape_layout(tmp_path, compose_cfg):
     np.testing.assert_allclose(tdoa_matrix(table, 6)[0], UPSTREAM_TDOA_S, atol=1e-3)
 
 
+def test_the_peers_own_coordinates_table_with_its_index_and_an_unused_recorder(tmp_path, compose_cfg):
+    """OpenSoundscape writes aru_coords.csv with the file as pandas' unnamed index column; a recorder no detection names
+    (whose row may lack a z) is not a mic."""
+    mics = pd.read_csv(EXAMPLE / "mics.csv")
+    for f in mics["file"]:
+        shutil.copy(EXAMPLE / f, tmp_path / f)
+    coords = pd.DataFrame(mics[["x_m", "y_m", "z_m"]].to_numpy(), columns=["x", "y", "z"], index=mics["file"].tolist())
+    coords.loc["unused_recorder.wav"] = [5.0, 5.0, np.nan]  # listed, never detected, no z
+    coords.to_csv(tmp_path / "aru_coords.csv")  # the peer's way: the index as an unnamed first column
+    assert (tmp_path / "aru_coords.csv").read_text().startswith(",x,y,z")
+    pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1}).to_csv(tmp_path / "det.csv", index=False)
+    cfg = compose_cfg(
+        [
+            "+site=loca2021",
+            "field=recordings",
+            f"field.audio_dir={tmp_path}",
+            "field.mics_csv=null",
+            "field.events_csv=null",
+            f"field.coords_csv={tmp_path / 'aru_coords.csv'}",
+            f"field.detections_csv={tmp_path / 'det.csv'}",
+            *BAND,
+        ]
+    )
+    site = site_from_config(cfg.site)
+    batch = build(cfg.field, "field").load(site)
+    assert batch.audio.shape[:2] == (1, 6)
+    table = extract_features(batch, site, build_feature_sets(cfg.features))
+    np.testing.assert_allclose(tdoa_matrix(table, 6)[0], UPSTREAM_TDOA_S, atol=1e-3)
+
+
 def test_bad_inputs_are_named(tmp_path, compose_cfg):
     cfg = compose_cfg(["+site=loca2021", "field=recordings", "field.mics_csv=null"])
     with pytest.raises(ConfigError, match="mics_csv and events_csv"):

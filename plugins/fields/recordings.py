@@ -58,6 +58,8 @@ def _read(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataFrame
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, OSError) as exc:
         raise DataError(f"field.{field}: cannot read {path} as a CSV table: {str(exc).splitlines()[0]}") from None
     table.columns = [str(c).strip() for c in table.columns]
+    if "file" in required and "file" not in table.columns and table.columns[0].startswith("Unnamed: 0"):
+        table = table.rename(columns={table.columns[0]: "file"})  # the index pandas wrote (OpenSoundscape's aru_coords.csv)
     missing = [c for c in required if c not in table.columns]
     if missing:
         raise DataError(f"field.{field}: {path} lacks columns {missing}; found {list(table.columns)}")
@@ -235,12 +237,22 @@ class RecordingFolder:
     def _opensoundscape_tables(self) -> tuple[pd.DataFrame, pd.DataFrame]:
         coords = _read(self.coords_csv, "coords_csv", ("file", "x", "y"))
         det = _read(self.detections_csv, "detections_csv", ("file", "start_time", "end_time"))
+        coords["file"] = coords["file"].astype(str).str.strip()
+        det["file"] = det["file"].astype(str).str.strip()
+        unused = ~coords["file"].isin(set(det["file"]))
+        if unused.any() and not unused.all():  # a recorder no detection names is no mic (its row may lack a z)
+            log.info(
+                "field.coords_csv: %d recorders have no detections and are left out (first: %r)",
+                int(unused.sum()),
+                coords["file"][unused].iloc[0],
+            )
+            path = coords.attrs["path"]
+            coords = coords[~unused].reset_index(drop=True)
+            coords.attrs["path"] = path
         _numeric(coords, "coords_csv", ("x", "y", "z"))
         _numeric(det, "detections_csv", ("start_time", "end_time"))
         classes = [c for c in det.columns if c not in ("file", "start_time", "end_time")]
         _numeric(det, "detections_csv", tuple(classes))
-        coords["file"] = coords["file"].astype(str).str.strip()
-        det["file"] = det["file"].astype(str).str.strip()
         mics = pd.DataFrame(
             {"file": coords["file"], col.MIC_X: coords["x"], col.MIC_Y: coords["y"], col.MIC_Z: coords["z"] if "z" in coords else 0.0}
         )
