@@ -120,3 +120,27 @@ def test_robust_solver_recovers_when_the_true_lag_is_a_lower_candidate():
     plain = HyperbolicSolver(source_height_m=1.5).solve(SolverInputs(HEXAGON, tdoa, 340.0))
     assert np.percentile(np.linalg.norm(robust.position_m - xy, axis=1), 95) < 1e-3
     assert np.percentile(np.linalg.norm(plain.position_m - xy, axis=1), 50) > 1.0
+
+
+@pytest.mark.parametrize("solver_name", ["hyperbolic", "least_squares"])
+def test_mics_on_one_line_give_no_fix_with_a_warning_not_a_point_on_the_line(solver_name, caplog):
+    """With every mic on one line a source off it has a mirror image; the fit between them lies on the line with an
+    infinite GDOP and fits neither. It is reported as no fix, with a warning that says why (the peer returns NaN too)."""
+    import logging
+
+    from acoustlab.core.contracts import SolverInputs
+    from plugins.solvers.hyperbolic import HyperbolicSolver
+    from plugins.solvers.least_squares import LeastSquaresSolver
+
+    mics = np.array([[0.0, 0.0], [20.0, 0.0], [40.0, 0.0], [60.0, 0.0]])
+    sources = np.array([[30.0, 15.0], [10.0, -20.0]])
+    arrival = np.linalg.norm(mics[None] - sources[:, None], axis=-1) / 343.0
+    solver = {"hyperbolic": HyperbolicSolver, "least_squares": LeastSquaresSolver}[solver_name](source_height_m=0.0)
+    with caplog.at_level(logging.WARNING):
+        result = solver.solve(SolverInputs(mic_positions_m=mics, tdoa_s=arrival - arrival[:, :1], speed_of_sound_m_s=343.0))
+    assert np.isnan(result.position_m).all() and not result.converged.any()
+    assert "the mics lie on one line" in caplog.text
+    off_line = np.vstack([mics, [[30.0, 25.0]]])  # one mic off the line: both sources placed
+    arrival = np.linalg.norm(off_line[None] - sources[:, None], axis=-1) / 343.0
+    result = solver.solve(SolverInputs(mic_positions_m=off_line, tdoa_s=arrival - arrival[:, :1], speed_of_sound_m_s=343.0))
+    np.testing.assert_allclose(result.position_m, sources, atol=1e-6)

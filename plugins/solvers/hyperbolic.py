@@ -12,6 +12,8 @@ roots there were. The chosen root is refined by Levenberg–Marquardt on all ran
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from acoustlab.core.contracts import SolverInputs, SolverResult
@@ -24,6 +26,30 @@ from acoustlab.toolkit.tdoa import (
     range_residuals,
     solver_inputs,
 )
+
+log = logging.getLogger(__name__)
+
+
+def drop_undetermined(position: np.ndarray, geometry: np.ndarray, mics: np.ndarray) -> np.ndarray:
+    """Set to NaN, in place, the fixes where the geometry determines no position (GDOP infinite); return where.
+
+    With every mic on one line a source off it has a mirror image across the line that fits the
+    time differences as well, and a least-squares fit lands between them, on the line, fitting
+    neither; there the Jacobian is singular and GDOP infinite. Such a fix is reported as none (NaN,
+    ``solver__failure`` 1) with a warning, never as a point.
+    """
+    undetermined = np.isfinite(position).all(axis=1) & ~np.isfinite(geometry)
+    if undetermined.any():
+        centred = mics[:, :2] - mics[:, :2].mean(axis=0)
+        collinear = np.linalg.matrix_rank(centred, tol=1e-6 * max(float(np.abs(centred).max()), 1e-12)) < 2
+        log.warning(
+            "solver: %d of %d fixes lie where the mics' geometry determines no position (GDOP infinite%s); reported as no fix",
+            int(undetermined.sum()),
+            len(position),
+            ": the mics lie on one line, so a source off it has a mirror image; add a mic off the line" if collinear else "",
+        )
+        position[undetermined] = np.nan
+    return undetermined
 
 
 class HyperbolicSolver:
@@ -172,6 +198,7 @@ class HyperbolicSolver:
         converged &= finite
         geometry = np.full(bsz, np.nan)
         geometry[finite] = gdop(mics, np.column_stack([position[finite], np.full(finite.sum(), height)]))
+        converged &= ~drop_undetermined(position, geometry, mics)
         return SolverResult(
             position_m=position,
             residual_m=res,

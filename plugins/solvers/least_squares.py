@@ -12,6 +12,7 @@ from acoustlab.core.contracts import SolverInputs, SolverResult
 from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.geometry import gdop
 from acoustlab.toolkit.tdoa import levenberg_marquardt, solver_inputs
+from plugins.solvers.hyperbolic import drop_undetermined
 
 
 class LeastSquaresSolver:
@@ -81,6 +82,7 @@ class LeastSquaresSolver:
         converged &= finite
         geometry = np.full(b, np.nan)
         geometry[finite] = gdop(mics, np.column_stack([position[finite], np.full(finite.sum(), height)]))
+        converged = converged & ~drop_undetermined(position, geometry, mics)
         return SolverResult(
             position_m=position,
             residual_m=residual,
