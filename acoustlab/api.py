@@ -1,0 +1,175 @@
+"""acoustlab from Python: localize recordings or a season, or solve time differences, and get a table back.
+
+The functions take the command line's settings as keyword arguments (nested dicts for config
+groups) and return pandas tables, so a notebook needs one import::
+
+    from acoustlab.api import localize
+
+    positions = localize(
+        "loca2021",
+        field={"mics_csv": "mics.csv", "events_csv": "events.csv", "audio_dir": "audio"},
+        features={"gcc": {"band_hz": [6000, 10500]}},
+        solver={"dimensions": 3},
+    )
+
+They run exactly what ``python -m acoustlab localize +site=loca2021 field=recordings ...`` runs (the
+same config, checks and cache), writing the run folder too; ``run_dir`` says where (default: a new
+folder under ``outputs/api/``).
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.core import columns as col
+from acoustlab.core.errors import ConfigError
+
+
+def overrides_from(settings: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """Hydra overrides (``key.sub=value``) for nested settings; strings are quoted, lists written as lists.
+
+    Examples
+    --------
+    >>> overrides_from({"field": {"audio_dir": "my audio"}, "solver": {"dimensions": 3}})
+    ["field.audio_dir='my audio'", 'solver.dimensions=3']
+    """
+    out = []
+    for key, value in settings.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out += overrides_from(value, f"{name}.")
+        else:
+            out.append(f"{name}={_value(value)}")
+    return out
+
+
+def _value(value: Any) -> str:
+    """One value in Hydra's override grammar."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return repr(float(value)) if isinstance(value, (float, np.floating)) else str(int(value))
+    if isinstance(value, (str, Path)):
+        return "'" + str(value).replace("\\", "\\\\").replace("'", "\\'") + "'"
+    if isinstance(value, Sequence):
+        return "[" + ",".join(_value(v) for v in value) + "]"
+    raise ConfigError(f"a setting must be a number, string, path, bool, None or list; got {type(value).__name__} {value!r}")
+
+
+def _run(protocol: str, site: str, overrides: Sequence[str], run_dir: str | Path | None, settings: Mapping[str, Any]) -> Path:
+    """Compose the config as the command line would, run the job, return its run folder."""
+    from acoustlab.run.app import run_experiment
+    from acoustlab.run.plugin_checks import compose_config
+    from acoustlab.run.preflight import check_argv
+
+    given = [f"+site={site}", f"protocol={protocol}", *overrides_from(settings), *overrides]
+    check_argv(given)
+    cfg = compose_config(given)
+    folder = Path(run_dir) if run_dir is not None else Path("outputs") / "api" / datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S-%f")
+    run_experiment(cfg, folder)
+    return folder
+
+
+def localize(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> pd.DataFrame:
+    """Place every detection of your recordings, as ``python -m acoustlab localize``; the positions table.
+
+    Parameters
+    ----------
+    site : str
+        A site of ``conf/site`` (``"from_csv"`` with ``site={"mics_csv": ...}`` for your own array).
+    overrides : sequence of str, optional
+        Command-line overrides as they are written there (``"+experiment=smoke"``).
+    run_dir : str or Path, optional
+        The run folder (default: a new one under ``outputs/api/``).
+    **settings
+        Config groups as nested dicts: ``field={"mics_csv": ..., "events_csv": ..., "audio_dir": ...}``,
+        ``solver={"dimensions": 3}``; ``field`` defaults to ``recordings``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per detection, the columns of ``positions.csv`` (docs/localize.md): ``x_m, y_m,
+        z_m`` in m, ``source``, the radii ``radius_<scorer>_<level>_m`` in m, the solver's diagnostics.
+    """
+    overrides = ["field=recordings", *overrides] if not any(o.startswith("field=") for o in overrides) else list(overrides)
+    folder = _run("localize", site, overrides, run_dir, settings)
+    return pd.read_parquet(folder / "positions.parquet")
+
+
+def season(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> pd.DataFrame:
+    """Localize a season of long recordings from detector tables, as ``python -m acoustlab season``; the positions table.
+
+    ``protocol={"recordings": {"audio_dir": ...}, "detections": {"paths": [...], "format": "raven"}}`` names
+    the inputs (docs/season.md); the other parameters are ``localize``'s.
+    """
+    folder = _run("season", site, list(overrides), run_dir, settings)
+    return pd.read_parquet(folder / "positions.parquet")
+
+
+def solve(
+    mic_positions_m: np.ndarray,
+    tdoa_s: np.ndarray,
+    speed_of_sound_m_s: float | np.ndarray = 343.0,
+    *,
+    solver: str = "hyperbolic",
+    source_height_m: float = 0.0,
+    **params: Any,
+) -> pd.DataFrame:
+    """Positions from time differences you already have, with the solver's diagnostics as columns.
+
+    Parameters
+    ----------
+    mic_positions_m : array (M, 2) or (M, 3)
+        Mic positions in m (local frame, x east, y north, z up).
+    tdoa_s : array (E, M) or (M,)
+        Arrival time at each mic minus that at mic 0, s, one row per event.
+    speed_of_sound_m_s : float or array (E,)
+        m/s.
+    solver : {"hyperbolic", "least_squares"}
+        ``hyperbolic`` (closed form + polish; ``dimensions=3`` for x, y and height with ≥ 4 mics) or
+        ``least_squares``. The consistent-set solver needs GCC candidates, not time differences.
+    source_height_m : float
+        The height a 2-D fix assumes, m.
+    **params
+        The solver's options (``conf/solver/<solver>.yaml``), e.g. ``dimensions=3``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``x_m, y_m, z_m`` (m; NaN where there is no fix), ``residual_m``, ``converged`` and every
+        diagnostic (``gdop``, ``n_roots``, ``height_gdop``, ...).
+    """
+    from acoustlab.core.contracts import SolverInputs
+    from acoustlab.run.plugin_checks import compose_config
+    from acoustlab.run.registry import build
+
+    if solver not in ("hyperbolic", "least_squares"):
+        raise ConfigError(f"solve: solver must be hyperbolic or least_squares; got {solver!r}")
+    cfg = compose_config([f"solver={solver}", *overrides_from({"solver": {"source_height_m": source_height_m, **params}})])
+    tdoa = np.atleast_2d(np.asarray(tdoa_s, dtype=float))
+    result = build(cfg.solver, "solver").solve(
+        SolverInputs(mic_positions_m=np.asarray(mic_positions_m, dtype=float), tdoa_s=tdoa, speed_of_sound_m_s=speed_of_sound_m_s)
+    )
+    table = pd.DataFrame({col.TRUE_X: result.position_m[:, 0], col.TRUE_Y: result.position_m[:, 1]})  # positions.csv's names
+    table[col.TRUE_Z] = result.diagnostics.get("source_height_m", np.full(len(table), source_height_m))
+    table.loc[table[col.TRUE_X].isna(), col.TRUE_Z] = np.nan
+    table["residual_m"] = result.residual_m
+    table["converged"] = result.converged
+    for name, values in result.diagnostics.items():
+        if name != "source_height_m":
+            table[name] = values
+    return table
+
+
+def metrics(run_dir: str | Path) -> dict[str, Any]:
+    """The ``metrics.json`` of a run folder (what ``localize`` and ``season`` wrote)."""
+    return json.loads((Path(run_dir) / "metrics.json").read_text())

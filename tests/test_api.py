@@ -1,0 +1,50 @@
+"""acoustlab from Python: the functions a notebook calls give the command line's answers as tables."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from acoustlab.api import localize, metrics, overrides_from, solve
+from acoustlab.core.errors import ConfigError
+
+
+def test_settings_become_the_command_line_s_overrides():
+    given = {"field": {"audio_dir": "my audio/it's"}, "solver": {"dimensions": 3}, "features": {"gcc": {"band_hz": [6000, 10500.5]}}}
+    assert overrides_from(given) == [
+        "field.audio_dir='my audio/it\\'s'",
+        "solver.dimensions=3",
+        "features.gcc.band_hz=[6000,10500.5]",
+    ]
+    assert overrides_from({"a": None, "b": False}) == ["a=null", "b=false"]
+    with pytest.raises(ConfigError, match="a setting must be a number, string"):
+        overrides_from({"a": {1, 2}})
+
+
+def test_solve_places_events_from_time_differences_with_their_diagnostics():
+    mics = np.array([[0.0, 0.0, 1.0], [50.0, 0.0, 3.0], [0.0, 50.0, 2.0], [50.0, 50.0, 6.0], [25.0, 25.0, 10.0]])
+    sources = np.array([[20.0, 30.0, 4.0], [12.0, 30.0, 8.0]])
+    arrival = np.linalg.norm(mics[None] - sources[:, None], axis=-1) / 343.0
+    table = solve(mics, arrival - arrival[:, :1], dimensions=3)
+    np.testing.assert_allclose(table[["x_m", "y_m", "z_m"]].to_numpy(), sources, atol=1e-6)
+    assert {"residual_m", "converged", "gdop", "height_gdop", "n_roots"} <= set(table.columns)
+    flat = solve(mics[:, :2], (arrival - arrival[:, :1])[0], source_height_m=0.0, solver="least_squares")
+    assert len(flat) == 1 and flat["z_m"].iloc[0] == 0.0
+    with pytest.raises(ConfigError, match="hyperbolic or least_squares"):
+        solve(mics, arrival, solver="consistent_set")
+
+
+@pytest.mark.slow
+def test_localize_from_python_equals_the_command_line_s_positions(tmp_path, compose_cfg):
+    from acoustlab.run.app import run_experiment
+
+    quick = ["+experiment=smoke", "tracking=none", "plots=false", "model.n_estimators=20", f"paths.outputs_dir={tmp_path / 'outputs'}"]
+    table = localize(
+        "loca2021", overrides=quick, run_dir=tmp_path / "api", features={"gcc": {"band_hz": [6000, 10500]}}, solver={"dimensions": 3}
+    )
+    assert len(table) == 1 and table["source"].iloc[0] == "solver" and np.isfinite(table["radius_fixed_0.95_m"]).all()
+    assert metrics(tmp_path / "api")["localization"]["n_detections"] == 1
+    cfg = compose_cfg(
+        ["+site=loca2021", "protocol=localize", "field=recordings", *quick, "features.gcc.band_hz=[6000,10500]", "solver.dimensions=3"]
+    )
+    run_experiment(cfg, tmp_path / "cli")
+    pd.testing.assert_frame_equal(table, pd.read_parquet(tmp_path / "cli" / "positions.parquet"))
