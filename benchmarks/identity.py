@@ -48,11 +48,19 @@ MACHINE_KEY = "_machine"
 
 
 def machine_record() -> dict:
-    """The CPU model (``/proc/cpuinfo``'s model name, else ``platform.processor``), Python's version and the releases a
-    result records (``common.package_versions``)."""
+    """The CPU model (``/proc/cpuinfo``'s model name, else ``platform.processor``), Python's version and the releases of the
+    numerical packages (two runs of one commit can differ where those differ)."""
     import platform
+    from importlib import metadata
 
-    from common import package_versions
+    def package_versions() -> dict[str, str]:
+        found = {}
+        for name in ("numpy", "scipy", "pandas", "scikit-learn", "xgboost", "xgboost-cpu", "torch", "tabpfn", "numba"):
+            try:
+                found[name] = metadata.version(name)
+            except metadata.PackageNotFoundError:
+                continue
+        return found
 
     cpu = platform.processor() or platform.machine()
     cpuinfo = Path("/proc/cpuinfo")
