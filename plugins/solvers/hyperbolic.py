@@ -31,22 +31,23 @@ log = logging.getLogger(__name__)
 
 
 def drop_undetermined(position: np.ndarray, geometry: np.ndarray, mics: np.ndarray) -> np.ndarray:
-    """Set to NaN, in place, the fixes where the geometry determines no position (GDOP infinite); return where.
+    """With every mic on one line, set to NaN, in place, the fixes the geometry does not determine (GDOP infinite); return where.
 
-    With every mic on one line a source off it has a mirror image across the line that fits the
-    time differences as well, and a least-squares fit lands between them, on the line, fitting
-    neither; there the Jacobian is singular and GDOP infinite. Such a fix is reported as none (NaN,
-    ``solver__failure`` 1) with a warning, never as a point.
+    A source off the mics' line has a mirror image across it that fits the time differences as well,
+    and a least-squares fit lands between the two, on the line, fitting neither; there GDOP is
+    infinite. Such a fix is reported as none (NaN, ``solver__failure`` 1) with a warning, never as a
+    point. On other arrays an infinite GDOP marks an isolated ill-conditioned spot (a baseline's
+    extension), where the fix can still be close: it is kept, and the learned models see the GDOP as missing.
     """
-    undetermined = np.isfinite(position).all(axis=1) & ~np.isfinite(geometry)
+    centred = mics[:, :2] - mics[:, :2].mean(axis=0)
+    collinear = np.linalg.matrix_rank(centred, tol=1e-6 * max(float(np.abs(centred).max()), 1e-12)) < 2
+    undetermined = collinear & np.isfinite(position).all(axis=1) & ~np.isfinite(geometry)
     if undetermined.any():
-        centred = mics[:, :2] - mics[:, :2].mean(axis=0)
-        collinear = np.linalg.matrix_rank(centred, tol=1e-6 * max(float(np.abs(centred).max()), 1e-12)) < 2
         log.warning(
-            "solver: %d of %d fixes lie where the mics' geometry determines no position (GDOP infinite%s); reported as no fix",
+            "solver: %d of %d fixes are not determined: the mics lie on one line, so a source off it has a mirror image; "
+            "reported as no fix (add a mic off the line)",
             int(undetermined.sum()),
             len(position),
-            ": the mics lie on one line, so a source off it has a mirror image; add a mic off the line" if collinear else "",
         )
         position[undetermined] = np.nan
     return undetermined
