@@ -61,7 +61,7 @@ def measured(args: list[str]) -> dict[str, float]:
 class Season:
     """Localize a synthetic season with the season's defaults and with the full feature set."""
 
-    params = [["frozen_lake", "forest"], ["default", "features=physics"], [2000]]
+    params = [["forest"], ["default", "features=physics"], [2000]]
     param_names = ["site", "settings", "calls"]
     quick_params = [["frozen_lake"], ["default"], [60]]
 
