@@ -152,7 +152,7 @@ def main() -> None:
     lines = [
         "# Bit-identity across a change",
         "",
-        f"`python benchmarks/bench_identity.py --label {opts.label} --compare {opts.compare}`",
+        f"`python benchmarks/identity.py --label {opts.label} --compare {opts.compare}`",
         "",
         "| job | events | predictions.parquet | metrics.json | differing metrics keys |",
         "|---|---|---|---|---|",
