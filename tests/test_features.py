@@ -240,9 +240,13 @@ def test_an_event_s_features_do_not_depend_on_the_longer_events_beside_it(clean_
     audio[1:3, :, short:] = 0.0  # events 1 and 2 end early; 0 and 3 fill the batch
     events = batch.events.iloc[:4].reset_index(drop=True).assign(**{col.CLIP_SAMPLES: [audio.shape[-1], short, short, audio.shape[-1]]})
     together = extract_features(RecordingBatch(audio, batch.sample_rate_hz, events), site, sets)
-    alone = extract_features(RecordingBatch(audio[1:2, :, :short], batch.sample_rate_hz, batch.events.iloc[1:2].reset_index(drop=True)), site, sets)
+    alone = extract_features(
+        RecordingBatch(audio[1:2, :, :short], batch.sample_rate_hz, batch.events.iloc[1:2].reset_index(drop=True)), site, sets
+    )
     pd.testing.assert_frame_equal(together.iloc[[1]].reset_index(drop=True), alone)
     padded = extract_features(RecordingBatch(audio, batch.sample_rate_hz, events.drop(columns=[col.CLIP_SAMPLES])), site, sets)
     assert not padded.iloc[[1]].reset_index(drop=True).equals(alone)  # the padding would have changed it
-    first_alone = extract_features(RecordingBatch(audio[:1], batch.sample_rate_hz, batch.events.iloc[:1].reset_index(drop=True)), site, sets)
+    first_alone = extract_features(
+        RecordingBatch(audio[:1], batch.sample_rate_hz, batch.events.iloc[:1].reset_index(drop=True)), site, sets
+    )
     pd.testing.assert_frame_equal(together.iloc[[0]].reset_index(drop=True), first_alone)

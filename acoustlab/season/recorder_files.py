@@ -342,7 +342,9 @@ class RecorderFiles:
                 continue
             covered[lo : lo + n_read] = True
         flags = [f"unreadable ({'; '.join(damaged)})"] if damaged else []
-        if not covered.all() and not damaged:  # in clip samples, with the same rounding as the reads: where the recorder's first file begins, its last ends
+        if (
+            not covered.all() and not damaged
+        ):  # in clip samples, with the same rounding as the reads: where the recorder's first file begins, its last ends
             first_k, last_k = 0, int(files.end_s.argmax())
             lead = -int(round((start_s - files.start_s[first_k]) * fs))
             tail = int(files.n_frames[last_k]) - int(round((start_s - files.start_s[last_k]) * fs))
