@@ -42,16 +42,24 @@ def method_key_path() -> Path:
 
 
 def _signing_key() -> bytes:
-    """This user's secret key, created (32 random bytes, mode 0600) the first time a method is saved or loaded."""
+    """This user's secret key, created (32 random bytes, mode 0600) the first time a method is saved or loaded.
+
+    It is written to a private temporary file and linked into place, so a process that finds the key
+    file always finds it whole, whichever of several processes made it.
+    """
     path = method_key_path()
     if not path.is_file():
         path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except FileExistsError:  # another process made it first
-            return path.read_bytes()
+        draft = path.with_name(f".{path.name}.{os.getpid()}.draft")
+        descriptor = os.open(draft, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(descriptor, "wb") as handle:
             handle.write(secrets.token_bytes(32))
+        try:
+            os.link(draft, path)
+        except FileExistsError:  # another process made it first: use theirs
+            pass
+        finally:
+            draft.unlink()
     return path.read_bytes()
 
 
