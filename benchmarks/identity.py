@@ -32,7 +32,7 @@ import pandas as pd
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / ".results"
-log = logging.getLogger("bench_identity")
+log = logging.getLogger("benchmarks.identity")
 
 #: The jobs compared: frozen-lake sim-only (defaults), forest sim-only with the paper's method,
 #: and the frozen-lake leave-one-position-out stand-in.

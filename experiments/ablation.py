@@ -27,7 +27,7 @@ from common import REPO, machine, write_results
 
 from acoustlab.reporting.report import collect_runs, error_rows, model_relative_rows, relative_rows
 
-log = logging.getLogger("bench_ablation")
+log = logging.getLogger("experiments.ablation")
 
 
 def main() -> None:

@@ -35,7 +35,7 @@ from acoustlab.run.registry import build
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import bound_fixes
 
-log = logging.getLogger("bench_crb")
+log = logging.getLogger("experiments.crb")
 #: (data overrides, solver overrides) per condition
 CONDITIONS = {
     "free field, white noise, 2-D solver": (("simulator=free_field", "site.noise.regimes=[{kind: white}]"), ("solver.dimensions=2",)),

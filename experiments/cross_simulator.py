@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from common import REPO, compose_cfg, fmt, machine, run_in_process, write_results
 
-log = logging.getLogger("bench_cross_simulator")
+log = logging.getLogger("experiments.cross_simulator")
 METHOD = [
     "model=xgboost",
     "error_model=xgboost_quantile",

@@ -25,7 +25,7 @@ import logging
 import numpy as np
 from common import fmt, machine, run_in_process, write_results
 
-log = logging.getLogger("bench_method_crossfit")
+log = logging.getLogger("experiments.crossfit")
 SELECTIVE = ["pipeline.selective.enabled=true", "pipeline.selective.delta=0.01", "pipeline.selective.epsilon=0.1", "conformal.ellipse=true"]
 
 

@@ -23,7 +23,7 @@ from acoustlab.stages.solver_columns import tdoa_matrix
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.propagation import segment_trunk_clearance
 
-log = logging.getLogger("bench_error_tail")
+log = logging.getLogger("experiments.error_tail")
 GROSS_M = 5.0
 
 

@@ -34,7 +34,7 @@ from acoustlab.stages.dataset import SimulationPlan, load_or_build_simulated
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import bound_fixes, solver_inputs_for
 
-log = logging.getLogger("bench_first_stage")
+log = logging.getLogger("experiments.first_stage")
 #: (label, GCC weighting, solver option, solver overrides): the previous default first, the peer heuristic on the same inputs.
 VARIANTS = (
     ("hyperbolic, PHAT (before)", "phat", "hyperbolic", ()),

@@ -20,7 +20,7 @@ from common import compose_cfg, machine, write_results
 from acoustlab.reporting.metrics import gate_scalars
 from acoustlab.run.app import run_experiment
 
-log = logging.getLogger("bench_method")
+log = logging.getLogger("experiments.method")
 
 
 def run(overrides: list[str]) -> dict:

@@ -18,7 +18,7 @@ import logging
 
 from common import fmt, run_in_process, write_results
 
-log = logging.getLogger("bench_method_10k_rows")
+log = logging.getLogger("experiments.method_10k_rows")
 METHODS = (
     ("solver", "solver"),
     ("model", "model (XGBoost, ≤ {rows:,} rows)"),

@@ -19,7 +19,7 @@ import logging
 
 from common import fmt, machine, run_in_process, write_results
 
-log = logging.getLogger("bench_model_rows")
+log = logging.getLogger("experiments.model_rows")
 
 
 def main() -> None:

@@ -56,7 +56,7 @@ import pandas as pd
 from scipy.spatial.distance import pdist
 
 #: The acoustlab side is imported in ``main`` only: the driver runs in OpenSoundscape's interpreter.
-log = logging.getLogger("bench_opensoundscape")
+log = logging.getLogger("experiments.opensoundscape")
 CLASS = "call"
 #: Silence before the first and after the last event, s: OpenSoundscape reads each receiver's window widened by the largest delay.
 PAD_S = 1.0

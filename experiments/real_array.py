@@ -24,7 +24,7 @@ from acoustlab.stages.solver_columns import tdoa_matrix
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 from plugins.solvers.hyperbolic import HyperbolicSolver
 
-log = logging.getLogger("bench_real_array")
+log = logging.getLogger("experiments.real_array")
 BAND = "[6000,10500]"
 UPSTREAM_TDOA_S = [0.0, 0.0325, -0.002, 0.0316, -0.0086, 0.024]  # OpenSoundscape's test reference, ±0.01 s
 

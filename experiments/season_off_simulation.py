@@ -32,7 +32,7 @@ from cross_simulator import METHOD, region_rows
 
 from acoustlab.reporting.report import collect_runs, coverage_rows, error_rows, relative_rows
 
-log = logging.getLogger("bench_season_fast_off_simulation")
+log = logging.getLogger("experiments.season_off_simulation")
 #: The compared configurations, the reference first.
 CONFIGS = {"defaults": [], "physics_lean": ["features=physics_lean"], "season_fast": ["+experiment=season_fast"]}
 
@@ -76,7 +76,7 @@ def main() -> None:
         f"{5 * opts.n_positions:,} events rendered by pyroomacoustics' image-source method (`protocol=field_eval field=image_source`; "
         "XGBoost point model, XGBoost-quantile error model, learned gate, the paper's conformal). Configurations: defaults "
         "(`features=physics`, the default GCC search and solver), `features=physics_lean`, and `+experiment=season_fast` (the lean "
-        "set, `features.gcc.search=coarse`, `solver=consistent_set_compiled`). Failures are infinite errors; intervals are 95 % "
+        "set with `features.gcc.search=coarse`). Failures are infinite errors; intervals are 95 % "
         "bootstraps over source positions.",
     ]
     for site in opts.sites:

@@ -21,7 +21,7 @@ from acoustlab.method.pipeline import error_2d_m
 from acoustlab.run.app import build_run, prepare_data, solver_features
 from acoustlab.run.registry import build
 
-log = logging.getLogger("bench_solvers")
+log = logging.getLogger("experiments.solvers")
 SOLVERS = ("least_squares", "hyperbolic", "baseline_robust")
 
 
