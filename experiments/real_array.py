@@ -11,6 +11,7 @@ over 0–400 m (flight calls come from birds aloft) and the best-fitting height 
 
 from __future__ import annotations
 
+import argparse
 import logging
 
 import numpy as np
@@ -41,6 +42,7 @@ def solve_scan(
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     overrides = [f"features.gcc.band_hz={BAND}"]  # one GCC band for the tdoa, xcorr and uncertainty groups
     cfg = compose_cfg(["+site=loca2021", "field=recordings", *overrides])
