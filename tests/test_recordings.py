@@ -27,61 +27,56 @@ def test_shipped_real_array_gives_the_reference_tdoas(compose_cfg):
     np.testing.assert_allclose(tdoa_matrix(table, 6)[0], UPSTREAM_TDOA_S, atol=1e-3)
 
 
-def test_opensoundscape_layout(tmp_path, compose_cfg):
+def copy_example_audio(folder):
+    """The shipped LOCA recordings copied into ``folder``; the example's mics table."""
     mics = pd.read_csv(EXAMPLE / "mics.csv")
     for f in mics["file"]:
-        shutil.copy(EXAMPLE / f, tmp_path / f)
-    pd.DataFrame({"file": mics["file"], "x": mics["x_m"], "y": mics["y_m"], "z": mics["z_m"]}).to_csv(tmp_path / "coords.csv", index=False)
-    det = pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1})
-    det = pd.concat([det, pd.DataFrame({"file": mics["file"][:2], "start_time": 0.6, "end_time": 0.8, "zeep": 1})])
-    det.to_csv(tmp_path / "detections.csv", index=False)
+        shutil.copy(EXAMPLE / f, folder / f)
+    return mics
+
+
+def load_opensoundscape_layout(compose_cfg, folder, coords_csv, detections_csv):
+    """The LOCA example read from OpenSoundscape-layout tables: the batch, and the features' TDOA matrix."""
     cfg = compose_cfg(
         [
             "+site=loca2021",
             "field=recordings",
-            f"field.audio_dir={tmp_path}",
+            f"field.audio_dir={folder}",
             "field.mics_csv=null",
             "field.events_csv=null",
-            f"field.coords_csv={tmp_path / 'coords.csv'}",
-            f"field.detections_csv={tmp_path / 'detections.csv'}",
+            f"field.coords_csv={coords_csv}",
+            f"field.detections_csv={detections_csv}",
             *BAND,
         ]
     )
     site = site_from_config(cfg.site)
     batch = build(cfg.field, "field").load(site)
+    return batch, tdoa_matrix(extract_features(batch, site, build_feature_sets(cfg.features)), 6)
+
+
+def test_opensoundscape_layout(tmp_path, compose_cfg):
+    mics = copy_example_audio(tmp_path)
+    pd.DataFrame({"file": mics["file"], "x": mics["x_m"], "y": mics["y_m"], "z": mics["z_m"]}).to_csv(tmp_path / "coords.csv", index=False)
+    det = pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1})
+    det = pd.concat([det, pd.DataFrame({"file": mics["file"][:2], "start_time": 0.6, "end_time": 0.8, "zeep": 1})])
+    det.to_csv(tmp_path / "detections.csv", index=False)
+    batch, tdoa = load_opensoundscape_layout(compose_cfg, tmp_path, tmp_path / "coords.csv", tmp_path / "detections.csv")
     assert batch.n_events == 1  # the second window has only 2 receivers (< min_receivers=3)
-    table = extract_features(batch, site, build_feature_sets(cfg.features))
-    np.testing.assert_allclose(tdoa_matrix(table, 6)[0], UPSTREAM_TDOA_S, atol=1e-3)
+    np.testing.assert_allclose(tdoa[0], UPSTREAM_TDOA_S, atol=1e-3)
 
 
 def test_the_peers_own_coordinates_table_with_its_index_and_an_unused_recorder(tmp_path, compose_cfg):
     """OpenSoundscape writes aru_coords.csv with the file as pandas' unnamed index column; a recorder no detection names
     (whose row may lack a z) is not a mic."""
-    mics = pd.read_csv(EXAMPLE / "mics.csv")
-    for f in mics["file"]:
-        shutil.copy(EXAMPLE / f, tmp_path / f)
+    mics = copy_example_audio(tmp_path)
     coords = pd.DataFrame(mics[["x_m", "y_m", "z_m"]].to_numpy(), columns=["x", "y", "z"], index=mics["file"].tolist())
     coords.loc["unused_recorder.wav"] = [5.0, 5.0, np.nan]  # listed, never detected, no z
     coords.to_csv(tmp_path / "aru_coords.csv")  # the peer's way: the index as an unnamed first column
     assert (tmp_path / "aru_coords.csv").read_text().startswith(",x,y,z")
     pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1}).to_csv(tmp_path / "det.csv", index=False)
-    cfg = compose_cfg(
-        [
-            "+site=loca2021",
-            "field=recordings",
-            f"field.audio_dir={tmp_path}",
-            "field.mics_csv=null",
-            "field.events_csv=null",
-            f"field.coords_csv={tmp_path / 'aru_coords.csv'}",
-            f"field.detections_csv={tmp_path / 'det.csv'}",
-            *BAND,
-        ]
-    )
-    site = site_from_config(cfg.site)
-    batch = build(cfg.field, "field").load(site)
+    batch, tdoa = load_opensoundscape_layout(compose_cfg, tmp_path, tmp_path / "aru_coords.csv", tmp_path / "det.csv")
     assert batch.audio.shape[:2] == (1, 6)
-    table = extract_features(batch, site, build_feature_sets(cfg.features))
-    np.testing.assert_allclose(tdoa_matrix(table, 6)[0], UPSTREAM_TDOA_S, atol=1e-3)
+    np.testing.assert_allclose(tdoa[0], UPSTREAM_TDOA_S, atol=1e-3)
 
 
 def test_bad_inputs_are_named(tmp_path, compose_cfg):

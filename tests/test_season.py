@@ -84,16 +84,14 @@ def test_a_season_s_answer_does_not_depend_on_how_it_is_cut(season):
     from dataclasses import replace
 
     from acoustlab.season.recorder_files import RecorderFiles
-    from acoustlab.season.stream import EVENTS, FILES, ChunkPlan, batches_by_length, localize_events
-    from acoustlab.toolkit.quality import QualityThresholds
+    from acoustlab.season.stream import EVENTS, FILES, batches_by_length, localize_events
 
     root, _, _, _ = season
     directory = root / "out"
     manifest = read_manifest(directory)
     fitted = load_method(directory, manifest["method_sha256"])
     recordings = RecorderFiles.load(directory / FILES)
-    settings = manifest["plan"]
-    plan = ChunkPlan(**{k: v for k, v in settings.items() if k != "quality"}, quality=QualityThresholds(**settings["quality"]))
+    plan = _plan(manifest)
     events = pd.read_parquet(directory / EVENTS)
 
     def placed(table: pd.DataFrame, batch_events: int) -> pd.DataFrame:
