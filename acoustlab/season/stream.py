@@ -88,6 +88,12 @@ class ChunkPlan:
         if self.chunk_events < 1 or self.batch_events < 1:
             raise DataError(f"protocol.chunk_events and protocol.batch_events must be >= 1; got {self.chunk_events}, {self.batch_events}")
 
+    @classmethod
+    def from_manifest(cls, manifest: dict[str, Any]) -> ChunkPlan:
+        """The plan a season's ``season.json`` recorded (``season_manifest``'s ``plan``)."""
+        settings = manifest["plan"]
+        return cls(**{k: v for k, v in settings.items() if k != "quality"}, quality=QualityThresholds(**settings["quality"]))
+
 
 def part_path(directory: Path, k: int) -> Path:
     """Where chunk ``k``'s positions are written."""
@@ -196,27 +202,13 @@ def padded_samples(lengths_s: np.ndarray, sample_rate_hz: float) -> np.ndarray:
     return np.array([next_fast_len(int(round(length * sample_rate_hz)) + 1) for length in lengths_s], dtype=np.int64)
 
 
-def batches_by_length(padded: np.ndarray, batch_events: int) -> list[np.ndarray]:
-    """Row positions of the batches: clips of one padded length together, in their order, at most ``batch_events`` each.
-
-    Every feature is computed on the batch's (events, mics, samples) array, whose length is the
-    clips' padded length. Padding a clip to a longer batch-mate's length would change its spectra
-    (a PHAT weighting, a noise floor over frames), so an event's answer would depend on which events
-    were computed beside it; batching clips of one length makes it depend on the event alone.
-    """
-    batches = []
-    for length in np.unique(padded):
-        rows = np.flatnonzero(padded == length)
-        batches += [rows[i : i + batch_events] for i in range(0, rows.size, batch_events)]
-    return sorted(batches, key=lambda rows: rows[0])
-
-
 def read_batch(
     recordings: RecorderFiles, events: pd.DataFrame, recorders: list[str], sample_rate_hz: float, plan: ChunkPlan
 ) -> RecordingBatch:
     """The clips of ``events`` on every recorder (in the site's mic order) as a batch, flagged per clip."""
     lengths_s = clip_lengths_s(events)
-    n_max = int(padded_samples(lengths_s, sample_rate_hz).max())  # one length per batch: see batches_by_length
+    padded = padded_samples(lengths_s, sample_rate_hz)
+    n_max = int(padded.max())
     audio = np.zeros((len(events), len(recorders), n_max), dtype=np.float32)
     flags = []
     for e, (start, length, too_long) in enumerate(
@@ -247,6 +239,9 @@ def read_batch(
             "quality_ok": [not f for f in flags],
             col.HARDWARE_FAILURE: False,
             "is_field": True,
+            # each clip is computed at its own padded length (extract_features), never its batch-mates': an event's answer
+            # depends on the event alone, whatever the batch and chunk sizes
+            col.CLIP_SAMPLES: padded,
         }
     )
     if plan.use_detection_band:
@@ -269,18 +264,14 @@ def localize_events(
     ``on_batch(n)`` is called after each batch with the number of its events (progress).
     """
     c = fitted.method.pipeline.c
-    fs = float(fitted.sample_rate_hz)
-    batches = batches_by_length(padded_samples(clip_lengths_s(events), fs), plan.batch_events)
     features, rows = [], []
-    for positions in batches:  # peak memory: one batch's audio and its transforms
-        batch = read_batch(recordings, events.iloc[positions], recorders, fs, plan)
+    for first in range(0, len(events), plan.batch_events):  # peak memory: one batch's audio and its transforms
+        batch = read_batch(recordings, events.iloc[first : first + plan.batch_events], recorders, float(fitted.sample_rate_hz), plan)
         features.append(extract_features(batch, c.site, c.feature_sets))
         rows.append(batch.events)
         if on_batch is not None:
             on_batch(batch.n_events)
-    order = np.argsort(np.concatenate(batches), kind="stable")  # back to the chunk's order
-    table_features = pd.concat(features, ignore_index=True).iloc[order].reset_index(drop=True)
-    detections = pd.concat(rows, ignore_index=True).iloc[order].reset_index(drop=True)
+    table_features, detections = pd.concat(features, ignore_index=True), pd.concat(rows, ignore_index=True)
     table_features = add_solver_columns(table_features, detections, c.site, c.solver, fitted.plausible_margin_fraction)
     predictions, _ = fitted.method.predict(table_features, detections)
     detections = detections.drop(columns=["is_field"]).assign(label=events["label"].to_numpy())
@@ -332,9 +323,7 @@ def localize_chunks(
     manifest = read_manifest(directory)
     fitted = fitted if fitted is not None else load_method(directory, manifest["method_sha256"])
     recordings = RecorderFiles.load(directory / FILES)
-    plan = ChunkPlan(
-        **{k: v for k, v in manifest["plan"].items() if k != "quality"}, quality=QualityThresholds(**manifest["plan"]["quality"])
-    )
+    plan = ChunkPlan.from_manifest(manifest)
     recordings.check_unchanged()
     chunk_ids = chunk_event_ids(directory, plan.chunk_events)
     todo = [k for k in chunks if not part_path(directory, k).is_file() or read_part(directory, k, chunk_ids[k], [col.EVENT_ID]) is None]
