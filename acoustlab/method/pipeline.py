@@ -33,11 +33,13 @@ from acoustlab.core.progress import progress
 from acoustlab.core.types import Site
 from acoustlab.method.splits import cap_rows
 from acoustlab.method.trust import SupportCues, TrainingSupport, TrustedDecision, TrustSettings, apply_trust, support_cues
+from acoustlab.stages.solver_columns import pair_candidate_lags
 from acoustlab.toolkit.conformal import conformal_quantile, selective_threshold
 from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
 from acoustlab.toolkit.geometry import gdop, position_crb_m
 from acoustlab.toolkit.input_uncertainty import InputUncertainty, level_factor, position_sigma_m
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
+from acoustlab.toolkit.tdoa import candidate_misfit_m
 
 log = logging.getLogger(__name__)
 #: ``calibrate_on="auto"`` calibrates on field rows only where they span at least this many positions
@@ -315,9 +317,20 @@ class LocalizationPipeline:
         )
 
     def _support(
-        self, rows: np.ndarray, features: pd.DataFrame, mcols: list[str], events: pd.DataFrame, solver_xy: np.ndarray, groups: np.ndarray
+        self,
+        rows: np.ndarray,
+        features: pd.DataFrame,
+        mcols: list[str],
+        events: pd.DataFrame,
+        solver_xy: np.ndarray,
+        groups: np.ndarray,
+        model_xy: np.ndarray,
     ) -> TrainingSupport | None:
-        """The point model's training support learned from ``rows`` (None with ``trust.enabled=false``)."""
+        """The point model's training support learned from ``rows`` (None with ``trust.enabled=false``).
+
+        ``model_xy`` (indexed like ``rows``) are out-of-fold model estimates: how well the accurate
+        ones explain the measured time differences sets the hand-over tolerance.
+        """
         if not self.c.trust.enabled:
             return None
         truth = (
@@ -325,10 +338,32 @@ class LocalizationPipeline:
             if col.TRUE_Z in events
             else np.column_stack([events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)[rows], np.full(rows.size, np.nan)])
         )
-        return TrainingSupport(self.c.trust).fit(features.iloc[rows][mcols], truth, error_2d_m(solver_xy[rows], truth), groups[rows])
+        model_misfit = self._misfit_m(model_xy, features.iloc[rows])
+        return TrainingSupport(self.c.trust).fit(
+            features.iloc[rows][mcols],
+            truth,
+            error_2d_m(solver_xy[rows], truth),
+            groups[rows],
+            model_misfit_m=model_misfit,
+            model_error_m=None if model_misfit is None else error_2d_m(model_xy, truth),
+        )
 
-    @staticmethod
+    def _misfit_m(self, position_m: np.ndarray, features: pd.DataFrame) -> np.ndarray | None:
+        """(B,) how well 2-D positions explain the rows' GCC candidates (``candidate_misfit_m``), m; None without candidates."""
+        candidates = pair_candidate_lags(features, self.c.site)
+        if candidates is None or col.ENV_SPEED_OF_SOUND not in features:
+            return None
+        return candidate_misfit_m(
+            position_m,
+            source_height_m(features, self.c.site),
+            self.c.site.mic_positions_m,
+            np.asarray(self.c.site.mic_pairs),
+            candidates,
+            features[col.ENV_SPEED_OF_SOUND].to_numpy(float),
+        )
+
     def _cues(
+        self,
         rows: np.ndarray,
         solver_xy: np.ndarray,
         model_xy: np.ndarray,
@@ -337,7 +372,12 @@ class LocalizationPipeline:
         support: TrainingSupport | None,
     ) -> SupportCues:
         """``rows`` (``model_xy`` indexed like them) checked against the model's training support, once for every gate."""
-        return support_cues(solver_xy[rows], model_xy, features.iloc[rows], features.iloc[rows][mcols], support)
+        misfit = None
+        if support is not None and getattr(support, "handover_tolerance_m_", None) is not None:
+            solver_misfit = self._misfit_m(solver_xy[rows], features.iloc[rows])
+            model_misfit = self._misfit_m(model_xy, features.iloc[rows])
+            misfit = None if solver_misfit is None or model_misfit is None else (solver_misfit, model_misfit)
+        return support_cues(solver_xy[rows], model_xy, features.iloc[rows], features.iloc[rows][mcols], support, misfit)
 
     def _decide(
         self, gate: Gate, rows: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, cues: SupportCues
@@ -399,7 +439,7 @@ class LocalizationPipeline:
         cal = self._calibration_errors(split, oof_model)
         log.info("final point and error models on %d training rows", train.size)
         models = self._fit_point(features.iloc[train][split.mcols], split.truth[train], split.solver_xy[train], split.groups[train])
-        support = self._support(train, features, split.mcols, events, split.solver_xy, split.groups)
+        support = self._support(train, features, split.mcols, events, split.solver_xy, split.groups, oof_model)
         fitted = FittedMethod(
             pipeline=self,
             mcols=split.mcols,
@@ -647,7 +687,7 @@ class LocalizationPipeline:
         substituted = np.zeros(train.size, dtype=bool)
         for fit_idx, held_idx in folds:
             fold_gate = self._fit_gate(self.c.gate, train[fit_idx], sim[fit_idx], solver_xy, oof_model[fit_idx], features, truth, groups)
-            support = self._support(train[fit_idx], features, mcols, events, solver_xy, groups)
+            support = self._support(train[fit_idx], features, mcols, events, solver_xy, groups, oof_model[fit_idx])
             cues = self._cues(train[held_idx], solver_xy, oof_model[held_idx], features, mcols, support)
             decision = self._decide(fold_gate, train[held_idx], solver_xy, oof_model[held_idx], features, cues).decision
             position[held_idx], substituted[held_idx] = decision.position_m, decision.substituted

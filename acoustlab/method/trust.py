@@ -16,6 +16,12 @@ domain and checks every gate's decision against it:
   An array without redundant measurements (3 mics in 2-D: the residual is always 0) cannot
   show consistency; there no fix counts as consistent, and neither does a fix from exactly as
   many mics as unknowns + 1 (``solver__n_mics_used`` < ``solver__dimensions_used`` + 2).
+* **The measurements** (the hand-over check): the model's estimate must explain the measured
+  time differences (any GCC candidate per pair, ``candidate_misfit_m``) at least as well as the
+  solver's fix, within a tolerance set on simulation: the ``handover_quantile`` of the misfits
+  of accurate (≤ ``handover_accurate_m``) out-of-fold model estimates. It needs no training
+  data of the site, so it holds where the simulation does not match the site: a model estimate
+  tens of metres from where the time differences point is never reported.
 * **The rule** (``support_cues`` once per rows, ``apply_trust`` per gate): where the gate substituted the model's estimate but the
   model is outside its support (its input is novel, its own estimate lies outside the training
   hull, or the solver's consistent fix lies outside it), the solver's fix is kept and the row
@@ -44,7 +50,9 @@ REASON_GATE = ""
 REASON_SOLVER_OUTSIDE = "solver fix kept: consistent and outside the model's training region"
 REASON_NOVEL = "solver fix kept: the detection is unlike the model's training data"
 REASON_MODEL_OUTSIDE = "solver fix kept: the model's estimate lies outside its training region"
+REASON_EXPLAINS_WORSE = "solver fix kept: the model's estimate explains the measured time differences worse"
 REASON_ABSTAIN = "no estimate: no solver fix, and the model is outside its training support"
+REASON_ABSTAIN_MISFIT = "no estimate: no solver fix, and the model's estimate does not explain the measured time differences"
 
 
 @dataclass
@@ -71,6 +79,12 @@ class TrustSettings:
     residual_quantile, residual_factor : float
         A fix is consistent where its residual is at most ``residual_factor`` × this quantile of the
         good fixes' residuals (a gross fix's residual is typically orders of magnitude larger).
+    handover_check : bool
+        False: no hand-over is checked against the measured time differences.
+    handover_accurate_m : float
+        Out-of-fold model estimates within this 2-D error (m) of the truth set the tolerance.
+    handover_quantile : float
+        The tolerance is this quantile of their candidate misfits (m of range difference).
     """
 
     enabled: bool = True
@@ -82,13 +96,16 @@ class TrustSettings:
     good_fix_m: float = 1.0
     residual_quantile: float = 0.99
     residual_factor: float = 2.0
+    handover_check: bool = True
+    handover_accurate_m: float = 2.0
+    handover_quantile: float = 0.95
 
     def __post_init__(self) -> None:
-        for name in ("support_margin_m", "height_margin_m", "novelty_factor", "good_fix_m", "residual_factor"):
+        for name in ("support_margin_m", "height_margin_m", "novelty_factor", "good_fix_m", "residual_factor", "handover_accurate_m"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ConfigError(f"pipeline.trust.{name} must be a finite number >= 0; got {value}")
-        for name in ("novelty_quantile", "residual_quantile"):
+        for name in ("novelty_quantile", "residual_quantile", "handover_quantile"):
             if not 0 < getattr(self, name) <= 1:
                 raise ConfigError(f"pipeline.trust.{name} must lie in (0, 1]; got {getattr(self, name)}")
         if self.n_neighbors < 1:
@@ -112,7 +129,15 @@ class TrainingSupport:
     def __init__(self, settings: TrustSettings) -> None:
         self.settings = settings
 
-    def fit(self, features: pd.DataFrame, truth_m: np.ndarray, solver_error_m: np.ndarray, groups: np.ndarray) -> TrainingSupport:
+    def fit(
+        self,
+        features: pd.DataFrame,
+        truth_m: np.ndarray,
+        solver_error_m: np.ndarray,
+        groups: np.ndarray,
+        model_misfit_m: np.ndarray | None = None,
+        model_error_m: np.ndarray | None = None,
+    ) -> TrainingSupport:
         """Learn the support from training rows.
 
         Parameters
@@ -127,6 +152,9 @@ class TrainingSupport:
             (N,) source position of each row: a row's neighbours for the novelty scale come from
             other positions (events at one position are near-copies of each other, so their own
             distances would make every new position look novel).
+        model_misfit_m, model_error_m : numpy.ndarray, optional
+            (N,) out-of-fold model estimates' candidate misfits and 2-D errors, m: they set the
+            hand-over tolerance (``handover_tolerance_m_``; None, and no hand-over check, without them).
         """
         from scipy.spatial import ConvexHull, QhullError  # imported when fitting: the config schema imports this module
 
@@ -153,7 +181,24 @@ class TrainingSupport:
         )
         if self.residual_limit_s_ is not None and self.residual_limit_s_ < 1e-9:
             self.residual_limit_s_ = None
+        self.handover_tolerance_m_ = self._handover_tolerance(model_misfit_m, model_error_m)
         return self
+
+    def _handover_tolerance(self, misfit_m: np.ndarray | None, error_m: np.ndarray | None) -> float | None:
+        """The misfit (m) that accurate model estimates stay within on simulation; None: no check."""
+        s = self.settings
+        if not s.handover_check or misfit_m is None or error_m is None:
+            return None
+        misfit_m, error_m = np.asarray(misfit_m, dtype=float), np.asarray(error_m, dtype=float)
+        accurate = np.isfinite(misfit_m) & (error_m <= s.handover_accurate_m)
+        if accurate.sum() < 10:
+            log.warning(
+                "hand-over check off: only %d out-of-fold model estimates within %.3g m of the truth (10 needed to set its tolerance)",
+                int(accurate.sum()),
+                s.handover_accurate_m,
+            )
+            return None
+        return float(np.quantile(misfit_m[accurate], s.handover_quantile))
 
     def _fit_novelty(self, features: pd.DataFrame, groups: np.ndarray) -> None:
         s = self.settings
@@ -232,6 +277,7 @@ class TrainingSupport:
             "height_margin_m": self.settings.height_margin_m,
             "residual_limit_s": self.residual_limit_s_,
             "novelty_limit": None if not np.isfinite(self.novelty_limit_) else self.novelty_limit_,
+            "handover_tolerance_m": getattr(self, "handover_tolerance_m_", None),
         }
 
 
@@ -282,7 +328,12 @@ class SupportCues:
 
 
 def support_cues(
-    solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, model_features: pd.DataFrame, support: TrainingSupport | None
+    solver_xy: np.ndarray,
+    model_xy: np.ndarray,
+    features: pd.DataFrame,
+    model_features: pd.DataFrame,
+    support: TrainingSupport | None,
+    misfit_m: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> SupportCues:
     """Check rows against the point model's training support (module docstring); no gate is involved yet.
 
@@ -296,21 +347,34 @@ def support_cues(
         The point model's input columns of the rows.
     support : TrainingSupport or None
         None: nothing is distrusted.
+    misfit_m : tuple of numpy.ndarray, optional
+        (B,) candidate misfits (``candidate_misfit_m``) of the solver's fix and of the model's
+        estimate, m; with the support's hand-over tolerance they decide the hand-over check.
     """
     n = len(solver_xy)
     if support is None:
         empty = np.zeros(n, dtype=bool)
         return SupportCues(
-            {"novelty": np.zeros(n), "solver_outside_support": empty, "model_outside_support": empty, "solver_consistent": empty},
+            {
+                "novelty": np.zeros(n),
+                "solver_outside_support": empty,
+                "model_outside_support": empty,
+                "solver_consistent": empty,
+                "model_misfit_excess_m": np.full(n, np.nan),
+            },
             np.full(n, REASON_GATE, dtype=object),
         )
     novelty = support.novelty(model_features)
     solver_outside = support.outside_region(solver_xy, solver_height(features))
     model_outside = support.outside_region(model_xy)
     consistent = support.consistent(features)
+    excess = _misfit_excess_m(misfit_m, n)
+    tolerance = getattr(support, "handover_tolerance_m_", None)
+    explains_worse = np.zeros(n, dtype=bool) if tolerance is None else np.isfinite(excess) & (excess > tolerance)
     distrust = np.full(n, REASON_GATE, dtype=object)
-    # the order sets which reason is reported where several apply: the physical one first
+    # the order sets which reason is reported where several apply: the measurements first, then the physical region
     for applies, why in (
+        (explains_worse, REASON_EXPLAINS_WORSE),
         (model_outside, REASON_MODEL_OUTSIDE),
         (novelty > 1, REASON_NOVEL),
         (solver_outside & consistent, REASON_SOLVER_OUTSIDE),
@@ -321,8 +385,21 @@ def support_cues(
         "solver_outside_support": solver_outside,
         "model_outside_support": model_outside,
         "solver_consistent": consistent,
+        "model_misfit_excess_m": excess,
     }
     return SupportCues(flags, distrust)
+
+
+def _misfit_excess_m(misfit_m: tuple[np.ndarray, np.ndarray] | None, n: int) -> np.ndarray:
+    """(B,) how much worse the model's estimate explains the time differences than the solver's fix, m.
+
+    Without a solver fix the model's misfit is compared with a perfect fit (0); NaN where the
+    model's misfit is unknown (no candidates, no estimate).
+    """
+    if misfit_m is None:
+        return np.full(n, np.nan)
+    solver, model = (np.asarray(m, dtype=float) for m in misfit_m)
+    return model - np.where(np.isfinite(solver), solver, 0.0)
 
 
 def apply_trust(decision: GateDecision, solver_xy: np.ndarray, cues: SupportCues) -> TrustedDecision:
@@ -341,7 +418,8 @@ def apply_trust(decision: GateDecision, solver_xy: np.ndarray, cues: SupportCues
     solver_fix = np.isfinite(solver_xy).all(axis=1)
     keep_solver = decision.substituted & distrusted & solver_fix
     abstain = decision.substituted & distrusted & ~solver_fix
-    reason = np.where(keep_solver, cues.distrust, np.where(abstain, REASON_ABSTAIN, REASON_GATE))
+    why_abstain = np.where(cues.distrust == REASON_EXPLAINS_WORSE, REASON_ABSTAIN_MISFIT, REASON_ABSTAIN)
+    reason = np.where(keep_solver, cues.distrust, np.where(abstain, why_abstain, REASON_GATE))
     position = np.where(keep_solver[:, None], solver_xy, decision.position_m)
     position[abstain] = np.nan
     return TrustedDecision(GateDecision(position, decision.substituted & ~keep_solver & ~abstain), reason, cues.flags, decision.position_m)

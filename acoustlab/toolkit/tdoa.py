@@ -6,6 +6,8 @@ here every event and start point iterates together as arrays.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from acoustlab.core.contracts import SolverInputs
@@ -160,3 +162,50 @@ def energy_residual_db(levels_db: np.ndarray, mics: np.ndarray, position_m: np.n
     m = mics.shape[0]
     i, j = np.triu_indices(m, 1)
     return np.sqrt(np.mean((e[..., i] - e[..., j]) ** 2, axis=-1))
+
+
+def candidate_misfit_m(
+    position_m: np.ndarray,
+    height_m: np.ndarray,
+    mics: np.ndarray,
+    pairs: np.ndarray,
+    candidate_lags_s: np.ndarray,
+    speed_m_s: np.ndarray,
+) -> np.ndarray:
+    """How well positions explain the measured time differences: RMS over pairs of the closest GCC candidate's misfit, m.
+
+    For each mic pair (i, j) the position predicts the lag t_j − t_i = (‖p − m_j‖ − ‖p − m_i‖) / c;
+    the pair's misfit is the smallest |c·lag − predicted range difference| over its candidates
+    (any of them may be the direct path), and the event's misfit is the RMS over pairs that have
+    a candidate. Expressed as range differences (m) so that it compares across temperatures.
+
+    Parameters
+    ----------
+    position_m : numpy.ndarray
+        (E, 2) horizontal positions, m (NaN rows give NaN).
+    height_m : numpy.ndarray
+        (E,) source heights, m.
+    mics : numpy.ndarray
+        (M, 3) mic positions, m.
+    pairs : numpy.ndarray
+        (P, 2) mic indices (i, j) of the candidate columns.
+    candidate_lags_s : numpy.ndarray
+        (E, P, K) candidate lags t_j − t_i, s (NaN where a pair has fewer candidates).
+    speed_m_s : numpy.ndarray
+        (E,) speed of sound, m/s.
+
+    Returns
+    -------
+    numpy.ndarray
+        (E,) misfit in m; NaN where the position is not finite or no pair has a candidate.
+    """
+    position = np.asarray(position_m, dtype=float)
+    pairs = np.asarray(pairs, dtype=int)
+    source = np.column_stack([position, np.asarray(height_m, dtype=float)])
+    distance = np.sqrt(((source[:, None, :] - mics[None, :, :]) ** 2).sum(-1))  # (E, M)
+    predicted = distance[:, pairs[:, 1]] - distance[:, pairs[:, 0]]  # (E, P)
+    observed = np.asarray(candidate_lags_s, dtype=float) * np.asarray(speed_m_s, dtype=float)[:, None, None]
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pairs: no candidate
+        per_pair = np.nanmin(np.abs(observed - predicted[..., None]), axis=-1)  # (E, P)
+        return np.sqrt(np.nanmean(per_pair**2, axis=-1))

@@ -1,0 +1,134 @@
+"""A gate hands a detection over to the point model only where the model's estimate explains the measured time differences."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from sklearn.ensemble import HistGradientBoostingRegressor
+
+from acoustlab.core import columns as col
+from acoustlab.method import trust
+from acoustlab.method.pipeline import LocalizationPipeline
+from acoustlab.method.trust import TrustSettings
+from acoustlab.toolkit.tdoa import candidate_misfit_m
+from plugins.gates.simple import ModelOnlyGate
+from tests.test_pipeline_calibration import site3
+from tests.test_trust import components
+
+SPEED = 343.0
+
+
+def lags_s(source_xyz: np.ndarray, mics: np.ndarray, pairs: list[tuple[int, int]]) -> np.ndarray:
+    """(E, P) exact lags t_j − t_i of each pair, s."""
+    distance = np.sqrt(((source_xyz[:, None, :] - mics[None]) ** 2).sum(-1))
+    return np.stack([(distance[:, j] - distance[:, i]) / SPEED for i, j in pairs], axis=1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-30, 70), st.floats(-30, 60), st.integers(0, 2))
+def test_the_true_position_explains_its_time_differences_whichever_candidate_holds_them(x, y, rank):
+    site = site3()
+    source = np.array([[x, y, 1.0]])
+    exact = lags_s(source, site.mic_positions_m, site.mic_pairs)  # (1, P)
+    candidates = np.full((1, len(site.mic_pairs), 3), 0.05)  # far-off decoys …
+    candidates[:, :, rank] = exact  # … and the direct path at any rank
+    misfit = candidate_misfit_m(source[:, :2], np.ones(1), site.mic_positions_m, np.array(site.mic_pairs), candidates, np.array([SPEED]))
+    assert misfit[0] == pytest.approx(0.0, abs=1e-9)
+    moved = candidate_misfit_m(
+        source[:, :2] + 8.0, np.ones(1), site.mic_positions_m, np.array(site.mic_pairs), candidates, np.array([SPEED])
+    )
+    assert moved[0] > 0.5  # 8 m off changes at least one range difference by metres
+
+
+def test_a_pair_without_candidates_is_left_out_and_no_position_gives_nan():
+    site = site3()
+    source = np.array([[20.0, 10.0, 1.0], [np.nan, np.nan, 1.0]])
+    candidates = lags_s(np.nan_to_num(source), site.mic_positions_m, site.mic_pairs)[..., None]
+    candidates[0, 1, 0] = np.nan
+    misfit = candidate_misfit_m(source[:, :2], np.ones(2), site.mic_positions_m, np.array(site.mic_pairs), candidates, np.full(2, SPEED))
+    assert misfit[0] == pytest.approx(0.0, abs=1e-9) and np.isnan(misfit[1])
+
+
+def measured_scene(n_positions: int = 60, per: int = 5, seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Sources inside a 3-mic array whose GCC candidates hold the true lags (±20 µs) at rank 1 and a decoy at rank 2.
+
+    The point model reads ``tdoa__hint_*`` (the truth ± 1 m); the solver's fixes are the truth ± 0.1 m.
+    """
+    rng = np.random.default_rng(seed)
+    site = site3()
+    n = n_positions * per
+    position_id = np.repeat(np.arange(n_positions), per)
+    source = np.column_stack([rng.uniform(5, 35, n_positions), rng.uniform(3, 30, n_positions)])[position_id]
+    exact = lags_s(np.column_stack([source, np.ones(n)]), site.mic_positions_m, site.mic_pairs)
+    solver = source + rng.normal(0, 0.1, (n, 2))
+    features = pd.DataFrame(
+        {
+            "tdoa__hint_x_m": source[:, 0] + rng.normal(0, 1.0, n),
+            "tdoa__hint_y_m": source[:, 1] + rng.normal(0, 1.0, n),
+            col.SOLVER_X: solver[:, 0],
+            col.SOLVER_Y: solver[:, 1],
+            col.SOLVER_GDOP: np.ones(n),
+            col.ENV_SPEED_OF_SOUND: np.full(n, SPEED),
+        }
+    )
+    for p, (i, j) in enumerate(site.mic_pairs):
+        features[col.tdoa_lag(i, j, 1)] = exact[:, p] + rng.normal(0, 2e-5, n)
+        features[col.tdoa_lag(i, j, 2)] = rng.uniform(-0.1, 0.1, n)
+    events = pd.DataFrame(
+        {"event_id": np.arange(n), "position_id": position_id, "x_m": source[:, 0], "y_m": source[:, 1], "z_m": np.ones(n)}
+    )
+    return features, events
+
+
+def test_a_model_estimate_that_explains_the_measurements_worse_is_never_substituted():
+    """Every gate (here: always hand over) keeps the solver's fix where the model's estimate is far from what the lags say."""
+    features, events = measured_scene()
+    groups = events["position_id"].to_numpy()
+    train, test = np.flatnonzero(groups < 50), np.flatnonzero(groups >= 50)
+    # the test detections' model inputs point 15 m away (a site unlike the simulation) while their lags are right
+    features.loc[test, "tdoa__hint_x_m"] += 15.0
+    gate = ModelOnlyGate()
+    out = LocalizationPipeline(components(gate, TrustSettings(novelty_factor=0))).fit_predict(features, events, train, test).predictions
+    moved = out[col.error_m("model")] > 5
+    assert moved.sum() >= 0.5 * len(out)  # the model's estimates did go wrong
+    assert not out.loc[moved, col.SUBSTITUTED].any()
+    assert (out.loc[moved, col.TRUST_REASON] == trust.REASON_EXPLAINS_WORSE).all()
+    assert out.loc[moved, col.error_m("gate")].max() < 1.0  # … the solver's good fixes are reported there
+    # accurate model estimates (the training-like detections) still pass
+    same = LocalizationPipeline(components(gate, TrustSettings(novelty_factor=0)))
+    features2, events2 = measured_scene(seed=1)
+    kept = same.fit_predict(features2, events2, train, test).predictions
+    assert kept[col.SUBSTITUTED].mean() >= 0.8
+
+
+def test_without_a_solver_fix_a_model_estimate_that_explains_nothing_abstains():
+    features, events = measured_scene()
+    groups = events["position_id"].to_numpy()
+    train, test = np.flatnonzero(groups < 50), np.flatnonzero(groups >= 50)
+    features.loc[test, "tdoa__hint_x_m"] += 15.0
+    features.loc[test, list(col.SOLVER_ESTIMATE_COLUMNS)] = np.nan
+    parts = replace(components(ModelOnlyGate(), TrustSettings(novelty_factor=0)), point_model=HistGradientBoostingRegressor(max_iter=50))
+    out = LocalizationPipeline(parts).fit_predict(features, events, train, test)
+    p = out.predictions
+    gross = p[col.error_m("model")] > 5
+    assert gross.any()
+    assert np.isinf(p.loc[gross, col.error_m("gate")]).all()  # no estimate: a failure, counted as an error
+    assert (p.loc[gross, col.TRUST_REASON] == trust.REASON_ABSTAIN_MISFIT).all()
+
+
+def test_the_check_can_be_turned_off_and_its_tolerance_is_reported():
+    features, events = measured_scene()
+    groups = events["position_id"].to_numpy()
+    train, test = np.flatnonzero(groups < 50), np.flatnonzero(groups >= 50)
+    features.loc[test, "tdoa__hint_x_m"] += 15.0
+    off = TrustSettings(novelty_factor=0, handover_check=False, support_margin_m=100.0)
+    out = LocalizationPipeline(components(ModelOnlyGate(), off)).fit_predict(features, events, train, test)
+    assert out.predictions[col.SUBSTITUTED].all()
+    on = LocalizationPipeline(components(ModelOnlyGate(), TrustSettings(novelty_factor=0))).fit_predict(features, events, train, test)
+    tolerance = on.split_diagnostics[0]["trust"]["training_region"]["handover_tolerance_m"]
+    assert 0 < tolerance < 5  # accurate (≤ 2 m) estimates misfit by at most a few metres of range difference
