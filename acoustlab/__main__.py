@@ -75,10 +75,13 @@ def main() -> None:
 
     ``acoustlab report ...`` and ``acoustlab upload ...`` run the report and upload commands;
     ``acoustlab localize ...`` is the main job with ``protocol=localize`` (positions of recordings);
-    ``acoustlab season ...`` is ``protocol=season`` (a season of long recordings from detector tables).
+    ``acoustlab season ...`` is ``protocol=season`` (a season of long recordings from detector tables);
+    ``acoustlab calibrate ...`` is ``protocol=calibrate`` (the array from playbacks at known spots).
     """
     if len(sys.argv) > 1 and sys.argv[1] == "localize":  # acoustlab localize +site=NAME field=recordings …
         sys.argv = [sys.argv[0], *sys.argv[2:], "protocol=localize"]  # last: Hydra's flags (-m) may follow the command
+    if len(sys.argv) > 1 and sys.argv[1] == "calibrate":  # acoustlab calibrate +site=NAME field=recordings … (playbacks)
+        sys.argv = [sys.argv[0], *sys.argv[2:], "protocol=calibrate"]
     if len(sys.argv) > 1 and sys.argv[1] == "season":  # acoustlab season +site=NAME protocol.recordings.audio_dir=… …
         sys.argv = [sys.argv[0], *sys.argv[2:], "protocol=season"]
     if len(sys.argv) > 1 and sys.argv[1] in ("report", "upload"):

@@ -20,13 +20,12 @@ Failures count as infinite errors; intervals are 95 % position bootstraps. Write
 from __future__ import annotations
 
 import argparse
+import json
 import logging
-import tempfile
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from common import fmt, machine, run_in_process, write_results
+from common import REPO, fmt, machine, run_in_process, write_results
 
 from acoustlab.core import columns as col
 from acoustlab.method import trust
@@ -35,6 +34,8 @@ from acoustlab.reporting.metrics import error_summary, share_gross
 log = logging.getLogger("experiments.handover")
 METHOD = ["model=xgboost", "error_model=xgboost_quantile", "gate=learned", "+gate@pipeline.extra_gates.hybrid=hybrid"]
 N_BOOT = 1000
+#: the runs' predictions (git-ignored), reused when the same overrides are asked for again
+KEPT = REPO / "outputs" / "bench_handover"
 
 
 def without_handover_check(p: pd.DataFrame, method: str = "gate") -> np.ndarray:
@@ -48,12 +49,12 @@ def without_handover_check(p: pd.DataFrame, method: str = "gate") -> np.ndarray:
         | (p[col.trust_flag("solver_outside_support")].to_numpy(bool) & p[col.trust_flag("solver_consistent")].to_numpy(bool))
     )
     by_check = p[col.TRUST_REASON].isin([trust.REASON_EXPLAINS_WORSE, trust.REASON_ABSTAIN_MISFIT]).to_numpy() & ~other
-    before = p[list(col.estimate_xy(col.GATE_WITHOUT_TRUST))].to_numpy(float)
+    before = p[list(col.estimate_xy(col.extra_gate_method(col.GATE_WITHOUT_TRUST)))].to_numpy(float)
     return np.where(by_check[:, None], before, reported)
 
 
 def errors_of(p: pd.DataFrame, position_m: np.ndarray) -> np.ndarray:
-    e = np.hypot(*(position_m - p[list(col.TRUE_XY)].to_numpy(float)).T)
+    e = np.hypot(*(position_m - p[["true_x_m", "true_y_m"]].to_numpy(float)).T)
     return np.where(np.isfinite(e), e, np.inf)
 
 
@@ -72,7 +73,7 @@ def rows_for(label: str, p: pd.DataFrame) -> tuple[list[str], dict]:
         "solver": errors_of(p, p[list(col.estimate_xy("solver"))].to_numpy(float)),
         "gate, hand-over check on": errors_of(p, p[list(col.estimate_xy("gate"))].to_numpy(float)),
         "gate, hand-over check off": errors_of(p, without_handover_check(p)),
-        "gate before any trust rule": errors_of(p, p[list(col.estimate_xy(col.GATE_WITHOUT_TRUST))].to_numpy(float)),
+        "gate before any trust rule": errors_of(p, p[list(col.estimate_xy(col.extra_gate_method(col.GATE_WITHOUT_TRUST)))].to_numpy(float)),
     }
     lines, raw = [], {}
     for name, e in variants.items():
@@ -91,12 +92,17 @@ def rows_for(label: str, p: pd.DataFrame) -> tuple[list[str], dict]:
     return lines, raw
 
 
-def predictions_of(overrides: list[str]) -> tuple[pd.DataFrame, dict]:
-    with tempfile.TemporaryDirectory() as tmp:
-        keep = Path(tmp) / "predictions.parquet"
-        metrics = run_in_process(overrides, keep)
-        p = pd.read_parquet(keep)
-    return p, metrics
+def predictions_of(label: str, overrides: list[str]) -> tuple[pd.DataFrame, dict]:
+    """A run's predictions and metrics, kept under outputs/ (git-ignored) so the tables can be remade without re-running."""
+    keep = KEPT / (label.replace("/", "_") + ".parquet")
+    metrics_file = keep.with_suffix(".json")
+    if keep.is_file() and metrics_file.is_file() and json.loads(metrics_file.read_text()).get("overrides") == overrides:
+        log.info("%s: reusing %s", label, keep)
+        return pd.read_parquet(keep), json.loads(metrics_file.read_text())
+    metrics = run_in_process(overrides, keep)
+    metrics["overrides"] = overrides
+    metrics_file.write_text(json.dumps(metrics, default=str))
+    return pd.read_parquet(keep), metrics
 
 
 def main() -> None:
@@ -140,7 +146,7 @@ def main() -> None:
     ]
     raw: dict[str, dict] = {}
     for label, overrides in jobs.items():
-        p, metrics = predictions_of(overrides)
+        p, metrics = predictions_of(label, overrides)
         rows, raw[label] = rows_for(label, p)
         raw[label]["seconds"] = metrics["bench_seconds"]
         splits = metrics.get("trust_by_split", [metrics.get("trust", {})])

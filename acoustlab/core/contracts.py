@@ -31,6 +31,8 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
     "evaluates": True,
     # protocols: runs on its own from the recordings, chunk by chunk (protocol=season), not on in-memory tables
     "streams": False,
+    # protocols: calibrates the array from playbacks at known spots (protocol=calibrate): writes calibration.json, simulates nothing
+    "calibrates": False,
     # simulators and feature sets: bumped by hand to invalidate cached results of an unchanged module
     "cache_version": "0",
     # trackers: the id of the last run sent and where it went (for the upload marker)
@@ -42,7 +44,7 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
 #: (field sources and protocol=season: check tables and headers), ``input_files()`` (field sources: the files whose contents key the
 #: cache), ``projection()`` (field sources: the rigid map to projected coordinates, or None), ``fit_quantiles(x, error, levels)``
 #: (conformal scorers with ``needs_quantiles``: fit the final quantile model once, applied by their ``predict_quantiles``).
-OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection", "fit_quantiles")
+OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection", "fit_quantiles", "tables")
 
 
 def declared(plugin: Any, name: str) -> Any:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -319,3 +320,47 @@ def write_positions_map(table: pd.DataFrame, site: Site, levels: list[float], sc
     ax.set_title(title, fontsize=9)
     ax.legend(loc="upper right", fontsize=7)
     return _save(fig, out_dir / "positions_map.png")
+
+
+def write_calibration_plot(calibration: Any, residuals: pd.DataFrame, spots_m: np.ndarray, site: Site, path: Path) -> Path:
+    """``calibration.png``: the stated and calibrated mics with the playback spots; time-difference residuals before and after.
+
+    Parameters
+    ----------
+    calibration : acoustlab.toolkit.array_calibration.ArrayCalibration
+        The calibration.
+    residuals : pandas.DataFrame
+        ``residual_before_s, residual_after_s`` per playback and mic.
+    spots_m : numpy.ndarray
+        (N, 3) playback positions, m.
+    site : Site
+        The site as stated (its mics are the "stated" ones).
+    path : pathlib.Path
+        Where the PNG goes.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, (ax, hist) = plt.subplots(1, 2, figsize=(10, 4.6))
+    stated, calibrated = site.mic_positions_m, calibration.mic_positions_m
+    ax.scatter(spots_m[:, 0], spots_m[:, 1], marker="*", color="tab:green", s=40, label="playback spots")
+    ax.scatter(stated[:, 0], stated[:, 1], marker="^", facecolor="none", edgecolor="k", s=60, label="mics as stated")
+    ax.scatter(calibrated[:, 0], calibrated[:, 1], marker="^", color="tab:red", s=40, label="mics calibrated")
+    for (x0, y0, _), (x1, y1, _), name in zip(stated, calibrated, calibration.mic_ids, strict=True):
+        ax.annotate("", (x1, y1), (x0, y0), arrowprops={"arrowstyle": "->", "color": "tab:red", "lw": 0.8})
+        ax.text(x1, y1, f" {name}", fontsize=7)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"thermometer offset {calibration.temperature_offset_c:+.2f} °C; {calibration.n_spots} spots", fontsize=9)
+    ax.legend(loc="best", fontsize=7)
+    before = 1e3 * residuals["residual_before_s"].to_numpy(float)
+    after = 1e3 * residuals["residual_after_s"].to_numpy(float)
+    finite = np.concatenate([before[np.isfinite(before)], after[np.isfinite(after)]])
+    limit = float(np.quantile(np.abs(finite), 0.99)) if finite.size else 1.0
+    bins = np.linspace(-limit, limit, 41)
+    hist.hist(np.clip(before[np.isfinite(before)], -limit, limit), bins=bins, alpha=0.5, label="stated array")
+    hist.hist(np.clip(after[np.isfinite(after)], -limit, limit), bins=bins, alpha=0.5, label="calibrated")
+    hist.set_xlabel("time-difference residual (ms)")
+    hist.set_ylabel("playback × mic")
+    hist.legend(fontsize=7)
+    fig.tight_layout()
+    return _save(fig, path)

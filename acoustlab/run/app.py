@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import subprocess
@@ -44,6 +45,7 @@ from acoustlab.stages.dataset import (
     load_or_build_field,
     load_or_build_simulated,
 )
+from acoustlab.stages.field_calibration import CALIBRATION_COLUMN, FieldCalibration, apply_calibration, calibrated_site, load_calibration
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import add_solver_columns
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
@@ -91,6 +93,10 @@ class BuiltRun:
     cache: StageCache
     plan: SimulationPlan
     field_source: Any = None
+    #: ``calibration=PATH``: the field calibration applied to the site and the recordings (``acoustlab.stages.field_calibration``)
+    calibration: FieldCalibration | None = None
+    #: the site as the config states it, where ``site`` is its calibration (the recordings are read for it)
+    stated_site: Any = None
 
 
 def check_feature_requirements(feature_sets: dict[str, Any], **plugins: Any) -> None:
@@ -229,7 +235,23 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
     if cfg.data.shard_count > 1 and not cache.enabled:
         raise ConfigError("data.shard_count > 1 fills the cache shard by shard; it needs cache.enabled=true")
     plan = SimulationPlan(seed=cfg.seed, **OmegaConf.to_container(cfg.data, resolve=True))
-    return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source)
+    calibration = None
+    if cfg.get("calibration"):  # after the recordings were checked against the stated array
+        if declared(protocol, "calibrates"):
+            raise ConfigError("calibrate starts from the stated array: drop calibration=… (a calibration is not calibrated again)")
+        calibration = load_calibration(str(cfg.calibration), site)
+        log.info(
+            "calibration %s (%s…): mics moved up to %.2f m, thermometer offset %+.2f °C, clock offsets up to %.3g ms",
+            calibration.path,
+            calibration.sha256[:12],
+            float(np.abs(calibration.mic_positions_m - site.mic_positions_m).max()),
+            calibration.temperature_offset_c,
+            1e3 * float(np.abs(calibration.clock_offset_s).max()),
+        )
+        stated_site, site = site, calibrated_site(site, calibration)
+        components = dataclasses.replace(components, site=site, input_uncertainty=calibration.input_uncertainty())
+        return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration, stated_site)
+    return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration)
 
 
 @dataclass
@@ -269,8 +291,18 @@ def prepare_data(cfg: DictConfig, built: BuiltRun | None = None) -> RunData | No
     field_data = None
     if built.field_source is not None:
         field_data = load_or_build_field(
-            built.site, built.field_source, to_plain(cfg.field), built.feature_sets, to_plain(cfg.features.groups), built.cache
+            built.site,
+            built.field_source,
+            to_plain(cfg.field),
+            built.feature_sets,
+            to_plain(cfg.features.groups),
+            built.cache,
+            stated_site=built.stated_site,
         )
+        if built.calibration is not None:  # the thermometer's offset and the recorders' clocks, before the solver
+            field_data.features, field_data.events = apply_calibration(
+                field_data.features, field_data.events, built.site, built.calibration
+            )
         field_data.features = solver_features(cfg, field_data.features, field_data.events, built.site, built.components.solver)
     return RunData(dataset, field_data)
 
@@ -314,6 +346,10 @@ def run_experiment(
     timings: dict[str, float] = {"preflight_s": time.perf_counter() - started}
     if declared(protocol, "streams"):  # a season: fitted once, then chunk by chunk from the recordings (acoustlab.season)
         return _run_streaming(cfg, run_dir, built, choices, tracker, parent_run_id, run_name)
+    if declared(protocol, "calibrates"):  # playbacks at known spots: calibration.json, nothing simulated
+        from acoustlab.run.calibrate import run_calibration
+
+        return run_calibration(cfg, run_dir, built, choices)
     stage_start = time.perf_counter()
     data = prepare_data(cfg, built)
     if data is None:
@@ -347,12 +383,15 @@ def run_experiment(
             parent_run_id,
             run_name,
             built.field_source,
+            built.calibration,
         )
     summary_rows = predictions[col.IN_SUMMARY].to_numpy(bool) if col.IN_SUMMARY in predictions else np.ones(len(predictions), bool)
     metrics = _evaluation_metrics(
         run_dir, predictions, summary_rows, result, components, dataset, field_data, choices.get("gate") or type(components.gate).__name__
     )
     metrics.update({"site": site.name, "choices": choices, **({"run_name": run_name} if run_name else {})})
+    if built.calibration is not None:
+        metrics["field_calibration"] = built.calibration.summary()
 
     # Results land in the run dir first (metrics before any optional artefact), so neither a tracker
     # nor a plotting failure loses them; the pending marker stays until the tracker has them.
@@ -492,9 +531,12 @@ def _write_localization(
     parent_run_id: str | None,
     run_name: str | None = None,
     field_source: Any = None,
+    calibration: FieldCalibration | None = None,
 ) -> dict:
     """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
     table = positions_table(predictions, components.levels, list(components.scorers))
+    if calibration is not None:  # which field calibration placed each detection
+        table[CALIBRATION_COLUMN] = calibration.sha256
     project = hook(field_source, "projection")
     projection = project() if project is not None else None
     if projection is not None:  # also in the mics table's projected coordinates
@@ -525,6 +567,8 @@ def _write_localization(
     )
     if run_name:
         metrics["run_name"] = run_name
+    if calibration is not None:
+        metrics["field_calibration"] = calibration.summary()
     write_results(run_dir, cfg, predictions, metrics)
 
     def plot() -> None:

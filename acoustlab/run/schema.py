@@ -145,6 +145,8 @@ FREE_FORM_GROUPS = ("simulator", "solver", "model", "gate", "error_model", "prot
 class _TypedRoot:
     seed: int = MISSING
     plots: bool = MISSING
+    #: a field calibration file (``acoustlab calibrate``) applied in localize and season
+    calibration: str | None = None
     data: DataConfig = dc_field(default_factory=DataConfig)
     pipeline: PipelineConfig = dc_field(default_factory=PipelineConfig)
     cache: CacheConfig = dc_field(default_factory=CacheConfig)

@@ -370,8 +370,14 @@ def load_or_build_field(
     feature_sets: dict[str, FeatureSet],
     features_cfg: dict[str, Any],
     cache: StageCache,
+    stated_site: Site | None = None,
 ) -> Dataset:
-    """Feature and event tables of a field source's recordings, cached like the simulated ones."""
+    """Feature and event tables of a field source's recordings, cached like the simulated ones.
+
+    ``stated_site``: the site as stated by the user, where ``site`` is a field calibration of it:
+    the recordings are read (or rendered) for the stated array, their features computed for the
+    calibrated one (the geometry the method is trained on).
+    """
     input_files = hook(field_source, "input_files")
     inputs = input_files() if input_files is not None else []
     key = StageCache.key(
@@ -379,6 +385,7 @@ def load_or_build_field(
             "stage": "field_features",
             "stage_code": code_digest(__name__, follow_imports=False),
             "site": site.fingerprint(),
+            **({"stated_site": stated_site.fingerprint()} if stated_site is not None else {}),
             "field": field_cfg,
             "inputs": {str(path): file_sha256(path) for path in inputs},  # an edited table or replaced WAV is a new entry
             "field_plugin": plugin_version(field_source),
@@ -388,7 +395,7 @@ def load_or_build_field(
     )
 
     def build() -> Path:
-        batch = field_source.load(site)
+        batch = field_source.load(stated_site if stated_site is not None else site)
         digest = _DataHasher()
         digest.update(batch.audio, batch.events)
         return _store_tables(cache, "field_features", key, extract_features(batch, site, feature_sets), batch.events, digest.hexdigest())

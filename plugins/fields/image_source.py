@@ -42,7 +42,7 @@ from acoustlab.toolkit.scene_sampling import draw_weather, noise_matrix, noise_s
 
 log = logging.getLogger(__name__)
 
-_POSITIONS_STREAM, _EVENT_STREAM = 20, 21
+_POSITIONS_STREAM, _EVENT_STREAM, _ARRAY_STREAM = 20, 21, 22
 #: Metres of fully absorbing room around every mic and source (walls never reflect; this keeps them away).
 _ROOM_MARGIN_M = 5.0
 
@@ -75,6 +75,13 @@ class ImageSourceField:
     temperature_error_c : float
         The events table's temperature (and the speed of sound computed from it) is off by this
         from the air the sound travelled through: a thermometer error (°C).
+    mic_position_error_m : float
+        The site's mic positions are as stated (GPS); the recorders stand off them by a normal
+        error of this standard deviation per horizontal axis, m (``true_array``).
+    clock_offset_max_s : float
+        Each recorder's clock is off by a constant drawn uniformly in ± this, s (``true_array``).
+    array_seed : int, optional
+        Seed of those array errors (None: ``seed``); one array, many sets of sources (playbacks and calls).
     seed : int
         Seed of positions and renders (independent of the training simulation's).
     """
@@ -93,6 +100,9 @@ class ImageSourceField:
         onset_s: Sequence[float] = (0.05, 0.25),
         include_share_alike: bool = False,
         temperature_error_c: float = 0.0,
+        mic_position_error_m: float = 0.0,
+        clock_offset_max_s: float = 0.0,
+        array_seed: int | None = None,
         seed: int = 2000,
     ) -> None:
         if n_positions < 2 or events_per_position < 1:
@@ -121,7 +131,26 @@ class ImageSourceField:
         self.onset_s = (float(onset_s[0]), float(onset_s[1]))
         self.include_share_alike = bool(include_share_alike)
         self.temperature_error_c = float(temperature_error_c)
+        if not (mic_position_error_m >= 0 and clock_offset_max_s >= 0):
+            raise ConfigError(
+                f"field.mic_position_error_m and field.clock_offset_max_s must be >= 0; got {mic_position_error_m}, {clock_offset_max_s}"
+            )
+        self.mic_position_error_m = float(mic_position_error_m)
+        self.clock_offset_max_s = float(clock_offset_max_s)
         self.seed = int(seed)
+        self.array_seed = self.seed if array_seed is None else int(array_seed)
+
+    def true_array(self, site: Site) -> tuple[np.ndarray, np.ndarray]:
+        """Where the recorders really stand, (M, 3) m, and their clock offsets, (M,) s (the site states the mics without error)."""
+        rng = np.random.default_rng([self.array_seed, _ARRAY_STREAM])
+        mics = site.mic_positions_m.astype(float).copy()
+        mics[:, :2] += rng.normal(0.0, self.mic_position_error_m, (site.n_mics, 2)) if self.mic_position_error_m > 0 else 0.0
+        clocks = (
+            rng.uniform(-self.clock_offset_max_s, self.clock_offset_max_s, site.n_mics)
+            if self.clock_offset_max_s > 0
+            else np.zeros(site.n_mics)
+        )
+        return mics, clocks
 
     def validate(self, site: Site) -> None:
         """Check that pyroomacoustics is installed."""
@@ -147,12 +176,12 @@ class ImageSourceField:
         return np.column_stack([xy, height])
 
     def _render(
-        self, site: Site, source_m: np.ndarray, signal: np.ndarray, onset_s: float, temperature_c: float, humidity_pct: float
+        self, mics_m: np.ndarray, source_m: np.ndarray, signal: np.ndarray, onset_s: float, temperature_c: float, humidity_pct: float
     ) -> tuple[np.ndarray, float]:
-        """(M, S) clean recording of ``signal`` emitted at ``onset_s`` from ``source_m``, and pyroomacoustics' speed of sound."""
+        """(M, S) clean recording at ``mics_m`` of ``signal`` emitted at ``onset_s`` from ``source_m``, and pyroomacoustics' speed of sound."""
         import pyroomacoustics as pra
 
-        points = np.vstack([site.mic_positions_m, source_m])
+        points = np.vstack([mics_m, source_m])
         offset = np.array([points[:, 0].min() - _ROOM_MARGIN_M, points[:, 1].min() - _ROOM_MARGIN_M, 0.0])
         size = np.array([np.ptp(points[:, 0]), np.ptp(points[:, 1]), points[:, 2].max()]) + np.array([2, 2, 1]) * _ROOM_MARGIN_M
         walls = pra.Material(1.0)
@@ -174,10 +203,10 @@ class ImageSourceField:
             humidity=float(humidity_pct),
         )
         room.add_source(source_m - offset, signal=signal, delay=float(onset_s))
-        room.add_microphone_array((site.mic_positions_m - offset).T)
+        room.add_microphone_array((mics_m - offset).T)
         room.simulate()
         n_out = int(round(self.duration_s * self.sample_rate_hz))
-        out = np.zeros((site.n_mics, n_out))
+        out = np.zeros((len(mics_m), n_out))
         rendered = room.mic_array.signals[:, :n_out]
         out[:, : rendered.shape[1]] = rendered
         return out, float(room.c)
@@ -190,6 +219,7 @@ class ImageSourceField:
         polygon, buffer_m = source_region(site.mic_positions_m, site.hull_expansion)
         outside_site = distance_to_polygon_m(positions[:, :2], polygon) > buffer_m
         n_out = int(round(self.duration_s * self.sample_rate_hz))
+        true_mics, clocks = self.true_array(site)
         audio = np.empty((len(positions) * self.events_per_position, site.n_mics, n_out), dtype=np.float32)
         rows = []
         for event_id in range(audio.shape[0]):
@@ -201,8 +231,10 @@ class ImageSourceField:
             onset = rng.uniform(*self.onset_s)
             snr_db = rng.uniform(*self.snr_db)
             regime = int(rng.integers(len(site.noise_regimes)))
-            clean, simulator_c = self._render(site, source, call.signal, onset, weather.temperature_c, weather.relative_humidity_pct)
-            nearest = int(np.argmin(np.sqrt(((site.mic_positions_m - source) ** 2).sum(-1))))
+            clean, simulator_c = self._render(true_mics, source, call.signal, onset, weather.temperature_c, weather.relative_humidity_pct)
+            if np.any(clocks != 0):
+                clean = _delayed(clean, clocks, self.sample_rate_hz)
+            nearest = int(np.argmin(np.sqrt(((true_mics - source) ** 2).sum(-1))))
             noise_std = noise_std_for_snr(clean[nearest], call.signal.size / self.sample_rate_hz, self.sample_rate_hz, snr_db)
             audio[event_id] = clean + noise_std * noise_matrix(rng, site, regime, n_out, self.sample_rate_hz)
             rows.append(
@@ -232,3 +264,13 @@ class ImageSourceField:
             )
         log.info("image-source field: %d events at %d positions rendered with pyroomacoustics", len(rows), len(positions))
         return RecordingBatch(audio=audio, sample_rate_hz=self.sample_rate_hz, events=pd.DataFrame(rows))
+
+
+def _delayed(signals: np.ndarray, delay_s: np.ndarray, sample_rate_hz: float) -> np.ndarray:
+    """(M, S) each channel delayed by its ``delay_s`` (fractional, by a linear phase; a recorder's clock offset)."""
+    n = signals.shape[1]
+    padded = 2 * n
+    spectrum = np.fft.rfft(signals, n=padded, axis=1)
+    freqs = np.fft.rfftfreq(padded, d=1.0 / sample_rate_hz)
+    shifted = np.fft.irfft(spectrum * np.exp(-2j * np.pi * freqs[None, :] * np.asarray(delay_s)[:, None]), n=padded, axis=1)
+    return shifted[:, :n]

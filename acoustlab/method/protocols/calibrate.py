@@ -1,0 +1,162 @@
+"""Calibrate a field array from playbacks at known spots (``python -m acoustlab calibrate``).
+
+The events of ``field=recordings`` with a known position (``x_m, y_m``, optionally ``z_m``, and a
+``position_id`` per spot) are playbacks. From their measured time differences the run estimates
+the thermometer's offset, each recorder's clock offset (and drift where the playbacks span at
+least ``min_drift_span_s``) and corrections to the mic positions within their stated GPS error
+(``position_sigma_m``, per mic from the mics table's column of that name where it has one), and
+writes ``calibration.json`` and ``calibration.png`` in the run directory. Nothing is simulated.
+
+How much the calibration buys at this site is measured on the playbacks themselves, held out by
+spot: each spot's playbacks are solved with the array calibrated without that spot, and with the
+stated array, by the configured solver (``held_out`` in ``metrics.json``).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.core import columns as col
+from acoustlab.core.contracts import SolverInputs
+from acoustlab.core.errors import ConfigError
+from acoustlab.core.types import Site
+from acoustlab.toolkit.array_calibration import PARAMETER_KINDS, ArrayCalibration, Playbacks, Priors, calibrate_array
+from acoustlab.toolkit.event_physics import assumed_source_height_m
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+
+log = logging.getLogger(__name__)
+
+
+class CalibrateProtocol:
+    """Estimate the array's corrections from playbacks (module docstring).
+
+    Parameters
+    ----------
+    estimate : list of str
+        Which of ``temperature``, ``clocks``, ``drift``, ``positions`` to estimate.
+    position_sigma_m : float
+        Stated horizontal error of the mic positions per axis, m (where the mics table gives none).
+    temperature_sigma_c : float
+        The thermometer's error, °C.
+    clock_sigma_s : float
+        Clock offsets between recorders before calibration, s.
+    drift_sigma : float
+        Clock drift between recorders, s per s.
+    min_drift_span_s : float
+        Drift is estimated only from playbacks spread over at least this long, s.
+    held_out_folds : int
+        Spots are held out in this many groups to measure what the calibration buys (0: not measured).
+    """
+
+    needs_field = True
+    calibrates = True
+
+    def __init__(
+        self,
+        estimate: list[str] | tuple[str, ...] = PARAMETER_KINDS,
+        position_sigma_m: float = 2.0,
+        temperature_sigma_c: float = 3.0,
+        clock_sigma_s: float = 0.01,
+        drift_sigma: float = 1e-5,
+        min_drift_span_s: float = 3600.0,
+        held_out_folds: int = 10,
+    ) -> None:
+        unknown = sorted(set(estimate) - set(PARAMETER_KINDS))
+        if unknown:
+            raise ConfigError(f"protocol.estimate: {unknown} cannot be estimated; choose from {list(PARAMETER_KINDS)}")
+        for name, value in (
+            ("position_sigma_m", position_sigma_m),
+            ("temperature_sigma_c", temperature_sigma_c),
+            ("clock_sigma_s", clock_sigma_s),
+            ("drift_sigma", drift_sigma),
+        ):
+            if not np.isfinite(value) or value <= 0:
+                raise ConfigError(f"protocol.{name} must be a number > 0; got {value}")
+        if held_out_folds < 0:
+            raise ConfigError(f"protocol.held_out_folds must be >= 0; got {held_out_folds}")
+        self.estimate = tuple(estimate)
+        self.position_sigma_m = float(position_sigma_m)
+        self.temperature_sigma_c = float(temperature_sigma_c)
+        self.clock_sigma_s = float(clock_sigma_s)
+        self.drift_sigma = float(drift_sigma)
+        self.min_drift_span_s = float(min_drift_span_s)
+        self.held_out_folds = int(held_out_folds)
+
+    def run(self, *args: Any, **kwargs: Any) -> Any:
+        """Not an in-memory protocol: the app runs ``acoustlab.run.calibrate.run_calibration``."""
+        raise ConfigError("protocol=calibrate runs from the command line: python -m acoustlab calibrate +site=NAME field=recordings …")
+
+    def priors(self, site: Site, mics_table: pd.DataFrame | None) -> Priors:
+        """The stated array: the site's mics, their GPS error from the mics table's ``position_sigma_m`` where given."""
+        sigma = np.full(site.n_mics, self.position_sigma_m)
+        if mics_table is not None and "position_sigma_m" in mics_table and len(mics_table) == site.n_mics:
+            given = pd.to_numeric(mics_table["position_sigma_m"], errors="coerce").to_numpy(float)
+            bad = ~np.isfinite(given) | (given < 0)
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise ConfigError(
+                    f"field.mics_csv, line {i + 2}, column 'position_sigma_m': {mics_table['position_sigma_m'].iloc[i]!r} "
+                    "is not a number >= 0 (m; 0 for a surveyed mic)"
+                )
+            sigma = given
+        return Priors(site.mic_positions_m, sigma, self.temperature_sigma_c, self.clock_sigma_s, self.drift_sigma)
+
+    def calibrate(self, playbacks: Playbacks, priors: Priors, mic_ids: list[str]) -> ArrayCalibration:
+        """The calibration from every playback."""
+        return calibrate_array(playbacks, priors, mic_ids, self.estimate, min_drift_span_s=self.min_drift_span_s)
+
+    def held_out(self, playbacks: Playbacks, priors: Priors, mic_ids: list[str], site: Site, solver: Any) -> dict[str, Any] | None:
+        """Errors of each spot's playbacks solved with the array calibrated without that spot, and with the stated array, m."""
+        spots = np.unique(playbacks.spot)
+        if self.held_out_folds == 0 or spots.size < 4:
+            return None
+        folds = np.array_split(np.random.default_rng(0).permutation(spots), min(self.held_out_folds, spots.size))
+        stated = np.full(len(playbacks.spot), np.nan)
+        calibrated = np.full(len(playbacks.spot), np.nan)
+        for held in folds:
+            test = np.isin(playbacks.spot, held)
+            train = _subset(playbacks, ~test)
+            cal = calibrate_array(train, priors, mic_ids, self.estimate, min_drift_span_s=self.min_drift_span_s, n_reweight=3)
+            stated[test] = _solve_errors(_subset(playbacks, test), site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
+            clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(playbacks.time_s[test] - cal.drift_origin_s)[:, None]
+            calibrated[test] = _solve_errors(_subset(playbacks, test), cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
+
+        def summary(e: np.ndarray) -> dict[str, float]:
+            e = np.where(np.isfinite(e), e, np.inf)
+            return {"p50_m": float(np.median(e)), "p95_m": float(np.quantile(e, 0.95)), "share_gt_1m": float(np.mean(e > 1.0))}
+
+        return {"n_playbacks": int(len(stated)), "n_spots": int(spots.size), "stated": summary(stated), "calibrated": summary(calibrated)}
+
+
+def _subset(p: Playbacks, rows: np.ndarray) -> Playbacks:
+    return Playbacks(p.source_m[rows], p.tdoa_s[rows], p.temperature_c[rows], p.relative_humidity_pct[rows], p.time_s[rows], p.spot[rows])
+
+
+def _solve_errors(
+    p: Playbacks, mics_m: np.ndarray, clock_s: np.ndarray, temperature_offset_c: float, site: Site, solver: Any
+) -> np.ndarray:
+    """(N,) 2-D errors of the solver's fixes of playbacks ``p`` with the given array, clocks ((N, M) or (M,)) and thermometer offset, m."""
+    clock = np.broadcast_to(clock_s, p.tdoa_s.shape)
+    tdoa = p.tdoa_s - (clock - clock[:, :1])
+    speed = speed_of_sound_m_s(p.temperature_c + temperature_offset_c, p.relative_humidity_pct)
+    result = solver.solve(
+        SolverInputs(
+            mic_positions_m=mics_m, tdoa_s=np.nan_to_num(tdoa), speed_of_sound_m_s=speed, source_height_m=assumed_source_height_m(site)
+        )
+    )
+    return np.hypot(*(np.asarray(result.position_m, dtype=float)[:, :2] - p.source_m[:, :2]).T)
+
+
+def residual_rows(calibration: ArrayCalibration, events: pd.DataFrame) -> pd.DataFrame:
+    """One row per playback and mic: its time difference's residual before and after calibration, s (for the plot)."""
+    rows = []
+    for k, (eid, spot) in enumerate(zip(events[col.EVENT_ID], calibration.spot, strict=True)):
+        for m in range(1, calibration.residual_before_s.shape[1] + 1):
+            rows.append(
+                (eid, spot, calibration.mic_ids[m], calibration.residual_before_s[k, m - 1], calibration.residual_after_s[k, m - 1])
+            )
+    return pd.DataFrame(rows, columns=[col.EVENT_ID, col.POSITION_ID, "mic_id", "residual_before_s", "residual_after_s"])

@@ -1,0 +1,96 @@
+"""The ``calibrate`` job: playbacks at known spots → ``calibration.json``, ``calibration.png`` and ``metrics.json``.
+
+``python -m acoustlab calibrate +site=NAME field=recordings field.audio_dir=… field.mics_csv=… field.events_csv=…``
+(the protocol and the maths: ``acoustlab.method.protocols.calibrate`` and ``acoustlab.toolkit.array_calibration``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig
+
+from acoustlab.core import columns as col
+from acoustlab.core.contracts import hook
+from acoustlab.method.protocols.calibrate import residual_rows
+from acoustlab.run.registry import to_plain
+from acoustlab.stages.cache import atomic_write_bytes
+from acoustlab.stages.dataset import load_or_build_field
+from acoustlab.stages.field_calibration import playbacks_from, write_calibration
+
+log = logging.getLogger(__name__)
+
+
+def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[str, str]) -> dict[str, Any]:
+    """Calibrate the array from the field events with known positions; write the calibration and its summary."""
+    site, protocol, source = built.site, built.protocol, built.field_source
+    field = load_or_build_field(site, source, to_plain(cfg.field), built.feature_sets, to_plain(cfg.features.groups), built.cache)
+    tables = hook(source, "tables")
+    mics_table = tables()[0] if tables is not None else None
+    temperature = float(getattr(source, "temperature_c", 15.0))
+    humidity = float(getattr(source, "relative_humidity_pct", 60.0))
+    playbacks = playbacks_from(field.features, field.events, site, temperature, humidity)
+    known = np.isfinite(field.events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1)
+    if "quality_ok" in field.events:
+        known &= field.events["quality_ok"].fillna(True).to_numpy(bool)
+    playback_events = field.events[known].reset_index(drop=True)
+    mic_ids = (
+        mics_table["mic_id"].astype(str).tolist()
+        if mics_table is not None and "mic_id" in mics_table and len(mics_table) == site.n_mics
+        else [str(m) for m in range(site.n_mics)]
+    )
+    priors = protocol.priors(site, mics_table)
+    log.info("calibrating %d mics from %d playbacks at %d spots", site.n_mics, len(playback_events), playbacks.n_spots)
+    calibration = protocol.calibrate(playbacks, priors, mic_ids)
+    calibration.extra["held_out"] = protocol.held_out(playbacks, priors, mic_ids, site, built.components.solver)
+    digest = write_calibration(run_dir / "calibration.json", calibration, site, playback_events)
+    summary = calibration.to_json()
+    metrics = {
+        "calibration": {
+            "file": str(run_dir / "calibration.json"),
+            "sha256": digest,
+            **{k: summary[k] for k in ("n_playbacks", "n_spots", "temperature_offset_c", "temperature_offset_sd_c", "timing_sigma_s")},
+            **{
+                k: summary[k]
+                for k in ("residual_median_abs_before_s", "residual_median_abs_after_s", "n_outliers", "not_identified", "held_out")
+            },
+            "clock_offset_ms": [round(1e3 * v, 4) for v in summary["clock_offset_s"]],
+            "mic_position_shift_m": summary["mic_position_shift_m"],
+        },
+        "site": site.name,
+        "choices": choices,
+    }
+    atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode())
+    for kind, why in calibration.not_identified.items():
+        log.warning("calibrate: %s not estimated: %s", kind, why)
+    log.info(
+        "thermometer offset %+.2f ± %.2f °C; clock offsets (ms) %s; mic shifts (m) %s; median time-difference residual %.3g → %.3g ms",
+        calibration.temperature_offset_c,
+        calibration.sd("temperature_offset_c"),
+        np.round(1e3 * calibration.clock_offset_s, 3).tolist(),
+        np.round(np.hypot(*calibration.mic_position_shift_m[:, :2].T), 2).tolist(),
+        1e3 * (summary["residual_median_abs_before_s"] or np.nan),
+        1e3 * (summary["residual_median_abs_after_s"] or np.nan),
+    )
+    held = calibration.extra["held_out"]
+    if held is not None:
+        log.info(
+            "held-out spots (%d playbacks): median error %.2f m with the stated array, %.2f m calibrated (p95 %.2f → %.2f m)",
+            held["n_playbacks"],
+            held["stated"]["p50_m"],
+            held["calibrated"]["p50_m"],
+            held["stated"]["p95_m"],
+            held["calibrated"]["p95_m"],
+        )
+    if cfg.plots:
+        from acoustlab.reporting.plots import write_calibration_plot  # matplotlib only when plotting
+
+        write_calibration_plot(
+            calibration, residual_rows(calibration, playback_events), playbacks.source_m, site, run_dir / "calibration.png"
+        )
+    log.info("calibration written to %s (use it: localize … calibration=%s)", run_dir / "calibration.json", run_dir / "calibration.json")
+    return metrics

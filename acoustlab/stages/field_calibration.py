@@ -1,0 +1,236 @@
+"""A field calibration as a file: made from playbacks (``acoustlab calibrate``), applied to later recordings.
+
+``calibration.json`` holds the calibrated array (``acoustlab.toolkit.array_calibration``): mic
+positions, the thermometer's offset, each recorder's clock offset and drift, their covariance, and
+every playback's residuals before and after. ``calibration=PATH`` in ``localize`` and ``season``:
+
+* the site's mics move to their calibrated positions (the simulation the method learns from then
+  has the real array too);
+* every detection's temperature gets the thermometer's offset (so its speed of sound is the one the
+  playbacks measured);
+* every measured time difference loses the recorders' clock offsets (and drifts, at the
+  detection's ``time_s``, else its ``start_s``);
+* the calibration's remaining uncertainty becomes the stated input errors of the radii
+  (``conformal.input_uncertainty``: its posterior standard deviations; their correlations are
+  not carried, a first-order allowance like the rest of it).
+
+The file is JSON (nothing in it can run code) and carries the SHA-256 of its content, which a run
+records in ``metrics.json`` and ``positions.csv``; a file edited by hand fails the check.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.core import columns as col
+from acoustlab.core.errors import DataError
+from acoustlab.core.types import Site
+from acoustlab.stages.cache import atomic_write_bytes
+from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks
+from acoustlab.toolkit.event_physics import assumed_source_height_m
+from acoustlab.toolkit.input_uncertainty import InputUncertainty
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+
+log = logging.getLogger(__name__)
+
+#: Largest calibration file read, bytes (a calibration of 100 mics and 10⁴ playbacks is far smaller).
+MAX_FILE_BYTES = 64 * 2**20
+FORMAT = "acoustlab-calibration/1"
+#: Column of positions.csv naming the calibration a detection was placed with.
+CALIBRATION_COLUMN = "calibration_sha256"
+
+
+def event_time_s(events: pd.DataFrame) -> np.ndarray:
+    """(E,) when each event happened, s: ``time_s`` where given, else ``start_s`` (drift is per second of it), else NaN."""
+    for name in ("time_s", "start_s"):
+        if name in events:
+            return pd.to_numeric(events[name], errors="coerce").to_numpy(float)
+    return np.full(len(events), np.nan)
+
+
+def playbacks_from(features: pd.DataFrame, events: pd.DataFrame, site: Site, temperature_c: float, humidity_pct: float) -> Playbacks:
+    """The playbacks (events with a known ``x_m, y_m``) and their time differences to mic 0.
+
+    Per mic, of the GCC candidates of pair (0, m) the one closest to the lag the stated array
+    predicts from the known spot is taken (the strongest peak may be an echo; the spot says where
+    the direct path must be). ``z_m`` where given, else the site's assumed source height.
+    """
+    known = np.isfinite(events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1)
+    if "quality_ok" in events:
+        known &= events["quality_ok"].fillna(True).to_numpy(bool)
+    if known.sum() == 0:
+        raise DataError("calibrate: no event has a known position (x_m, y_m) and usable clips: playbacks at known spots are needed")
+    ev, ft = events[known].reset_index(drop=True), features[known].reset_index(drop=True)
+    z = ev[col.TRUE_Z].to_numpy(float) if col.TRUE_Z in ev else np.full(len(ev), np.nan)
+    source = np.column_stack([ev[[col.TRUE_X, col.TRUE_Y]].to_numpy(float), np.where(np.isfinite(z), z, assumed_source_height_m(site))])
+    temperature = ev[col.TEMPERATURE].fillna(temperature_c).to_numpy(float) if col.TEMPERATURE in ev else np.full(len(ev), temperature_c)
+    humidity = ev[col.HUMIDITY].fillna(humidity_pct).to_numpy(float) if col.HUMIDITY in ev else np.full(len(ev), humidity_pct)
+    mics = site.mic_positions_m
+    distance = np.sqrt(((source[:, None, :] - mics[None]) ** 2).sum(-1))
+    expected = (distance - distance[:, :1]) / speed_of_sound_m_s(temperature, humidity)[:, None]
+    tdoa = np.full((len(ev), site.n_mics), np.nan)
+    tdoa[:, 0] = 0.0
+    for m in range(1, site.n_mics):
+        ranks = []
+        k = 1
+        while col.tdoa_lag(0, m, k) in ft:
+            ranks.append(ft[col.tdoa_lag(0, m, k)].to_numpy(float))
+            k += 1
+        if not ranks:
+            raise DataError(f"calibrate: the features lack {col.tdoa_lag(0, m)}; the 'tdoa' feature group is needed")
+        candidates = np.column_stack(ranks)
+        gap = np.where(np.isfinite(candidates), np.abs(candidates - expected[:, m : m + 1]), np.inf)
+        best = np.argmin(gap, axis=1)
+        tdoa[:, m] = np.where(np.isfinite(gap.min(axis=1)), candidates[np.arange(len(ev)), best], np.nan)
+    return Playbacks(source, tdoa, temperature, humidity, event_time_s(ev), ev[col.POSITION_ID].to_numpy())
+
+
+def _digest(body: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def write_calibration(path: Path, calibration: ArrayCalibration, site: Site, events: pd.DataFrame) -> str:
+    """Write ``calibration.json`` (atomically) and return its SHA-256; ``events`` are the playbacks' rows (ids for the residuals)."""
+    body = {
+        "format": FORMAT,
+        "site": site.name,
+        "stated_mic_positions_m": np.round(site.mic_positions_m, 6).tolist(),
+        **calibration.to_json(),
+        "playbacks": [
+            {
+                col.EVENT_ID: str(eid),
+                col.POSITION_ID: str(spot),
+                "residual_before_s": [None if not np.isfinite(v) else float(v) for v in before],
+                "residual_after_s": [None if not np.isfinite(v) else float(v) for v in after],
+            }
+            for eid, spot, before, after in zip(
+                events[col.EVENT_ID], calibration.spot, calibration.residual_before_s, calibration.residual_after_s, strict=True
+            )
+        ],
+    }
+    digest = _digest(body)
+    atomic_write_bytes(path, json.dumps({**body, "sha256": digest}, indent=1).encode())
+    return digest
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldCalibration:
+    """A loaded ``calibration.json``: what ``apply_calibration`` and ``calibrated_site`` need."""
+
+    path: str
+    sha256: str
+    mic_positions_m: np.ndarray
+    temperature_offset_c: float
+    temperature_offset_sd_c: float
+    clock_offset_s: np.ndarray
+    clock_offset_sd_s: np.ndarray
+    clock_drift: np.ndarray
+    drift_origin_s: float
+    mic_position_sd_m: np.ndarray
+    n_spots: int
+    not_identified: dict[str, str]
+
+    def summary(self) -> dict[str, Any]:
+        """For metrics.json: where it came from and what it changed."""
+        return {
+            "path": self.path,
+            "sha256": self.sha256,
+            "n_spots": self.n_spots,
+            "temperature_offset_c": self.temperature_offset_c,
+            "clock_offset_s": self.clock_offset_s.tolist(),
+            "mic_positions_m": np.round(self.mic_positions_m, 4).tolist(),
+            "not_identified": self.not_identified,
+        }
+
+    def input_uncertainty(self) -> InputUncertainty:
+        """What the calibration leaves uncertain, as the radii's stated input errors (posterior standard deviations)."""
+        clocks = self.clock_offset_sd_s[1:]
+        return InputUncertainty(
+            temperature_c=float(self.temperature_offset_sd_c),
+            mic_position_m=float(np.sqrt(np.mean(self.mic_position_sd_m**2))),
+            clock_offset_s=float(np.sqrt(np.mean(clocks**2))) if clocks.size else 0.0,
+        )
+
+
+def load_calibration(path_text: str, site: Site) -> FieldCalibration:
+    """Read and check ``calibration.json`` for ``site`` (one line naming the file and the problem on any fault)."""
+    path = Path(path_text).expanduser()
+    where = f"calibration={path_text}"
+    if not path.is_file():
+        raise DataError(f"{where}: no such file (make one with: python -m acoustlab calibrate +site=NAME field=recordings …)")
+    if path.stat().st_size > MAX_FILE_BYTES:
+        raise DataError(f"{where}: {path.stat().st_size} bytes is larger than a calibration file can be ({MAX_FILE_BYTES} bytes)")
+    try:
+        body = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise DataError(f"{where}: not a JSON file: {exc}") from None
+    if not isinstance(body, dict) or body.get("format") != FORMAT:
+        raise DataError(f"{where}: not an acoustlab calibration (format {FORMAT!r} expected)")
+    stated = body.pop("sha256", None)
+    if stated != _digest(body):
+        raise DataError(f"{where}: its content does not match its sha256 (edited after it was written?); run calibrate again")
+    try:
+        mics = np.asarray(body["mic_positions_m"], dtype=float)
+        out = FieldCalibration(
+            path=str(path),
+            sha256=stated,
+            mic_positions_m=mics,
+            temperature_offset_c=float(body["temperature_offset_c"]),
+            temperature_offset_sd_c=float(body["temperature_offset_sd_c"]),
+            clock_offset_s=np.asarray(body["clock_offset_s"], dtype=float),
+            clock_offset_sd_s=np.asarray(body["clock_offset_sd_s"], dtype=float),
+            clock_drift=np.asarray(body["clock_drift_s_per_s"], dtype=float),
+            drift_origin_s=float(body["drift_origin_s"]),
+            mic_position_sd_m=np.asarray(body["mic_position_sd_m"], dtype=float),
+            n_spots=int(body["n_spots"]),
+            not_identified=dict(body.get("not_identified", {})),
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{where}: field {exc} is missing or not a number") from None
+    if mics.shape != site.mic_positions_m.shape:
+        raise DataError(f"{where}: calibrates {mics.shape[0]} mics; site {site.name!r} has {site.n_mics}")
+    if body.get("site") != site.name:
+        log.warning("%s was made for site %r; applying it to site %r", where, body.get("site"), site.name)
+    stated_mics = np.asarray(body.get("stated_mic_positions_m", mics), dtype=float)
+    moved = np.abs(stated_mics - site.mic_positions_m).max()
+    if moved > 1e-3:
+        raise DataError(f"{where}: was made from mic positions up to {moved:.3g} m from the site's: calibrate again for this array")
+    return out
+
+
+def calibrated_site(site: Site, calibration: FieldCalibration) -> Site:
+    """The site with its mics at their calibrated positions."""
+    return dataclasses.replace(site, mic_positions_m=calibration.mic_positions_m.copy())
+
+
+def apply_calibration(
+    features: pd.DataFrame, events: pd.DataFrame, site: Site, calibration: FieldCalibration
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Field features and events with the thermometer's offset and the recorders' clocks corrected (module docstring)."""
+    features, events = features.copy(), events.copy()
+    if col.TEMPERATURE in events:
+        events[col.TEMPERATURE] = events[col.TEMPERATURE].to_numpy(float) + calibration.temperature_offset_c
+        humidity = events[col.HUMIDITY].to_numpy(float) if col.HUMIDITY in events else np.zeros(len(events))
+        speed = speed_of_sound_m_s(events[col.TEMPERATURE].to_numpy(float), humidity)
+        if col.SPEED_OF_SOUND in events:
+            events[col.SPEED_OF_SOUND] = speed
+        if col.ENV_TEMPERATURE in features:
+            features[col.ENV_TEMPERATURE] = events[col.TEMPERATURE].to_numpy(float)
+        if col.ENV_SPEED_OF_SOUND in features:
+            features[col.ENV_SPEED_OF_SOUND] = speed
+    elapsed = np.nan_to_num(event_time_s(events) - calibration.drift_origin_s)
+    clock = calibration.clock_offset_s[None, :] + calibration.clock_drift[None, :] * elapsed[:, None]  # (E, M)
+    for i, j in site.mic_pairs:
+        k = 1
+        while col.tdoa_lag(i, j, k) in features:
+            features[col.tdoa_lag(i, j, k)] = features[col.tdoa_lag(i, j, k)].to_numpy(float) - (clock[:, j] - clock[:, i])
+            k += 1
+    return features, events

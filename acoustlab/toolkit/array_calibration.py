@@ -1,0 +1,369 @@
+"""Calibrate an array from playbacks at known spots: thermometer offset, recorder clocks, mic positions.
+
+A playback n from the surveyed spot s_n at time t_n reaches mic m at
+τ_n + ‖s_n − p_m‖ / c_n + δ_m + ρ_m·t_n (τ_n the emission time, p_m the mic, c_n the speed of
+sound at the event's temperature plus the thermometer's offset ΔT, δ_m and ρ_m the recorder's clock
+offset and drift). The time differences to mic 0 remove τ_n:
+
+    Δ_{n,m} = (‖s_n − p_m‖ − ‖s_n − p_0‖) / c_n + (δ_m − δ_0) + (ρ_m − ρ_0)·t_n.
+
+Gauge: only differences of clocks are observable, so mic 0's clock is the reference (δ_0 = ρ_0 = 0).
+The mic positions need no gauge: the spots are surveyed in the site's frame.
+
+Every parameter has a prior: ΔT = 0 ± the thermometer's σ, clocks 0 ± σ, mic positions at the
+table's coordinates ± their stated GPS σ (horizontal). The priors enter as Gaussian residuals, the
+time differences as residuals in units of the timing noise σ_t with Huber weights (iteratively
+reweighted, k = ``HUBER_K``), minimised by ``scipy.optimize.least_squares``; σ_t is re-estimated
+from the residuals' MAD. Written here because no library fits this model; SciPy does the solving.
+
+What the playbacks cannot determine stays at its prior and is said plainly (``ArrayCalibration.not_identified``):
+structurally (one spot cannot separate a clock from a position; positions need 3 spots not on a
+line; drift needs spots spread over time) and numerically (a parameter is *identified* where the
+playbacks shrink its standard deviation to at most ``IDENTIFIED_RATIO`` of its prior's).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import brentq, least_squares
+
+from acoustlab.core.errors import DataError
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+
+log = logging.getLogger(__name__)
+
+#: A parameter counts as identified where the playbacks shrink its prior standard deviation to this fraction or less.
+IDENTIFIED_RATIO = 0.5
+#: Huber's constant, in units of the timing noise: larger residuals are down-weighted (a wrong GCC peak, an echo).
+HUBER_K = 2.5
+#: A residual beyond this many timing-noise units counts as an outlier in the report.
+OUTLIER_K = 5.0
+#: What can be estimated.
+PARAMETER_KINDS = ("temperature", "clocks", "drift", "positions")
+
+
+@dataclass
+class Playbacks:
+    """Playbacks at known spots and their measured time differences.
+
+    Attributes
+    ----------
+    source_m : numpy.ndarray
+        (N, 3) surveyed playback positions, m.
+    tdoa_s : numpy.ndarray
+        (N, M) measured arrival-time differences t_m − t_0, s (column 0 is 0; NaN where not measured).
+    temperature_c, relative_humidity_pct : numpy.ndarray
+        (N,) the thermometer's reading and the humidity at each playback.
+    time_s : numpy.ndarray
+        (N,) when each playback was made, s from any fixed origin (drift is per second of it).
+    spot : numpy.ndarray
+        (N,) the spot (position id) of each playback.
+    """
+
+    source_m: np.ndarray
+    tdoa_s: np.ndarray
+    temperature_c: np.ndarray
+    relative_humidity_pct: np.ndarray
+    time_s: np.ndarray
+    spot: np.ndarray
+
+    @property
+    def n_spots(self) -> int:
+        return int(np.unique(self.spot).size)
+
+
+@dataclass
+class Priors:
+    """What is known before the playbacks, with standard deviations.
+
+    Attributes
+    ----------
+    mic_positions_m : numpy.ndarray
+        (M, 3) the stated mic positions, m.
+    position_sigma_m : numpy.ndarray
+        (M,) their horizontal standard deviation per axis, m (0: surveyed exactly, not estimated).
+    temperature_sigma_c : float
+        The thermometer's error, °C.
+    clock_sigma_s : float
+        Clock offsets between recorders, s.
+    drift_sigma : float
+        Clock drift between recorders, s per s.
+    """
+
+    mic_positions_m: np.ndarray
+    position_sigma_m: np.ndarray
+    temperature_sigma_c: float = 3.0
+    clock_sigma_s: float = 0.01
+    drift_sigma: float = 1e-5
+
+
+@dataclass
+class ArrayCalibration:
+    """The calibrated array and how well the playbacks determined it (``to_json`` for calibration.json)."""
+
+    mic_ids: list[str]
+    mic_positions_m: np.ndarray
+    mic_position_shift_m: np.ndarray
+    temperature_offset_c: float
+    clock_offset_s: np.ndarray
+    clock_drift: np.ndarray
+    drift_origin_s: float
+    timing_sigma_s: float
+    #: parameter name → index into ``covariance``
+    parameters: list[str]
+    covariance: np.ndarray
+    prior_sd: np.ndarray
+    identified: dict[str, bool]
+    not_identified: dict[str, str]
+    residual_before_s: np.ndarray
+    residual_after_s: np.ndarray
+    spot: np.ndarray
+    n_spots: int
+    priors: Priors
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def sd(self, name: str) -> float:
+        """Posterior standard deviation of one parameter (its prior's where it was not estimated)."""
+        if name in self.parameters:
+            return float(np.sqrt(self.covariance[self.parameters.index(name), self.parameters.index(name)]))
+        if name == "temperature_offset_c":
+            return float(self.priors.temperature_sigma_c)
+        if name.startswith("clock_"):
+            return 0.0 if name == "clock_0_s" else float(self.priors.clock_sigma_s)
+        if name.startswith("drift_"):
+            return 0.0
+        return float(self.priors.position_sigma_m[int(name.split("_")[1])])
+
+    def position_sd_m(self) -> np.ndarray:
+        """(M,) per-axis posterior standard deviation of each mic's horizontal position, m."""
+        return np.array([np.sqrt((self.sd(f"mic_{m}_x_m") ** 2 + self.sd(f"mic_{m}_y_m") ** 2) / 2) for m in range(len(self.mic_ids))])
+
+    def to_json(self) -> dict[str, Any]:
+        def median_abs(r: np.ndarray) -> float | None:
+            r = r[np.isfinite(r)]
+            return None if r.size == 0 else float(np.median(np.abs(r)))
+
+        return {
+            "mic_ids": self.mic_ids,
+            "mic_positions_m": np.round(self.mic_positions_m, 6).tolist(),
+            "mic_position_shift_m": np.round(self.mic_position_shift_m, 6).tolist(),
+            "mic_position_sd_m": np.round(self.position_sd_m(), 6).tolist(),
+            "temperature_offset_c": self.temperature_offset_c,
+            "temperature_offset_sd_c": self.sd("temperature_offset_c"),
+            "clock_offset_s": self.clock_offset_s.tolist(),
+            "clock_offset_sd_s": [self.sd(f"clock_{m}_s") for m in range(len(self.mic_ids))],
+            "clock_drift_s_per_s": self.clock_drift.tolist(),
+            "drift_origin_s": self.drift_origin_s,
+            "timing_sigma_s": self.timing_sigma_s,
+            "parameters": self.parameters,
+            "covariance": self.covariance.tolist(),
+            "prior_sd": self.prior_sd.tolist(),
+            "identified": self.identified,
+            "not_identified": self.not_identified,
+            "n_playbacks": int(len(self.spot)),
+            "n_spots": self.n_spots,
+            "residual_median_abs_before_s": median_abs(self.residual_before_s),
+            "residual_median_abs_after_s": median_abs(self.residual_after_s),
+            "n_outliers": int(np.sum(np.abs(self.residual_after_s[np.isfinite(self.residual_after_s)]) > OUTLIER_K * self.timing_sigma_s)),
+            **self.extra,
+        }
+
+
+def _dc_dt(temperature_c: np.ndarray, humidity: np.ndarray) -> np.ndarray:
+    """d c / d T at each playback, m/s per °C (central difference)."""
+    return (speed_of_sound_m_s(temperature_c + 0.05, humidity) - speed_of_sound_m_s(temperature_c - 0.05, humidity)) / 0.1
+
+
+def _structural_limits(playbacks: Playbacks, priors: Priors, wanted: set[str], min_drift_span_s: float) -> dict[str, str]:
+    """Parameters the playbacks cannot determine whatever their values, with the reason."""
+    out: dict[str, str] = {}
+    spots = playbacks.n_spots
+    xy = np.unique(np.round(playbacks.source_m[:, :2], 3), axis=0)
+    if spots < 2:
+        for kind in ("temperature", "positions", "drift"):
+            if kind in wanted:
+                out[kind] = (
+                    "one playback spot cannot separate a recorder's clock from its position or the speed of sound; give 3 or more spots"
+                )
+    if "positions" in wanted and "positions" not in out:
+        if len(xy) < 3 or np.linalg.matrix_rank(xy - xy.mean(axis=0), tol=1e-6 * max(1.0, np.abs(xy).max())) < 2:
+            out["positions"] = f"mic positions need 3 or more playback spots not on one line (got {len(xy)})"
+        elif not np.any(priors.position_sigma_m > 0):
+            out["positions"] = "every mic's position_sigma_m is 0 (surveyed exactly): nothing to estimate"
+    if "drift" in wanted and "drift" not in out:
+        span = float(np.nanmax(playbacks.time_s) - np.nanmin(playbacks.time_s)) if np.isfinite(playbacks.time_s).any() else 0.0
+        if span < min_drift_span_s:
+            out["drift"] = f"the playbacks span {span:.0f} s; clock drift needs them spread over at least {min_drift_span_s:.0f} s"
+    return out
+
+
+class _Model:
+    """Residuals and their Jacobian in normalised parameters u (θ = θ₀ + σ ⊙ u)."""
+
+    def __init__(self, playbacks: Playbacks, priors: Priors, kinds: set[str], drift_origin_s: float) -> None:
+        self.pb, self.pr = playbacks, priors
+        n_mics = priors.mic_positions_m.shape[0]
+        names, sd = [], []
+        if "temperature" in kinds:
+            names.append("temperature_offset_c")
+            sd.append(priors.temperature_sigma_c)
+        if "clocks" in kinds:
+            names += [f"clock_{m}_s" for m in range(1, n_mics)]
+            sd += [priors.clock_sigma_s] * (n_mics - 1)
+        if "drift" in kinds:
+            names += [f"drift_{m}" for m in range(1, n_mics)]
+            sd += [priors.drift_sigma] * (n_mics - 1)
+        self.moved = [m for m in range(n_mics) if priors.position_sigma_m[m] > 0] if "positions" in kinds else []
+        for m in self.moved:
+            names += [f"mic_{m}_x_m", f"mic_{m}_y_m"]
+            sd += [float(priors.position_sigma_m[m])] * 2
+        self.names, self.sd = names, np.asarray(sd, dtype=float)
+        self.t = np.nan_to_num(playbacks.time_s - drift_origin_s)
+        self.measured = np.isfinite(playbacks.tdoa_s[:, 1:])
+        self.dcdt = _dc_dt(playbacks.temperature_c, playbacks.relative_humidity_pct)
+
+    def unpack(self, u: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        theta = dict(zip(self.names, self.sd * u, strict=True))
+        n_mics = self.pr.mic_positions_m.shape[0]
+        clocks = np.array([0.0] + [theta.get(f"clock_{m}_s", 0.0) for m in range(1, n_mics)])
+        drift = np.array([0.0] + [theta.get(f"drift_{m}", 0.0) for m in range(1, n_mics)])
+        mics = self.pr.mic_positions_m.astype(float).copy()
+        for m in self.moved:
+            mics[m, 0] += theta[f"mic_{m}_x_m"]
+            mics[m, 1] += theta[f"mic_{m}_y_m"]
+        return float(theta.get("temperature_offset_c", 0.0)), clocks, drift, mics
+
+    def predicted_s(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        offset, clocks, drift, mics = self.unpack(u)
+        speed = speed_of_sound_m_s(self.pb.temperature_c + offset, self.pb.relative_humidity_pct)
+        diff = self.pb.source_m[:, None, :] - mics[None]
+        dist = np.sqrt((diff**2).sum(-1))
+        pred = (dist[:, 1:] - dist[:, :1]) / speed[:, None] + clocks[1:] + drift[1:] * self.t[:, None]
+        return pred, dist, diff, speed
+
+    def residuals(self, u: np.ndarray, sigma_t: float, weights: np.ndarray) -> np.ndarray:
+        pred, *_ = self.predicted_s(u)
+        r = (pred - self.pb.tdoa_s[:, 1:])[self.measured] / sigma_t * np.sqrt(weights)
+        return np.concatenate([r, u])
+
+    def jacobian(self, u: np.ndarray, sigma_t: float, weights: np.ndarray) -> np.ndarray:
+        _, dist, diff, speed = self.predicted_s(u)
+        n, mm = self.measured.shape
+        cols = []
+        for name in self.names:
+            d = np.zeros((n, mm))
+            if name == "temperature_offset_c":
+                d = -(dist[:, 1:] - dist[:, :1]) / speed[:, None] ** 2 * self.dcdt[:, None]
+            elif name.startswith("clock_"):
+                d[:, int(name.split("_")[1]) - 1] = 1.0
+            elif name.startswith("drift_"):
+                d[:, int(name.split("_")[1]) - 1] = self.t
+            else:
+                m, axis = int(name.split("_")[1]), 0 if name.endswith("x_m") else 1
+                unit = -diff[:, m, axis] / dist[:, m] / speed  # d‖s − p_m‖/dp_m / c
+                if m == 0:
+                    d[:] = -unit[:, None]
+                else:
+                    d[:, m - 1] = unit
+            cols.append(d[self.measured])
+        data = np.stack(cols, axis=1) * self.sd / sigma_t * np.sqrt(weights)[:, None] if cols else np.zeros((self.measured.sum(), 0))
+        return np.vstack([data, np.eye(len(self.names))])
+
+
+def calibrate_array(
+    playbacks: Playbacks,
+    priors: Priors,
+    mic_ids: list[str],
+    estimate: tuple[str, ...] = PARAMETER_KINDS,
+    timing_sigma_s: float = 1e-4,
+    min_drift_span_s: float = 3600.0,
+    n_reweight: int = 5,
+) -> ArrayCalibration:
+    """Estimate the thermometer offset, clock offsets and drifts, and mic positions from playbacks (module docstring).
+
+    Parameters
+    ----------
+    playbacks : Playbacks
+        Playbacks at known spots with their measured time differences.
+    priors : Priors
+        The stated array and the standard deviations of what may be off.
+    mic_ids : list of str
+        The mics' names, in the order of the arrays.
+    estimate : tuple of str
+        Which of ``PARAMETER_KINDS`` to estimate (those the playbacks cannot determine are left at
+        their priors and listed in ``not_identified``).
+    timing_sigma_s : float
+        Starting value of the timing noise, s (re-estimated from the residuals).
+    min_drift_span_s : float
+        Drift is estimated only from playbacks spread over at least this long, s.
+    n_reweight : int
+        Huber reweighting passes.
+
+    Raises
+    ------
+    DataError
+        With fewer than 1 playback measured on 2 or more mics.
+    """
+    unknown = set(estimate) - set(PARAMETER_KINDS)
+    if unknown:
+        raise DataError(f"calibration: cannot estimate {sorted(unknown)}; choose from {list(PARAMETER_KINDS)}")
+    measured = np.isfinite(playbacks.tdoa_s[:, 1:]).any(axis=1)
+    if not measured.any():
+        raise DataError("calibration: no playback has a measured time difference on 2 or more mics")
+    not_identified = _structural_limits(playbacks, priors, set(estimate), min_drift_span_s)
+    kinds = set(estimate) - set(not_identified)
+    origin = float(np.nanmin(playbacks.time_s)) if np.isfinite(playbacks.time_s).any() else 0.0
+    model = _Model(playbacks, priors, kinds, origin)
+    u = np.zeros(len(model.names))
+    before, *_ = model.predicted_s(u)
+    weights = np.ones(int(model.measured.sum()))
+    sigma_t = float(timing_sigma_s)
+    for _ in range(max(1, n_reweight)):
+        fit = least_squares(model.residuals, u, jac=model.jacobian, args=(sigma_t, weights), method="trf", x_scale="jac")
+        u = fit.x
+        r = (model.predicted_s(u)[0] - playbacks.tdoa_s[:, 1:])[model.measured]
+        sigma_t = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-6)
+        weights = np.minimum(1.0, HUBER_K / np.maximum(np.abs(r) / sigma_t, 1e-12))
+    jac = model.jacobian(u, sigma_t, weights)
+    cov_u = np.linalg.pinv(jac.T @ jac)
+    covariance = cov_u * np.outer(model.sd, model.sd)
+    ratio = np.sqrt(np.clip(np.diag(cov_u), 0, None))
+    identified = {name: bool(q <= IDENTIFIED_RATIO) for name, q in zip(model.names, ratio, strict=True)}
+    for kind, label in (("temperature", "temperature_offset_c"), ("clocks", "clock_"), ("drift", "drift_"), ("positions", "mic_")):
+        weak = [n for n in model.names if n.startswith(label) and not identified[n]]
+        if kind in kinds and weak:
+            not_identified[kind] = (
+                f"the playbacks leave {len(weak)} of these parameters near their prior ({', '.join(weak[:4])}"
+                f"{', …' if len(weak) > 4 else ''}): more spots, spread around the array, would determine them"
+            )
+    offset, clocks, drift, mics = model.unpack(u)
+    after = model.predicted_s(u)[0]
+    return ArrayCalibration(
+        mic_ids=list(mic_ids),
+        mic_positions_m=mics,
+        mic_position_shift_m=mics - priors.mic_positions_m,
+        temperature_offset_c=offset,
+        clock_offset_s=clocks,
+        clock_drift=drift,
+        drift_origin_s=origin,
+        timing_sigma_s=sigma_t,
+        parameters=model.names,
+        covariance=covariance,
+        prior_sd=model.sd,
+        identified=identified,
+        not_identified=not_identified,
+        residual_before_s=before - playbacks.tdoa_s[:, 1:],
+        residual_after_s=after - playbacks.tdoa_s[:, 1:],
+        spot=np.asarray(playbacks.spot),
+        n_spots=playbacks.n_spots,
+        priors=priors,
+    )
+
+
+def temperature_from_speed_c(speed_m_s: float, relative_humidity_pct: float) -> float:
+    """The air temperature (°C) at which sound travels at ``speed_m_s`` (inverse of ``speed_of_sound_m_s``)."""
+    return float(brentq(lambda t: float(speed_of_sound_m_s(t, relative_humidity_pct)) - speed_m_s, -60.0, 60.0))

@@ -1,0 +1,216 @@
+"""Field calibration: playbacks at known spots recover the thermometer, the clocks and the mic positions; the file round-trips."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from acoustlab.core import columns as col
+from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.stages.field_calibration import apply_calibration, calibrated_site, load_calibration, write_calibration
+from acoustlab.stages.solver_columns import tdoa_matrix
+from acoustlab.toolkit.array_calibration import Playbacks, Priors, calibrate_array
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+from tests.test_pipeline_calibration import site3
+
+
+def playbacks(
+    true_mics: np.ndarray,
+    spots: np.ndarray,
+    clocks_s: np.ndarray,
+    temperature_error_c: float,
+    noise_s: float = 0.0,
+    per: int = 3,
+    drift: np.ndarray | None = None,
+    span_s: float = 0.0,
+    seed: int = 0,
+) -> Playbacks:
+    """Playbacks from ``spots`` heard by ``true_mics`` with those clocks, read with a thermometer off by ``temperature_error_c``."""
+    rng = np.random.default_rng(seed)
+    source = np.repeat(spots, per, axis=0)
+    n = len(source)
+    thermometer = np.full(n, 12.0)
+    humidity = np.full(n, 70.0)
+    time_s = np.linspace(0.0, span_s, n)
+    speed = speed_of_sound_m_s(thermometer - temperature_error_c, humidity)  # the air is what the thermometer misreads
+    distance = np.sqrt(((source[:, None, :] - true_mics[None]) ** 2).sum(-1))
+    arrival = distance / speed[:, None] + clocks_s[None, :] + (0 if drift is None else drift[None, :] * time_s[:, None])
+    tdoa = arrival - arrival[:, :1] + rng.normal(0, noise_s, arrival.shape) * (noise_s > 0)
+    tdoa[:, 0] = 0.0
+    return Playbacks(source, tdoa, thermometer, humidity, time_s, np.repeat(np.arange(len(spots)), per))
+
+
+def array(n_mics: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(stated, true) mics of a random array ~80 m across; the truth is 2 m (σ) off the statement."""
+    rng = np.random.default_rng(seed)
+    true = np.column_stack([rng.uniform(0, 80, n_mics), rng.uniform(0, 80, n_mics), rng.uniform(1, 3, n_mics)])
+    stated = true.copy()
+    stated[:, :2] += rng.normal(0, 2.0, (n_mics, 2))
+    return stated, true
+
+
+def spots_in(rng: np.random.Generator, n: int) -> np.ndarray:
+    return np.column_stack([rng.uniform(5, 75, n), rng.uniform(5, 75, n), np.full(n, 1.5)])
+
+
+@settings(max_examples=12, deadline=None)
+@given(st.integers(4, 8), st.integers(0, 10_000))
+def test_exact_playbacks_recover_the_thermometer_clocks_and_mics(n_mics, seed):
+    stated, true = array(n_mics, seed)
+    rng = np.random.default_rng(seed + 1)
+    clocks = np.r_[0.0, rng.uniform(-1e-3, 1e-3, n_mics - 1)]
+    pb = playbacks(true, spots_in(rng, 10), clocks, temperature_error_c=3.0)
+    cal = calibrate_array(pb, Priors(stated, np.full(n_mics, 2.0)), [str(m) for m in range(n_mics)], timing_sigma_s=1e-5)
+    assert cal.temperature_offset_c == pytest.approx(-3.0, abs=0.1)
+    np.testing.assert_allclose(cal.clock_offset_s, clocks, atol=2e-5)
+    np.testing.assert_allclose(cal.mic_positions_m[:, :2], true[:, :2], atol=0.05)
+    assert cal.to_json()["residual_median_abs_after_s"] < 1e-5
+
+
+def test_noisy_playbacks_land_within_their_stated_uncertainty():
+    stated, true = array(6, 3)
+    rng = np.random.default_rng(4)
+    clocks = np.r_[0.0, rng.uniform(-1e-3, 1e-3, 5)]
+    pb = playbacks(true, spots_in(rng, 10), clocks, temperature_error_c=-2.0, noise_s=5e-5)
+    cal = calibrate_array(pb, Priors(stated, np.full(6, 2.0)), list("abcdef"))
+    assert abs(cal.temperature_offset_c - 2.0) < 4 * cal.sd("temperature_offset_c")
+    error = np.hypot(*(cal.mic_positions_m - true)[:, :2].T)
+    assert (error < 4 * np.sqrt(2) * cal.position_sd_m() + 0.05).all()
+    assert np.median(error) < 0.25 * np.median(np.hypot(*(stated - true)[:, :2].T))
+    assert cal.timing_sigma_s == pytest.approx(5e-5, rel=0.5)
+
+
+def test_a_wrong_gcc_peak_is_down_weighted():
+    stated, true = array(6, 5)
+    rng = np.random.default_rng(6)
+    pb = playbacks(true, spots_in(rng, 10), np.zeros(6), 0.0, noise_s=2e-5)
+    pb.tdoa_s[[2, 7, 11], 3] += 0.004  # an echo picked instead of the direct path
+    cal = calibrate_array(pb, Priors(stated, np.full(6, 2.0)), list("abcdef"))
+    assert np.median(np.hypot(*(cal.mic_positions_m - true)[:, :2].T)) < 0.2
+    assert cal.to_json()["n_outliers"] >= 3
+
+
+def test_drift_is_estimated_only_from_playbacks_spread_over_time():
+    stated, true = array(5, 7)
+    rng = np.random.default_rng(8)
+    drift = np.r_[0.0, rng.uniform(-2e-6, 2e-6, 4)]
+    spread = playbacks(true, spots_in(rng, 12), np.zeros(5), 0.0, drift=drift, span_s=7200.0)
+    cal = calibrate_array(spread, Priors(stated, np.full(5, 2.0)), list("abcde"), timing_sigma_s=1e-5)
+    np.testing.assert_allclose(cal.clock_drift, drift, atol=2e-7)
+    short = playbacks(true, spots_in(rng, 12), np.zeros(5), 0.0, span_s=600.0)
+    assert "drift" in calibrate_array(short, Priors(stated, np.full(5, 2.0)), list("abcde")).not_identified
+
+
+def test_what_the_playbacks_cannot_determine_is_left_at_its_prior_and_said():
+    stated, true = array(4, 9)
+    one = playbacks(true, np.array([[40.0, 40.0, 1.5]]), np.zeros(4), 2.0)
+    cal = calibrate_array(one, Priors(stated, np.full(4, 2.0)), list("abcd"))
+    assert {"temperature", "positions"} <= set(cal.not_identified)
+    assert "clock" in cal.not_identified["positions"]  # one spot cannot separate a clock from a position
+    np.testing.assert_array_equal(cal.mic_positions_m, stated)
+    assert cal.temperature_offset_c == 0.0
+    line = np.column_stack([np.linspace(10, 70, 6), np.full(6, 30.0), np.full(6, 1.5)])
+    on_a_line = calibrate_array(playbacks(true, line, np.zeros(4), 0.0), Priors(stated, np.full(4, 2.0)), list("abcd"))
+    assert "not on one line" in on_a_line.not_identified["positions"]
+    surveyed = calibrate_array(
+        playbacks(true, spots_in(np.random.default_rng(1), 8), np.zeros(4), 0.0), Priors(stated, np.zeros(4)), list("abcd")
+    )
+    assert "surveyed exactly" in surveyed.not_identified["positions"]
+    with pytest.raises(DataError, match="cannot estimate"):
+        calibrate_array(one, Priors(stated, np.full(4, 2.0)), list("abcd"), estimate=("positions", "humidity"))
+
+
+def _features_for(site, mics_m: np.ndarray, source_xyz: np.ndarray, clocks_s: np.ndarray, speed: float) -> pd.DataFrame:
+    distance = np.sqrt(((source_xyz[:, None, :] - mics_m[None]) ** 2).sum(-1))
+    arrival = distance / speed + clocks_s
+    return pd.DataFrame({col.tdoa_lag(i, j): arrival[:, j] - arrival[:, i] for i, j in site.mic_pairs})
+
+
+def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path):
+    stated, true = array(5, 21)
+    site = dataclasses.replace(site3(), mic_positions_m=stated)
+    clocks = np.array([0.0, 4e-4, -3e-4, 2e-4, 1e-4])
+    pb = playbacks(true, spots_in(np.random.default_rng(0), 8), clocks, temperature_error_c=1.5, per=4)
+    cal = calibrate_array(
+        pb, Priors(stated, np.full(5, 2.0)), list("abcde"), estimate=("temperature", "clocks", "positions"), timing_sigma_s=1e-5
+    )
+    events = pd.DataFrame({col.EVENT_ID: np.arange(len(pb.spot)), col.POSITION_ID: pb.spot})
+    path = tmp_path / "calibration.json"
+    digest = write_calibration(path, cal, site, events)
+    loaded = load_calibration(str(path), site)
+    assert loaded.sha256 == digest and len(json.loads(path.read_text())["playbacks"]) == len(events)
+    # applied to a later call: the clocks come off its time differences, the thermometer's offset onto its temperature
+    source = np.array([[38.0, 22.0, 1.5]])
+    air = speed_of_sound_m_s(10.0 - 1.5, 50.0)
+    later = pd.DataFrame({col.TEMPERATURE: [10.0], col.HUMIDITY: [50.0], col.SPEED_OF_SOUND: [float(speed_of_sound_m_s(10.0, 50.0))]})
+    features, fixed = apply_calibration(_features_for(site, true, source, clocks, air), later, site, loaded)
+    assert fixed[col.TEMPERATURE].iloc[0] == pytest.approx(10.0 + cal.temperature_offset_c)
+    exact = _features_for(
+        site, calibrated_site(site, loaded).mic_positions_m, source, np.zeros(5), float(fixed[col.SPEED_OF_SOUND].iloc[0])
+    )
+    np.testing.assert_allclose(tdoa_matrix(features, 5), tdoa_matrix(exact, 5), atol=1e-6)
+    assert loaded.input_uncertainty().temperature_c == pytest.approx(cal.sd("temperature_offset_c"))
+    # an edited file, another array, a folder that is not a calibration: one line each
+    body = json.loads(path.read_text())
+    body["temperature_offset_c"] = 0.0
+    path.write_text(json.dumps(body))
+    with pytest.raises(DataError, match="does not match its sha256"):
+        load_calibration(str(path), site)
+    with pytest.raises(DataError, match="no such file"):
+        load_calibration(str(tmp_path / "missing.json"), site)
+    (tmp_path / "other.json").write_text("[1, 2]")
+    with pytest.raises(DataError, match="not an acoustlab calibration"):
+        load_calibration(str(tmp_path / "other.json"), site)
+
+
+def test_calibrate_recovers_a_rendered_array_and_localize_uses_it(compose_cfg, tmp_path: Path):
+    """End to end on the second simulator: mics 2 m off, clocks ±1 ms, thermometer 3 °C high; 8 spots × 2 playbacks."""
+    from acoustlab.run.app import build_run, prepare_data, run_experiment
+    from acoustlab.stages.sites import site_from_config
+    from plugins.fields.image_source import ImageSourceField
+
+    impaired = ["field.mic_position_error_m=2.0", "field.clock_offset_max_s=0.001", "field.temperature_error_c=3.0", "field.array_seed=5"]
+    common = [
+        "+site=forest",
+        "field=image_source",
+        "field.events_per_position=2",
+        f"paths.outputs_dir={tmp_path}",
+        "tracking=none",
+        "plots=true",
+    ]
+    small = ["data.n_events=8", "data.events_per_position=1", "data.chunk_size=8"]  # the training simulation is not used here
+    cfg = compose_cfg([*common, *impaired, "protocol=calibrate", "field.n_positions=8", "field.outside_share=0", "field.seed=11"])
+    metrics = run_experiment(cfg, tmp_path / "cal", {})
+    assert (tmp_path / "cal" / "calibration.png").is_file()
+    body = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+    site = site_from_config(cfg.site)
+    true_mics = ImageSourceField(mic_position_error_m=2.0, clock_offset_max_s=0.001, array_seed=5).true_array(site)[0]
+    before = np.median(np.hypot(*(site.mic_positions_m - true_mics)[:, :2].T))
+    after = np.median(np.hypot(*(np.asarray(body["mic_positions_m"]) - true_mics)[:, :2].T))
+    assert after < 0.3 * before
+    assert metrics["calibration"]["sha256"] == body["sha256"]
+    # the same array heard later: with calibration=PATH the solver's fixes are closer to the truth
+    calls = [*common, *small, *impaired, "protocol=field_eval", "field.n_positions=10", "field.seed=12"]
+    errors = {}
+    for label, extra in (("stated", []), ("calibrated", [f"calibration={tmp_path / 'cal' / 'calibration.json'}"])):
+        run = compose_cfg([*calls, *extra])
+        data = prepare_data(run, build_run(run))
+        f, e = data.field_data.features, data.field_data.events
+        errors[label] = np.nanmedian(np.hypot(f[col.SOLVER_X] - e[col.TRUE_X], f[col.SOLVER_Y] - e[col.TRUE_Y]))
+    assert errors["calibrated"] < 0.5 * errors["stated"]
+
+
+def test_a_calibration_is_not_calibrated_again(compose_cfg, tmp_path: Path):
+    from acoustlab.run.app import build_run
+
+    (tmp_path / "c.json").write_text("{}")
+    cfg = compose_cfg(["+site=frozen_lake", "protocol=calibrate", "field=image_source", f"calibration={tmp_path / 'c.json'}"])
+    with pytest.raises(ConfigError, match="not calibrated again"):
+        build_run(cfg)
