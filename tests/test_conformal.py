@@ -8,7 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
+from acoustlab.method.pipeline import LocalizationPipeline
 from acoustlab.toolkit.conformal import conformal_quantile
 from plugins.conformal.split import SplitConformal
 
@@ -268,3 +270,51 @@ def test_position_level_quantile_needs_enough_positions():
     assert grouped_conformal_quantile(scores, groups, 0.5) == np.sort(scores)[int(np.ceil(0.5 * 11 / 10 * 40)) - 1]
     scorer = SplitConformal(calibration_unit="position").fit(scores, np.zeros(40), np.ones(40), [0.5, 0.95], groups=groups)
     assert np.isinf(scorer.quantiles_[0, 1]) and np.isfinite(scorer.quantiles_[0, 0])
+
+
+def test_subsampled_position_quantile_covers_a_new_spot_in_finite_samples():
+    """5 spots, clustered errors (each spot its own scale and bias), unequal playbacks: ≥ 0.8 coverage of a new spot's call."""
+    from acoustlab.toolkit.conformal import subsampled_position_quantile
+
+    rng = np.random.default_rng(1)
+    level, n_spots, covered, event_level = 0.8, 5, [], []
+    for _ in range(4000):
+        scale, bias = rng.lognormal(-1.0, 0.5, n_spots + 1), rng.normal(0.0, 3.0, n_spots + 1)  # spots differ more than calls
+        counts = rng.integers(5, 40, n_spots)
+        groups = np.repeat(np.arange(n_spots), counts)
+        scores = bias[groups] + scale[groups] * rng.normal(0, 1, groups.size)
+        new = bias[-1] + scale[-1] * rng.normal()
+        covered.append(new <= subsampled_position_quantile(scores, groups, level, seed=int(rng.integers(1 << 30))))
+        event_level.append(new <= conformal_quantile(scores, level))
+    assert np.mean(covered) >= level - 0.015  # the finite-sample guarantee (Monte Carlo error ≈ 0.006)
+    assert np.mean(event_level) < level - 0.03  # events of one spot are not independent draws (0.76 here)
+
+
+def test_subsampled_position_quantile_is_the_same_whatever_the_rows_order():
+    from acoustlab.toolkit.conformal import positions_needed, subsampled_position_quantile
+
+    rng = np.random.default_rng(2)
+    scores, groups = rng.normal(size=60), np.repeat(np.arange(20), 3)
+    order = rng.permutation(60)
+    assert subsampled_position_quantile(scores, groups, 0.9, 3) == subsampled_position_quantile(scores[order], groups[order], 0.9, 3)
+    assert [positions_needed(v) for v in (0.5, 0.8, 0.9, 0.95)] == [1, 4, 9, 19]
+    assert np.isinf(subsampled_position_quantile(scores, groups, 0.96))  # 20 spots cannot give 0.96 (24 needed)
+
+
+def test_a_level_with_too_few_calibration_spots_gets_no_radius_and_says_why():
+    """Calibrated on 4 field spots: 0.5 and 0.8 have radii; 0.95 (19 spots needed) is empty, with the reason on every row."""
+    from plugins.gates.bounding_box import BoundingBoxGate
+    from tests.test_trust import components, scene
+
+    features, events = scene(n_positions=60)
+    groups = events["position_id"].to_numpy()
+    events["is_field"] = groups < 5
+    train, test = np.flatnonzero(groups != 0), np.flatnonzero(groups == 0)
+    settings = components(BoundingBoxGate())
+    settings.calibrate_on = "field"
+    result = LocalizationPipeline(settings).fit_predict(features, events, train, test)
+    p = result.predictions
+    assert p[col.radius("fixed", 0.95)].isna().all() and np.isfinite(p[col.radius("fixed", 0.8)]).all()
+    assert (p[col.RADIUS_NOTE] == "no radius at 0.95: its guarantee needs 19 calibration positions, 4 given").all()
+    calibration = result.split_diagnostics[0]["calibration"]
+    assert "exchangeable" in calibration["guarantee"] and "Dunn" in calibration["guarantee"]

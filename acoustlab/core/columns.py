@@ -91,6 +91,8 @@ TRUST_REASON = "trust_reason"
 GATE_WITHOUT_TRUST = "without_trust"
 #: Per-axis position error (m) the stated input errors cause at a field detection (carried into its radii).
 INPUT_SIGMA = "input_sigma_m"
+#: why a detection's radius at some level is empty (too few calibration positions for that level's guarantee)
+RADIUS_NOTE = "radius_note"
 #: The trust check's per-row cues (``trust__novelty``, ``trust__solver_outside_support``, …).
 TRUST_PREFIX = "trust"
 

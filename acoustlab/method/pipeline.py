@@ -34,7 +34,7 @@ from acoustlab.core.types import Site
 from acoustlab.method.splits import cap_rows
 from acoustlab.method.trust import SupportCues, TrainingSupport, TrustedDecision, TrustSettings, apply_trust, support_cues
 from acoustlab.stages.solver_columns import pair_candidate_lags
-from acoustlab.toolkit.conformal import conformal_quantile, selective_threshold
+from acoustlab.toolkit.conformal import conformal_quantile, positions_needed, selective_threshold
 from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
 from acoustlab.toolkit.geometry import gdop, position_crb_m
 from acoustlab.toolkit.input_uncertainty import InputUncertainty, level_factor, position_sigma_m
@@ -44,6 +44,18 @@ from acoustlab.toolkit.tdoa import candidate_misfit_m
 log = logging.getLogger(__name__)
 #: ``calibrate_on="auto"`` calibrates on field rows only where they span at least this many positions
 MIN_FIELD_CALIBRATION_POSITIONS = 3
+#: What a radius guarantees, in one sentence each (metrics.json ``calibration.guarantee``; docs/method.md).
+GUARANTEE_SIMULATION = (
+    "A radius at level l covers the error of a new detection like the simulated calibration events with probability about l, "
+    "marginally over detections; calibration errors come from out-of-fold models over source positions and radii use the "
+    "refitted model (a CV+-style scheme without an exact finite-sample guarantee), so coverage is measured, not assumed."
+)
+GUARANTEE_FIELD = (
+    "A radius at level l covers the error of a random detection at a new spot with probability at least l, marginally over "
+    "spots, if the field calibration spots are exchangeable with the spots of the calls (one calibration event per spot drawn "
+    "at random: Dunn, Wasserman and Ramdas 2022; Lee, Barber and Willett 2023); a level needing more spots than given has no "
+    "radius. Calibration errors come from out-of-fold models and radii use the refitted one (CV+-style)."
+)
 
 
 @dataclass
@@ -128,11 +140,6 @@ def crb_from_features(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
         2 * bandwidth,
         c,
     )
-
-
-def positions_needed(level: float) -> int:
-    """Exchangeable positions split conformal needs to reach ``level`` for a new position: ⌈1/(1 − level)⌉ − 1."""
-    return int(np.ceil(1 / (1 - level) - 1e-9)) - 1
 
 
 def clone_for_rows(estimator: Any, n_rows: int) -> Any:
@@ -544,6 +551,8 @@ class LocalizationPipeline:
         positions = s.groups[s.train][rows]  # a scorer may calibrate over positions rather than events
         for name, configured in self.c.scorers.items():
             scorer = clone(configured, safe=False)
+            if fitted.calibrated_on_field and getattr(scorer, "calibration_unit", None) == "event":
+                scorer.calibration_unit = "position"  # field spots are few and their events cluster: a guarantee over spots
             if declared(scorer, "needs_quantiles"):  # CQR: its own quantile model, out-of-fold like the error model
                 oof_q = self._out_of_fold_errors(
                     s, cal, lambda x, y, held, scorer=scorer: scorer.fit_predict_quantiles(x, y, held, levels), scorer, shape=(len(levels),)
@@ -648,7 +657,7 @@ class LocalizationPipeline:
         if unsupported:
             log.warning(
                 "conformal calibration on %d %s positions cannot support level(s) %s for a new position (they need %s positions); "
-                "their radii are the largest calibration errors or infinite",
+                "those radii are left empty (radius_note says why)",
                 n_positions,
                 "field" if on == "field" else "training",
                 ", ".join(unsupported),
@@ -660,6 +669,7 @@ class LocalizationPipeline:
             "n_positions": n_positions,
             "positions_needed_by_level": needed,
             "unsupported_levels": unsupported,
+            "guarantee": GUARANTEE_FIELD if on == "field" else GUARANTEE_SIMULATION,
         }
 
     def _out_of_fold_gate(
@@ -900,7 +910,15 @@ class FittedMethod:
                 radii = scorer.radius(predicted, t.gdop, quantiles=np.maximum(quantiles, self.floor))
             radii = np.sqrt(radii**2 + np.nan_to_num(allowance) ** 2)  # independent error sources add in quadrature
             for k, level in enumerate(c.levels):
-                out[col.radius(name, level)] = radii[:, k]
+                unsupported = col.level_key(level) in self.calibration.get("unsupported_levels", [])
+                # too few calibration positions for a guarantee at this level: no radius (an infinite one says nothing)
+                out[col.radius(name, level)] = np.nan if unsupported else radii[:, k]
+        notes = [
+            f"no radius at {level}: its guarantee needs {self.calibration['positions_needed_by_level'][level]} calibration positions, "
+            f"{self.calibration['n_positions']} given"
+            for level in self.calibration.get("unsupported_levels", [])
+        ]
+        out[col.RADIUS_NOTE] = "; ".join(notes)
 
     def _add_ellipses(self, out: pd.DataFrame, position: np.ndarray, predicted: np.ndarray, features: pd.DataFrame) -> None:
         """Ellipse columns ``ellipse__<level>__a_m|b_m|angle_deg``: shape from the TDOA geometry, size from conformal on the calibration events."""

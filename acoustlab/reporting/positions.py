@@ -23,7 +23,8 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     ``source`` (``solver``, ``model`` or ``none``) and ``gate_reason`` (why);
     ``outside_training_region`` (the solver's fix lies outside the region the model was trained
     on) and ``novelty`` (> 1: the detection is unlike the training data); ``predicted_error_m``;
-    ``radius_<scorer>_<level>_m`` per scorer and level; ellipse columns when computed; ``placed``
+    ``radius_<scorer>_<level>_m`` per scorer and level (empty where the calibration has too few
+    positions for that level's guarantee, ``radius_note`` saying so); ellipse columns when computed; ``placed``
     and ``abstain_reason``; quality flags from the solver stage (``solver__failure``,
     ``solver__consistency``, ``solver__n_mics_used``, GDOPs, …).
     """
@@ -71,6 +72,8 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     for scorer in scorers:
         for level in levels:
             out[f"radius_{scorer}_{col.level_key(level)}_m"] = np.where(placed, predictions[col.radius(scorer, level)], np.nan)
+    if col.RADIUS_NOTE in predictions:  # a level without a guarantee (too few calibration spots) has no radius, and says so
+        out[col.RADIUS_NOTE] = predictions[col.RADIUS_NOTE].fillna("").astype(str)
     for c in predictions.columns:
         if c.startswith("ellipse__"):
             out[c] = np.where(placed, predictions[c], np.nan)

@@ -32,17 +32,57 @@ def conformal_quantile(scores: np.ndarray, level: float) -> float:
     return float(np.sort(scores)[rank - 1])
 
 
+def positions_needed(level: float) -> int:
+    """How many exchangeable calibration positions a finite-sample guarantee at ``level`` needs: ⌈level / (1 − level)⌉.
+
+    Split conformal over n units reaches ``level`` only when ⌈(n + 1)·level⌉ ≤ n: 19 positions for 0.95, 4 for 0.8, 1 for 0.5.
+    """
+    return int(math.ceil(level / (1 - level) - 1e-9))
+
+
+def subsampled_position_quantile(scores: np.ndarray, groups: np.ndarray, level: float, seed: int = 0) -> float:
+    """A conformal quantile with a finite-sample guarantee over positions: one event per position, drawn at random.
+
+    With n calibration positions exchangeable with a new one (the spots are not chosen to suit the
+    method), one score drawn uniformly from each position's events gives n exchangeable scores, and
+    a random event of the new position is one more: its score is at most the ⌈(n+1)·level⌉-th
+    smallest with probability ≥ ``level``, for any number of events per position and any
+    dependence within a position ("subsampling once", Dunn, Wasserman & Ramdas 2022; Lee, Barber &
+    Willett 2023 study such hierarchical guarantees in finite samples). The price is variance: only
+    n scores count. Returns ``inf`` with fewer than ``positions_needed(level)`` positions.
+
+    Parameters
+    ----------
+    scores : numpy.ndarray
+        (N,) finite non-conformity scores.
+    groups : numpy.ndarray
+        (N,) the position of each score.
+    level : float
+        Nominal coverage in (0, 1).
+    seed : int
+        Seed of the draw (the same inputs give the same quantile).
+    """
+    scores, groups = np.asarray(scores, dtype=float), np.asarray(groups)
+    if scores.size == 0 or groups.shape != scores.shape:
+        raise ValueError("position-level calibration needs scores and one group per score")
+    order = np.lexsort((scores, groups))  # by position, then by score: the draw does not depend on the rows' order
+    codes, start, counts = np.unique(groups[order], return_index=True, return_counts=True)
+    pick = np.random.default_rng(seed).integers(0, counts)
+    return conformal_quantile(scores[order][start + pick], level)
+
+
 def grouped_conformal_quantile(scores: np.ndarray, groups: np.ndarray, level: float) -> float:
-    """A conformal quantile whose guarantee is over *groups* (source positions), not events.
+    """A conformal quantile whose guarantee is over *groups* (source positions), not events: pooled CDFs (asymptotic).
 
     Events at one position share its propagation; when a position's events are not exchangeable
     with other positions' (field playbacks at a handful of spots), the event-level quantile
     over-weights positions with many events and its n + 1 correction counts events, not
     positions. This pools the positions' empirical CDFs, each weighing 1/n (n positions), and
     takes the smallest score t with pooled CDF(t) ≥ level × (1 + 1/n): the "pooling CDFs"
-    method for two-layer hierarchical data (Dunn, Wasserman & Ramdas 2022), which covers a random
-    event of a new exchangeable position with probability ≥ ``level``. Returns ``inf`` where
-    level × (1 + 1/n) > 1 (too few positions: 19 for 0.95).
+    method for two-layer hierarchical data (Dunn, Wasserman & Ramdas 2022). It uses every event,
+    but its coverage of a random event of a new position reaches ``level`` only asymptotically
+    (many positions); with a few spots use ``subsampled_position_quantile``, whose guarantee holds
+    in finite samples. Returns ``inf`` where level × (1 + 1/n) > 1 (too few positions: 19 for 0.95).
 
     Parameters
     ----------

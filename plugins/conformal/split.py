@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.conformal import conformal_quantile, grouped_conformal_quantile
+from acoustlab.toolkit.conformal import conformal_quantile, grouped_conformal_quantile, subsampled_position_quantile
 
 NORMALISERS = ("none", "gdop", "predicted_error")
 BINNINGS = ("none", "gdop", "predicted_error")
@@ -58,8 +58,14 @@ class SplitConformal:
         scales or bins anything (None: no clipping).
     calibration_unit : {"event", "position"}
         ``event``: the usual quantile over calibration events. ``position``: a guarantee over
-        source positions (``acoustlab.toolkit.conformal.grouped_conformal_quantile``), for
-        calibration on a few field playback spots whose events are not exchangeable across spots.
+        source positions, for calibration on field playback spots whose events are not
+        exchangeable across spots (a calibration on the field is always position-level).
+    position_method : {"subsample", "pooled"}
+        How a position-level quantile is taken: one event per position drawn at random, a
+        finite-sample guarantee (``subsampled_position_quantile``, default); or the pooled
+        per-position CDFs, every event used, valid only asymptotically (``grouped_conformal_quantile``).
+    seed : int
+        Seed of the ``subsample`` draw.
     """
 
     def __init__(
@@ -71,10 +77,16 @@ class SplitConformal:
         use_error_model: bool = True,
         gdop_cap_quantile: float | None = 0.95,
         calibration_unit: str = "event",
+        position_method: str = "subsample",
+        seed: int = 0,
     ) -> None:
         if calibration_unit not in ("event", "position"):
             raise ConfigError(f"conformal calibration_unit must be 'event' or 'position'; got {calibration_unit!r}")
+        if position_method not in ("subsample", "pooled"):
+            raise ConfigError(f"conformal position_method must be 'subsample' or 'pooled'; got {position_method!r}")
         self.calibration_unit = calibration_unit
+        self.position_method = position_method
+        self.seed = int(seed)
         if gdop_cap_quantile is not None and not 0.5 <= gdop_cap_quantile <= 1:
             raise ConfigError(f"conformal gdop_cap_quantile must lie in [0.5, 1] or be null; got {gdop_cap_quantile}")
         self.gdop_cap_quantile = None if gdop_cap_quantile is None else float(gdop_cap_quantile)
@@ -133,8 +145,10 @@ class SplitConformal:
         def quantile(in_bin: np.ndarray, level: float) -> float:
             if not in_bin.any():
                 return np.inf
-            if self.calibration_unit == "position":
+            if self.calibration_unit == "position" and self.position_method == "pooled":
                 return grouped_conformal_quantile(scores[in_bin], np.asarray(groups)[in_bin], level)
+            if self.calibration_unit == "position":
+                return subsampled_position_quantile(scores[in_bin], np.asarray(groups)[in_bin], level, self.seed)
             return conformal_quantile(scores[in_bin], level)
 
         self.quantiles_ = np.array([[quantile(bins == b, v) for v in self.levels_] for b in range(n_bins)])
