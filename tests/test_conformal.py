@@ -318,3 +318,28 @@ def test_a_level_with_too_few_calibration_spots_gets_no_radius_and_says_why():
     assert (p[col.RADIUS_NOTE] == "no radius at 0.95: its guarantee needs 19 calibration positions, 4 given").all()
     calibration = result.split_diagnostics[0]["calibration"]
     assert "exchangeable" in calibration["guarantee"] and "Dunn" in calibration["guarantee"]
+
+
+def test_coverage_by_condition_shows_where_radii_fail():
+    """Radii that hold where GDOP is small and fail where it is large: the breakdown says so, bin by bin, per detection and position."""
+    from acoustlab.reporting.metrics import coverage_by_condition
+
+    rng = np.random.default_rng(0)
+    n = 400
+    gdop = np.where(np.arange(n) < 300, 1.0, 30.0)
+    error = np.where(gdop > 20, 5.0, 0.5) * rng.uniform(0.5, 1.5, n)
+    p = pd.DataFrame(
+        {
+            col.error_m("gate"): error,
+            col.radius("fixed", 0.8): np.full(n, 1.0),
+            "gdop": gdop,
+            col.POSITION_ID: np.arange(n) // 4,
+            col.HULL_DISTANCE: np.where(np.arange(n) % 2 == 0, 0.0, 0.4),
+        }
+    )
+    out = coverage_by_condition(p, [0.8], ["fixed"])
+    by_bin = {row["bin"]: row for row in out["gdop"]}
+    assert by_bin["(0, 2]"]["fixed@0.8"]["detections"] == 1.0 and by_bin["(0, 2]"]["n"] == 300
+    assert by_bin["(20, inf]"]["fixed@0.8"] == {"detections": 0.0, "positions": 0.0}
+    assert [row["bin"] for row in out["hull_distance"]] == ["(-inf, 0]", "(0.25, 0.5]"]
+    assert "snr_db" not in out  # no SNR column: no breakdown by it

@@ -91,6 +91,8 @@ TRUST_REASON = "trust_reason"
 GATE_WITHOUT_TRUST = "without_trust"
 #: Per-axis position error (m) the stated input errors cause at a field detection (carried into its radii).
 INPUT_SIGMA = "input_sigma_m"
+#: the true source's distance outside the mics' convex hull ÷ the array extent (0 inside)
+HULL_DISTANCE = "hull_distance_extent"
 #: why a detection's radius at some level is empty (too few calibration positions for that level's guarantee)
 RADIUS_NOTE = "radius_note"
 #: The trust check's per-row cues (``trust__novelty``, ``trust__solver_outside_support``, …).
@@ -132,6 +134,7 @@ METRICS_COVERAGE = "coverage"  # per scorer and level key: empirical coverage
 METRICS_WIDTH = "interval_width"  # per scorer and level key: median_m, mean_m, max_m
 METRICS_CI95 = "ci95"  # position-bootstrap 95 % intervals of errors and coverage
 METRICS_COVERAGE_BY_POSITION = "coverage_by_position"
+METRICS_COVERAGE_BY_CONDITION = "coverage_by_condition"  # per condition (gdop, hull, snr): bins with n and coverage
 METRICS_SPEARMAN = "spearman_rho"
 METRICS_GROSS_AUC = "gross_error_auc"
 METRICS_SUBSTITUTION = "substitution_rate"

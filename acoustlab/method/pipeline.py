@@ -36,7 +36,7 @@ from acoustlab.method.trust import SupportCues, TrainingSupport, TrustedDecision
 from acoustlab.stages.solver_columns import pair_candidate_lags
 from acoustlab.toolkit.conformal import conformal_quantile, positions_needed, selective_threshold
 from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
-from acoustlab.toolkit.geometry import gdop, position_crb_m
+from acoustlab.toolkit.geometry import distance_to_polygon_m, gdop, position_crb_m, source_region
 from acoustlab.toolkit.input_uncertainty import InputUncertainty, level_factor, position_sigma_m
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
 from acoustlab.toolkit.tdoa import candidate_misfit_m
@@ -867,6 +867,12 @@ class FittedMethod:
         crb = crb_from_features(features, events, self.pipeline.c.site)
         if crb is not None:
             out[col.CRB] = crb
+        # where coverage is reported by condition (metrics.coverage_by_condition): the true source's distance outside the
+        # mics' hull in units of the array extent (0 inside; NaN without truth) and the event's SNR where known
+        polygon, extent = source_region(self.pipeline.c.site.mic_positions_m, 1.0)
+        out[col.HULL_DISTANCE] = np.where(np.isfinite(truth).all(1), distance_to_polygon_m(np.nan_to_num(truth), polygon) / extent, np.nan)
+        if col.SNR in events:
+            out[col.SNR] = events[col.SNR].to_numpy(float)
         for method in col.ESTIMATORS:
             out[col.error_m(method)] = error_2d_m(out[list(col.estimate_xy(method))].to_numpy(), truth)
         # the oracle: the better of solver and model per event (what a perfect gate would reach)

@@ -74,8 +74,9 @@ def coverage_and_width(predictions: pd.DataFrame, levels: list[float], scorers: 
     for name in scorers:
         coverage[name], width[name] = {}, {}
         for level in levels:
-            radius = predictions[col.radius(name, level)].to_numpy()
-            coverage[name][col.level_key(level)] = float(np.mean(err <= radius))
+            radius = predictions[col.radius(name, level)].to_numpy(float)
+            # no radius at all (too few calibration positions for this level): no coverage either, not 0
+            coverage[name][col.level_key(level)] = float("nan") if np.isnan(radius).all() else float(np.mean(err <= radius))
             finite = radius[np.isfinite(radius)]
             width[name][col.level_key(level)] = {
                 "mean_m": float(finite.mean()) if finite.size else float("inf"),
@@ -124,6 +125,47 @@ def gross_error_auc(predictions: pd.DataFrame, gross_m: float = 5.0) -> dict[str
         usable = 0 < gross.sum() < gross.size and np.isfinite(values).all() and np.ptp(values) > 0
         auc[name] = float(roc_auc_score(gross, values)) if usable else None
     return auc
+
+
+#: Bins of the conditions coverage is broken down by: GDOP at the estimate, distance outside the mics' hull (array extents), SNR (dB).
+CONDITION_BINS = {
+    "gdop": ("gdop", (0.0, 2.0, 5.0, 20.0, np.inf)),
+    "hull_distance": (col.HULL_DISTANCE, (-np.inf, 0.0, 0.25, 0.5, np.inf)),
+    "snr_db": (col.SNR, (-np.inf, 5.0, 10.0, 20.0, np.inf)),
+}
+
+
+def coverage_by_condition(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict[str, list[dict[str, Any]]]:
+    """Coverage per detection and per position in bins of GDOP, hull distance and SNR: where the radii fail.
+
+    Each bin: ``bin`` (its range; the first hull bin, ``(-inf, 0]``, is inside the hull), ``n``
+    detections, ``n_positions``, and per scorer and level the share of detections covered and the
+    mean over positions of their share covered. A bin of fewer than 20 detections is reported with
+    ``too_few: true`` (a coverage on so few says little).
+    """
+    err = predictions[col.error_m("gate")].to_numpy(float)
+    err = np.where(np.isnan(err), np.inf, err)
+    out: dict[str, list[dict[str, Any]]] = {}
+    for name, (column, edges) in CONDITION_BINS.items():
+        if column not in predictions:
+            continue
+        value = predictions[column].to_numpy(float)
+        rows = []
+        for low, high in zip(edges[:-1], edges[1:], strict=True):
+            inside = np.isfinite(value) & (value > low) & (value <= high) if np.isfinite(low) else np.isfinite(value) & (value <= high)
+            if not inside.any():
+                continue
+            positions = predictions[col.POSITION_ID].to_numpy()[inside]
+            entry: dict[str, Any] = {"bin": f"({low:g}, {high:g}]", "n": int(inside.sum()), "n_positions": int(np.unique(positions).size)}
+            entry["too_few"] = bool(inside.sum() < 20)
+            for scorer in scorers:
+                for level in levels:
+                    hit = err[inside] <= predictions[col.radius(scorer, level)].to_numpy(float)[inside]
+                    by_position = pd.Series(hit).groupby(positions).mean()
+                    entry[f"{scorer}@{col.level_key(level)}"] = {"detections": float(hit.mean()), "positions": float(by_position.mean())}
+            rows.append(entry)
+        out[name] = rows
+    return out
 
 
 def coverage_by_position(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict:
@@ -272,6 +314,7 @@ def summarise(predictions: pd.DataFrame, levels: list[float], scorers: list[str]
     extra[col.METRICS_SPEARMAN] = spearman_rho(predictions)
     extra[col.METRICS_GROSS_AUC] = gross_error_auc(predictions)
     extra[col.METRICS_COVERAGE_BY_POSITION] = coverage_by_position(predictions, levels, scorers)
+    extra[col.METRICS_COVERAGE_BY_CONDITION] = coverage_by_condition(predictions, levels, scorers)
     coverage, width = coverage_and_width(predictions, levels, scorers)
     errors = errors_by_method(predictions)
     extra[col.METRICS_GATE_GAP] = gate_gap(errors)
