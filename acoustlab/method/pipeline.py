@@ -34,7 +34,7 @@ from acoustlab.core.types import Site
 from acoustlab.method.splits import cap_rows
 from acoustlab.method.trust import SupportCues, TrainingSupport, TrustedDecision, TrustSettings, apply_trust, support_cues
 from acoustlab.stages.solver_columns import pair_candidate_lags
-from acoustlab.toolkit.conformal import conformal_quantile, positions_needed, selective_threshold
+from acoustlab.toolkit.conformal import conformal_quantile, positions_needed, selective_threshold, selective_threshold_by_position
 from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
 from acoustlab.toolkit.geometry import distance_to_polygon_m, gdop, position_crb_m, source_region
 from acoustlab.toolkit.input_uncertainty import InputUncertainty, level_factor, position_sigma_m
@@ -472,7 +472,9 @@ class LocalizationPipeline:
                 configured, train, split.sim, split.solver_xy, oof_model, features, split.truth, split.groups
             )
         if self.c.selective is not None:
-            fitted.selective = self._selective_threshold(cal.error[cal.domain], fitted.oof_predicted[cal.domain])
+            fitted.selective = self._selective_threshold(
+                cal.error[cal.domain], fitted.oof_predicted[cal.domain], split.groups[train][cal.domain]
+            )
         return fitted
 
     def _split(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray) -> SplitData:
@@ -728,16 +730,23 @@ class LocalizationPipeline:
         )
         return pd.concat([x, context], axis=1)
 
-    def _selective_threshold(self, oof_err: np.ndarray, oof_pred: np.ndarray) -> tuple[float, dict[str, Any]]:
+    def _selective_threshold(self, oof_err: np.ndarray, oof_pred: np.ndarray, groups: np.ndarray) -> tuple[float, dict[str, Any]]:
         """The certified threshold on the predicted error (Learn then Test on the out-of-fold calibration events).
 
-        Calibration events without a finite estimate count as gross errors.
+        Calibration events without a finite estimate count as gross errors. ``unit: position``
+        (the default) takes source positions as the independent units (``groups``, the events'
+        positions); ``unit: event`` counts detections as independent, which gross errors shared
+        within a position violate.
         """
         sel = self.c.selective
         gross = ~(oof_err <= float(sel["gross_m"]))
-        threshold, path = selective_threshold(oof_pred, gross, float(sel["delta"]), float(sel["epsilon"]))
+        if sel.get("unit", "position") == "position":
+            threshold, path = selective_threshold_by_position(oof_pred, gross, groups, float(sel["delta"]), float(sel["epsilon"]))
+        else:
+            threshold, path = selective_threshold(oof_pred, gross, float(sel["delta"]), float(sel["epsilon"]))
         placed = oof_pred <= threshold
         info = {
+            "unit": sel.get("unit", "position"),
             "threshold_m": threshold,
             "delta": float(sel["delta"]),
             "epsilon": float(sel["epsilon"]),

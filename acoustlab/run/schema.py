@@ -35,6 +35,13 @@ class CalibrateOn(str, Enum):
     field = "field"
 
 
+class SelectiveUnit(str, Enum):
+    """What selective localization counts as independent: source positions (clustered errors) or detections."""
+
+    position = "position"
+    event = "event"
+
+
 class ModelTarget(str, Enum):
     """What the point model predicts: the position (as in the paper) or the solver's error."""
 
@@ -62,6 +69,7 @@ class SelectiveConfig:
     gross_m: float = 5.0
     delta: float = 0.01
     epsilon: float = 0.1
+    unit: SelectiveUnit = SelectiveUnit.position
 
 
 @dataclass

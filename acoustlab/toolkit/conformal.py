@@ -161,3 +161,86 @@ def selective_threshold(score: np.ndarray, gross: np.ndarray, delta: float, epsi
             break
         threshold = float(sorted_score[k])
     return threshold, path
+
+
+def betting_p_value(losses: np.ndarray, delta: float, alpha: float, seed: int = 0) -> float:
+    """p-value of "E[loss] ≥ δ" from independent losses in [0, 1], by betting (Waudby-Smith & Ramdas 2023).
+
+    The capital K_i = Π (1 + λ_k (δ − loss_k)) is a non-negative supermartingale under the null, so
+    1 / max K is a valid p-value (Ville's inequality) for any predictable bets λ_k (chosen from the
+    losses before k only, with the predictable plug-in rule tuned to ``alpha``; capped so capital
+    stays positive). It adapts to the losses' variance, which Hoeffding-type bounds take as the
+    worst case. The losses are visited in a random order (``seed``), fixed before looking at them.
+    """
+    z = np.asarray(losses, dtype=float)[np.random.default_rng(seed).permutation(len(losses))]
+    if z.size == 0:
+        return 1.0
+    i = np.arange(1, z.size + 1)
+    mean = (0.5 + np.cumsum(z)) / (i + 1)  # running estimates with a prior of one pseudo-observation (0.5, variance 0.25)
+    var = (0.25 + np.cumsum((z - mean) ** 2)) / (i + 1)
+    var_before = np.r_[0.25, var[:-1]]  # bet k sees losses 1 … k − 1 only
+    bet = np.minimum(np.sqrt(2 * math.log(1 / alpha) / (np.maximum(var_before, 1e-6) * i * np.log(i + 1))), 0.5 / (1 - delta))
+    best = max(1.0, float(np.exp(np.cumsum(np.log1p(bet * (delta - z)))).max()))
+    return float(min(1.0, 1.0 / best))
+
+
+def selective_threshold_by_position(
+    score: np.ndarray, gross: np.ndarray, groups: np.ndarray, delta: float, epsilon: float, n_candidates: int = 20
+) -> tuple[float, list[dict[str, float]]]:
+    """``selective_threshold`` with source positions, not detections, as the independent units (clustered errors).
+
+    Detections at one position share its geometry and propagation, so their gross errors come
+    together; counting them as independent overstates the evidence. Here each position j gives
+    one loss in [0, 1], z_j(t) = g_j(t) − δ·p_j(t) + δ, with g_j and p_j the shares of its
+    detections that are placed and gross, and placed (score ≤ t): E[z] ≤ δ exactly when the
+    expected gross share among placed detections, positions weighted equally, is ≤ δ. For each
+    candidate threshold (``n_candidates`` quantiles of the scores) the null E[z] ≥ δ is tested with
+    a betting p-value over the n positions (``betting_p_value``) at level ε / ``n_candidates`` (Bonferroni:
+    the risk is not monotone in t, so no fixed testing order is known to be favourable; Learn then
+    Test, Angelopoulos et al. 2021), and the most permissive rejected threshold is returned. The
+    certificate needs many positions, the more the smaller δ.
+
+    Parameters
+    ----------
+    score, gross, groups : numpy.ndarray
+        (n,) calibration scores, gross flags and positions.
+    delta, epsilon : float
+        Tolerated gross share among placed detections, and probability that the guarantee fails.
+    n_candidates : int
+        Candidate thresholds tested.
+
+    Returns
+    -------
+    threshold : float
+        −inf when no threshold can be certified.
+    path : list of dict
+        ``threshold, n_placed, n_gross, mean_loss, p_value`` of every candidate.
+    """
+    if not 0 < delta < 1 or not 0 < epsilon < 1:
+        raise ValueError(f"selective delta and epsilon must lie in (0, 1); got {delta}, {epsilon}")
+    score, gross, groups = np.asarray(score, dtype=float), np.asarray(gross, dtype=bool), np.asarray(groups)
+    _, inverse, counts = np.unique(groups, return_inverse=True, return_counts=True)
+    n = counts.size
+    weight = 1.0 / counts[inverse]  # each detection's share of its position
+    finite = score[np.isfinite(score)]
+    candidates = np.unique(np.quantile(finite, np.linspace(0, 1, n_candidates + 1)[1:])) if finite.size else np.array([])
+    threshold, path = -math.inf, []
+    for t in candidates:
+        placed = score <= t
+        placed_share = np.bincount(inverse, weights=weight * placed, minlength=n)
+        gross_share = np.bincount(inverse, weights=weight * (placed & gross), minlength=n)
+        mean_loss = float(np.mean(gross_share - delta * placed_share + delta))
+        z = gross_share - delta * placed_share + delta
+        p_value = betting_p_value(z, delta, epsilon / len(candidates))
+        path.append(
+            {
+                "threshold": float(t),
+                "n_placed": int(placed.sum()),
+                "n_gross": int((placed & gross).sum()),
+                "mean_loss": mean_loss,
+                "p_value": p_value,
+            }
+        )
+        if p_value <= epsilon / len(candidates):
+            threshold = max(threshold, float(t))
+    return threshold, path
