@@ -25,6 +25,9 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
     # conformal scorers: needs per-level quantile predictions from its own fit_predict_quantiles (CQR); with
     # fit_quantiles / predict_quantiles as well, its final quantile model is fitted once and kept with the method
     "needs_quantiles": False,
+    # conformal scorers: "event" or "position" where the scorer can calibrate over source positions (set to "position"
+    # when calibrating on field spots); None: it cannot
+    "calibration_unit": None,
     # evaluation protocols: needs field recordings (checked in the preflight)
     "needs_field": False,
     # evaluation protocols: has ground truth and writes error metrics (False: positions only, protocol=localize)

@@ -380,7 +380,7 @@ class LocalizationPipeline:
     ) -> SupportCues:
         """``rows`` (``model_xy`` indexed like them) checked against the model's training support, once for every gate."""
         misfit = None
-        if support is not None and getattr(support, "handover_tolerance_m_", None) is not None:
+        if support is not None and support.handover_tolerance_m_ is not None:
             solver_misfit = self._misfit_m(solver_xy[rows], features.iloc[rows])
             model_misfit = self._misfit_m(model_xy, features.iloc[rows])
             misfit = None if solver_misfit is None or model_misfit is None else (solver_misfit, model_misfit)
@@ -553,7 +553,7 @@ class LocalizationPipeline:
         positions = s.groups[s.train][rows]  # a scorer may calibrate over positions rather than events
         for name, configured in self.c.scorers.items():
             scorer = clone(configured, safe=False)
-            if fitted.calibrated_on_field and getattr(scorer, "calibration_unit", None) == "event":
+            if fitted.calibrated_on_field and declared(scorer, "calibration_unit") == "event":
                 scorer.calibration_unit = "position"  # field spots are few and their events cluster: a guarantee over spots
             if declared(scorer, "needs_quantiles"):  # CQR: its own quantile model, out-of-fold like the error model
                 oof_q = self._out_of_fold_errors(

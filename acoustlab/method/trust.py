@@ -277,7 +277,7 @@ class TrainingSupport:
             "height_margin_m": self.settings.height_margin_m,
             "residual_limit_s": self.residual_limit_s_,
             "novelty_limit": None if not np.isfinite(self.novelty_limit_) else self.novelty_limit_,
-            "handover_tolerance_m": getattr(self, "handover_tolerance_m_", None),
+            "handover_tolerance_m": self.handover_tolerance_m_,
         }
 
 
@@ -369,7 +369,7 @@ def support_cues(
     model_outside = support.outside_region(model_xy)
     consistent = support.consistent(features)
     excess = _misfit_excess_m(misfit_m, n)
-    tolerance = getattr(support, "handover_tolerance_m_", None)
+    tolerance = support.handover_tolerance_m_
     explains_worse = np.zeros(n, dtype=bool) if tolerance is None else np.isfinite(excess) & (excess > tolerance)
     distrust = np.full(n, REASON_GATE, dtype=object)
     # the order sets which reason is reported where several apply: the measurements first, then the physical region

@@ -31,9 +31,8 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
     field = load_or_build_field(site, source, to_plain(cfg.field), built.feature_sets, to_plain(cfg.features.groups), built.cache)
     tables = hook(source, "tables")
     mics_table = tables()[0] if tables is not None else None
-    temperature = float(getattr(source, "temperature_c", 15.0))
-    humidity = float(getattr(source, "relative_humidity_pct", 60.0))
-    playbacks = playbacks_from(field.features, field.events, site, temperature, humidity)
+    # the field sources fill each event's weather (their defaults where a table has none); these apply only without the columns
+    playbacks = playbacks_from(field.features, field.events, site, temperature_c=15.0, humidity_pct=60.0)
     known = np.isfinite(field.events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1)
     if "quality_ok" in field.events:
         known &= field.events["quality_ok"].fillna(True).to_numpy(bool)
