@@ -394,3 +394,20 @@ def test_radii_of_field_detections_carry_the_stated_input_errors():
     assert (runs[5.0][col.INPUT_SIGMA][field] > 0).all() and (runs[5.0][col.INPUT_SIGMA][~field] == 0).all()
     assert (runs[5.0][radius][field] > runs[0.0][radius][field]).all()
     np.testing.assert_allclose(runs[5.0][radius][~field], runs[0.0][radius][~field])
+
+
+def test_the_input_allowance_is_exact_where_first_order_is_poor_and_capped():
+    """Inside the array first order and Monte Carlo agree; on a baseline extension first order is 100× too large and the cap holds."""
+    from acoustlab.toolkit.input_uncertainty import InputUncertainty, allowance_sigma_m, monte_carlo_sigma_m, position_sigma_m
+
+    mics = np.array([[0.0, 0, 1], [50, 0, 1], [25, 43, 1]])
+    source = np.array([[25.0, 15, 1.5], [80, 0, 1.5], [60, 20, 1.5]])
+    stated = InputUncertainty(temperature_c=1.0, mic_position_m=0.5, clock_offset_s=1e-4)
+    weather = (np.full(3, 10.0), np.full(3, 60.0))
+    first, exact = position_sigma_m(mics, source, *weather, stated), monte_carlo_sigma_m(mics, source, *weather, stated)
+    assert exact[0] == pytest.approx(first[0], rel=0.15)  # well inside: the linearisation holds
+    assert first[1] > 100 * exact[1]  # beyond mic 1 on the 0–1 baseline: first order explodes
+    allowance = allowance_sigma_m(mics, source, *weather, stated)
+    assert allowance[0] == first[0] and allowance[1] == stated.max_sigma_m and allowance[2] == pytest.approx(exact[2])
+    with pytest.raises(ConfigError, match="max_sigma_m"):
+        InputUncertainty(max_sigma_m=-1.0)

@@ -37,7 +37,7 @@ from acoustlab.stages.solver_columns import pair_candidate_lags
 from acoustlab.toolkit.conformal import conformal_quantile, positions_needed, selective_threshold, selective_threshold_by_position
 from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
 from acoustlab.toolkit.geometry import distance_to_polygon_m, gdop, position_crb_m, source_region
-from acoustlab.toolkit.input_uncertainty import InputUncertainty, level_factor, position_sigma_m
+from acoustlab.toolkit.input_uncertainty import InputUncertainty, allowance_sigma_m, level_factor
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
 from acoustlab.toolkit.tdoa import candidate_misfit_m
 
@@ -588,7 +588,7 @@ class LocalizationPipeline:
             return sigma
         source = np.column_stack([position_m, source_height_m(features, self.c.site)])
         humidity = events[col.HUMIDITY].to_numpy(float) if col.HUMIDITY in events else np.zeros(len(events))
-        sigma[field] = position_sigma_m(
+        sigma[field] = allowance_sigma_m(
             self.c.site.mic_positions_m, source[field], events[col.TEMPERATURE].to_numpy(float)[field], humidity[field], stated
         )
         return sigma

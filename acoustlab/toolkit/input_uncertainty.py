@@ -40,14 +40,26 @@ class InputUncertainty:
         Mic survey error per horizontal axis, m.
     clock_offset_s : float
         Recorder clock offset after synchronisation, s.
+    exact_above_m : float
+        Where the first-order σ exceeds this (m), it is replaced by a Monte Carlo of the fix
+        (``monte_carlo_sigma_m``): near a baseline extension the linearisation overstates the shift.
+    max_sigma_m : float
+        The allowance never exceeds this per axis (m): beyond it the fix is not located by its
+        inputs at all, and a radius saying so in tens of metres helps no one.
+
+    The allowance is marginal over thermometers (and surveys, clocks): it is the spread of the fix
+    over the errors a user's instruments may have, not the shift of one season-long bias, which
+    ``acoustlab calibrate`` removes.
     """
 
     temperature_c: float = 1.0
     mic_position_m: float = 0.0
     clock_offset_s: float = 0.0
+    exact_above_m: float = 0.5
+    max_sigma_m: float = 10.0
 
     def __post_init__(self) -> None:
-        for name in ("temperature_c", "mic_position_m", "clock_offset_s"):
+        for name in ("temperature_c", "mic_position_m", "clock_offset_s", "exact_above_m", "max_sigma_m"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ConfigError(f"conformal.input_uncertainty.{name} must be a finite number >= 0; got {value}")
@@ -102,6 +114,74 @@ def position_sigma_m(
     return out
 
 
+def allowance_sigma_m(
+    mic_positions_m: np.ndarray,
+    source_m: np.ndarray,
+    temperature_c: np.ndarray,
+    relative_humidity_pct: np.ndarray,
+    stated: InputUncertainty,
+) -> np.ndarray:
+    """(B,) the per-axis σ (m) the radii carry: first order, by Monte Carlo where that exceeds ``exact_above_m``, capped at ``max_sigma_m``."""
+    sigma = position_sigma_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated)
+    poor = np.isfinite(sigma) & (sigma > stated.exact_above_m)
+    if poor.any():
+        sigma[poor] = monte_carlo_sigma_m(
+            mic_positions_m, np.asarray(source_m)[poor], np.asarray(temperature_c)[poor], np.asarray(relative_humidity_pct)[poor], stated
+        )
+    return np.minimum(sigma, stated.max_sigma_m)
+
+
 def level_factor(level: float) -> float:
     """√(−2 ln(1 − level)): the radius, in per-axis standard deviations, that holds a circular 2-D Gaussian error at ``level``."""
     return float(np.sqrt(-2 * np.log(1 - level)))
+
+
+#: Draws of the Monte Carlo (the same for every detection: a detection's allowance never depends on its batch).
+N_DRAWS = 64
+
+
+def monte_carlo_sigma_m(
+    mic_positions_m: np.ndarray,
+    source_m: np.ndarray,
+    temperature_c: np.ndarray,
+    relative_humidity_pct: np.ndarray,
+    stated: InputUncertainty,
+    n_iterations: int = 15,
+) -> np.ndarray:
+    """(B,) per-axis RMS shift (m) of the least-squares fix when the inputs are off by the stated errors, by Monte Carlo.
+
+    The arrival ranges are those of the true geometry; the fix is solved (Gauss–Newton in x, y and
+    c·τ₀ from the true position) with a speed of sound off by the thermometer's error, mics off by
+    the survey error and clocks off by theirs, ``N_DRAWS`` fixed draws (seed 0).
+    """
+    mics = np.asarray(mic_positions_m, dtype=float)
+    src = np.asarray(source_m, dtype=float)
+    n_mics = len(mics)
+    rng = np.random.default_rng(0)
+    d_temperature = rng.normal(0.0, 1.0, N_DRAWS) * stated.temperature_c
+    d_mics = rng.normal(0.0, 1.0, (N_DRAWS, n_mics, 2)) * stated.mic_position_m
+    d_clock = rng.normal(0.0, 1.0, (N_DRAWS, n_mics)) * stated.clock_offset_s
+    c_true = np.asarray(speed_of_sound_m_s(temperature_c, relative_humidity_pct), dtype=float)  # (B,)
+    c_used = np.asarray(
+        speed_of_sound_m_s(
+            np.asarray(temperature_c, dtype=float)[:, None] + d_temperature[None, :], np.asarray(relative_humidity_pct)[:, None]
+        ),
+        dtype=float,
+    )  # (B, D)
+    travel = np.sqrt(((src[:, None, :] - mics[None]) ** 2).sum(-1)) / c_true[:, None]  # (B, M) true travel times, s
+    measured = travel[:, None, :] + d_clock[None]  # (B, D, M) arrival times the recorders report
+    used_mics = np.broadcast_to(mics, (N_DRAWS, n_mics, 3)).copy()
+    used_mics[..., :2] += d_mics
+    p = np.broadcast_to(np.concatenate([src[:, :2], np.zeros((len(src), 1))], axis=1)[:, None, :], (len(src), N_DRAWS, 3)).copy()
+    target = measured * c_used[..., None]  # (B, D, M) ranges the user computes, m
+    for _ in range(n_iterations):
+        offset = np.concatenate([p[..., None, :2] - used_mics[None, :, :, :2], (src[:, None, None, 2:3] - used_mics[None, :, :, 2:3])], -1)
+        dist = np.maximum(np.sqrt((offset**2).sum(-1)), 1e-9)  # (B, D, M)
+        residual = dist + p[..., 2:3] - target
+        jac = np.concatenate([offset[..., :2] / dist[..., None], np.ones((*dist.shape, 1))], -1)  # (B, D, M, 3)
+        jtj = np.einsum("bdmi,bdmj->bdij", jac, jac) + 1e-9 * np.eye(3)
+        jtr = np.einsum("bdmi,bdm->bdi", jac, residual)
+        p = p - np.linalg.solve(jtj, jtr[..., None])[..., 0]
+    # near a singular geometry some draws have no nearby fix at all: a shift counts at most 3 × max_sigma_m
+    shift = np.clip(np.nan_to_num(p[..., :2] - src[:, None, :2], nan=np.inf), -3 * stated.max_sigma_m, 3 * stated.max_sigma_m)
+    return np.sqrt(np.mean(shift**2, axis=(1, 2)))
