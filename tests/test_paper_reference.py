@@ -50,7 +50,16 @@ def test_the_papers_method_as_written_leaves_only_what_cannot_be_matched(compose
 
     ours = deviations(OmegaConf.to_container(compose_cfg([f"+site={site}", f"+experiment={experiment}"]), resolve=True))
     as_written = deviations(OmegaConf.to_container(compose_cfg([f"+site={site}", f"+experiment={experiment}_as_written"]), resolve=True))
-    for topic in ("first stage", "GCC weighting", "gate's context", "leave one position out", "τ* rule", "trust check"):
+    for topic in (
+        "first stage",
+        "GCC weighting",
+        "gate's context",
+        "leave one position out",
+        "τ* rule",
+        "trust check",
+        "GDOP clipped",
+        "allowance",
+    ):
         assert any(topic in d for d in ours), topic  # every deviation of our defaults is named …
         assert not any(topic in d for d in as_written), topic  # … and the as-written experiment removes it
     assert any("point model" in d for d in as_written) and any("simulator" in d for d in as_written)  # what remains is said

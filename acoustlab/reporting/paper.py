@@ -70,6 +70,20 @@ def deviations(config: dict[str, Any]) -> list[str]:
             "the trust check keeps the solver's fix where the point model is outside its training support (the paper has none; "
             "pipeline.trust.enabled=false)"
         )
+    scaled = (_get(config, "conformal.scorers") or {}).get("gdop_scaled")  # the paper's GDOP-scaled variant (others are ours)
+    if isinstance(scaled, dict) and scaled.get("gdop_cap_quantile") is not None:
+        out.append(
+            f"GDOP-scaled conformal: GDOP clipped to its calibration {scaled['gdop_cap_quantile']:g} quantiles (the paper scales by "
+            "GDOP as it is; conformal.scorers.gdop_scaled.gdop_cap_quantile=null)"
+        )
+    allowance = _get(config, "conformal.input_uncertainty") or {}
+    if any(float(allowance.get(k, 0) or 0) > 0 for k in ("temperature_c", "mic_position_m", "clock_offset_s")):
+        out.append(
+            "radii of field detections carry an allowance for the stated input errors (the paper has none; "
+            "conformal.input_uncertainty.temperature_c=0)"
+        )
+    if _get(config, "calibration"):
+        out.append("a field calibration (calibration=…) corrects the array before anything is solved (the paper has none)")
     out.append("the simulator and data are ours, not the paper's (see the note above)")
     return out
 
