@@ -16,3 +16,15 @@ groups; ``acoustlab`` never imports ``plugins``. Entry points: ``python -m acous
 """
 
 __version__ = "0.1.0"
+
+#: The notebook API (``acoustlab.api``): ``import acoustlab; acoustlab.localize(...)``; imported on first use,
+#: so ``import acoustlab`` stays cheap for the CLI.
+_API = ("localize", "season", "calibrate", "solve", "metrics", "overrides_from")
+
+
+def __getattr__(name: str):
+    if name in _API:
+        from acoustlab import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'acoustlab' has no attribute {name!r}")

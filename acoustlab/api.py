@@ -92,7 +92,8 @@ def localize(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | 
         The run folder (default: a new one under ``outputs/api/``).
     **settings
         Config groups as nested dicts: ``field={"mics_csv": ..., "events_csv": ..., "audio_dir": ...}``,
-        ``solver={"dimensions": 3}``; ``field`` defaults to ``recordings``.
+        ``solver={"dimensions": 3}``; ``field`` defaults to ``recordings``; ``calibration="…/calibration.json"``
+        applies a field calibration (``calibrate``).
 
     Returns
     -------
@@ -103,6 +104,24 @@ def localize(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | 
     overrides = ["field=recordings", *overrides] if not any(o.startswith("field=") for o in overrides) else list(overrides)
     folder = _run("localize", site, overrides, run_dir, settings)
     return pd.read_parquet(folder / "positions.parquet")
+
+
+def calibrate(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> dict[str, Any]:
+    """Calibrate the array from playbacks at known spots, as ``python -m acoustlab calibrate``; the calibration.
+
+    The recordings' events with ``x_m, y_m`` are the playbacks (docs/calibrate.md); the other
+    parameters are ``localize``'s. The calibration file is ``<run_dir>/calibration.json``: pass its
+    path as ``calibration=`` to ``localize`` or ``season``.
+
+    Returns
+    -------
+    dict
+        The content of calibration.json (mic positions in m, thermometer offset in °C, clock offsets in s, …)
+        with ``path``, the file.
+    """
+    overrides = ["field=recordings", *overrides] if not any(o.startswith("field=") for o in overrides) else list(overrides)
+    folder = _run("calibrate", site, overrides, run_dir, settings)
+    return {**json.loads((folder / "calibration.json").read_text()), "path": str(folder / "calibration.json")}
 
 
 def season(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> pd.DataFrame:

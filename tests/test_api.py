@@ -1,5 +1,7 @@
 """acoustlab from Python: the functions a notebook calls give the command line's answers as tables."""
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -48,3 +50,19 @@ def test_localize_from_python_equals_the_command_line_s_positions(tmp_path, comp
     )
     run_experiment(cfg, tmp_path / "cli")
     pd.testing.assert_frame_equal(table, pd.read_parquet(tmp_path / "cli" / "positions.parquet"))
+
+
+def test_import_acoustlab_gives_the_notebook_functions_and_calibrate_feeds_localize(tmp_path):
+    import acoustlab
+    from acoustlab import api
+
+    assert all(getattr(acoustlab, name) is getattr(api, name) for name in ("localize", "season", "calibrate", "solve", "metrics"))
+    with pytest.raises(AttributeError, match="no attribute 'locate'"):
+        acoustlab.locate  # noqa: B018
+    cal = acoustlab.calibrate(
+        "forest",
+        run_dir=tmp_path / "cal",
+        overrides=[f"paths.outputs_dir={tmp_path}", "tracking=none", "plots=false", "field=image_source"],
+        field={"n_positions": 6, "events_per_position": 2, "outside_share": 0, "mic_position_error_m": 2.0, "clock_offset_max_s": 0.001},
+    )
+    assert Path(cal["path"]).is_file() and len(cal["mic_positions_m"]) == 6 and cal["n_spots"] == 6

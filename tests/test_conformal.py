@@ -318,6 +318,9 @@ def test_a_level_with_too_few_calibration_spots_gets_no_radius_and_says_why():
     assert (p[col.RADIUS_NOTE] == "no radius at 0.95: its guarantee needs 19 calibration positions, 4 given").all()
     calibration = result.split_diagnostics[0]["calibration"]
     assert "exchangeable" in calibration["guarantee"] and "Dunn" in calibration["guarantee"]
+    # one set of n = 4 spots covers Beta(k, n + 1 - k), k = ceil((n + 1) level): at 0.8, Beta(4, 1), 5 % quantile 0.05 ** (1 / 4)
+    assert calibration["coverage_of_one_set"]["0.8"] == [round(0.05**0.25, 3), round(0.95**0.25, 3)]
+    assert set(calibration["coverage_of_one_set"]) == {"0.5", "0.8"}
 
 
 def test_coverage_by_condition_shows_where_radii_fail():

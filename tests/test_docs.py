@@ -52,7 +52,7 @@ def _overrides(args: list[str]) -> list[str]:
     for arg in args:
         if arg in ("-m", "--multirun"):
             continue
-        if arg in ("localize", "season"):
+        if arg in ("localize", "season", "calibrate"):
             out.append(f"protocol={arg}")
             continue
         key, _, value = arg.partition("=")
@@ -88,7 +88,7 @@ def test_every_documented_command_is_valid(page, command, compose_cfg):
         proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0 and "Configuration groups" in proc.stdout, proc.stderr[-2000:]
         return
-    check_argv([a for a in args if a not in ("-m", "localize", "season")])
+    check_argv([a for a in args if a not in ("-m", "localize", "season", "calibrate")])
     if any(p in command for p in PLACEHOLDERS):
         return  # a reader's own files: the options are checked, the files cannot be
     cfg = compose_cfg(_overrides(args))

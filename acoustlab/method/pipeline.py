@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from scipy.stats import beta
 from sklearn.base import clone
 from sklearn.model_selection import GroupKFold
 
@@ -672,6 +673,12 @@ class LocalizationPipeline:
             "positions_needed_by_level": needed,
             "unsupported_levels": unsupported,
             "guarantee": GUARANTEE_FIELD if on == "field" else GUARANTEE_SIMULATION,
+            # what one calibration set of this many positions gives: coverage ~ Beta(k, n + 1 − k), k = ⌈(n + 1)·level⌉
+            "coverage_of_one_set": {
+                col.level_key(level): [round(float(beta.ppf(q, k, n_positions + 1 - k)), 3) for q in (0.05, 0.95)]
+                for level in self.c.levels
+                if (k := int(np.ceil((n_positions + 1) * level))) <= n_positions
+            },
         }
 
     def _out_of_fold_gate(
