@@ -441,3 +441,12 @@ def test_projected_mic_coordinates_that_disagree_with_the_local_ones_are_named(t
     np.testing.assert_allclose(rotation, np.eye(2), atol=1e-9)
     np.testing.assert_allclose(translation, [500000.0, 4100000.0], atol=1e-6)
     assert crs == ""
+
+
+def test_error_messages_show_numbers_as_numbers():
+    """A numpy scalar in a message reads 24000 or nan, never np.int64(24000) or np.float64(nan)."""
+    import numpy as np
+
+    from acoustlab.core.errors import show
+
+    assert [show(np.int64(24000)), show(np.float64("nan")), show(np.float32(0.5)), show("x")] == ["24000", "nan", "0.5", "'x'"]

@@ -11,3 +11,11 @@ class ConfigError(AcoustlabError):
 
 class DataError(AcoustlabError):
     """An input file or array is malformed; the message names the file or field and what was expected."""
+
+
+def show(value: object) -> str:
+    """A value as an error message shows it: numpy scalars as plain numbers (``24000``, not ``np.int64(24000)``), text quoted."""
+    item = getattr(value, "item", None)
+    if callable(item) and type(value).__module__ == "numpy":
+        value = item()
+    return repr(value)

@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 
 from acoustlab.core import columns as col
-from acoustlab.core.errors import DataError
+from acoustlab.core.errors import DataError, show
 from acoustlab.season.recorder_files import RecorderFiles
 
 log = logging.getLogger(__name__)
@@ -72,7 +72,7 @@ def _numbers(table: pd.DataFrame, column: str) -> np.ndarray:
         bad |= ~np.isfinite(values)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
-        raise DataError(f"detections: {table.attrs['path']} line {k + 2}, column {column!r}: {table[column].iloc[k]!r} is not a number")
+        raise DataError(f"detections: {table.attrs['path']} line {k + 2}, column {column!r}: {show(table[column].iloc[k])} is not a number")
     return values
 
 

@@ -31,7 +31,7 @@ import pandas as pd
 import soundfile as sf
 
 from acoustlab.core import columns as col
-from acoustlab.core.errors import DataError
+from acoustlab.core.errors import DataError, show
 from acoustlab.stages.cache import atomic_write_bytes
 
 log = logging.getLogger(__name__)
@@ -129,7 +129,7 @@ class RecorderFiles:
         if np.unique(rates).size > 1:
             odd = table["path"].to_numpy()[rates != np.median(rates)][0]
             raise DataError(
-                f"recordings: files differ in sample rate ({sorted(set(rates.astype(int)))} Hz), e.g. {odd}; "
+                f"recordings: files differ in sample rate ({sorted({int(r) for r in rates})} Hz), e.g. {odd}; "
                 "resample them to one rate first"
             )
         self._index(table, float(rates[0]))
@@ -185,7 +185,7 @@ class RecorderFiles:
         if has_offset.any() and not has_offset.all():
             line = int(np.flatnonzero(has_offset != has_offset[0])[0])
             raise DataError(
-                f"recordings.files_csv: {path} line {line + 2}, column start_time: {text.iloc[line]!r} "
+                f"recordings.files_csv: {path} line {line + 2}, column start_time: {show(text.iloc[line])} "
                 f"{'has' if has_offset[line] else 'lacks'} a UTC offset and line 2 {'does not' if has_offset[line] else 'does'}; "
                 "give every time with an offset or none"
             )
@@ -193,7 +193,7 @@ class RecorderFiles:
         if start.isna().any():
             line = int(np.flatnonzero(start.isna().to_numpy())[0])
             raise DataError(
-                f"recordings.files_csv: {path} line {line + 2}, column start_time: {table['start_time'].iloc[line]!r} is not "
+                f"recordings.files_csv: {path} line {line + 2}, column start_time: {show(table['start_time'].iloc[line])} is not "
                 "an ISO 8601 time (e.g. 2026-05-01T05:30:00)"
             )
         if start.dt.tz is not None:  # every time had an offset: all in UTC

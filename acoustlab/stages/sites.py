@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from acoustlab.core import columns as col
-from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.errors import ConfigError, DataError, show
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import NoiseRegime, Site, require_range
 from acoustlab.toolkit.geometry import collinearity_ratio
@@ -41,7 +41,7 @@ def _read_csv(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataF
     if bad.any():
         row, position = np.argwhere(bad)[0]
         raise DataError(
-            f"site.{field}: {path} row {row + 2} column {required[position]!r} is not a finite number ({values.iloc[row, position]!r})"
+            f"site.{field}: {path} row {row + 2} column {required[position]!r} is not a finite number ({show(values.iloc[row, position])})"
         )
     return table
 

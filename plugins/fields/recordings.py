@@ -36,7 +36,7 @@ import numpy as np
 import pandas as pd
 
 from acoustlab.core import columns as col
-from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.errors import ConfigError, DataError, show
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_channels, load_mono
@@ -89,7 +89,7 @@ def _numeric(
             if lower is not None or upper is not None:
                 expected += f" in [{lower}, {upper}]"
             raise DataError(
-                f"field.{field}: {table.attrs.get('path', field)}, line {i + 2}, column {name!r}: {raw.iloc[i]!r} is not {expected}"
+                f"field.{field}: {table.attrs.get('path', field)}, line {i + 2}, column {name!r}: {show(raw.iloc[i])} is not {expected}"
             )
         table[name] = values
 
@@ -99,7 +99,7 @@ def _unique(table: pd.DataFrame, field: str, column: str) -> None:
     if not duplicated.empty:
         raise DataError(
             f"field.{field}: {table.attrs.get('path', field)}, column {column!r}: "
-            f"{duplicated.iloc[0]!r} appears more than once; every row needs its own {column}"
+            f"{show(duplicated.iloc[0])} appears more than once; every row needs its own {column}"
         )
 
 
@@ -209,7 +209,7 @@ class RecordingFolder:
                 i = int(np.flatnonzero((events[name] != np.round(events[name])).to_numpy())[0])
                 raise DataError(
                     f"field.events_csv: {events.attrs.get('path')}, line {i + 2}, column {name!r}: "
-                    f"{events[name].iloc[i]!r} is not a whole number"
+                    f"{show(events[name].iloc[i])} is not a whole number"
                 )
         events[col.EVENT_ID] = events[col.EVENT_ID].astype(np.int64)
         _unique(events, "events_csv", col.EVENT_ID)
@@ -260,8 +260,8 @@ class RecordingFolder:
         known = det["file"].isin(set(mics["file"]))
         if not known.any():
             raise DataError(
-                f"field.detections_csv: none of its files ({det['file'].iloc[0]!r}, …) is in the coords table "
-                f"{coords.attrs['path']} ({mics['file'].iloc[0]!r}, …); the file names must match"
+                f"field.detections_csv: none of its files ({show(det['file'].iloc[0])}, …) is in the coords table "
+                f"{coords.attrs['path']} ({show(mics['file'].iloc[0])}, …); the file names must match"
             )
         if not known.all():
             log.warning(

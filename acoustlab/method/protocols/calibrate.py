@@ -22,7 +22,7 @@ import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import SolverInputs
-from acoustlab.core.errors import ConfigError
+from acoustlab.core.errors import ConfigError, show
 from acoustlab.core.types import Site
 from acoustlab.toolkit.array_calibration import PARAMETER_KINDS, ArrayCalibration, Playbacks, Priors, calibrate_array
 from acoustlab.toolkit.event_physics import assumed_source_height_m
@@ -99,7 +99,7 @@ class CalibrateProtocol:
             if bad.any():
                 i = int(np.flatnonzero(bad)[0])
                 raise ConfigError(
-                    f"field.mics_csv, line {i + 2}, column 'position_sigma_m': {mics_table['position_sigma_m'].iloc[i]!r} "
+                    f"field.mics_csv, line {i + 2}, column 'position_sigma_m': {show(mics_table['position_sigma_m'].iloc[i])} "
                     "is not a number >= 0 (m; 0 for a surveyed mic)"
                 )
             sigma = given
