@@ -91,3 +91,33 @@ def test_bad_inputs_are_named(tmp_path, compose_cfg):
     cfg = compose_cfg(["+site=frozen_lake", "field=recordings"])
     with pytest.raises(DataError, match="do not match site 'frozen_lake'"):
         build(cfg.field, "field").load(site_from_config(cfg.site))
+
+
+def test_an_events_table_with_its_own_bands_runs_each_gcc_in_its_band(tmp_path, compose_cfg):
+    """low_hz/high_hz per event (as in a detector table): checked against the files' Nyquist, and the GCC runs in the band."""
+    from acoustlab.run.registry import build_feature_sets
+    from acoustlab.stages.dataset import extract_features
+
+    audio = "acoustlab://examples/loca2021"
+    wide, narrow, bad = (tmp_path / f"{name}.csv" for name in ("wide", "narrow", "bad"))
+    wide.write_text("event_id,start_s,end_s\n0,0.2,0.5\n")
+    narrow.write_text("event_id,start_s,end_s,low_hz,high_hz\n0,0.2,0.5,6000,10500\n")
+    bad.write_text("event_id,start_s,end_s,low_hz,high_hz\n0,0.2,0.5,6000,60000\n")
+    site = site_from_config(compose_cfg(["+site=loca2021"]).site)
+    lags = {}
+    for table in (wide, narrow):
+        cfg = compose_cfg(
+            [
+                "+site=loca2021",
+                "field=recordings",
+                f"field.audio_dir={audio}",
+                f"field.events_csv={table}",
+                "features.gcc.band_hz=[300,10000]",
+            ]
+        )
+        batch = build(cfg.field, "field").load(site)
+        lags[table.stem] = extract_features(batch, site, build_feature_sets(cfg.features))["tdoa__lag_0_1_s"].iloc[0]
+    assert lags["narrow"] != lags["wide"]  # the insect band at 4.5 kHz no longer dominates the GCC
+    cfg = compose_cfg(["+site=loca2021", "field=recordings", f"field.audio_dir={audio}", f"field.events_csv={bad}"])
+    with pytest.raises(DataError, match=r"line 2, column 'high_hz': 60000 is not a number or empty in \[0.0, 12000.0\]"):
+        build(cfg.field, "field").validate(site)

@@ -7,7 +7,9 @@ acoustlab layout
     mic) or none (then ``events_csv`` has a ``file`` column naming one multichannel file per
     event, channels in the mics table's order). ``events_csv`` has ``event_id, start_s, end_s``
     and optionally ``file``, ``position_id``, ``x_m, y_m`` (true position when known),
-    ``temperature_c``, ``relative_humidity_pct``, ``hardware_failure``.
+    ``temperature_c``, ``relative_humidity_pct``, ``hardware_failure``, ``low_hz, high_hz`` (the
+    event's own frequency band: its GCC runs there, as a season's detector bands do) and
+    ``time_s`` (when it happened, for a field calibration's clock drift).
 
 OpenSoundscape layout (so its users can switch)
     ``coords_csv`` with ``file, x, y[, z]`` (one receiver per file) and ``detections_csv`` with
@@ -203,6 +205,8 @@ class RecordingFolder:
         _numeric(events, "events_csv", (col.EVENT_ID, col.START, col.END, col.POSITION_ID))
         _numeric(events, "events_csv", (col.TRUE_X, col.TRUE_Y, col.TRUE_Z), finite=False)
         _numeric(events, "events_csv", (col.TEMPERATURE,), lower=-60.0, upper=60.0)
+        _numeric(events, "events_csv", ("time_s",), finite=False)
+        self._check_bands(events)
         _numeric(events, "events_csv", (col.HUMIDITY,), lower=0.0, upper=100.0)
         for name in (col.EVENT_ID, col.POSITION_ID):
             if name in events and (events[name] != np.round(events[name])).any():
@@ -358,6 +362,24 @@ class RecordingFolder:
             )
         return mics, events
 
+    def _check_bands(self, events: pd.DataFrame) -> None:
+        """Per-event frequency bands (``low_hz``, ``high_hz``, as a detector table gives them): 0 ≤ low < high ≤ Nyquist, or both empty."""
+        names = [c for c in ("low_hz", "high_hz") if c in events]
+        if not names:
+            return
+        if len(names) == 1:
+            raise DataError(f"field.events_csv: {events.attrs.get('path')} has {names[0]} without its pair; give both low_hz and high_hz")
+        nyquist = self.sample_rate_hz / 2
+        _numeric(events, "events_csv", ("low_hz", "high_hz"), finite=False, lower=0.0, upper=nyquist)
+        low, high = events["low_hz"].to_numpy(float), events["high_hz"].to_numpy(float)
+        bad = (np.isfinite(low) != np.isfinite(high)) | (np.isfinite(low) & np.isfinite(high) & (low >= high))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise DataError(
+                f"field.events_csv: {events.attrs.get('path')}, line {i + 2}: low_hz {show(low[i])} and high_hz {show(high[i])} "
+                "must both be given with low_hz < high_hz (or both empty: the default band)"
+            )
+
     @staticmethod
     def _check_channels(mics: pd.DataFrame, file: str, path: Path, n_channels: int) -> None:
         """Mics sharing a file need a ``channel`` column, within the file's channels, one channel per mic."""
@@ -486,6 +508,11 @@ class RecordingFolder:
                 col.CLIP_SAMPLES: lengths,
             }
         )
+        if "low_hz" in events:  # the GCC of each event runs in its own band (as a season's detector tables give it)
+            rows[col.BAND_LOW] = events["low_hz"].to_numpy(float)
+            rows[col.BAND_HIGH] = events["high_hz"].to_numpy(float)
+        if "time_s" in events:  # when the event happened (clock drift of a field calibration is per second of it)
+            rows["time_s"] = events["time_s"].to_numpy(float)
         return RecordingBatch(audio=audio, sample_rate_hz=fs, events=rows)
 
 
