@@ -18,8 +18,9 @@ groups; ``acoustlab`` never imports ``plugins``. Entry points: ``python -m acous
 __version__ = "0.1.0"
 
 #: The notebook API (``acoustlab.api``): ``import acoustlab; acoustlab.localize(...)``; imported on first use,
-#: so ``import acoustlab`` stays cheap for the CLI.
-_API = ("localize", "season", "calibrate", "solve", "metrics", "overrides_from")
+#: so ``import acoustlab`` stays cheap for the CLI. ``acoustlab.season`` is the season subpackage: its function is
+#: ``acoustlab.api.season``.
+_API = ("localize", "calibrate", "solve", "metrics", "overrides_from")
 
 
 def __getattr__(name: str):
