@@ -54,9 +54,8 @@ def test_localize_from_python_equals_the_command_line_s_positions(tmp_path, comp
 
 def test_import_acoustlab_gives_the_notebook_functions_and_calibrate_feeds_localize(tmp_path):
     import acoustlab
-    from acoustlab import api
-
     import acoustlab.season  # the subpackage keeps its name; its function is acoustlab.api.season
+    from acoustlab import api
 
     assert all(getattr(acoustlab, name) is getattr(api, name) for name in ("localize", "calibrate", "solve", "metrics"))
     with pytest.raises(AttributeError, match="no attribute 'locate'"):
