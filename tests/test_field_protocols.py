@@ -4,7 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from acoustlab.method.pipeline import MethodResult
+from acoustlab.core.errors import ConfigError
+from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
 from acoustlab.method.protocols.field import (
     FIELD_POSITION_OFFSET,
     FieldEvalProtocol,
@@ -110,3 +111,32 @@ def test_field_protocols_end_to_end(compose_cfg, tmp_path, protocol):
         assert [d["split"] for d in by_split] == [f"withheld_position={p}" for p in range(6)]
         assert metrics["gate"]["diagnostics"]["tau_star_db"] == pytest.approx(np.median([d["tau_star_db"] for d in by_split]))
         assert all(5 < len(d["tau_grid"]) <= 20 for d in by_split)  # quantiles of the training energy residuals
+
+
+def test_field_eval_with_calibration_spots_tests_on_the_other_positions(compose_cfg, tmp_path):
+    """protocol.calibration_positions=K: K field positions join training and calibrate (position-level); the rest are the test."""
+    from acoustlab.run.app import build_run, prepare_data
+    from acoustlab.run.registry import build
+
+    cfg = compose_cfg(
+        [
+            "+site=frozen_lake",
+            "+experiment=smoke",
+            "protocol=field_eval",
+            "field=playback_standin",
+            "protocol.calibration_positions=3",
+            f"paths.outputs_dir={tmp_path}",
+        ]
+    )
+    built = build_run(cfg)
+    data = prepare_data(cfg, built)
+    result = built.protocol.run(data.dataset, LocalizationPipeline(built.components), field_recordings=data.field_data)
+    field_positions = np.unique(data.field_data.events["position_id"])
+    tested = np.unique(result.predictions["position_id"])
+    assert tested.size == field_positions.size - 3 and set(tested) < set(field_positions)
+    calibration = result.split_diagnostics[0]["calibration"]
+    assert calibration["on"] == "field" and calibration["n_positions"] == 3 and "spot" in calibration["guarantee"]
+    with pytest.raises(ConfigError, match="leaves no test position"):
+        build(compose_cfg(["+site=frozen_lake", "protocol=field_eval", "protocol.calibration_positions=99"]).protocol, "protocol").run(
+            data.dataset, LocalizationPipeline(built.components), field_recordings=data.field_data
+        )

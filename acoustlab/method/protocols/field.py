@@ -67,23 +67,47 @@ class FieldEvalProtocol:
         Leave positions with a known hardware failure out of the per-detection summaries
         (they stay in ``predictions.parquet``).
     seed : int
-        Seed of the training subsample.
+        Seed of the training subsample (and of the calibration spots).
+    calibration_positions : int
+        0: every field position is a test position. K > 0: K field positions drawn at random are
+        playback spots of a field calibration (they join training and calibrate the radii, as
+        calibration playbacks do under ``localize``); the others are the test positions. What a
+        user with K playback spots can expect at the rest of the site.
     """
 
     needs_field = True
 
-    def __init__(self, max_train_rows: int = 1000, exclude_failed_from_summary: bool = True, seed: int = 0) -> None:
+    def __init__(
+        self, max_train_rows: int = 1000, exclude_failed_from_summary: bool = True, seed: int = 0, calibration_positions: int = 0
+    ) -> None:
+        if calibration_positions < 0:
+            raise ConfigError(f"protocol.calibration_positions must be >= 0; got {calibration_positions}")
         self.max_train_rows = int(max_train_rows)
         self.exclude_failed_from_summary = bool(exclude_failed_from_summary)
         self.seed = int(seed)
+        self.calibration_positions = int(calibration_positions)
 
     def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
-        """Predictions for every field event, from models trained on simulation only."""
+        """Predictions for every field event (but the calibration spots'), from models trained on simulation (and those spots)."""
         if field_recordings is None:
             raise ConfigError("protocol=field_eval needs field data: choose a field source, e.g. field=playback_standin")
         features, events, sim_rows, field_rows = combine(dataset, field_recordings)
         groups = events[col.POSITION_ID].to_numpy()
-        train = cap_rows(sim_rows, groups, self.max_train_rows, np.random.default_rng([self.seed, 2]))
+        rng = np.random.default_rng([self.seed, 2])
+        calibration = np.array([], dtype=int)
+        if self.calibration_positions:
+            spots = np.unique(groups[field_rows])
+            if self.calibration_positions >= spots.size:
+                raise ConfigError(
+                    f"protocol.calibration_positions={self.calibration_positions} leaves no test position of the field's {spots.size}"
+                )
+            chosen = np.random.default_rng([self.seed, 3]).choice(spots, self.calibration_positions, replace=False)
+            calibration = field_rows[np.isin(groups[field_rows], chosen)]
+            field_rows = field_rows[~np.isin(groups[field_rows], chosen)]
+            log.info(
+                "field_eval: %d events at %d field positions calibrate; %d test events", calibration.size, chosen.size, field_rows.size
+            )
+        train = np.sort(np.concatenate([cap_rows(sim_rows, groups, self.max_train_rows - calibration.size, rng), calibration]))
         result = pipeline.fit_predict(features, events, train, field_rows)
         return MethodResult(_annotate(result.predictions, events, field_rows, self.exclude_failed_from_summary), result.split_diagnostics)
 
