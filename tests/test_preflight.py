@@ -154,3 +154,18 @@ def test_sweep_jobs_follow_hydra_a_command_line_key_replaces_the_sweep_params():
     jobs = sweep_jobs(cfg)
     assert len(jobs) == 4  # 2 drops × 1 gate (the command line's) × 2 models, not 2 × 3 × 2
     assert all("gate=learned" in job for job in jobs)
+
+
+def test_a_mistyped_key_gets_the_closest_existing_one(run_cli, compose_cfg):
+    """Typed nodes are checked before Hydra composes; plugin settings when the plugin is built; both say "did you mean"."""
+    from acoustlab.run.preflight import check_argv
+    from acoustlab.run.registry import build
+
+    with pytest.raises(ConfigError, match=r"data.n_event: data has no key 'n_event'; did you mean data.n_events\?"):
+        check_argv(["+site=frozen_lake", "data.n_event=5"])
+    with pytest.raises(ConfigError, match=r"did you mean pipeline.trust.handover_check\?"):
+        check_argv(["+site=frozen_lake", "pipeline.trust.handover_chek=false"])
+    check_argv(["+site=frozen_lake", "protocol.test_fraction=0.2", "conformal.scorers.fixed.n_bins=2"])  # plugin nodes are free-form
+    cfg = compose_cfg(["+site=frozen_lake", "+protocol.test_fractoin=0.2"])
+    with pytest.raises(ConfigError, match=r"protocol.test_fractoin is not a setting of SimOnlyProtocol; did you mean test_fraction\?"):
+        build(cfg.protocol, "protocol")

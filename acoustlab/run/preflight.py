@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import os
 import types
 import typing
@@ -45,6 +46,25 @@ def _typed_field(key: str) -> type | None:
     return node if node in (int, float) else None
 
 
+def _check_typed_key(key: str) -> None:
+    """A dotted key inside a typed node of the schema that the node lacks: one line, with the closest existing key."""
+    node: Any = AcoustlabConfig
+    parts = key.split(".")
+    for depth, part in enumerate(parts):
+        if not dataclasses.is_dataclass(node):
+            return  # free-form below here (plugin nodes, dicts): their own checks name unknown settings
+        hints = typing.get_type_hints(node)
+        if part not in hints:
+            where = ".".join(parts[:depth])
+            near = difflib.get_close_matches(part, list(hints), n=1)
+            hint = f"; did you mean {'.'.join([*parts[:depth], near[0]])}?" if near else f"; its keys: {', '.join(sorted(hints))}"
+            raise ConfigError(f"{key}: {where or 'the config'} has no key {part!r}{hint}")
+        node = hints[part]
+        args = [a for a in typing.get_args(node) if a is not type(None)]
+        if typing.get_origin(node) in (typing.Union, types.UnionType) and len(args) == 1:
+            node = args[0]
+
+
 def _check_typed_value(key: str, value: str) -> None:
     """A number-typed key given a value that is not one: the one-line error Hydra would give as several lines."""
     kind = _typed_field(key)
@@ -77,6 +97,8 @@ def check_argv(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
         prefix = key[: len(key) - len(key.lstrip("+~"))]
         name = key.lstrip("+~")
         if name not in ALL_GROUPS:
+            if "." in name and name.split(".")[0] not in ALL_GROUPS:
+                _check_typed_key(name)
             _check_typed_value(name, value)
             continue
         if name == "site":

@@ -7,11 +7,15 @@ the config.
 
 from __future__ import annotations
 
+import difflib
 import functools
 import importlib
+import inspect
+import re
 from pathlib import Path
 from typing import Any
 
+import hydra.utils
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
@@ -81,7 +85,25 @@ def build(node: Any, what: str, **runtime: Any) -> Any:
         cause = exc.__cause__
         if isinstance(cause, AcoustlabError):
             raise cause from None
+        unknown = _unknown_setting(node, cause)
+        if unknown is not None:
+            raise ConfigError(f"{what}.{unknown}") from None
         raise ConfigError(f"cannot instantiate {what}: {exc}".replace("\n", " ")) from None
+
+
+def _unknown_setting(node: Any, cause: BaseException | None) -> str | None:
+    """``"NAME is not a setting of Class; did you mean …?"`` where building failed on an unknown keyword, else None."""
+    match = re.search(r"unexpected keyword argument '(\w+)'", str(cause)) if isinstance(cause, TypeError) else None
+    if match is None:
+        return None
+    try:
+        target = hydra.utils.get_class(str(node.get("_target_")))
+        params = [p for p in inspect.signature(target.__init__).parameters if p != "self"]
+    except Exception:  # noqa: BLE001 - a target that is a function, or cannot be inspected: no suggestion
+        return None
+    near = difflib.get_close_matches(match.group(1), params, n=1)
+    hint = f"did you mean {near[0]}?" if near else f"its settings: {', '.join(params)}"
+    return f"{match.group(1)} is not a setting of {target.__name__}; {hint}"
 
 
 def to_plain(node: Any) -> Any:
