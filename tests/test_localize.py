@@ -53,7 +53,11 @@ def test_localize_the_shipped_loca_example(compose_cfg, tmp_path):
         "gate_reason",
         "solver__failure",
         "solver__height_gdop",
+        "solver__n_mics_used",
     } <= set(table.columns)
+    # the time differences the solver worked from, as measured (OpenSoundscape's reference for recorder 4 vs 3: 32.5 ms)
+    assert [c for c in table.columns if c.startswith("tdoa_0_")] == [f"tdoa_0_{j}_s" for j in range(1, 6)]
+    assert table["tdoa_0_1_s"].iloc[0] == pytest.approx(0.0325, abs=0.002)
     check_radii(table)
     assert metrics["localization"]["n_detections"] == 1
     assert "errors" not in metrics  # no truth, no error metrics

@@ -26,7 +26,9 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     ``radius_<scorer>_<level>_m`` per scorer and level (empty where the calibration has too few
     positions for that level's guarantee, ``radius_note`` saying so); ellipse columns when computed; ``placed``
     and ``abstain_reason``; quality flags from the solver stage (``solver__failure``,
-    ``solver__consistency``, ``solver__n_mics_used``, GDOPs, …).
+    ``solver__consistency``, ``solver__n_mics_used``, GDOPs, …); ``tdoa_0_<j>_s``, the measured
+    time differences t_j − t_0 (s, the strongest GCC peak of each pair with mic 0, after a field
+    calibration's clock correction).
     """
     out = pd.DataFrame({c: predictions[c] for c in DETECTION_FIELDS if c in predictions})
     gate_x, gate_y = col.estimate_xy("gate")
@@ -82,6 +84,8 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     out[col.ABSTAIN_REASON] = predictions[col.ABSTAIN_REASON] if col.ABSTAIN_REASON in predictions else default_reason
     for c in predictions.columns:
         if col.GROUP_SEPARATOR in c and c.startswith("solver__"):
+            out[c] = predictions[c]
+        if c.startswith("tdoa_0_"):  # the measured time differences to mic 0 the solver worked from, s
             out[c] = predictions[c]
     return out
 

@@ -10,6 +10,7 @@ field recordings. Nothing here needs a true position; the run writes ``positions
 from __future__ import annotations
 
 import logging
+import re
 
 import numpy as np
 import pandas as pd
@@ -22,6 +23,9 @@ from acoustlab.method.splits import cap_rows
 from acoustlab.stages.dataset import Dataset
 
 log = logging.getLogger(__name__)
+
+#: The rank-1 lag columns of the pairs (0, j): t_j − t_0 in s.
+TDOA_TO_MIC0 = re.compile(r"tdoa__lag_0_(\d+)_s")
 
 #: Solver-stage columns copied into the positions table as quality flags.
 QUALITY_COLUMNS = (
@@ -109,6 +113,10 @@ def without_truth(predictions: pd.DataFrame, features: pd.DataFrame, detections:
     for name in QUALITY_COLUMNS:  # why a fix may be weak, from the solver stage
         if name in features:
             predictions[name] = features[name].to_numpy()
+    for name in features.columns:  # the measured time differences to mic 0 (the strongest GCC peak; clocks corrected)
+        match = TDOA_TO_MIC0.fullmatch(name)
+        if match:
+            predictions[f"tdoa_0_{match.group(1)}_s"] = features[name].to_numpy(float)
     keep = [c for c in detections.columns if c not in predictions.columns and c not in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z)]
     for name in keep:  # the detection's own fields (file, start time, …)
         predictions[name] = detections[name].to_numpy()
