@@ -15,7 +15,6 @@ class DataError(AcoustlabError):
 
 def show(value: object) -> str:
     """A value as an error message shows it: numpy scalars as plain numbers (``24000``, not ``np.int64(24000)``), text quoted."""
-    item = getattr(value, "item", None)
-    if callable(item) and type(value).__module__ == "numpy":
-        value = item()
-    return repr(value)
+    import numpy as np  # imported when a message is made: the errors module stays light
+
+    return repr(value.item() if isinstance(value, np.generic) else value)

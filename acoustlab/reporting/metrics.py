@@ -131,7 +131,7 @@ def gross_error_auc(predictions: pd.DataFrame, gross_m: float = 5.0) -> dict[str
 CONDITION_BINS = {
     "gdop": ("gdop", (0.0, 2.0, 5.0, 20.0, np.inf)),
     "hull_distance": (col.HULL_DISTANCE, (-np.inf, 0.0, 0.25, 0.5, np.inf)),
-    "snr_db": (col.SNR, (-np.inf, 5.0, 10.0, 20.0, np.inf)),
+    col.SNR: (col.SNR, (-np.inf, 5.0, 10.0, 20.0, np.inf)),
 }
 
 

@@ -6,6 +6,8 @@ from typing import Any
 
 import numpy as np
 
+from acoustlab.toolkit.input_uncertainty import InputUncertainty
+
 
 def _ours(metrics: dict[str, Any], path: str) -> float:
     """A value of metrics.json by dotted path, e.g. ``errors.solver.p95`` or ``coverage.gdop_scaled.0.8``."""
@@ -77,7 +79,7 @@ def deviations(config: dict[str, Any]) -> list[str]:
             "GDOP as it is; conformal.scorers.gdop_scaled.gdop_cap_quantile=null)"
         )
     allowance = _get(config, "conformal.input_uncertainty") or {}
-    if any(float(allowance.get(k, 0) or 0) > 0 for k in ("temperature_c", "mic_position_m", "clock_offset_s")):
+    if allowance and not InputUncertainty(**allowance).is_zero:
         out.append(
             "radii of field detections carry an allowance for the stated input errors (the paper has none; "
             "conformal.input_uncertainty.temperature_c=0)"

@@ -50,7 +50,7 @@ CALIBRATION_COLUMN = "calibration_sha256"
 
 def event_time_s(events: pd.DataFrame) -> np.ndarray:
     """(E,) when each event happened, s: ``time_s`` where given, else ``start_s`` (drift is per second of it), else NaN."""
-    for name in ("time_s", "start_s"):
+    for name in ("time_s", col.START):
         if name in events:
             return pd.to_numeric(events[name], errors="coerce").to_numpy(float)
     return np.full(len(events), np.nan)

@@ -263,7 +263,7 @@ class _Model:
             elif name.startswith("drift_"):
                 d[:, int(name.split("_")[1]) - 1] = self.t
             else:
-                m, axis = int(name.split("_")[1]), 0 if name.endswith("x_m") else 1
+                m, axis = int(name.split("_")[1]), 0 if name.split("_")[2] == "x" else 1
                 unit = -diff[:, m, axis] / dist[:, m] / speed  # d‖s − p_m‖/dp_m / c
                 if m == 0:
                     d[:] = -unit[:, None]
