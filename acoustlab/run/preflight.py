@@ -54,6 +54,8 @@ def _check_typed_key(key: str) -> None:
         if not dataclasses.is_dataclass(node):
             return  # free-form below here (plugin nodes, dicts): their own checks name unknown settings
         hints = typing.get_type_hints(node)
+        if part not in hints and depth == 0:
+            return  # hydra.*, and root keys Hydra itself reports
         if part not in hints:
             where = ".".join(parts[:depth])
             near = difflib.get_close_matches(part, list(hints), n=1)
