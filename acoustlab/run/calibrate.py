@@ -20,7 +20,7 @@ from acoustlab.method.protocols.calibrate import residual_rows
 from acoustlab.run.registry import to_plain
 from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import load_or_build_field
-from acoustlab.stages.field_calibration import playbacks_from, write_calibration
+from acoustlab.stages.field_calibration import calibrate_playbacks, write_calibration
 
 log = logging.getLogger(__name__)
 
@@ -31,8 +31,6 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
     field = load_or_build_field(site, source, to_plain(cfg.field), built.feature_sets, to_plain(cfg.features.groups), built.cache)
     tables = hook(source, "tables")
     mics_table = tables()[0] if tables is not None else None
-    # the field sources fill each event's weather (their defaults where a table has none); these apply only without the columns
-    playbacks = playbacks_from(field.features, field.events, site, temperature_c=15.0, humidity_pct=60.0)
     known = np.isfinite(field.events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1)
     if "quality_ok" in field.events:
         known &= field.events["quality_ok"].fillna(True).to_numpy(bool)
@@ -43,8 +41,9 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
         else [str(m) for m in range(site.n_mics)]
     )
     priors = protocol.priors(site, mics_table)
-    log.info("calibrating %d mics from %d playbacks at %d spots", site.n_mics, len(playback_events), playbacks.n_spots)
-    calibration = protocol.calibrate(playbacks, priors, mic_ids)
+    log.info("calibrating %d mics from %d playbacks", site.n_mics, len(playback_events))
+    # the field sources fill each event's weather (their defaults where a table has none)
+    calibration, playbacks = calibrate_playbacks(field.features, field.events, site, lambda p: protocol.calibrate(p, priors, mic_ids))
     calibration.extra["held_out"] = protocol.held_out(playbacks, priors, mic_ids, site, built.components.solver)
     digest = write_calibration(run_dir / "calibration.json", calibration, site, playback_events)
     summary = calibration.to_json()

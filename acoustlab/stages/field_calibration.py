@@ -24,6 +24,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -56,12 +57,21 @@ def event_time_s(events: pd.DataFrame) -> np.ndarray:
     return np.full(len(events), np.nan)
 
 
-def playbacks_from(features: pd.DataFrame, events: pd.DataFrame, site: Site, temperature_c: float, humidity_pct: float) -> Playbacks:
+def playbacks_from(
+    features: pd.DataFrame,
+    events: pd.DataFrame,
+    site: Site,
+    temperature_c: float,
+    humidity_pct: float,
+    expected_tdoa_s: np.ndarray | None = None,
+) -> Playbacks:
     """The playbacks (events with a known ``x_m, y_m``) and their time differences to mic 0.
 
-    Per mic, of the GCC candidates of pair (0, m) the one closest to the lag the stated array
-    predicts from the known spot is taken (the strongest peak may be an echo; the spot says where
-    the direct path must be). ``z_m`` where given, else the site's assumed source height.
+    Per mic, of the GCC candidates of pair (0, m) the one closest to the expected lag is taken
+    (the strongest peak may be an echo; the spot says where the direct path must be): the lag the
+    stated array predicts from the known spot, or ``expected_tdoa_s`` ((N, M), e.g. what a first
+    calibration predicts: ``calibrate_playbacks`` re-picks with it). ``z_m`` where given, else the
+    site's assumed source height.
     """
     known = np.isfinite(events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1)
     if "quality_ok" in events:
@@ -75,7 +85,9 @@ def playbacks_from(features: pd.DataFrame, events: pd.DataFrame, site: Site, tem
     humidity = ev[col.HUMIDITY].fillna(humidity_pct).to_numpy(float) if col.HUMIDITY in ev else np.full(len(ev), humidity_pct)
     mics = site.mic_positions_m
     distance = np.sqrt(((source[:, None, :] - mics[None]) ** 2).sum(-1))
-    expected = (distance - distance[:, :1]) / speed_of_sound_m_s(temperature, humidity)[:, None]
+    expected = (
+        (distance - distance[:, :1]) / speed_of_sound_m_s(temperature, humidity)[:, None] if expected_tdoa_s is None else expected_tdoa_s
+    )
     tdoa = np.full((len(ev), site.n_mics), np.nan)
     tdoa[:, 0] = 0.0
     for m in range(1, site.n_mics):
@@ -91,6 +103,32 @@ def playbacks_from(features: pd.DataFrame, events: pd.DataFrame, site: Site, tem
         best = np.argmin(gap, axis=1)
         tdoa[:, m] = np.where(np.isfinite(gap.min(axis=1)), candidates[np.arange(len(ev)), best], np.nan)
     return Playbacks(source, tdoa, temperature, humidity, event_time_s(ev), ev[col.POSITION_ID].to_numpy())
+
+
+def calibrate_playbacks(
+    features: pd.DataFrame,
+    events: pd.DataFrame,
+    site: Site,
+    fit: Callable[[Playbacks], ArrayCalibration],
+    temperature_c: float = 15.0,
+    humidity_pct: float = 60.0,
+    max_rounds: int = 4,
+) -> tuple[ArrayCalibration, Playbacks]:
+    """Calibrate, re-pick each pair's GCC candidate with what the calibration predicts, and calibrate again until the picks hold.
+
+    A stated array 2–3 m off predicts lags several ms off, so the first pick may take a ground
+    reflection or another wrong peak for the direct path; the calibrated array predicts them
+    closely. ``fit`` is the calibration (``CalibrateProtocol.calibrate``).
+    """
+    playbacks = playbacks_from(features, events, site, temperature_c, humidity_pct)
+    calibration = fit(playbacks)
+    for _ in range(max_rounds - 1):
+        repicked = playbacks_from(features, events, site, temperature_c, humidity_pct, calibration.predicted_tdoa_s(playbacks))
+        if np.array_equal(np.nan_to_num(repicked.tdoa_s, nan=1e9), np.nan_to_num(playbacks.tdoa_s, nan=1e9)):
+            break
+        playbacks = repicked
+        calibration = fit(playbacks)
+    return calibration, playbacks
 
 
 def _digest(body: dict[str, Any]) -> str:

@@ -138,6 +138,14 @@ class ArrayCalibration:
             return 0.0
         return float(self.priors.position_sigma_m[int(name.split("_")[1])])
 
+    def predicted_tdoa_s(self, playbacks: Playbacks) -> np.ndarray:
+        """(N, M) the time differences t_m − t_0 this calibrated array predicts for the playbacks, s."""
+        speed = speed_of_sound_m_s(playbacks.temperature_c + self.temperature_offset_c, playbacks.relative_humidity_pct)
+        distance = np.sqrt(((playbacks.source_m[:, None, :] - self.mic_positions_m[None]) ** 2).sum(-1))
+        clock = self.clock_offset_s[None, :] + self.clock_drift[None, :] * np.nan_to_num(playbacks.time_s - self.drift_origin_s)[:, None]
+        arrival = distance / speed[:, None] + clock
+        return arrival - arrival[:, :1]
+
     def position_sd_m(self) -> np.ndarray:
         """(M,) per-axis posterior standard deviation of each mic's horizontal position, m."""
         return np.array([np.sqrt((self.sd(f"mic_{m}_x_m") ** 2 + self.sd(f"mic_{m}_y_m") ** 2) / 2) for m in range(len(self.mic_ids))])

@@ -60,7 +60,7 @@ class CalibrateProtocol:
         estimate: list[str] | tuple[str, ...] = PARAMETER_KINDS,
         position_sigma_m: float = 2.0,
         temperature_sigma_c: float = 3.0,
-        clock_sigma_s: float = 0.01,
+        clock_sigma_s: float = 0.002,
         drift_sigma: float = 1e-5,
         min_drift_span_s: float = 3600.0,
         held_out_folds: int = 10,
