@@ -45,7 +45,13 @@ from acoustlab.stages.dataset import (
     load_or_build_field,
     load_or_build_simulated,
 )
-from acoustlab.stages.field_calibration import CALIBRATION_COLUMN, FieldCalibration, apply_calibration, calibrated_site, load_calibration
+from acoustlab.stages.field_calibration import (
+    CALIBRATION_COLUMN,
+    FieldCalibration,
+    calibrated_site,
+    field_solver_columns,
+    load_calibration,
+)
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import add_solver_columns
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
@@ -235,7 +241,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
     if cfg.data.shard_count > 1 and not cache.enabled:
         raise ConfigError("data.shard_count > 1 fills the cache shard by shard; it needs cache.enabled=true")
     plan = SimulationPlan(seed=cfg.seed, **OmegaConf.to_container(cfg.data, resolve=True))
-    calibration = None
+    calibration, stated_site = None, None
     if cfg.get("calibration"):  # after the recordings were checked against the stated array
         if declared(protocol, "calibrates"):
             raise ConfigError("calibrate starts from the stated array: drop calibration=… (a calibration is not calibrated again)")
@@ -250,8 +256,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         )
         stated_site, site = site, calibrated_site(site, calibration)
         components = dataclasses.replace(components, site=site, input_uncertainty=calibration.input_uncertainty())
-        return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration, stated_site)
-    return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration)
+    return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration, stated_site)
 
 
 @dataclass
@@ -299,11 +304,14 @@ def prepare_data(cfg: DictConfig, built: BuiltRun | None = None) -> RunData | No
             built.cache,
             stated_site=built.stated_site,
         )
-        if built.calibration is not None:  # the thermometer's offset and the recorders' clocks, before the solver
-            field_data.features, field_data.events = apply_calibration(
-                field_data.features, field_data.events, built.site, built.calibration
-            )
-        field_data.features = solver_features(cfg, field_data.features, field_data.events, built.site, built.components.solver)
+        field_data.features, field_data.events = field_solver_columns(
+            field_data.features,
+            field_data.events,
+            built.site,
+            built.components.solver,
+            cfg.pipeline.plausible_margin_fraction,
+            built.calibration,
+        )
     return RunData(dataset, field_data)
 
 

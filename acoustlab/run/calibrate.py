@@ -14,13 +14,12 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from acoustlab.core import columns as col
 from acoustlab.core.contracts import hook
 from acoustlab.method.protocols.calibrate import residual_rows
 from acoustlab.run.registry import to_plain
 from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import load_or_build_field
-from acoustlab.stages.field_calibration import calibrate_playbacks, write_calibration
+from acoustlab.stages.field_calibration import calibrate_playbacks, playback_rows, write_calibration
 
 log = logging.getLogger(__name__)
 
@@ -31,10 +30,7 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
     field = load_or_build_field(site, source, to_plain(cfg.field), built.feature_sets, to_plain(cfg.features.groups), built.cache)
     tables = hook(source, "tables")
     mics_table = tables()[0] if tables is not None else None
-    known = np.isfinite(field.events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1)
-    if "quality_ok" in field.events:
-        known &= field.events["quality_ok"].fillna(True).to_numpy(bool)
-    playback_events = field.events[known].reset_index(drop=True)
+    playback_events = field.events[playback_rows(field.events)].reset_index(drop=True)
     mic_ids = (
         mics_table["mic_id"].astype(str).tolist()
         if mics_table is not None and "mic_id" in mics_table and len(mics_table) == site.n_mics

@@ -233,6 +233,8 @@ class SeasonLocalize:
         recordings.save(folder / FILES)
         write_events(folder, events, self.chunk_events)
         key = self.method_key(cfg)
+        if built.calibration is not None:  # a calibration file rewritten at the same path is another method
+            key = hashlib.sha256(f"{key}:{built.calibration.sha256}".encode()).hexdigest()
         saved = saved_info(folder)
         if saved is not None and saved["key"] == key:
             log.info("season: reusing the method fitted earlier in %s", folder)
@@ -250,6 +252,7 @@ class SeasonLocalize:
                 cfg.pipeline.plausible_margin_fraction,
                 list(built.components.levels),
                 list(built.components.scorers),
+                built.calibration,
             )
             digest = save_method(fitted, folder, key)
         write_manifest(folder, season_manifest(events, digest, self.plan(site), order, radii, recordings))

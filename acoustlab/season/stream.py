@@ -48,7 +48,7 @@ from acoustlab.reporting.positions import positions_table
 from acoustlab.season.recorder_files import RecorderFiles
 from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import extract_features
-from acoustlab.stages.solver_columns import add_solver_columns
+from acoustlab.stages.field_calibration import field_solver_columns
 from acoustlab.toolkit.dsp import next_fast_len
 from acoustlab.toolkit.quality import QualityThresholds, clip_quality
 
@@ -71,6 +71,8 @@ class FittedSeasonMethod:
     plausible_margin_fraction: float | None
     levels: list[float]
     scorers: list[str]
+    #: the field calibration (``calibration=PATH``) every chunk's time differences and temperatures are corrected with
+    calibration: Any = None
 
 
 @dataclass
@@ -272,7 +274,9 @@ def localize_events(
         if on_batch is not None:
             on_batch(batch.n_events)
     table_features, detections = pd.concat(features, ignore_index=True), pd.concat(rows, ignore_index=True)
-    table_features = add_solver_columns(table_features, detections, c.site, c.solver, fitted.plausible_margin_fraction)
+    table_features, detections = field_solver_columns(
+        table_features, detections, c.site, c.solver, fitted.plausible_margin_fraction, fitted.calibration
+    )
     predictions, _ = fitted.method.predict(table_features, detections)
     detections = detections.drop(columns=["is_field"]).assign(label=events["label"].to_numpy())
     table = positions_table(without_truth(predictions, table_features, detections), fitted.levels, fitted.scorers)

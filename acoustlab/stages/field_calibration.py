@@ -35,6 +35,7 @@ from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError
 from acoustlab.core.types import Site
 from acoustlab.stages.cache import atomic_write_bytes
+from acoustlab.stages.solver_columns import add_solver_columns, pair_candidate_lags
 from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
@@ -57,6 +58,14 @@ def event_time_s(events: pd.DataFrame) -> np.ndarray:
     return np.full(len(events), np.nan)
 
 
+def playback_rows(events: pd.DataFrame) -> np.ndarray:
+    """(E,) True for the playbacks: events with a known position (``x_m, y_m``) whose clips are usable."""
+    known = np.isfinite(events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1)
+    if "quality_ok" in events:
+        known &= events["quality_ok"].fillna(True).to_numpy(bool)
+    return known
+
+
 def playbacks_from(
     features: pd.DataFrame,
     events: pd.DataFrame,
@@ -73,12 +82,13 @@ def playbacks_from(
     calibration predicts: ``calibrate_playbacks`` re-picks with it). ``z_m`` where given, else the
     site's assumed source height.
     """
-    known = np.isfinite(events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1)
-    if "quality_ok" in events:
-        known &= events["quality_ok"].fillna(True).to_numpy(bool)
+    known = playback_rows(events)
     if known.sum() == 0:
         raise DataError("calibrate: no event has a known position (x_m, y_m) and usable clips: playbacks at known spots are needed")
-    ev, ft = events[known].reset_index(drop=True), features[known].reset_index(drop=True)
+    ev = events[known].reset_index(drop=True)
+    lags = pair_candidate_lags(features[known], site)  # (N, P, K), t_j − t_i of every pair's candidates
+    if lags is None:
+        raise DataError(f"calibrate: the features lack {col.tdoa_lag(0, 1)}; the 'tdoa' feature group is needed")
     z = ev[col.TRUE_Z].to_numpy(float) if col.TRUE_Z in ev else np.full(len(ev), np.nan)
     source = np.column_stack([ev[[col.TRUE_X, col.TRUE_Y]].to_numpy(float), np.where(np.isfinite(z), z, assumed_source_height_m(site))])
     temperature = ev[col.TEMPERATURE].fillna(temperature_c).to_numpy(float) if col.TEMPERATURE in ev else np.full(len(ev), temperature_c)
@@ -91,14 +101,7 @@ def playbacks_from(
     tdoa = np.full((len(ev), site.n_mics), np.nan)
     tdoa[:, 0] = 0.0
     for m in range(1, site.n_mics):
-        ranks = []
-        k = 1
-        while col.tdoa_lag(0, m, k) in ft:
-            ranks.append(ft[col.tdoa_lag(0, m, k)].to_numpy(float))
-            k += 1
-        if not ranks:
-            raise DataError(f"calibrate: the features lack {col.tdoa_lag(0, m)}; the 'tdoa' feature group is needed")
-        candidates = np.column_stack(ranks)
+        candidates = lags[:, site.mic_pairs.index((0, m))]
         gap = np.where(np.isfinite(candidates), np.abs(candidates - expected[:, m : m + 1]), np.inf)
         best = np.argmin(gap, axis=1)
         tdoa[:, m] = np.where(np.isfinite(gap.min(axis=1)), candidates[np.arange(len(ev)), best], np.nan)
@@ -247,6 +250,20 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
 def calibrated_site(site: Site, calibration: FieldCalibration) -> Site:
     """The site with its mics at their calibrated positions."""
     return dataclasses.replace(site, mic_positions_m=calibration.mic_positions_m.copy())
+
+
+def field_solver_columns(
+    features: pd.DataFrame,
+    events: pd.DataFrame,
+    site: Site,
+    solver: Any,
+    plausible_margin_fraction: float | None,
+    calibration: FieldCalibration | None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The solver stage of field recordings (``localize`` and every season chunk alike): the calibration, then the solver's columns."""
+    if calibration is not None:  # the thermometer's offset and the recorders' clocks, before the solver
+        features, events = apply_calibration(features, events, site, calibration)
+    return add_solver_columns(features, events, site, solver, plausible_margin_fraction), events
 
 
 def apply_calibration(
