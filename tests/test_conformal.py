@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
-from acoustlab.method.pipeline import LocalizationPipeline
 from acoustlab.toolkit.conformal import conformal_quantile
 from plugins.conformal.split import SplitConformal
 
@@ -299,28 +298,6 @@ def test_subsampled_position_quantile_is_the_same_whatever_the_rows_order():
     assert subsampled_position_quantile(scores, groups, 0.9, 3) == subsampled_position_quantile(scores[order], groups[order], 0.9, 3)
     assert [positions_needed(v) for v in (0.5, 0.8, 0.9, 0.95)] == [1, 4, 9, 19]
     assert np.isinf(subsampled_position_quantile(scores, groups, 0.96))  # 20 spots cannot give 0.96 (24 needed)
-
-
-def test_a_level_with_too_few_calibration_spots_gets_no_radius_and_says_why():
-    """Calibrated on 4 field spots: 0.5 and 0.8 have radii; 0.95 (19 spots needed) is empty, with the reason on every row."""
-    from plugins.gates.bounding_box import BoundingBoxGate
-    from tests.test_trust import components, scene
-
-    features, events = scene(n_positions=60)
-    groups = events["position_id"].to_numpy()
-    events["is_field"] = groups < 5
-    train, test = np.flatnonzero(groups != 0), np.flatnonzero(groups == 0)
-    settings = components(BoundingBoxGate())
-    settings.calibrate_on = "field"
-    result = LocalizationPipeline(settings).fit_predict(features, events, train, test)
-    p = result.predictions
-    assert p[col.radius("fixed", 0.95)].isna().all() and np.isfinite(p[col.radius("fixed", 0.8)]).all()
-    assert (p[col.RADIUS_NOTE] == "no radius at 0.95: its guarantee needs 19 calibration positions, 4 given").all()
-    calibration = result.split_diagnostics[0]["calibration"]
-    assert "exchangeable" in calibration["guarantee"] and "Dunn" in calibration["guarantee"]
-    # one set of n = 4 spots covers Beta(k, n + 1 - k), k = ceil((n + 1) level): at 0.8, Beta(4, 1), 5 % quantile 0.05 ** (1 / 4)
-    assert calibration["coverage_of_one_set"]["0.8"] == [round(0.05**0.25, 3), round(0.95**0.25, 3)]
-    assert set(calibration["coverage_of_one_set"]) == {"0.5", "0.8"}
 
 
 def test_coverage_by_condition_shows_where_radii_fail():

@@ -314,7 +314,8 @@ def test_image_source_field_renders_direct_path_delays(compose_cfg):
 
 
 def test_calibration_on_too_few_positions_for_a_level_warns(caplog):
-    """4 field playback spots support 0.5 and 0.8 for a new position, not 0.95 (19 needed): said in the log and the diagnostics."""
+    """4 field playback spots support 0.5 and 0.8 for a new position, not 0.95 (19 needed): said in the log, the diagnostics and
+    every row (no radius at 0.95, radius_note says why)."""
     features, events = scene(n_positions=60)
     groups = events["position_id"].to_numpy()
     events["is_field"] = groups < 5
@@ -327,6 +328,14 @@ def test_calibration_on_too_few_positions_for_a_level_warns(caplog):
     assert calibration["on"] == "field" and calibration["n_positions"] == 4
     assert calibration["unsupported_levels"] == ["0.95"] and calibration["positions_needed_by_level"]["0.95"] == 19
     assert "cannot support level(s) 0.95" in caplog.text
+    # 0.5 and 0.8 have radii; 0.95 (19 spots needed) is empty, with the reason on every row
+    p = result.predictions
+    assert p[col.radius("fixed", 0.95)].isna().all() and np.isfinite(p[col.radius("fixed", 0.8)]).all()
+    assert (p[col.RADIUS_NOTE] == "no radius at 0.95: its guarantee needs 19 calibration positions, 4 given").all()
+    assert "exchangeable" in calibration["guarantee"] and "Dunn" in calibration["guarantee"]
+    # one set of n = 4 spots covers Beta(k, n + 1 - k), k = ceil((n + 1) level): at 0.8, Beta(4, 1), 5 % quantile 0.05 ** (1 / 4)
+    assert calibration["coverage_of_one_set"]["0.8"] == [round(0.05**0.25, 3), round(0.95**0.25, 3)]
+    assert set(calibration["coverage_of_one_set"]) == {"0.5", "0.8"}
 
 
 # ------------------------------------------------------------------------------- measured-input uncertainty

@@ -346,7 +346,8 @@ class LocalizationPipeline:
             if col.TRUE_Z in events
             else np.column_stack([events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)[rows], np.full(rows.size, np.nan)])
         )
-        model_misfit = self._misfit_m(model_xy, features.iloc[rows])
+        model_misfit = self._misfit_m(features.iloc[rows], model_xy)
+        model_misfit = None if model_misfit is None else model_misfit[0]
         return TrainingSupport(self.c.trust).fit(
             features.iloc[rows][mcols],
             truth,
@@ -356,19 +357,17 @@ class LocalizationPipeline:
             model_error_m=None if model_misfit is None else error_2d_m(model_xy, truth),
         )
 
-    def _misfit_m(self, position_m: np.ndarray, features: pd.DataFrame) -> np.ndarray | None:
-        """(B,) how well 2-D positions explain the rows' GCC candidates (``candidate_misfit_m``), m; None without candidates."""
+    def _misfit_m(self, features: pd.DataFrame, *positions_m: np.ndarray) -> list[np.ndarray] | None:
+        """(B,) per set of 2-D positions: how well they explain the rows' GCC candidates (``candidate_misfit_m``), m.
+
+        The candidates, heights and speeds are read from ``features`` once for every set; None without candidates.
+        """
         candidates = pair_candidate_lags(features, self.c.site)
         if candidates is None or col.ENV_SPEED_OF_SOUND not in features:
             return None
-        return candidate_misfit_m(
-            position_m,
-            source_height_m(features, self.c.site),
-            self.c.site.mic_positions_m,
-            np.asarray(self.c.site.mic_pairs),
-            candidates,
-            features[col.ENV_SPEED_OF_SOUND].to_numpy(float),
-        )
+        height, speed = source_height_m(features, self.c.site), features[col.ENV_SPEED_OF_SOUND].to_numpy(float)
+        pairs = np.asarray(self.c.site.mic_pairs)
+        return [candidate_misfit_m(p, height, self.c.site.mic_positions_m, pairs, candidates, speed) for p in positions_m]
 
     def _cues(
         self,
@@ -380,12 +379,12 @@ class LocalizationPipeline:
         support: TrainingSupport | None,
     ) -> SupportCues:
         """``rows`` (``model_xy`` indexed like them) checked against the model's training support, once for every gate."""
+        at = features.iloc[rows]
         misfit = None
         if support is not None and support.handover_tolerance_m_ is not None:
-            solver_misfit = self._misfit_m(solver_xy[rows], features.iloc[rows])
-            model_misfit = self._misfit_m(model_xy, features.iloc[rows])
-            misfit = None if solver_misfit is None or model_misfit is None else (solver_misfit, model_misfit)
-        return support_cues(solver_xy[rows], model_xy, features.iloc[rows], features.iloc[rows][mcols], support, misfit)
+            both = self._misfit_m(at, solver_xy[rows], model_xy)
+            misfit = None if both is None else tuple(both)
+        return support_cues(solver_xy[rows], model_xy, at, at[mcols], support, misfit)
 
     def _decide(
         self, gate: Gate, rows: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, cues: SupportCues
@@ -746,14 +745,15 @@ class LocalizationPipeline:
         within a position violate.
         """
         sel = self.c.selective
+        unit = sel.get("unit", "position")
         gross = ~(oof_err <= float(sel["gross_m"]))
-        if sel.get("unit", "position") == "position":
+        if unit == "position":
             threshold, path = selective_threshold_by_position(oof_pred, gross, groups, float(sel["delta"]), float(sel["epsilon"]))
         else:
             threshold, path = selective_threshold(oof_pred, gross, float(sel["delta"]), float(sel["epsilon"]))
         placed = oof_pred <= threshold
         info = {
-            "unit": sel.get("unit", "position"),
+            "unit": unit,
             "threshold_m": threshold,
             "delta": float(sel["delta"]),
             "epsilon": float(sel["epsilon"]),

@@ -229,8 +229,8 @@ def selective_threshold_by_position(
         placed = score <= t
         placed_share = np.bincount(inverse, weights=weight * placed, minlength=n)
         gross_share = np.bincount(inverse, weights=weight * (placed & gross), minlength=n)
-        mean_loss = float(np.mean(gross_share - delta * placed_share + delta))
         z = gross_share - delta * placed_share + delta
+        mean_loss = float(np.mean(z))
         p_value = betting_p_value(z, delta, epsilon / len(candidates))
         path.append(
             {
