@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 from pathlib import Path
 
@@ -42,9 +43,10 @@ def playbacks(
     speed = speed_of_sound_m_s(thermometer - temperature_error_c, humidity)  # the air is what the thermometer misreads
     distance = np.sqrt(((source[:, None, :] - true_mics[None]) ** 2).sum(-1))
     arrival = distance / speed[:, None] + clocks_s[None, :] + (0 if drift is None else drift[None, :] * time_s[:, None])
-    tdoa = arrival - arrival[:, :1] + rng.normal(0, noise_s, arrival.shape) * (noise_s > 0)
-    tdoa[:, 0] = 0.0
-    return Playbacks(source, tdoa, thermometer, humidity, time_s, np.repeat(np.arange(len(spots)), per))
+    pairs = list(itertools.combinations(range(true_mics.shape[0]), 2))
+    first, second = np.array(pairs).T
+    tdoa = arrival[:, second] - arrival[:, first] + rng.normal(0, noise_s, (n, len(pairs))) * (noise_s > 0)
+    return Playbacks(source, tdoa, thermometer, humidity, time_s, np.repeat(np.arange(len(spots)), per), pairs)
 
 
 def array(n_mics: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -91,7 +93,7 @@ def test_a_wrong_gcc_peak_is_down_weighted():
     stated, true = array(6, 5)
     rng = np.random.default_rng(6)
     pb = playbacks(true, spots_in(rng, 10), np.zeros(6), 0.0, noise_s=2e-5)
-    pb.tdoa_s[[2, 7, 11], 3] += 0.004  # an echo picked instead of the direct path
+    pb.tdoa_s[[2, 7, 11], 3] += 0.004  # an echo picked instead of the direct path (pair 0-4)
     cal = calibrate_array(pb, Priors(stated, np.full(6, 2.0)), list("abcdef"))
     assert np.median(np.hypot(*(cal.mic_positions_m - true)[:, :2].T)) < 0.2
     assert cal.to_json()["n_outliers"] >= 3

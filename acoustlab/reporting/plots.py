@@ -330,7 +330,7 @@ def write_calibration_plot(calibration: Any, residuals: pd.DataFrame, spots_m: n
     calibration : acoustlab.toolkit.array_calibration.ArrayCalibration
         The calibration.
     residuals : pandas.DataFrame
-        ``residual_before_s, residual_after_s`` per playback and mic.
+        ``residual_before_s, residual_after_s`` per playback and mic pair.
     spots_m : numpy.ndarray
         (N, 3) playback positions, m.
     site : Site
@@ -360,7 +360,7 @@ def write_calibration_plot(calibration: Any, residuals: pd.DataFrame, spots_m: n
     hist.hist(np.clip(before[np.isfinite(before)], -limit, limit), bins=bins, alpha=0.5, label="stated array")
     hist.hist(np.clip(after[np.isfinite(after)], -limit, limit), bins=bins, alpha=0.5, label="calibrated")
     hist.set_xlabel("time-difference residual (ms)")
-    hist.set_ylabel("playback × mic")
+    hist.set_ylabel("playback × mic pair")
     hist.legend(fontsize=7)
     fig.tight_layout()
     return _save(fig, path)

@@ -74,13 +74,13 @@ def playbacks_from(
     humidity_pct: float,
     expected_tdoa_s: np.ndarray | None = None,
 ) -> Playbacks:
-    """The playbacks (events with a known ``x_m, y_m``) and their time differences to mic 0.
+    """The playbacks (events with a known ``x_m, y_m``) and the time differences of every mic pair.
 
-    Per mic, of the GCC candidates of pair (0, m) the one closest to the expected lag is taken
-    (the strongest peak may be an echo; the spot says where the direct path must be): the lag the
-    stated array predicts from the known spot, or ``expected_tdoa_s`` ((N, M), e.g. what a first
-    calibration predicts: ``calibrate_playbacks`` re-picks with it). ``z_m`` where given, else the
-    site's assumed source height.
+    Per pair, of its GCC candidates the one closest to the expected lag is taken (the strongest
+    peak may be an echo; the spot says where the direct path must be): the lag the stated array
+    predicts from the known spot, or the one from ``expected_tdoa_s`` ((N, M) t_m − t_0, e.g. what
+    a first calibration predicts: ``calibrate_playbacks`` re-picks with it). ``z_m`` where given,
+    else the site's assumed source height.
     """
     known = playback_rows(events)
     if known.sum() == 0:
@@ -98,14 +98,13 @@ def playbacks_from(
     expected = (
         (distance - distance[:, :1]) / speed_of_sound_m_s(temperature, humidity)[:, None] if expected_tdoa_s is None else expected_tdoa_s
     )
-    tdoa = np.full((len(ev), site.n_mics), np.nan)
-    tdoa[:, 0] = 0.0
-    for m in range(1, site.n_mics):
-        candidates = lags[:, site.mic_pairs.index((0, m))]
-        gap = np.where(np.isfinite(candidates), np.abs(candidates - expected[:, m : m + 1]), np.inf)
-        best = np.argmin(gap, axis=1)
-        tdoa[:, m] = np.where(np.isfinite(gap.min(axis=1)), candidates[np.arange(len(ev)), best], np.nan)
-    return Playbacks(source, tdoa, temperature, humidity, event_time_s(ev), ev[col.POSITION_ID].to_numpy())
+    pairs = list(site.mic_pairs)
+    first, second = np.array([i for i, _ in pairs]), np.array([j for _, j in pairs])
+    gap = np.abs(lags - (expected[:, second] - expected[:, first])[:, :, None])
+    gap = np.where(np.isfinite(gap), gap, np.inf)
+    best = np.take_along_axis(lags, np.argmin(gap, axis=2)[:, :, None], axis=2)[:, :, 0]
+    tdoa = np.where(np.isfinite(gap.min(axis=2)), best, np.nan)
+    return Playbacks(source, tdoa, temperature, humidity, event_time_s(ev), ev[col.POSITION_ID].to_numpy(), pairs)
 
 
 def calibrate_playbacks(
@@ -139,7 +138,10 @@ def _digest(body: dict[str, Any]) -> str:
 
 
 def write_calibration(path: Path, calibration: ArrayCalibration, site: Site, events: pd.DataFrame) -> str:
-    """Write ``calibration.json`` (atomically) and return its SHA-256; ``events`` are the playbacks' rows (ids for the residuals)."""
+    """Write ``calibration.json`` (atomically) and return its SHA-256; ``events`` are the playbacks' rows (ids for the residuals).
+
+    Each playback's residuals are per mic pair, in the order of the file's ``pairs``.
+    """
     body = {
         "format": FORMAT,
         "site": site.name,

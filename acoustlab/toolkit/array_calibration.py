@@ -3,18 +3,22 @@
 A playback n from the surveyed spot s_n at time t_n reaches mic m at
 τ_n + ‖s_n − p_m‖ / c_n + δ_m + ρ_m·t_n (τ_n the emission time, p_m the mic, c_n the speed of
 sound at the event's temperature plus the thermometer's offset ΔT, δ_m and ρ_m the recorder's clock
-offset and drift). The time differences to mic 0 remove τ_n:
+offset and drift). The time difference of a pair (i, j) removes τ_n:
 
-    Δ_{n,m} = (‖s_n − p_m‖ − ‖s_n − p_0‖) / c_n + (δ_m − δ_0) + (ρ_m − ρ_0)·t_n.
+    Δ_{n,ij} = (‖s_n − p_j‖ − ‖s_n − p_i‖) / c_n + (δ_j − δ_i) + (ρ_j − ρ_i)·t_n.
+
+Every pair measured is used, not only the pairs with mic 0: the GCC of two distant recorders often
+lacks the direct path among its peaks, and each mic's neighbours then still tie it down.
 
 Gauge: only differences of clocks are observable, so mic 0's clock is the reference (δ_0 = ρ_0 = 0).
 The mic positions need no gauge: the spots are surveyed in the site's frame.
 
 Every parameter has a prior: ΔT = 0 ± the thermometer's σ, clocks 0 ± σ, mic positions at the
 table's coordinates ± their stated GPS σ (horizontal). The priors enter as Gaussian residuals, the
-time differences as residuals in units of the timing noise σ_t with Huber weights (iteratively
-reweighted, k = ``HUBER_K``), minimised by ``scipy.optimize.least_squares``; σ_t is re-estimated
-from the residuals' MAD. Written here because no library fits this model; SciPy does the solving.
+time differences as residuals in units of the timing noise σ_t, iteratively reweighted (Huber,
+k = ``HUBER_K``, for the first pass from the stated array, then Cauchy, scale ``CAUCHY_K``, which
+gives a wrong GCC peak milliseconds off next to no weight where Huber's would still pull a mic), minimised by
+``scipy.optimize.least_squares``; σ_t is re-estimated from the residuals' MAD. Written here because no library fits this model; SciPy does the solving.
 
 What the playbacks cannot determine stays at its prior and is said plainly (``ArrayCalibration.not_identified``):
 structurally (one spot cannot separate a clock from a position; positions need 3 spots not on a
@@ -40,6 +44,8 @@ log = logging.getLogger(__name__)
 IDENTIFIED_RATIO = 0.5
 #: Huber's constant, in units of the timing noise: larger residuals are down-weighted (a wrong GCC peak, an echo).
 HUBER_K = 2.5
+#: Cauchy's scale, in units of the timing noise (95 % efficiency under Gaussian noise).
+CAUCHY_K = 2.385
 #: A residual beyond this many timing-noise units counts as an outlier in the report.
 OUTLIER_K = 5.0
 #: What can be estimated.
@@ -55,13 +61,15 @@ class Playbacks:
     source_m : numpy.ndarray
         (N, 3) surveyed playback positions, m.
     tdoa_s : numpy.ndarray
-        (N, M) measured arrival-time differences t_m − t_0, s (column 0 is 0; NaN where not measured).
+        (N, P) measured arrival-time differences t_j − t_i of ``pairs``, s (NaN where not measured).
     temperature_c, relative_humidity_pct : numpy.ndarray
         (N,) the thermometer's reading and the humidity at each playback.
     time_s : numpy.ndarray
         (N,) when each playback was made, s from any fixed origin (drift is per second of it).
     spot : numpy.ndarray
         (N,) the spot (position id) of each playback.
+    pairs : list of tuple of int
+        (P,) the mic pairs (i, j), i < j, of the columns of ``tdoa_s``.
     """
 
     source_m: np.ndarray
@@ -70,10 +78,37 @@ class Playbacks:
     relative_humidity_pct: np.ndarray
     time_s: np.ndarray
     spot: np.ndarray
+    pairs: list[tuple[int, int]]
+
+    def __post_init__(self) -> None:
+        self.pairs = [(int(i), int(j)) for i, j in self.pairs]
+        if self.tdoa_s.shape[1:] != (len(self.pairs),):
+            raise DataError(f"calibration: {self.tdoa_s.shape[1:]} time-difference columns for {len(self.pairs)} mic pairs")
 
     @property
     def n_spots(self) -> int:
         return int(np.unique(self.spot).size)
+
+    def subset(self, rows: np.ndarray) -> Playbacks:
+        """The playbacks of ``rows`` (a boolean mask or indices)."""
+        return Playbacks(
+            self.source_m[rows],
+            self.tdoa_s[rows],
+            self.temperature_c[rows],
+            self.relative_humidity_pct[rows],
+            self.time_s[rows],
+            self.spot[rows],
+            self.pairs,
+        )
+
+    def reference_tdoa_s(self, n_mics: int) -> np.ndarray:
+        """(N, M) time differences t_m − t_0 from the pairs (0, m) (column 0 is 0; NaN where that pair is not measured), s."""
+        out = np.full((len(self.source_m), n_mics), np.nan)
+        out[:, 0] = 0.0
+        for k, (i, j) in enumerate(self.pairs):
+            if i == 0:
+                out[:, j] = self.tdoa_s[:, k]
+        return out
 
 
 @dataclass
@@ -119,8 +154,10 @@ class ArrayCalibration:
     prior_sd: np.ndarray
     identified: dict[str, bool]
     not_identified: dict[str, str]
+    #: (N, P) predicted − measured time difference of each playback and pair, before and after, s
     residual_before_s: np.ndarray
     residual_after_s: np.ndarray
+    pairs: list[tuple[int, int]]
     spot: np.ndarray
     n_spots: int
     priors: Priors
@@ -139,7 +176,7 @@ class ArrayCalibration:
         return float(self.priors.position_sigma_m[int(name.split("_")[1])])
 
     def predicted_tdoa_s(self, playbacks: Playbacks) -> np.ndarray:
-        """(N, M) the time differences t_m − t_0 this calibrated array predicts for the playbacks, s."""
+        """(N, M) the time differences t_m − t_0 this calibrated array predicts for the playbacks, s (a pair (i, j): column j − column i)."""
         speed = speed_of_sound_m_s(playbacks.temperature_c + self.temperature_offset_c, playbacks.relative_humidity_pct)
         distance = np.sqrt(((playbacks.source_m[:, None, :] - self.mic_positions_m[None]) ** 2).sum(-1))
         clock = self.clock_offset_s[None, :] + self.clock_drift[None, :] * np.nan_to_num(playbacks.time_s - self.drift_origin_s)[:, None]
@@ -172,6 +209,7 @@ class ArrayCalibration:
             "prior_sd": self.prior_sd.tolist(),
             "identified": self.identified,
             "not_identified": self.not_identified,
+            "pairs": [list(pair) for pair in self.pairs],
             "n_playbacks": int(len(self.spot)),
             "n_spots": self.n_spots,
             "residual_median_abs_before_s": median_abs(self.residual_before_s),
@@ -231,7 +269,9 @@ class _Model:
             sd += [float(priors.position_sigma_m[m])] * 2
         self.names, self.sd = names, np.asarray(sd, dtype=float)
         self.t = np.nan_to_num(playbacks.time_s - drift_origin_s)
-        self.measured = np.isfinite(playbacks.tdoa_s[:, 1:])
+        self.first = np.array([i for i, _ in playbacks.pairs], dtype=int)
+        self.second = np.array([j for _, j in playbacks.pairs], dtype=int)
+        self.measured = np.isfinite(playbacks.tdoa_s)
         self.dcdt = _dc_dt(playbacks.temperature_c, playbacks.relative_humidity_pct)
 
     def unpack(self, u: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
@@ -246,38 +286,35 @@ class _Model:
         return float(theta.get("temperature_offset_c", 0.0)), clocks, drift, mics
 
     def predicted_s(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(N, P) predicted pair time differences, and the (N, M) distances, (N, M, 3) spot − mic vectors and (N,) speeds."""
         offset, clocks, drift, mics = self.unpack(u)
         speed = speed_of_sound_m_s(self.pb.temperature_c + offset, self.pb.relative_humidity_pct)
         diff = self.pb.source_m[:, None, :] - mics[None]
         dist = np.sqrt((diff**2).sum(-1))
-        pred = (dist[:, 1:] - dist[:, :1]) / speed[:, None] + clocks[1:] + drift[1:] * self.t[:, None]
-        return pred, dist, diff, speed
+        arrival = dist / speed[:, None] + clocks[None, :] + drift[None, :] * self.t[:, None]
+        return arrival[:, self.second] - arrival[:, self.first], dist, diff, speed
 
     def residuals(self, u: np.ndarray, sigma_t: float, weights: np.ndarray) -> np.ndarray:
         pred, *_ = self.predicted_s(u)
-        r = (pred - self.pb.tdoa_s[:, 1:])[self.measured] / sigma_t * np.sqrt(weights)
+        r = (pred - self.pb.tdoa_s)[self.measured] / sigma_t * np.sqrt(weights)
         return np.concatenate([r, u])
 
     def jacobian(self, u: np.ndarray, sigma_t: float, weights: np.ndarray) -> np.ndarray:
         _, dist, diff, speed = self.predicted_s(u)
-        n, mm = self.measured.shape
+        # d arrival_m / d θ for each mic m, then pair (i, j) = column j − column i
         cols = []
         for name in self.names:
-            d = np.zeros((n, mm))
+            d_arrival = np.zeros(dist.shape)
             if name == "temperature_offset_c":
-                d = -(dist[:, 1:] - dist[:, :1]) / speed[:, None] ** 2 * self.dcdt[:, None]
+                d_arrival = -dist / speed[:, None] ** 2 * self.dcdt[:, None]
             elif name.startswith("clock_"):
-                d[:, int(name.split("_")[1]) - 1] = 1.0
+                d_arrival[:, int(name.split("_")[1])] = 1.0
             elif name.startswith("drift_"):
-                d[:, int(name.split("_")[1]) - 1] = self.t
+                d_arrival[:, int(name.split("_")[1])] = self.t
             else:
                 m, axis = int(name.split("_")[1]), 0 if name.split("_")[2] == "x" else 1
-                unit = -diff[:, m, axis] / dist[:, m] / speed  # d‖s − p_m‖/dp_m / c
-                if m == 0:
-                    d[:] = -unit[:, None]
-                else:
-                    d[:, m - 1] = unit
-            cols.append(d[self.measured])
+                d_arrival[:, m] = -diff[:, m, axis] / dist[:, m] / speed  # d‖s − p_m‖/dp_m / c
+            cols.append((d_arrival[:, self.second] - d_arrival[:, self.first])[self.measured])
         data = np.stack(cols, axis=1) * self.sd / sigma_t * np.sqrt(weights)[:, None] if cols else np.zeros((self.measured.sum(), 0))
         return np.vstack([data, np.eye(len(self.names))])
 
@@ -319,8 +356,7 @@ def calibrate_array(
     unknown = set(estimate) - set(PARAMETER_KINDS)
     if unknown:
         raise DataError(f"calibration: cannot estimate {sorted(unknown)}; choose from {list(PARAMETER_KINDS)}")
-    measured = np.isfinite(playbacks.tdoa_s[:, 1:]).any(axis=1)
-    if not measured.any():
+    if not np.isfinite(playbacks.tdoa_s).any():
         raise DataError("calibration: no playback has a measured time difference on 2 or more mics")
     not_identified = _structural_limits(playbacks, priors, set(estimate), min_drift_span_s)
     kinds = set(estimate) - set(not_identified)
@@ -330,12 +366,14 @@ def calibrate_array(
     before, *_ = model.predicted_s(u)
     weights = np.ones(int(model.measured.sum()))
     sigma_t = float(timing_sigma_s)
-    for _ in range(max(1, n_reweight)):
+    for k in range(max(1, n_reweight)):
         fit = least_squares(model.residuals, u, jac=model.jacobian, args=(sigma_t, weights), method="trf", x_scale="jac")
         u = fit.x
-        r = (model.predicted_s(u)[0] - playbacks.tdoa_s[:, 1:])[model.measured]
+        r = (model.predicted_s(u)[0] - playbacks.tdoa_s)[model.measured]
         sigma_t = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-6)
-        weights = np.minimum(1.0, HUBER_K / np.maximum(np.abs(r) / sigma_t, 1e-12))
+        z = np.abs(r) / sigma_t
+        # Huber until the fit has left the stated array, then Cauchy: a wrong peak ms off gets next to no weight
+        weights = np.minimum(1.0, HUBER_K / np.maximum(z, 1e-12)) if k == 0 else 1.0 / (1.0 + (z / CAUCHY_K) ** 2)
     jac = model.jacobian(u, sigma_t, weights)
     cov_u = np.linalg.pinv(jac.T @ jac)
     covariance = cov_u * np.outer(model.sd, model.sd)
@@ -364,8 +402,9 @@ def calibrate_array(
         prior_sd=model.sd,
         identified=identified,
         not_identified=not_identified,
-        residual_before_s=before - playbacks.tdoa_s[:, 1:],
-        residual_after_s=after - playbacks.tdoa_s[:, 1:],
+        residual_before_s=before - playbacks.tdoa_s,
+        residual_after_s=after - playbacks.tdoa_s,
+        pairs=playbacks.pairs,
         spot=np.asarray(playbacks.spot),
         n_spots=playbacks.n_spots,
         priors=priors,

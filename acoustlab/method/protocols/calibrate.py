@@ -119,11 +119,11 @@ class CalibrateProtocol:
         calibrated = np.full(len(playbacks.spot), np.nan)
         for held in folds:
             test = np.isin(playbacks.spot, held)
-            train = _subset(playbacks, ~test)
+            train = playbacks.subset(~test)
             cal = calibrate_array(train, priors, mic_ids, self.estimate, min_drift_span_s=self.min_drift_span_s, n_reweight=3)
-            stated[test] = _solve_errors(_subset(playbacks, test), site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
+            stated[test] = _solve_errors(playbacks.subset(test), site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
             clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(playbacks.time_s[test] - cal.drift_origin_s)[:, None]
-            calibrated[test] = _solve_errors(_subset(playbacks, test), cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
+            calibrated[test] = _solve_errors(playbacks.subset(test), cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
 
         def summary(e: np.ndarray) -> dict[str, float]:
             e = np.where(np.isfinite(e), e, np.inf)
@@ -132,16 +132,16 @@ class CalibrateProtocol:
         return {"n_playbacks": int(len(stated)), "n_spots": int(spots.size), "stated": summary(stated), "calibrated": summary(calibrated)}
 
 
-def _subset(p: Playbacks, rows: np.ndarray) -> Playbacks:
-    return Playbacks(p.source_m[rows], p.tdoa_s[rows], p.temperature_c[rows], p.relative_humidity_pct[rows], p.time_s[rows], p.spot[rows])
-
-
 def _solve_errors(
     p: Playbacks, mics_m: np.ndarray, clock_s: np.ndarray, temperature_offset_c: float, site: Site, solver: Any
 ) -> np.ndarray:
-    """(N,) 2-D errors of the solver's fixes of playbacks ``p`` with the given array, clocks ((N, M) or (M,)) and thermometer offset, m."""
-    clock = np.broadcast_to(clock_s, p.tdoa_s.shape)
-    tdoa = p.tdoa_s - (clock - clock[:, :1])
+    """(N,) 2-D errors of the solver's fixes of playbacks ``p`` with the given array, clocks ((N, M) or (M,)) and thermometer offset, m.
+
+    The solver gets the time differences to mic 0 (the pairs (0, m)), as it would from a detection.
+    """
+    reference = p.reference_tdoa_s(site.n_mics)
+    clock = np.broadcast_to(clock_s, reference.shape)
+    tdoa = reference - (clock - clock[:, :1])
     speed = speed_of_sound_m_s(p.temperature_c + temperature_offset_c, p.relative_humidity_pct)
     result = solver.solve(
         SolverInputs(
@@ -152,11 +152,10 @@ def _solve_errors(
 
 
 def residual_rows(calibration: ArrayCalibration, events: pd.DataFrame) -> pd.DataFrame:
-    """One row per playback and mic: its time difference's residual before and after calibration, s (for the plot)."""
+    """One row per playback and mic pair: its time difference's residual before and after calibration, s (for the plot)."""
+    names = [f"{calibration.mic_ids[i]}-{calibration.mic_ids[j]}" for i, j in calibration.pairs]
     rows = []
     for k, (eid, spot) in enumerate(zip(events[col.EVENT_ID], calibration.spot, strict=True)):
-        for m in range(1, calibration.residual_before_s.shape[1] + 1):
-            rows.append(
-                (eid, spot, calibration.mic_ids[m], calibration.residual_before_s[k, m - 1], calibration.residual_after_s[k, m - 1])
-            )
-    return pd.DataFrame(rows, columns=[col.EVENT_ID, col.POSITION_ID, "mic_id", "residual_before_s", "residual_after_s"])
+        for p, name in enumerate(names):
+            rows.append((eid, spot, name, calibration.residual_before_s[k, p], calibration.residual_after_s[k, p]))
+    return pd.DataFrame(rows, columns=[col.EVENT_ID, col.POSITION_ID, "mic_pair", "residual_before_s", "residual_after_s"])
