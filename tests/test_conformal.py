@@ -88,6 +88,27 @@ def test_binned_gdop_scaled_and_gdop_only_cover_on_exchangeable_data():
         assert 0.78 <= np.mean(hits[name]) <= 0.84, name
 
 
+def test_region_binning_covers_inside_and_far_where_one_quantile_cannot():
+    # errors 6x larger far outside the hull than inside it, GDOP uninformative: one quantile over-covers inside, under-covers far
+    rng = np.random.default_rng(1)
+    reps, n, m = 300, 300, 150
+    hits = {"none": {0: [], 2: []}, "region": {0: [], 2: []}}
+    for _ in range(reps):
+        hull = rng.choice([-0.0, 0.3, 1.0], size=n + m, p=[0.6, 0.2, 0.2])
+        err = np.where(hull > 0.5, 6.0, 1.0) * rng.exponential(size=n + m)
+        pred, g = np.ones(n + m), np.ones(n + m)
+        for binning in hits:
+            scorer = SplitConformal("none", binning=binning).fit(err[:n], pred[:n], g[:n], [0.8], hull_distance=hull[:n])
+            covered = err[n:] <= scorer.radius(pred[n:], g[n:], hull_distance=hull[n:])[:, 0]
+            for region, rows in ((0, hull[n:] <= 0), (2, hull[n:] > 0.5)):
+                hits[binning][region].append(covered[rows].mean())
+    assert 0.78 <= np.mean(hits["region"][0]) <= 0.84 and 0.78 <= np.mean(hits["region"][2]) <= 0.86
+    assert np.mean(hits["none"][2]) < 0.6 and np.mean(hits["none"][0]) > 0.9
+    assert SplitConformal(binning="region").needs_hull_distance and not SplitConformal(binning="gdop").needs_hull_distance
+    with pytest.raises(ValueError, match="hull_distance"):
+        SplitConformal(binning="region").fit(np.ones(9), np.ones(9), np.ones(9), [0.8])
+
+
 @pytest.mark.parametrize("normaliser", ["none", "gdop", "predicted_error"])
 @pytest.mark.parametrize("binning", ["none", "gdop"])
 def test_same_intervals_as_crepes(normaliser, binning):

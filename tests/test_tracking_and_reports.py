@@ -141,7 +141,8 @@ def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     gate = errors[errors["method"] == "gate"]["p95 (m)"].tolist()
     assert gate == pytest.approx([m1["errors"]["gate"]["p95"], m2["errors"]["gate"]["p95"]])
     coverage = report.coverage_rows(runs)
-    assert set(coverage["scorer"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "cqr"}
+    assert set(coverage["scorer"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "gdop_by_region", "cqr"}
+    assert m2["coverage"]["gdop_by_region"]["0.95"] > 0.5  # binned by region inside the pipeline, end to end
     row = coverage[coverage["scorer"] == "gdop_scaled"].iloc[-1]  # run b (runs in directory order: a, then b)
     assert row["coverage@0.8 (share)"] == pytest.approx(m2["coverage"]["gdop_scaled"]["0.8"])
     md = (tmp_path / "rep" / "report.md").read_text()
@@ -153,7 +154,13 @@ def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     assert ("tie on the gated p95 error" if same else "Smallest gated p95 error: ") in md
     assert not re.search(r"\bnan\b", md.split("## Plots")[0])  # a conclusion, no bare nan
     assert "> 5 m (%)" in md and "p95 (m)" in md
-    for png in ("sweep_error_cdf.png", "sweep_coverage_calibration.png", "runs/0/site_map.png", "runs/1/error_cdf.png"):
+    for png in (
+        "sweep_error_cdf.png",
+        "sweep_coverage_calibration.png",
+        "sweep_coverage_by_condition.png",
+        "runs/0/site_map.png",
+        "runs/1/error_cdf.png",
+    ):
         assert (tmp_path / "rep" / png).stat().st_size > 1000, png
     # the same through the console entry point: acoustlab report ...
     proc = subprocess.run(

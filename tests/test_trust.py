@@ -336,6 +336,19 @@ def test_calibration_on_too_few_positions_for_a_level_warns(caplog):
     # one set of n = 4 spots covers Beta(k, n + 1 - k), k = ceil((n + 1) level): at 0.8, Beta(4, 1), 5 % quantile 0.05 ** (1 / 4)
     assert calibration["coverage_of_one_set"]["0.8"] == [round(0.05**0.25, 3), round(0.95**0.25, 3)]
     assert set(calibration["coverage_of_one_set"]) == {"0.5", "0.8"}
+    assert calibration["not_guaranteed_levels"] == []
+    # asked for anyway: the simulation's 0.95 radius scaled by field/simulation at 0.8, at least the 0.8 radius, labelled
+    settings.unsupported_levels = "rescaled"
+    rescaled = LocalizationPipeline(settings).fit_predict(features, events, train, test)
+    again = rescaled.split_diagnostics[0]["calibration"]
+    assert again["not_guaranteed_levels"] == ["0.95"] and "not guaranteed" in again["not_guaranteed_method"]
+    q = rescaled.predictions
+    np.testing.assert_array_equal(q[col.radius("fixed", 0.8)], p[col.radius("fixed", 0.8)])  # guaranteed levels untouched
+    assert (q[col.radius("fixed", 0.95)] >= q[col.radius("fixed", 0.8)]).all() and np.isfinite(q[col.radius("fixed", 0.95)]).all()
+    assert (
+        q[col.RADIUS_NOTE]
+        == "radius at 0.95 not guaranteed (rescaled from the simulation's): a guarantee needs 19 calibration positions, 4 given"
+    ).all()
 
 
 # ------------------------------------------------------------------------------- measured-input uncertainty

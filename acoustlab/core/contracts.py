@@ -28,6 +28,8 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
     # conformal scorers: "event" or "position" where the scorer can calibrate over source positions (set to "position"
     # when calibrating on field spots); None: it cannot
     "calibration_unit": None,
+    # conformal scorers: fit and radius take ``hull_distance`` (the estimate's distance outside the mics' hull, array extents)
+    "needs_hull_distance": False,
     # evaluation protocols: needs field recordings (checked in the preflight)
     "needs_field": False,
     # evaluation protocols: has ground truth and writes error metrics (False: positions only, protocol=localize)

@@ -43,6 +43,11 @@ from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
 from acoustlab.toolkit.tdoa import candidate_misfit_m
 
 log = logging.getLogger(__name__)
+#: How a radius is made for a level the field positions cannot guarantee (``conformal.unsupported_levels=rescaled``).
+NOT_GUARANTEED_METHOD = (
+    "not guaranteed: the simulation's radius at this level times the ratio of the field's radius to the simulation's at the "
+    "highest level the field positions support (the field sets the scale, the simulation the shape of the tail)"
+)
 #: ``calibrate_on="auto"`` calibrates on field rows only where they span at least this many positions
 MIN_FIELD_CALIBRATION_POSITIONS = 3
 #: What a radius guarantees, in one sentence each (metrics.json ``calibration.guarantee``; docs/method.md).
@@ -84,6 +89,8 @@ class Components:
     ellipse: bool = False
     #: which training rows calibrate conformal and selective localization: "auto", "all" or "field"
     calibrate_on: str = "auto"
+    #: a level the field calibration positions cannot guarantee: "empty" (no radius) or "rescaled" (labelled "not guaranteed")
+    unsupported_levels: str = "empty"
     #: the error model also sees the gate's context (solver–model distance, substitution, GDOP and range at the estimate)
     error_model_gate_cues: bool = True
     #: the run's seed (which whole positions a model with its own row limit fits on)
@@ -215,6 +222,13 @@ class CalibrationErrors:
     rows: np.ndarray
     #: the error model's inputs on the training events
     x_error: pd.DataFrame
+
+
+def hull_distance_extent(site: Site, position_m: np.ndarray) -> np.ndarray:
+    """(B,) each position's distance outside the mics' hull in units of the array extent (0 inside; NaN without a position)."""
+    polygon, extent = source_region(site.mic_positions_m, 1.0)
+    distance = distance_to_polygon_m(np.nan_to_num(position_m[:, :2]), polygon) / extent
+    return np.where(np.isfinite(position_m[:, :2]).all(axis=1), distance, np.nan)
 
 
 @dataclass
@@ -569,10 +583,40 @@ class LocalizationPipeline:
                 else:  # a scorer with fit_predict_quantiles only: refitted (deterministically) at every predict
                     fitted.quantile_training = (x_fit, error_fit)
             else:
-                fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, groups=positions)
+                region = self._region(scorer, cal.gate.position_m[rows])
+                fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, groups=positions, **region)
+        if fitted.calibration.get("not_guaranteed_levels"):
+            self._fit_simulation_scorers(s, cal, oof_pred, fitted)
         fit_rows = self._error_fit_rows(s, cal, np.arange(s.train.size), self.c.error_model)
         fitted.error_model = clone_for_rows(self.c.error_model, fit_rows.size).fit(cal.x_error.iloc[fit_rows], cal.error[fit_rows])
         fitted.oof_predicted = oof_pred
+
+    def _fit_simulation_scorers(self, s: SplitData, cal: CalibrationErrors, oof_pred: np.ndarray, fitted: FittedMethod) -> None:
+        """The scorers calibrated on the simulated training rows, for ``unsupported_levels=rescaled`` (``FittedMethod._add_radii``).
+
+        The field spots set the scale (the ratio of the field's radius to the simulation's at the
+        highest level they support), the simulation the shape of the tail beyond it: a radius for a
+        level the spots are too few to guarantee, labelled "not guaranteed".
+        """
+        rows = cal.finite & ~cal.domain
+        positions = s.groups[s.train][rows]
+        if np.unique(positions).size < max(positions_needed(level) for level in self.c.levels):
+            log.warning("conformal.unsupported_levels=rescaled: too few simulated positions to rescale; those radii stay empty")
+            return
+        for name, configured in self.c.scorers.items():
+            if declared(configured, "needs_quantiles"):
+                continue  # a quantile scorer's tail is its own model's; not rescaled
+            scorer = clone(configured, safe=False)
+            region = self._region(scorer, cal.gate.position_m[rows])
+            fitted.simulation_scorers[name] = scorer.fit(
+                cal.error[rows], oof_pred[rows], cal.gdop[rows], self.c.levels, groups=positions, **region
+            )
+
+    def _region(self, scorer: Any, position_m: np.ndarray) -> dict[str, np.ndarray]:
+        """``{"hull_distance": (B,)}`` for a scorer that bins by region: each estimate's distance outside the mics' hull, array extents."""
+        if not declared(scorer, "needs_hull_distance"):
+            return {}
+        return {"hull_distance": hull_distance_extent(self.c.site, position_m)}
 
     def _input_sigma(self, position_m: np.ndarray, features: pd.DataFrame, events: pd.DataFrame, calibrated_on_field: bool) -> np.ndarray:
         """(B,) per-axis position error (m) the stated input errors cause at each field detection; 0 where none applies.
@@ -656,14 +700,16 @@ class LocalizationPipeline:
         needed = {col.level_key(level): positions_needed(level) for level in self.c.levels}
         unsupported = [level for level, n in needed.items() if n_positions < n]
         on = "field" if domain.sum() < domain.size else "all"
+        rescaled = unsupported if on == "field" and self.c.unsupported_levels == "rescaled" else []
         if unsupported:
             log.warning(
                 "conformal calibration on %d %s positions cannot support level(s) %s for a new position (they need %s positions); "
-                "those radii are left empty (radius_note says why)",
+                "those radii are %s",
                 n_positions,
                 "field" if on == "field" else "training",
                 ", ".join(unsupported),
                 ", ".join(str(needed[lv]) for lv in unsupported),
+                "rescaled from the simulation's and labelled not guaranteed" if rescaled else "left empty (radius_note says why)",
             )
         return {
             "on": on,
@@ -671,6 +717,9 @@ class LocalizationPipeline:
             "n_positions": n_positions,
             "positions_needed_by_level": needed,
             "unsupported_levels": unsupported,
+            # radii given anyway (conformal.unsupported_levels=rescaled): no guarantee, and labelled so
+            "not_guaranteed_levels": rescaled,
+            "not_guaranteed_method": NOT_GUARANTEED_METHOD if rescaled else None,
             "guarantee": GUARANTEE_FIELD if on == "field" else GUARANTEE_SIMULATION,
             # what one calibration set of this many positions gives: coverage ~ Beta(k, n + 1 − k), k = ⌈(n + 1)·level⌉
             "coverage_of_one_set": {
@@ -802,6 +851,8 @@ class FittedMethod:
     extra_gates: dict[str, Gate] = field(default_factory=dict)
     #: (threshold_m, diagnostics) of selective localization, or None
     selective: tuple[float, dict[str, Any]] | None = None
+    #: scorers calibrated on the simulated training rows (``conformal.unsupported_levels=rescaled``), by name
+    simulation_scorers: dict[str, ConformalScorer] = field(default_factory=dict)
     #: (error_xy, position, predicted error, source height) of the calibration events, for ellipses
     ellipse_calibration: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
@@ -885,8 +936,7 @@ class FittedMethod:
             out[col.CRB] = crb
         # where coverage is reported by condition (metrics.coverage_by_condition): the true source's distance outside the
         # mics' hull in units of the array extent (0 inside; NaN without truth) and the event's SNR where known
-        polygon, extent = source_region(self.pipeline.c.site.mic_positions_m, 1.0)
-        out[col.HULL_DISTANCE] = np.where(np.isfinite(truth).all(1), distance_to_polygon_m(np.nan_to_num(truth), polygon) / extent, np.nan)
+        out[col.HULL_DISTANCE] = hull_distance_extent(self.pipeline.c.site, truth)
         if col.SNR in events:
             out[col.SNR] = events[col.SNR].to_numpy(float)
         for method in col.ESTIMATORS:
@@ -926,21 +976,50 @@ class FittedMethod:
             elif declared(scorer, "needs_quantiles") and self.quantile_training is not None:
                 x_fit, error_fit = self.quantile_training
                 quantiles = scorer.fit_predict_quantiles(x_fit, error_fit, t.x_error, c.levels)
+            region = self.pipeline._region(scorer, t.trusted.decision.position_m)
             if quantiles is None:
-                radii = scorer.radius(predicted, t.gdop)
+                radii = scorer.radius(predicted, t.gdop, **region)
             else:
                 radii = scorer.radius(predicted, t.gdop, quantiles=np.maximum(quantiles, self.floor))
+            radii = self._rescale_unsupported(name, radii, predicted, t.gdop, region)
             radii = np.sqrt(radii**2 + np.nan_to_num(allowance) ** 2)  # independent error sources add in quadrature
             for k, level in enumerate(c.levels):
-                unsupported = col.level_key(level) in self.calibration.get("unsupported_levels", [])
-                # too few calibration positions for a guarantee at this level: no radius (an infinite one says nothing)
-                out[col.radius(name, level)] = np.nan if unsupported else radii[:, k]
+                out[col.radius(name, level)] = radii[:, k]
+        needed, given = self.calibration.get("positions_needed_by_level", {}), self.calibration.get("n_positions")
         notes = [
-            f"no radius at {level}: its guarantee needs {self.calibration['positions_needed_by_level'][level]} calibration positions, "
-            f"{self.calibration['n_positions']} given"
+            f"radius at {level} not guaranteed (rescaled from the simulation's): a guarantee needs {needed[level]} calibration positions, {given} given"
+            if level in self.calibration.get("not_guaranteed_levels", []) and self.simulation_scorers
+            else f"no radius at {level}: its guarantee needs {needed[level]} calibration positions, {given} given"
             for level in self.calibration.get("unsupported_levels", [])
         ]
         out[col.RADIUS_NOTE] = "; ".join(notes)
+
+    def _rescale_unsupported(
+        self, name: str, radii: np.ndarray, predicted: np.ndarray, gdop: np.ndarray, region: dict[str, np.ndarray]
+    ) -> np.ndarray:
+        """(B, L) radii with the levels the calibration cannot guarantee empty (NaN), or rescaled from the simulation's.
+
+        Too few calibration positions for a guarantee at a level: no radius (an infinite one says
+        nothing), unless ``conformal.unsupported_levels=rescaled`` (``NOT_GUARANTEED_METHOD``).
+        """
+        keys = [col.level_key(level) for level in self.pipeline.c.levels]
+        unsupported = np.array([key in self.calibration.get("unsupported_levels", []) for key in keys])
+        if not unsupported.any():
+            return radii
+        out = radii.copy()
+        out[:, unsupported] = np.nan
+        simulation = self.simulation_scorers.get(name)
+        if simulation is None or not self.calibration.get("not_guaranteed_levels"):
+            return out
+        sim = simulation.radius(predicted, gdop, **region)
+        supported = np.flatnonzero(~unsupported)
+        if supported.size:  # the field's scale at its highest supported level
+            top = supported[np.argmax(np.asarray(self.pipeline.c.levels)[supported])]
+            ratio = np.where(sim[:, top] > 0, radii[:, top] / np.where(sim[:, top] > 0, sim[:, top], 1.0), 1.0)
+            out[:, unsupported] = np.maximum(sim[:, unsupported] * ratio[:, None], radii[:, top : top + 1])
+        else:
+            out[:, unsupported] = sim[:, unsupported]
+        return out
 
     def _add_ellipses(self, out: pd.DataFrame, position: np.ndarray, predicted: np.ndarray, features: pd.DataFrame) -> None:
         """Ellipse columns ``ellipse__<level>__a_m|b_m|angle_deg``: shape from the TDOA geometry, size from conformal on the calibration events."""

@@ -89,6 +89,49 @@ def coverage_calibration(ax: plt.Axes, coverage_by_label: dict[str, dict[float, 
     ax.legend(loc="upper left", fontsize=8)
 
 
+def coverage_by_condition_plot(by_run: dict[str, dict[str, list[dict]]], path: Path, scorer: str | None = None) -> Path:
+    """Small multiples of where the radii fail: a row per condition (GDOP, hull distance, SNR), a column per level.
+
+    Each panel: coverage per detection against the condition's bin, one line per run, the nominal
+    level dashed; bins of fewer than 20 detections hollow. ``by_run``: label → ``metrics.json``'s
+    ``coverage_by_condition``; ``scorer``: whose radii (default ``gdop_scaled`` where present, else the first).
+    """
+    conditions = list(dict.fromkeys(c for m in by_run.values() for c in m))
+    first = next(entry for m in by_run.values() for rows in m.values() for entry in rows)
+    keys = [k for k in first if "@" in k]
+    if scorer is None:
+        names = list(dict.fromkeys(k.split("@")[0] for k in keys))
+        scorer = "gdop_scaled" if "gdop_scaled" in names else names[0]
+    levels = [k.split("@")[1] for k in keys if k.split("@")[0] == scorer]
+    fig, axes = plt.subplots(len(conditions), len(levels), figsize=(3.2 * len(levels), 2.6 * len(conditions)), squeeze=False)
+    styles = ("-", "--", ":", "-.")
+    for row, condition in enumerate(conditions):
+        # the bins any run has, by their lower edge ("(low, high]"), so every run's point of a bin is at one x
+        bins = sorted({e["bin"] for m in by_run.values() for e in m.get(condition, [])}, key=lambda b: float(b[1:].split(",")[0]))
+        for column, level in enumerate(levels):
+            ax = axes[row, column]
+            for i, (label, metrics) in enumerate(by_run.items()):
+                rows = metrics.get(condition, [])
+                x = np.array([bins.index(entry["bin"]) for entry in rows])
+                y = np.array([entry.get(f"{scorer}@{level}", {}).get("detections", np.nan) for entry in rows])
+                few = np.array([entry.get("too_few", False) for entry in rows], dtype=bool)
+                line = ax.plot(x, y, ls=styles[i % len(styles)], label=label)[0]
+                ax.scatter(x[~few], y[~few], color=line.get_color(), s=14)
+                ax.scatter(x[few], y[few], facecolor="none", edgecolor=line.get_color(), s=14)
+            ax.set_xticks(np.arange(len(bins)), bins, fontsize=6, rotation=30)
+            ax.axhline(float(level), color="0.5", ls="--", lw=1)
+            ax.set_ylim(0, 1.02)
+            ax.grid(True, alpha=0.3)
+            if row == 0:
+                ax.set_title(f"{scorer} at {level}", fontsize=8)
+            if column == 0:
+                ax.set_ylabel(f"coverage by {condition}", fontsize=8)
+    axes[0, 0].legend(fontsize=6, loc="lower left")
+    fig.suptitle("where the radii fail (hollow: fewer than 20 detections)", fontsize=9)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def predicted_vs_actual(ax: plt.Axes, predicted_m: np.ndarray, actual_m: np.ndarray, rho: float | None) -> None:
     """Scatter of the error model's prediction against the gate's actual error (log-log, m)."""
     ok = np.isfinite(predicted_m) & np.isfinite(actual_m)

@@ -248,12 +248,23 @@ def model_relative_rows(runs: list[RunResult]) -> pd.DataFrame:
     return relative_rows(runs, method="model")
 
 
+def _levels_without_guarantee(metrics: dict) -> str:
+    """The levels some split's calibration could not guarantee, and what their radii are (none, or rescaled and not guaranteed)."""
+    empty, rescaled = set(), set()
+    for c in metrics.get("calibration_by_split", []):
+        rescaled |= set(c.get("not_guaranteed_levels", []))
+        empty |= set(c.get("unsupported_levels", [])) - set(c.get("not_guaranteed_levels", []))
+    parts = [f"{lv}: no radius" for lv in sorted(empty)] + [f"{lv}: not guaranteed" for lv in sorted(rescaled)]
+    return "; ".join(parts)
+
+
 def coverage_rows(runs: list[RunResult]) -> pd.DataFrame:
-    """Empirical coverage and median interval radius (m) per run, scorer and nominal level."""
+    """Empirical coverage and median interval radius (m) per run, scorer and nominal level; levels without a guarantee named."""
     rows = []
     for r in runs:
+        without = _levels_without_guarantee(r.metrics)
         for scorer, by_level in r.metrics[col.METRICS_COVERAGE].items():
-            row = {**r.identity(), "scorer": scorer}
+            row = {**r.identity(), "scorer": scorer, **({"levels without a guarantee": without} if without else {})}
             for level, value in by_level.items():
                 row[f"coverage@{level} (share)"] = value
             for level in by_level:
@@ -325,7 +336,7 @@ def provenance_rows(runs: list[RunResult]) -> pd.DataFrame:
 
 
 def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
-    from acoustlab.reporting.plots import coverage_calibration, error_cdf, plt
+    from acoustlab.reporting.plots import coverage_by_condition_plot, coverage_calibration, error_cdf, plt
 
     paths = []
     curves: dict[str, np.ndarray] = {}
@@ -367,6 +378,9 @@ def _comparison_plots(runs: list[RunResult], out_dir: Path) -> list[Path]:
     fig.savefig(out_dir / "sweep_coverage_calibration.png", dpi=110)
     plt.close(fig)
     paths.append(out_dir / "sweep_coverage_calibration.png")
+    by_condition = {r.label: r.metrics[col.METRICS_COVERAGE_BY_CONDITION] for r in runs if r.metrics.get(col.METRICS_COVERAGE_BY_CONDITION)}
+    if by_condition:
+        paths.append(coverage_by_condition_plot(by_condition, out_dir / "sweep_coverage_by_condition.png"))
     return paths
 
 

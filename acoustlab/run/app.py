@@ -38,7 +38,7 @@ from acoustlab.run.registry import (
     group_options,
     to_plain,
 )
-from acoustlab.run.schema import CalibrateOn, ModelTarget
+from acoustlab.run.schema import CalibrateOn, ModelTarget, UnsupportedLevels
 from acoustlab.stages.cache import StageCache, atomic_write_bytes
 from acoustlab.stages.dataset import (
     SimulationPlan,
@@ -192,6 +192,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         dropped_groups=list(cfg.features.drop),
         calibration_folds=cfg.conformal.calibration_folds,
         calibrate_on=CalibrateOn(cfg.conformal.calibrate_on).value,
+        unsupported_levels=UnsupportedLevels(cfg.conformal.get("unsupported_levels", "empty")).value,
         ellipse=bool(cfg.conformal.ellipse),
         model_target=ModelTarget(cfg.pipeline.model_target).value,
         dropped_from_model=list(cfg.pipeline.drop_from_model),

@@ -233,6 +233,7 @@ def check_conformal(option: str) -> None:
     predicted = rng.uniform(0.5, 3.0, size=2 * n)
     error = predicted * gdop * rng.exponential(1.0, size=2 * n)  # heteroscedastic, exchangeable
     positions = np.arange(2 * n) // 4  # four events per source position (for scorers calibrated over positions)
+    hull = rng.uniform(-0.2, 1.5, size=2 * n)  # estimates inside, near and far from the hull (scorers binned by region)
     for name, scorer in build_scorers(cfg.conformal).items():
         if declared(scorer, "needs_quantiles"):  # CQR: a quantile model fitted on a third, independent sample
             x = pd.DataFrame({"predicted": predicted, "gdop": gdop})
@@ -244,8 +245,11 @@ def check_conformal(option: str) -> None:
             )
             radii = fitted.radius(predicted[n:], gdop[n:], quantiles=quantiles[n:])
         else:
-            fitted = clone(scorer, safe=False).fit(error[:n], predicted[:n], gdop[:n], levels, groups=positions[:n])
-            radii = fitted.radius(predicted[n:], gdop[n:])
+            fit_region, test_region = (
+                ({"hull_distance": hull[:n]}, {"hull_distance": hull[n:]}) if declared(scorer, "needs_hull_distance") else ({}, {})
+            )
+            fitted = clone(scorer, safe=False).fit(error[:n], predicted[:n], gdop[:n], levels, groups=positions[:n], **fit_region)
+            radii = fitted.radius(predicted[n:], gdop[n:], **test_region)
         assert radii.shape == (n, len(levels)), f"conformal={option}, {name}: radius shape {radii.shape}"
         assert np.all(np.isfinite(radii)), f"conformal={option}, {name}: non-finite radii"
         assert np.all(np.diff(radii, axis=1) >= 0), f"conformal={option}, {name}: radii shrink as the level grows"

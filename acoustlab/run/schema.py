@@ -35,6 +35,13 @@ class CalibrateOn(str, Enum):
     field = "field"
 
 
+class UnsupportedLevels(str, Enum):
+    """A level the field calibration spots are too few to guarantee: no radius, or the simulation's rescaled and labelled."""
+
+    empty = "empty"
+    rescaled = "rescaled"
+
+
 class SelectiveUnit(str, Enum):
     """What selective localization counts as independent: source positions (clustered errors) or detections."""
 
@@ -122,6 +129,7 @@ class ConformalConfig:
     levels: list[float] = MISSING
     calibration_folds: int = MISSING
     calibrate_on: CalibrateOn = CalibrateOn.auto
+    unsupported_levels: UnsupportedLevels = UnsupportedLevels.empty
     scorers: dict[str, Any] = dc_field(default_factory=dict)
     ellipse: bool = False
     input_uncertainty: InputUncertainty = dc_field(default_factory=InputUncertainty)

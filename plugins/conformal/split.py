@@ -24,7 +24,10 @@ event's Mondrian bin (one bin without ``binning``). Normalisers (σ):
 ``use_error_model: false`` sets ê = 0: with ``normaliser: gdop`` the radius is q̂ × GDOP and
 ignores the error model (``gdop_only``, what this project once called GDOP-scaled). Binning
 (``gdop`` or ``predicted_error``) calibrates q̂ separately in ``n_bins`` quantile bins of that
-quantity, so coverage holds within each geometry class, not only on average.
+quantity, so coverage holds within each geometry class, not only on average. ``region`` bins by
+where the estimate lies: inside the mics' hull, near it (up to ``REGION_NEAR_EXTENT`` array
+extents outside) or far; the errors of a call far outside a 3-mic array are not those of one
+inside, and one quantile for both over-covers one and under-covers the other.
 """
 
 from __future__ import annotations
@@ -35,7 +38,9 @@ from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.conformal import conformal_quantile, grouped_conformal_quantile, subsampled_position_quantile
 
 NORMALISERS = ("none", "gdop", "predicted_error")
-BINNINGS = ("none", "gdop", "predicted_error")
+BINNINGS = ("none", "gdop", "predicted_error", "region")
+#: ``binning: region``: an estimate up to this many array extents outside the mics' hull is "near", beyond it "far".
+REGION_NEAR_EXTENT = 0.5
 
 
 class SplitConformal:
@@ -45,10 +50,11 @@ class SplitConformal:
     ----------
     normaliser : {"none", "gdop", "predicted_error"}
         Per-event scale σ of the score.
-    binning : {"none", "gdop", "predicted_error"}
-        Mondrian categories: quantile bins of this quantity.
+    binning : {"none", "gdop", "predicted_error", "region"}
+        Mondrian categories: quantile bins of this quantity, or ``region`` (inside / near / far
+        from the mics' hull, by the estimate's ``hull_distance``).
     n_bins : int
-        Number of bins (edges at calibration quantiles) when ``binning`` is not "none".
+        Number of bins (edges at calibration quantiles) for ``gdop`` and ``predicted_error``.
     score : {"signed", "absolute"}
         (e − ê)/σ for a one-sided bound, or |e − ê|/σ as crepes' two-sided regressor.
     use_error_model : bool
@@ -104,6 +110,11 @@ class SplitConformal:
         self.score = score
         self.use_error_model = bool(use_error_model)
 
+    @property
+    def needs_hull_distance(self) -> bool:
+        """``binning: region`` bins by the estimate's distance outside the mics' hull, which the pipeline passes."""
+        return self.binning == "region"
+
     def _centre(self, predicted_m: np.ndarray) -> np.ndarray:
         return np.asarray(predicted_m, dtype=float) if self.use_error_model else np.zeros(len(predicted_m))
 
@@ -118,26 +129,40 @@ class SplitConformal:
             return self._clip_gdop(gdop) / self.gdop_scale_
         return np.maximum(np.asarray(predicted_m, dtype=float), 1e-9)
 
-    def _bins(self, predicted_m: np.ndarray, gdop: np.ndarray) -> np.ndarray:
+    def _bins(self, predicted_m: np.ndarray, gdop: np.ndarray, hull_distance: np.ndarray | None = None) -> np.ndarray:
         if self.binning == "none":
             return np.zeros(len(predicted_m), dtype=int)
+        if self.binning == "region":
+            if hull_distance is None:
+                raise ValueError("binning='region' needs hull_distance (the estimates' distance outside the mics' hull)")
+            # no estimate (NaN) counts as far: nothing says it is near the array
+            return np.searchsorted(self.edges_, np.nan_to_num(np.asarray(hull_distance, dtype=float), nan=np.inf), side="left")
         value = self._clip_gdop(gdop) if self.binning == "gdop" else np.asarray(predicted_m, dtype=float)
         return np.searchsorted(self.edges_, value, side="right")
 
     def fit(
-        self, error_m: np.ndarray, predicted_m: np.ndarray, gdop: np.ndarray, levels: list[float], groups: np.ndarray | None = None
+        self,
+        error_m: np.ndarray,
+        predicted_m: np.ndarray,
+        gdop: np.ndarray,
+        levels: list[float],
+        groups: np.ndarray | None = None,
+        hull_distance: np.ndarray | None = None,
     ) -> SplitConformal:
-        """Calibrate ``quantiles_`` (bins × levels) on calibration errors, predictions, GDOPs (and positions, ``groups``)."""
+        """Calibrate ``quantiles_`` (bins × levels) on calibration errors, predictions, GDOPs (positions ``groups``, ``hull_distance`` in array extents)."""
         error_m, predicted_m, gdop = (np.asarray(a, dtype=float) for a in (error_m, predicted_m, gdop))
         q = self.gdop_cap_quantile
         self.gdop_range_ = (1e-9, np.inf) if q is None else (float(np.quantile(gdop, 1 - q)), float(np.quantile(gdop, q)))
         self.gdop_scale_ = float(np.median(self._clip_gdop(gdop)))
         bins_of = self._clip_gdop(gdop) if self.binning == "gdop" else predicted_m
-        n_bins = self.n_bins if self.binning != "none" else 1
-        self.edges_ = np.quantile(bins_of, np.linspace(0, 1, n_bins + 1)[1:-1]) if n_bins > 1 else np.array([])
+        if self.binning == "region":  # inside (≤ 0), near, far
+            n_bins, self.edges_ = 3, np.array([0.0, REGION_NEAR_EXTENT])
+        else:
+            n_bins = self.n_bins if self.binning != "none" else 1
+            self.edges_ = np.quantile(bins_of, np.linspace(0, 1, n_bins + 1)[1:-1]) if n_bins > 1 else np.array([])
         residual = error_m - self._centre(predicted_m)
         scores = (np.abs(residual) if self.score == "absolute" else residual) / self._sigma(predicted_m, gdop)
-        bins = self._bins(predicted_m, gdop)
+        bins = self._bins(predicted_m, gdop, hull_distance)
         self.levels_ = [float(v) for v in levels]
         if self.calibration_unit == "position" and groups is None:
             raise ValueError("calibration_unit='position' needs the calibration events' positions (groups)")
@@ -153,11 +178,12 @@ class SplitConformal:
 
         self.quantiles_ = np.array([[quantile(bins == b, v) for v in self.levels_] for b in range(n_bins)])
         self.n_calibration_ = int(scores.size)
+        self.n_calibration_by_bin_ = np.bincount(bins, minlength=n_bins).tolist()
         return self
 
-    def radius(self, predicted_m: np.ndarray, gdop: np.ndarray) -> np.ndarray:
-        """(B, L) radii in m (≥ 0)."""
+    def radius(self, predicted_m: np.ndarray, gdop: np.ndarray, hull_distance: np.ndarray | None = None) -> np.ndarray:
+        """(B, L) radii in m (≥ 0); infinite in a Mondrian bin the calibration left empty or too small for the level."""
         if not hasattr(self, "quantiles_"):
             raise RuntimeError("SplitConformal.radius called before fit")
-        q = self.quantiles_[self._bins(predicted_m, gdop)]  # (B, L)
+        q = self.quantiles_[self._bins(predicted_m, gdop, hull_distance)]  # (B, L)
         return np.maximum(self._centre(predicted_m)[:, None] + q * self._sigma(predicted_m, gdop)[:, None], 0.0)
