@@ -327,7 +327,7 @@ YAML_VARIANTS: dict[tuple[str, str, str], set[str]] = {
     **{
         ("conformal", option, label): {"normaliser", "use_error_model", "binning", "n_bins", "calibration_unit"}
         for option in group_options("conformal")
-        for label in ("fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop")
+        for label in ("fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "gdop_by_region")
     },
     ("field", "recordings", "field"): {"mics_csv", "events_csv"},  # the shipped LOCA 2021 example; a user's own files have no default
     ("features", "physics_lean", "xcorr"): {"extra_bands_hz"},  # the lean set's xcorr: main band only

@@ -103,7 +103,7 @@ def test_field_protocols_end_to_end(compose_cfg, tmp_path, protocol):
     assert metrics["excluded_from_summary"] == (preds["hardware_failure"]).sum() > 0
     assert metrics["errors"]["gate"]["n"] == (~preds["hardware_failure"]).sum()
     assert metrics["gate"]["name"] == "HybridGate" and "tau_star_db" in metrics["gate"]["diagnostics"]
-    assert set(metrics["coverage"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "cqr"}
+    assert set(metrics["coverage"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "gdop_by_region", "cqr"}
     if protocol == "lopo":
         assert (preds["withheld_position"] == preds["position_id"]).all()
         # τ* is chosen per fold by that fold's own gate and reported per fold (not the last fold's only)
