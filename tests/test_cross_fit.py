@@ -81,7 +81,15 @@ def test_cross_fit_end_to_end(compose_cfg, tmp_path):
     assert (pred[col.error_m("oracle")] <= pred[col.error_m("gate")] + 1e-12).all()
     assert len(metrics["gate"]["by_split"]) == 3 and all("threshold" in g for g in metrics["gate"]["by_split"])
     assert metrics["gate"]["diagnostics"]["threshold"] == pytest.approx(np.median([g["threshold"] for g in metrics["gate"]["by_split"]]))
-    assert set(metrics["ci95"]["coverage"]) == {"fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "gdop_by_region", "cqr"}
+    assert set(metrics["ci95"]["coverage"]) == {
+        "fixed",
+        "gdop_scaled",
+        "gdop_only",
+        "error_ratio",
+        "mondrian_gdop",
+        "gdop_by_region",
+        "cqr",
+    }
     assert "p95_gate_over_oracle" in metrics["gate_gap"] and "p95_gate_box_over_oracle" in metrics["gate_gap"]
     assert "gate_box" in metrics["errors"] and (pred[col.error_m("oracle")] <= pred[col.error_m("gate_box")] + 1e-12).all()
     assert set(metrics["ellipse"]) == {"0.5", "0.8", "0.95"} and 0 < metrics["ellipse"]["0.95"]["coverage"] <= 1

@@ -293,3 +293,46 @@ def test_the_season_defaults_are_the_fast_settings_with_the_full_sets_solver_fix
     saved = load_method(tmp_path / "out").method.pipeline.c
     assert type(saved.solver).__name__ == "ConsistentSetSolver" and "ir" in saved.feature_sets
     assert saved.feature_sets["tdoa"].search == "fine"
+
+
+def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_path):
+    """The recorders stand 1.5–2 m off their stated positions; a calibration from 8 spots of exact playbacks moves them back, and
+    the season run with ``calibration=PATH`` places the calls several times closer, recording the file's digest on every row."""
+    import dataclasses
+
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from acoustlab.run.registry import CONF_DIR
+    from acoustlab.stages.field_calibration import write_calibration
+    from acoustlab.toolkit.array_calibration import Priors, calibrate_array
+    from tests.test_field_calibration import playbacks
+
+    def configure(*extra):
+        GlobalHydra.instance().clear()
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return compose(
+                config_name="config",
+                overrides=season_overrides(tmp_path, tmp_path / "out", f"paths.outputs_dir={tmp_path / 'outputs'}", *extra),
+            )
+
+    site = site_from_config(configure().site)
+    true_mics = site.mic_positions_m + np.array([[0.0, 0.0, 0.0], [1.5, -1.2, 0.0], [-1.0, 1.6, 0.0]])
+    settings = SyntheticSeason.for_site(site, duration_s=40, file_s=20, n_calls=16, min_spacing_s=2.0, sample_rate_hz=24000.0)
+    truth = write_season(dataclasses.replace(settings, mics_m=true_mics), tmp_path)
+    spots = np.column_stack([np.random.default_rng(1).uniform(-40, 40, (8, 2)) + site.mic_positions_m[:, :2].mean(0), np.full(8, 1.5)])
+    calibration = calibrate_array(
+        playbacks(true_mics, spots, np.zeros(3), 0.0), Priors(site.mic_positions_m, np.full(3, 2.0)), ["0", "1", "2"], timing_sigma_s=1e-5
+    )
+    np.testing.assert_allclose(calibration.mic_positions_m[:, :2], true_mics[:, :2], atol=0.05)
+    path = tmp_path / "calibration.json"
+    digest = write_calibration(path, calibration, site, pd.DataFrame({"event_id": [f"pb{k}" for k in range(len(calibration.spot))]}))
+    errors = {}
+    for label, extra in (("stated", ()), ("calibrated", (f"calibration={path}", f"protocol.output_dir={tmp_path / 'out_cal'}"))):
+        metrics = run_experiment(configure(*extra), tmp_path / label)
+        table = pd.read_parquet(tmp_path / label / "positions.parquet")
+        errors[label] = float(np.median(np.hypot(table["x_m"] - truth["x_m"], table["y_m"] - truth["y_m"])))
+    GlobalHydra.instance().clear()
+    assert errors["calibrated"] < 0.4 * errors["stated"], errors
+    assert (table["calibration_sha256"] == digest).all()
+    assert metrics["field_calibration"]["sha256"] == digest

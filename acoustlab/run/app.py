@@ -435,6 +435,8 @@ def _run_streaming(
     metrics.update(
         {"site": built.site.name, "choices": choices, "code_version": code_version(), **({"run_name": run_name} if run_name else {})}
     )
+    if built.calibration is not None:
+        metrics["field_calibration"] = built.calibration.summary()
     atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2, default=str).encode())
     log.info("run directory: %s", run_dir)
     log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)

@@ -48,7 +48,7 @@ from acoustlab.reporting.positions import positions_table
 from acoustlab.season.recorder_files import RecorderFiles
 from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import extract_features
-from acoustlab.stages.field_calibration import field_solver_columns
+from acoustlab.stages.field_calibration import CALIBRATION_COLUMN, field_solver_columns
 from acoustlab.toolkit.dsp import next_fast_len
 from acoustlab.toolkit.quality import QualityThresholds, clip_quality
 
@@ -283,6 +283,8 @@ def localize_events(
     table.insert(1, "time", (origin + pd.to_timedelta(events[col.START].to_numpy(float), unit="s")).strftime("%Y-%m-%dT%H:%M:%S.%f"))
     for name in SEASON_FIELDS[2:]:
         table[name] = events[name].to_numpy()
+    if fitted.calibration is not None:  # which field calibration placed each detection (as localize's positions.csv)
+        table[CALIBRATION_COLUMN] = fitted.calibration.sha256
     return table
 
 
