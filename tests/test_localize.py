@@ -143,3 +143,17 @@ def test_calibration_playbacks_join_training_and_positions_are_projected(compose
     np.testing.assert_allclose(table["easting_m"], expected_e, atol=1e-6)
     np.testing.assert_allclose(table["northing_m"], expected_n, atol=1e-6)
     assert (table["crs"] == "EPSG:32617").all()
+
+
+def test_playbacks_that_calibrate_the_radii_also_test_them_held_out_by_spot(compose_cfg, tmp_path):
+    """20 playback spots calibrate the radii on the field: metrics.json gives their coverage with each spot's radii calibrated
+    on the other 19, per scorer and by GDOP / hull-distance bin."""
+    _, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 24, known=20)
+    table, metrics, run_dir = localize(compose_cfg, tmp_path, *overrides, "conformal.calibrate_on=field")
+    held = json.loads((run_dir / "metrics.json").read_text())["held_out_calibration"]
+    assert held == json.loads(json.dumps(metrics["held_out_calibration"]))
+    assert held["n_playbacks"] == 20 and held["n_spots"] == 20 and len(table) == 4
+    fixed = held["coverage"]["fixed"]
+    assert all(0 <= fixed[lv]["detections"] <= 1 and fixed[lv]["detections"] == fixed[lv]["positions"] for lv in ("0.5", "0.8", "0.95"))
+    assert held["coverage"]["cqr"]["0.8"] is None  # a quantile scorer's own model is not refitted per spot
+    assert sum(entry["n"] for entry in held["by_condition"]["hull_distance"]) == 20

@@ -434,7 +434,10 @@ class LocalizationPipeline:
             raise DataError("a source position appears in both training and test rows")
         fitted = self.fit(features, events, train)
         out, trust = fitted.predict(features.iloc[test], events.iloc[test])
-        return MethodResult(out, [fitted.split_info(trust)])
+        info = fitted.split_info(trust)
+        if fitted.held_out_calibration is not None:  # a table, summarised by the protocol that reports it (localize)
+            info["held_out_calibration"] = fitted.held_out_calibration
+        return MethodResult(out, [info])
 
     def fit(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray) -> FittedMethod:
         """Fit every learned part of the method on rows ``train`` of the tables.
@@ -587,6 +590,8 @@ class LocalizationPipeline:
                 fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, groups=positions, **region)
         if fitted.calibration.get("not_guaranteed_levels"):
             self._fit_simulation_scorers(s, cal, oof_pred, fitted)
+        if fitted.calibrated_on_field:
+            fitted.held_out_calibration = self._held_out_calibration(s, cal, oof_pred, fitted)
         fit_rows = self._error_fit_rows(s, cal, np.arange(s.train.size), self.c.error_model)
         fitted.error_model = clone_for_rows(self.c.error_model, fit_rows.size).fit(cal.x_error.iloc[fit_rows], cal.error[fit_rows])
         fitted.oof_predicted = oof_pred
@@ -611,6 +616,50 @@ class LocalizationPipeline:
             fitted.simulation_scorers[name] = scorer.fit(
                 cal.error[rows], oof_pred[rows], cal.gdop[rows], self.c.levels, groups=positions, **region
             )
+
+    def _held_out_calibration(self, s: SplitData, cal: CalibrationErrors, oof_pred: np.ndarray, fitted: FittedMethod) -> pd.DataFrame:
+        """The field calibration rows with radii from scorers calibrated without their own position: coverage held out by spot.
+
+        Their errors and predicted errors are already out-of-fold (models that never saw the
+        spot); each spot's radii come from the scorers fitted on the other spots, so whether they
+        cover is a fair test of the radii at this site. A failure (no estimate) is never covered.
+        Levels the remaining spots cannot guarantee, and quantile scorers (own models), are NaN.
+        """
+        positions = s.groups[s.train]
+        domain = np.flatnonzero(cal.domain)
+        truth = s.truth[s.train][domain]
+        table = pd.DataFrame(
+            {
+                col.POSITION_ID: positions[domain],
+                col.error_m("gate"): cal.error[domain],
+                "gdop": cal.gdop[domain],
+                col.HULL_DISTANCE: hull_distance_extent(self.c.site, truth),
+            }
+        )
+        if col.SNR in s.events:
+            table[col.SNR] = s.events[col.SNR].to_numpy(float)[s.train][domain]
+        unsupported = set(fitted.calibration.get("unsupported_levels", []))
+        for name, configured in self.c.scorers.items():
+            radii = np.full((domain.size, len(self.c.levels)), np.nan)
+            if not declared(configured, "needs_quantiles"):
+                for spot in np.unique(positions[domain]):
+                    fit_rows = cal.rows & (positions != spot)
+                    held = cal.domain & (positions == spot)
+                    scorer = clone(fitted.scorers[name], safe=False)
+                    scorer.fit(
+                        cal.error[fit_rows],
+                        oof_pred[fit_rows],
+                        cal.gdop[fit_rows],
+                        self.c.levels,
+                        groups=positions[fit_rows],
+                        **self._region(scorer, cal.gate.position_m[fit_rows]),
+                    )
+                    at = np.isin(domain, np.flatnonzero(held))
+                    radii[at] = scorer.radius(oof_pred[held], cal.gdop[held], **self._region(scorer, cal.gate.position_m[held]))
+            for k, level in enumerate(self.c.levels):
+                keep = col.level_key(level) not in unsupported and np.isfinite(radii[:, k]).all()
+                table[col.radius(name, level)] = radii[:, k] if keep else np.nan
+        return table
 
     def _region(self, scorer: Any, position_m: np.ndarray) -> dict[str, np.ndarray]:
         """``{"hull_distance": (B,)}`` for a scorer that bins by region: each estimate's distance outside the mics' hull, array extents."""
@@ -851,6 +900,8 @@ class FittedMethod:
     extra_gates: dict[str, Gate] = field(default_factory=dict)
     #: (threshold_m, diagnostics) of selective localization, or None
     selective: tuple[float, dict[str, Any]] | None = None
+    #: field calibration rows with radii calibrated without their own spot (``LocalizationPipeline._held_out_calibration``)
+    held_out_calibration: pd.DataFrame | None = None
     #: scorers calibrated on the simulated training rows (``conformal.unsupported_levels=rescaled``), by name
     simulation_scorers: dict[str, ConformalScorer] = field(default_factory=dict)
     #: (error_xy, position, predicted error, source height) of the calibration events, for ellipses

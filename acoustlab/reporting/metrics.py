@@ -168,6 +168,40 @@ def coverage_by_condition(predictions: pd.DataFrame, levels: list[float], scorer
     return out
 
 
+def held_out_calibration_summary(table: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict[str, Any]:
+    """Coverage of the calibration playbacks with radii calibrated without their own spot, overall and by condition.
+
+    ``table``: ``FittedMethod.held_out_calibration``. Per scorer and level, the share of playbacks
+    covered and the mean over spots of their share covered (None where the other spots cannot
+    guarantee the level, or the scorer has its own quantile model); ``by_condition`` as
+    ``coverage_by_condition``.
+    """
+    valid = {(s, lv): bool(np.isfinite(table[col.radius(s, lv)].to_numpy(float)).any()) for s in scorers for lv in levels}
+    err = np.where(np.isnan(table[col.error_m("gate")].to_numpy(float)), np.inf, table[col.error_m("gate")].to_numpy(float))
+    coverage: dict[str, dict[str, Any]] = {}
+    for s in scorers:
+        for lv in levels:
+            if not valid[(s, lv)]:
+                coverage.setdefault(s, {})[col.level_key(lv)] = None
+                continue
+            hit = err <= table[col.radius(s, lv)].to_numpy(float)
+            by_spot = pd.Series(hit).groupby(table[col.POSITION_ID].to_numpy()).mean()
+            coverage.setdefault(s, {})[col.level_key(lv)] = {"detections": float(hit.mean()), "positions": float(by_spot.mean())}
+    by_condition = coverage_by_condition(table, levels, scorers)
+    for rows in by_condition.values():
+        for entry in rows:
+            for (s, lv), ok in valid.items():
+                if not ok:
+                    entry[f"{s}@{col.level_key(lv)}"] = None
+    return {
+        "n_playbacks": int(len(table)),
+        "n_spots": int(table[col.POSITION_ID].nunique()),
+        "coverage": coverage,
+        "by_condition": by_condition,
+        "note": "each spot's radii calibrated on the other spots, its errors from models that never saw it",
+    }
+
+
 def coverage_by_position(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> dict:
     """Per scorer and level: mean and worst coverage over source positions, and how many positions."""
     by_position: dict[str, dict[str, dict[str, float]]] = {}

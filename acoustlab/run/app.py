@@ -24,6 +24,7 @@ from acoustlab.method.pipeline import Components, LocalizationPipeline
 from acoustlab.method.trust import TrustSettings
 from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
 from acoustlab.reporting.metrics import (
+    held_out_calibration_summary,
     split_diagnostics_summary,
     summarise,
     summary_text,
@@ -443,6 +444,19 @@ def _run_streaming(
     return metrics
 
 
+def _log_held_out(summary: dict[str, Any]) -> None:
+    """One line per scorer: the radii's coverage on the calibration playbacks, each spot held out."""
+    for scorer, by_level in summary["coverage"].items():
+        cells = ", ".join(f"{level}: {'—' if c is None else format(c['detections'], '.2f')}" for level, c in by_level.items())
+        log.info(
+            "radii (%s) on the %d calibration playbacks at %d spots, each spot held out: coverage %s",
+            scorer,
+            summary["n_playbacks"],
+            summary["n_spots"],
+            cells,
+        )
+
+
 def _evaluation_metrics(
     run_dir: Path,
     predictions: pd.DataFrame,
@@ -563,6 +577,10 @@ def _write_localization(
     for split in result.split_diagnostics:
         if "training" in split:  # simulated events and calibration playbacks the method was fitted on
             metrics["training"] = split["training"]
+        held_out = split.pop("held_out_calibration", None)
+        if held_out is not None:  # the radii tested on the calibration playbacks, each spot held out
+            metrics["held_out_calibration"] = held_out_calibration_summary(held_out, components.levels, list(components.scorers))
+            _log_held_out(metrics["held_out_calibration"])
     if col.QUALITY_FLAGS in predictions:
         metrics[col.QUALITY_FLAGS] = quality_flag_counts(predictions)
     metrics.update(split_diagnostics_summary(result.split_diagnostics, choices.get("gate") or type(components.gate).__name__))
