@@ -65,20 +65,22 @@ def test_localize_the_shipped_loca_example(compose_cfg, tmp_path):
     assert json.loads((run_dir / "metrics.json").read_text())["localization"]["n_detections"] == 1
 
 
-def simulated_folder(compose_cfg, folder, n_events, known=0, rotation_deg=None):
+def simulated_folder(compose_cfg, folder, n_events, known=0, rotation_deg=None, site_name="frozen_lake", dead=None):
     """Simulated frozen-lake events written as one WAV per event with a mics and an events table; the first ``known``
     events carry their true position (calibration playbacks). With ``rotation_deg`` the mics table also has projected
-    coordinates (the local frame rotated and shifted into UTM-like numbers)."""
+    coordinates (the local frame rotated and shifted into UTM-like numbers). ``dead``: {event: [mics]} written as silent channels."""
     from acoustlab.run.registry import build
     from acoustlab.stages.sites import site_from_config
 
-    cfg = compose_cfg(["+site=frozen_lake", "simulator=free_field"])
+    cfg = compose_cfg([f"+site={site_name}", "simulator=free_field"])
     site = site_from_config(cfg.site)
     ids = np.arange(1000, 1000 + n_events)
     batch = build(cfg.simulator, "simulator").simulate(site, ids, ids, 7)
     folder.mkdir()
     rows = []
     for k, audio in enumerate(batch.audio):
+        audio = audio.copy()
+        audio[(dead or {}).get(k, [])] = 0.0
         sf.write(folder / f"event_{k}.wav", audio.T, int(batch.sample_rate_hz))
         row = {
             "event_id": k,
@@ -108,7 +110,7 @@ def simulated_folder(compose_cfg, folder, n_events, known=0, rotation_deg=None):
         mics = mics.assign(easting_m=projected[:, 0], northing_m=projected[:, 1], crs="EPSG:32617")
     mics.to_csv(folder / "mics.csv", index=False)
     overrides = [
-        "+site=frozen_lake",
+        f"+site={site_name}",
         "simulator=free_field",
         f"field.audio_dir={folder}",
         f"field.mics_csv={folder / 'mics.csv'}",
@@ -157,3 +159,21 @@ def test_playbacks_that_calibrate_the_radii_also_test_them_held_out_by_spot(comp
     assert all(0 <= fixed[lv]["detections"] <= 1 and fixed[lv]["detections"] == fixed[lv]["positions"] for lv in ("0.5", "0.8", "0.95"))
     assert held["coverage"]["cqr"]["0.8"] is None  # a quantile scorer's own model is not refitted per spot
     assert sum(entry["n"] for entry in held["by_condition"]["hull_distance"]) == 20
+
+
+def test_a_dead_recorder_costs_that_recorder_not_the_event(compose_cfg, tmp_path):
+    """On the 6-mic forest a silent channel is left out of that event's solve (placed from the other mics, near the truth,
+    the solver's fix kept); with four silent channels too few remain and the event is not placed."""
+    batch, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 8, site_name="forest", dead={1: [2], 3: [0], 5: [0, 1, 2, 3]})
+    _, _, run_dir = localize(compose_cfg, tmp_path, *overrides)
+    by_event = pd.read_parquet(run_dir / "positions.parquet").set_index("event_id")
+    assert by_event.loc[1, "mics_dropped"] == "2" and by_event.loc[3, "mics_dropped"] == "0"
+    assert "mic 2: dead" in by_event.loc[1, "quality_flags"]
+    truth = batch.events.set_index("event_id")
+    for event in (1, 3):  # mic 0, the usual reference, may be the one dropped
+        row = by_event.loc[event]
+        assert row["placed"] and row["source"] == "solver" and row["solver__n_mics_used"] <= 5
+        error = np.hypot(row["x_m"] - truth.loc[1000 + event, "x_m"], row["y_m"] - truth.loc[1000 + event, "y_m"])
+        assert error < 2.0, (event, error)
+    assert not by_event.loc[5, "placed"] and by_event.loc[5, "abstain_reason"].startswith("quality:")
+    assert by_event.loc[0, "mics_dropped"] == ""

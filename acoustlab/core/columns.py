@@ -67,6 +67,8 @@ WITHHELD_POSITION = "withheld_position"
 IN_SUMMARY = "in_summary"
 QUALITY_FLAGS = "quality_flags"
 HARDWARE_FAILURE = "hardware_failure"
+#: events: the mics (indices in the site's order, ";"-separated) whose clip was unusable and are left out of the solve
+MICS_DROPPED = "mics_dropped"
 #: Samples of an event's own clip in a batch padded to its longest (the features see only these).
 CLIP_SAMPLES = "clip_samples"
 #: The solver's point estimate (withheld from the error model).

@@ -6,6 +6,7 @@ predicting for one such split, keeping positions (groups) apart everywhere.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,7 +34,15 @@ from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
 from acoustlab.core.types import Site
 from acoustlab.method.splits import cap_rows
-from acoustlab.method.trust import SupportCues, TrainingSupport, TrustedDecision, TrustSettings, apply_trust, support_cues
+from acoustlab.method.trust import (
+    REASON_MIC_DROPPED,
+    SupportCues,
+    TrainingSupport,
+    TrustedDecision,
+    TrustSettings,
+    apply_trust,
+    support_cues,
+)
 from acoustlab.stages.solver_columns import pair_candidate_lags
 from acoustlab.toolkit.conformal import conformal_quantile, positions_needed, selective_threshold, selective_threshold_by_position
 from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
@@ -930,6 +939,9 @@ class FittedMethod:
         truth = events[[col.TRUE_X, col.TRUE_Y]].to_numpy(dtype=float)
         model_xy = pipe._predict_point(self.point_models, features[self.mcols], solver_xy)
         cues = pipe._cues(rows, solver_xy, model_xy, features, self.mcols, self.support)
+        if col.MICS_DROPPED in events:  # solved without a bad mic: the point model saw that mic's clip, so its estimate is not used
+            dropped = events[col.MICS_DROPPED].fillna("").astype(str).to_numpy() != ""
+            cues = dataclasses.replace(cues, distrust=np.where(dropped, REASON_MIC_DROPPED, cues.distrust).astype(object))
         trusted = pipe._decide(self.gate, rows, solver_xy, model_xy, features, cues)
         gdop_at_estimate = pipe._gdop_at(trusted.decision.position_m, features)
         estimate = TestEstimates(

@@ -51,6 +51,7 @@ REASON_SOLVER_OUTSIDE = "solver fix kept: consistent and outside the model's tra
 REASON_NOVEL = "solver fix kept: the detection is unlike the model's training data"
 REASON_MODEL_OUTSIDE = "solver fix kept: the model's estimate lies outside its training region"
 REASON_EXPLAINS_WORSE = "solver fix kept: the model's estimate explains the measured time differences worse"
+REASON_MIC_DROPPED = "solver fix kept: a mic's clip was unusable and left out, and the model's features include it"
 REASON_ABSTAIN = "no estimate: no solver fix, and the model is outside its training support"
 REASON_ABSTAIN_MISFIT = "no estimate: no solver fix, and the model's estimate does not explain the measured time differences"
 

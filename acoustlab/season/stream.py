@@ -50,7 +50,7 @@ from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import extract_features
 from acoustlab.stages.field_calibration import CALIBRATION_COLUMN, field_solver_columns
 from acoustlab.toolkit.dsp import next_fast_len
-from acoustlab.toolkit.quality import QualityThresholds, clip_quality
+from acoustlab.toolkit.quality import QualityThresholds, clip_quality, mics_to_drop
 
 log = logging.getLogger(__name__)
 
@@ -212,20 +212,26 @@ def read_batch(
     padded = padded_samples(lengths_s, sample_rate_hz)
     n_max = int(padded.max())
     audio = np.zeros((len(events), len(recorders), n_max), dtype=np.float32)
-    flags = []
+    flags, dropped, usable = [], [], []
     for e, (start, length, too_long) in enumerate(
         zip(events[col.START].to_numpy(float), lengths_s, events["too_long"].to_numpy(bool), strict=True)
     ):
         if too_long:
             flags.append("too_long")
+            dropped.append("")
+            usable.append(False)
             continue
-        parts = []
+        parts, per_mic = [], []
         for m, recorder in enumerate(recorders):
             clip, reasons = _clip(recordings, recorder, start, length, sample_rate_hz, plan.quality)
             audio[e, m, : clip.size] = clip[:n_max]
+            per_mic.append(reasons)
             if reasons:
                 parts.append(f"mic {recorder}: {', '.join(reasons)}")
         flags.append("; ".join(parts))
+        drop, ok = mics_to_drop(per_mic)  # a flagged clip costs its recorder, not the event, while enough remain
+        dropped.append(drop)
+        usable.append(ok)
     rows = pd.DataFrame(
         {
             col.EVENT_ID: events[col.EVENT_ID].to_numpy(np.int64),
@@ -238,7 +244,8 @@ def read_batch(
             col.START: events[col.START].to_numpy(float),
             col.END: events[col.END].to_numpy(float),
             col.QUALITY_FLAGS: flags,
-            "quality_ok": [not f for f in flags],
+            "quality_ok": usable,
+            col.MICS_DROPPED: dropped,
             col.HARDWARE_FAILURE: False,
             "is_field": True,
             # each clip is computed at its own padded length (extract_features), never its batch-mates': an event's answer

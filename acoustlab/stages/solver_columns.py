@@ -8,11 +8,12 @@ import numpy as np
 import pandas as pd
 
 from acoustlab.core import columns as col
-from acoustlab.core.contracts import Solver, SolverInputs
+from acoustlab.core.contracts import Solver, SolverInputs, SolverResult
 from acoustlab.core.errors import DataError
 from acoustlab.core.types import Site
 from acoustlab.toolkit.event_physics import assumed_source_height_m, event_speed_of_sound_m_s
 from acoustlab.toolkit.geometry import bounding_box
+from acoustlab.toolkit.quality import MIN_GOOD_MICS, dropped_mask
 
 
 def tdoa_matrix(features: pd.DataFrame, n_mics: int) -> np.ndarray:
@@ -74,6 +75,74 @@ def solver_inputs_for(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
     )
 
 
+def subset_inputs(inputs: SolverInputs, rows: np.ndarray, keep: np.ndarray, site: Site) -> SolverInputs:
+    """The solver inputs of events ``rows`` restricted to the mics ``keep`` (sorted indices into the site's mics).
+
+    The time differences are re-referenced to the first kept mic from the pair candidates (rank 1
+    is the strongest GCC peak, what ``tdoa_s`` holds), so a dropped mic 0 takes nothing with it.
+    """
+    pairs = list(site.mic_pairs)
+    kept_pairs = [pairs.index((int(keep[i]), int(keep[j]))) for i in range(len(keep)) for j in range(i + 1, len(keep))]
+    cands = None if inputs.pair_lag_candidates_s is None else np.asarray(inputs.pair_lag_candidates_s, float)[np.ix_(rows, kept_pairs)]
+    if cands is not None:
+        tdoa = np.column_stack([np.zeros(rows.size)] + [cands[:, j - 1, 0] for j in range(1, len(keep))])
+    else:  # t_m − t_0 of the kept mics, re-referenced to the first kept one
+        full = np.asarray(inputs.tdoa_s, float)[rows][:, keep]
+        tdoa = full - full[:, :1]
+    speed = np.broadcast_to(np.asarray(inputs.speed_of_sound_m_s, float), (len(inputs.tdoa_s),))[rows]
+    return SolverInputs(
+        mic_positions_m=np.asarray(inputs.mic_positions_m)[keep],
+        tdoa_s=tdoa,
+        speed_of_sound_m_s=speed,
+        received_level_db=None if inputs.received_level_db is None else np.asarray(inputs.received_level_db, float)[np.ix_(rows, keep)],
+        pair_lag_candidates_s=cands,
+        source_height_m=inputs.source_height_m,
+        pair_lag_weights=None if inputs.pair_lag_weights is None else np.asarray(inputs.pair_lag_weights, float)[np.ix_(rows, kept_pairs)],
+        prior_position_m=None if inputs.prior_position_m is None else np.asarray(inputs.prior_position_m, float)[rows],
+    )
+
+
+def solve_without_dropped_mics(solver: Solver, inputs: SolverInputs, dropped: np.ndarray, site: Site) -> SolverResult:
+    """Solve every event, each from its mics that are not ``dropped`` ((E, M) bool; events with none dropped in one batch).
+
+    An event whose flagged clips leave fewer than ``MIN_GOOD_MICS`` mics keeps them all (it is not
+    placed anyway: its ``quality_ok`` is false).
+    """
+    droppable = dropped.any(axis=1) & ((~dropped).sum(axis=1) >= MIN_GOOD_MICS)
+    whole = np.flatnonzero(~droppable)
+    if whole.size == len(dropped):
+        return solver.solve(inputs)
+    n = len(dropped)
+    position, residual, converged = np.full((n, 2), np.nan), np.full(n, np.nan), np.zeros(n, dtype=bool)
+    diagnostics: dict[str, np.ndarray] = {}
+    masks, group = np.unique(np.where(droppable[:, None], dropped, False), axis=0, return_inverse=True)
+    for g, mask in enumerate(masks):
+        rows = np.flatnonzero(group.ravel() == g)
+        part = solver.solve(subset_inputs(inputs, rows, np.flatnonzero(~mask), site) if mask.any() else _rows(inputs, rows))
+        position[rows], residual[rows], converged[rows] = part.position_m, part.residual_m, part.converged
+        for name, values in part.diagnostics.items():
+            diagnostics.setdefault(name, np.full(n, np.nan))[rows] = values
+    return SolverResult(position_m=position, residual_m=residual, converged=converged, diagnostics=diagnostics)
+
+
+def _rows(inputs: SolverInputs, rows: np.ndarray) -> SolverInputs:
+    """The solver inputs of events ``rows``, every mic kept (a solver's answer for an event does not depend on its batch)."""
+
+    def pick(values: np.ndarray | None) -> np.ndarray | None:
+        return None if values is None else np.asarray(values, float)[rows]
+
+    return SolverInputs(
+        mic_positions_m=np.asarray(inputs.mic_positions_m),
+        tdoa_s=np.asarray(inputs.tdoa_s, float)[rows],
+        speed_of_sound_m_s=np.broadcast_to(np.asarray(inputs.speed_of_sound_m_s, float), (len(inputs.tdoa_s),))[rows],
+        received_level_db=pick(inputs.received_level_db),
+        pair_lag_candidates_s=pick(inputs.pair_lag_candidates_s),
+        source_height_m=inputs.source_height_m,
+        pair_lag_weights=pick(inputs.pair_lag_weights),
+        prior_position_m=pick(inputs.prior_position_m),
+    )
+
+
 #: ``solver__failure`` codes: why an event has no solver fix.
 FAILURE_NONE, FAILURE_NO_FIX, FAILURE_IMPLAUSIBLE = 0, 1, 2
 
@@ -117,7 +186,9 @@ def add_solver_columns(
     With ``plausible_margin_fraction`` a fix outside the plausible region (see ``bound_fixes``)
     is never emitted as a number: its position is NaN and ``solver__failure`` says why.
     """
-    result = solver.solve(solver_inputs_for(features, events, site))
+    inputs = solver_inputs_for(features, events, site)
+    dropped = dropped_mask(events[col.MICS_DROPPED] if col.MICS_DROPPED in events else None, len(events), site.n_mics)
+    result = solve_without_dropped_mics(solver, inputs, dropped, site)
     position, failure = bound_fixes(result.position_m, site, plausible_margin_fraction)
     out = features.copy()
     out[col.SOLVER_X] = position[:, 0]

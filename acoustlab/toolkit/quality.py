@@ -14,9 +14,46 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 
 #: Every reason a clip can be flagged for, in the order they are reported.
 QUALITY_REASONS = ("out_of_range", "truncated", "nonfinite", "dead", "clipped", "duplicate")
+#: An event whose flagged clips leave at least this many good mics is solved from those (the bad ones dropped): three
+#: mics give a 2-D fix at the assumed height. With fewer the event is not placed.
+MIN_GOOD_MICS = 3
+
+
+def mics_to_drop(reasons_per_mic: list[list[str]] | np.ndarray) -> tuple[str, bool]:
+    """The mics an event can do without, and whether it stays usable.
+
+    A flagged clip (any of ``QUALITY_REASONS``) costs that mic, not the event: the event is solved
+    from the other mics where at least ``MIN_GOOD_MICS`` remain.
+
+    Returns
+    -------
+    dropped : str
+        Indices of the flagged mics, ";"-separated ("" when every clip is fine, or too few remain).
+    usable : bool
+        True when no clip is flagged or enough good mics remain.
+    """
+    bad = [m for m, reasons in enumerate(reasons_per_mic) if reasons]
+    if not bad:
+        return "", True
+    if len(reasons_per_mic) - len(bad) < MIN_GOOD_MICS:
+        return "", False
+    return ";".join(str(m) for m in bad), True
+
+
+def dropped_mask(dropped: pd.Series | None, n_events: int, n_mics: int) -> np.ndarray:
+    """(E, M) True where an event's mic is dropped (from a ``mics_dropped`` column; all False without one)."""
+    mask = np.zeros((n_events, n_mics), dtype=bool)
+    if dropped is None:
+        return mask
+    for e, text in enumerate(dropped.fillna("").astype(str)):
+        for m in text.split(";"):
+            if m.strip():
+                mask[e, int(m)] = True
+    return mask
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from acoustlab.core.errors import ConfigError, DataError, show
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_channels, load_mono
-from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_quality, duplicate_channels
+from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_quality, duplicate_channels, mics_to_drop
 
 log = logging.getLogger(__name__)
 
@@ -472,6 +472,7 @@ class RecordingFolder:
             for m in duplicate_channels(audio[k, :, : lengths[k]]):  # the same samples on two mics: a wiring or table error
                 reasons[k, m] = [*reasons[k, m], "duplicate"]
         flags = [_describe(row, mics) for row in reasons]
+        dropped, usable = zip(*(mics_to_drop(list(row)) for row in reasons), strict=True) if len(reasons) else ((), ())
         position = events[col.POSITION_ID].to_numpy(int) if col.POSITION_ID in events else events[col.EVENT_ID].to_numpy(int)
         failed = (
             events[col.HARDWARE_FAILURE].astype(str).str.strip().str.lower().isin(["1", "1.0", "true", "yes"]).to_numpy()
@@ -503,7 +504,9 @@ class RecordingFolder:
                 col.START: events[col.START].to_numpy(float),
                 col.END: events[col.END].to_numpy(float),
                 col.QUALITY_FLAGS: flags,
-                "quality_ok": [not f for f in flags],
+                # a flagged clip costs its mic, not the event, while enough good mics remain (solved from those)
+                "quality_ok": list(usable),
+                col.MICS_DROPPED: list(dropped),
                 col.HARDWARE_FAILURE: failed,
                 col.CLIP_SAMPLES: lengths,
             }
