@@ -121,3 +121,106 @@ def test_an_events_table_with_its_own_bands_runs_each_gcc_in_its_band(tmp_path, 
     cfg = compose_cfg(["+site=loca2021", "field=recordings", f"field.audio_dir={audio}", f"field.events_csv={bad}"])
     with pytest.raises(DataError, match=r"line 2, column 'high_hz': 60000 is not a number or empty in \[0.0, 12000.0\]"):
         build(cfg.field, "field").validate(site)
+
+
+def late_copy(folder, mics, late_s=0.1):
+    """The LOCA example with mic 2's file starting ``late_s`` later (its first samples cut), as a recorder switched on late."""
+    import soundfile as sf
+
+    late = mics["file"].iloc[2]
+    audio, fs = sf.read(folder / late)
+    sf.write(folder / late, audio[int(round(late_s * fs)) :], fs)
+    return late
+
+
+@pytest.mark.parametrize("where", ["coords", "detections"])
+def test_per_file_start_times_of_the_peers_tables_are_honoured(tmp_path, compose_cfg, where):
+    """A file that starts 0.1 s late, its detection window in its own time (0.1–0.4 s where the others say 0.2–0.5 s): with
+    its start time in the coordinates table, or the detections' absolute start_timestamp, the clip is cut at the same
+    moment and the time differences are the reference ones; without, they would be 0.1 s off."""
+    mics = copy_example_audio(tmp_path)
+    late = late_copy(tmp_path, mics)
+    start = pd.Series(pd.Timestamp("2021-05-01T06:00:00"), index=mics["file"])
+    start[late] += pd.Timedelta(seconds=0.1)
+    coords = pd.DataFrame({"file": mics["file"], "x": mics["x_m"], "y": mics["y_m"], "z": mics["z_m"]})
+    det = pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1})
+    det.loc[det["file"] == late, ["start_time", "end_time"]] = [0.1, 0.4]
+    if where == "coords":
+        coords["start_timestamp"] = start.dt.strftime("%Y-%m-%dT%H:%M:%S.%f").to_numpy()
+    else:
+        absolute = start[det["file"]].to_numpy() + pd.to_timedelta(det["start_time"], unit="s").to_numpy()
+        det["start_timestamp"] = pd.Series(absolute).dt.strftime("%Y-%m-%dT%H:%M:%S.%f").to_numpy()
+    coords.to_csv(tmp_path / "coords.csv", index=False)
+    det.to_csv(tmp_path / "det.csv", index=False)
+    batch, tdoa = load_opensoundscape_layout(compose_cfg, tmp_path, tmp_path / "coords.csv", tmp_path / "det.csv")
+    assert batch.n_events == 1 and not batch.events["quality_flags"].iloc[0]
+    np.testing.assert_allclose(tdoa[0], UPSTREAM_TDOA_S, atol=1e-3)
+
+
+def test_start_times_written_by_the_recorders_are_read(tmp_path):
+    """AudioMoth's comment (with its zone), a GUANO Timestamp and a Broadcast WAV TimeReference give each file's start."""
+    import struct
+
+    import soundfile as sf
+
+    from acoustlab.toolkit.file_start import file_start_time, start_from_metadata
+
+    def with_chunk(path, name, body):
+        data = path.read_bytes()
+        chunk = name + struct.pack("<I", len(body)) + body + b"\x00" * (len(body) % 2)
+        data = data[:12] + chunk + data[12:]
+        path.write_bytes(data[:4] + struct.pack("<I", len(data) - 8) + data[8:])
+
+    tone = np.zeros(800, dtype=np.float32)
+    moth = tmp_path / "moth.wav"
+    with sf.SoundFile(moth, "w", samplerate=8000, channels=1) as f:
+        f.comment = "Recorded at 05:30:00 01/05/2026 (UTC+2) by AudioMoth 24F319 at medium gain"
+        f.write(tone)
+    assert start_from_metadata(moth) == pd.Timestamp("2026-05-01T03:30:00")
+    guano = tmp_path / "guano.wav"
+    sf.write(guano, tone, 8000)
+    with_chunk(guano, b"guan", b"GUANO|Version: 1.0\nTimestamp: 2026-05-01T05:30:00.250-04:00\n")
+    assert start_from_metadata(guano) == pd.Timestamp("2026-05-01T09:30:00.250")
+    bwf = tmp_path / "bwf.wav"
+    sf.write(bwf, tone, 8000)
+    body = bytearray(602)
+    body[320:330], body[330:338] = b"2026-05-01", b"05:30:00"
+    body[338:346] = struct.pack("<II", 5 * 3600 * 8000 + 30 * 60 * 8000 + 4, 0)  # 05:30:00 and 4 samples (0.5 ms)
+    with_chunk(bwf, b"bext", bytes(body))
+    assert start_from_metadata(bwf) == pd.Timestamp("2026-05-01T05:30:00.0005")
+    named = tmp_path / "20260501_053000.wav"
+    sf.write(named, tone, 8000)
+    assert start_from_metadata(named) is None and file_start_time(named) == pd.Timestamp("2026-05-01T05:30:00")
+    assert file_start_time(tmp_path / "moth.wav") == pd.Timestamp("2026-05-01T03:30:00")  # metadata before the name
+    sf.write(tmp_path / "plain.wav", tone, 8000)
+    assert file_start_time(tmp_path / "plain.wav") is None
+
+
+def test_windows_of_files_starting_apart_link_without_chaining():
+    """Fixed 3-s windows of two files 0.1 s apart: each call's windows link across files; consecutive windows stay apart."""
+    from plugins.fields.recordings import linked_windows
+
+    files = np.array(["a", "a", "a", "b", "b", "b"])
+    start = np.array([0.0, 3.0, 6.0, 0.1, 3.1, 6.1])
+    windows = linked_windows(files, start, start + 3.0)
+    assert windows["n_files"].tolist() == [2, 2, 2] and windows["start_s"].tolist() == [0.0, 3.0, 6.0]
+
+
+def test_a_mics_table_with_each_files_start_time(tmp_path, compose_cfg):
+    """acoustlab's layout: ``start_time`` per mic file, events in seconds from the earliest file's start."""
+    mics = copy_example_audio(tmp_path)
+    late = late_copy(tmp_path, mics)
+    mics["start_time"] = np.where(mics["file"] == late, "2021-05-01T06:00:00.100", "2021-05-01T06:00:00")
+    mics.to_csv(tmp_path / "mics.csv", index=False)
+    cfg = compose_cfg(
+        ["+site=loca2021", "field=recordings", f"field.audio_dir={tmp_path}", f"field.mics_csv={tmp_path / 'mics.csv'}", *BAND]
+    )
+    site = site_from_config(cfg.site)
+    batch = build(cfg.field, "field").load(site)
+    np.testing.assert_allclose(
+        tdoa_matrix(extract_features(batch, site, build_feature_sets(cfg.features)), 6)[0], UPSTREAM_TDOA_S, atol=1e-3
+    )
+    mics.loc[0, "start_time"] = "yesterday"
+    mics.to_csv(tmp_path / "mics.csv", index=False)
+    with pytest.raises(DataError, match=r"line 2, column 'start_time': 'yesterday' is not an ISO 8601 time"):
+        build(cfg.field, "field").load(site)

@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import re
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,34 +32,19 @@ import soundfile as sf
 from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError, show
 from acoustlab.stages.cache import atomic_write_bytes
+from acoustlab.toolkit.file_start import start_from_metadata, timestamp_from_name
 
 log = logging.getLogger(__name__)
 
-#: A timestamp in a file name: date and time of day, separated by ``_``, ``-``, ``T`` or nothing.
-TIMESTAMP_PATTERN = re.compile(r"(?<!\d)(\d{4})-?(\d{2})-?(\d{2})[_T-]?(\d{2})[-:]?(\d{2})[-:]?(\d{2})(?!\d)")
 AUDIO_SUFFIXES = (".wav", ".flac")
 #: Files within this many seconds of each other's end count as contiguous (clock rounding in names).
 CONTIGUOUS_TOLERANCE_S = 0.5
 
 
-def timestamp_from_name(name: str) -> pd.Timestamp:
-    """The start time written in a file name (``YYYYMMDD_HHMMSS`` and the usual variants).
-
-    Raises
-    ------
-    DataError
-        Naming the file, when its name holds no valid date and time.
-    """
-    match = TIMESTAMP_PATTERN.search(Path(name).stem)
-    if match is None:
-        raise DataError(
-            f"recordings: file name {name!r} holds no start time; expected YYYYMMDD_HHMMSS (e.g. 20260501_053000.WAV) "
-            "or give a files table with recorder_id, file, start_time"
-        )
-    try:
-        return pd.Timestamp(*(int(g) for g in match.groups()))
-    except ValueError as exc:
-        raise DataError(f"recordings: file name {name!r}: {exc}") from None
+def _start_of(path: Path) -> pd.Timestamp:
+    """When a file starts: the time its recorder wrote into it (GUANO, Broadcast WAV, AudioMoth), else the time in its name."""
+    start = start_from_metadata(path)
+    return start if start is not None else timestamp_from_name(path.name)
 
 
 @dataclass
@@ -215,7 +199,7 @@ class RecorderFiles:
         if not root.is_dir():
             raise DataError(f"recordings.audio_dir: {root} is not a folder")
         rows = [
-            {"recorder_id": f.parent.name, "path": str(f), "start": timestamp_from_name(f.name)}
+            {"recorder_id": f.parent.name, "path": str(f), "start": _start_of(f)}
             for f in sorted(root.glob("*/*"))
             if f.suffix.lower() in AUDIO_SUFFIXES
         ]

@@ -16,6 +16,13 @@ OpenSoundscape layout (so its users can switch)
     ``file, start_time, end_time`` and one 0/1 column per class; every distinct
     (start_time, end_time) window detected by at least ``min_receivers`` receivers becomes an
     event (receivers that did not detect it are still used; their clip is cut at the same times).
+    Detection times are each file's own; windows of different files are linked by overlap
+    (``linked_windows``), one per file.
+
+Start times. Where the mics have one file each, each clip is cut at its own file's time: a
+file's start comes from a table (mics ``start_time``, coordinates or detections
+``start_timestamp``), else its metadata or name (``acoustlab.toolkit.file_start``); with none the
+files are taken to start together. ``events_csv`` times are seconds from the earliest file's start.
 
 Unknown true positions are NaN; events without a ``position_id`` each get their own.
 
@@ -42,9 +49,13 @@ from acoustlab.core.errors import ConfigError, DataError, show
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_channels, load_mono
+from acoustlab.toolkit.file_start import file_start_time
 from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_quality, duplicate_channels, mics_to_drop
 
 log = logging.getLogger(__name__)
+
+#: Mics table column (computed): when the mic's file starts after the earliest file, s.
+FILE_OFFSET = "file_offset_s"
 
 #: Largest audio array (events × mics × samples, float32) a load may allocate, bytes.
 MAX_AUDIO_BYTES = 4 * 2**30
@@ -234,6 +245,10 @@ class RecordingFolder:
             )
         if "file" not in mics and "file" not in events:
             raise DataError("field: the mics table has no 'file' column, so events_csv needs one (multichannel files)")
+        if "file" in mics and FILE_OFFSET not in mics:
+            where = f"field.mics_csv: {mics.attrs.get('path')}"
+            starts = self._file_starts(mics["file"].astype(str).str.strip().tolist(), mics.get("start_time"), where)
+            mics[FILE_OFFSET] = _offsets(starts, mics["file"].astype(str).str.strip())
         if "file" in events:
             events["file"] = events["file"].astype(str).str.strip()
         return mics, events
@@ -255,7 +270,7 @@ class RecordingFolder:
             coords.attrs["path"] = path
         _numeric(coords, "coords_csv", ("x", "y", "z"))
         _numeric(det, "detections_csv", ("start_time", "end_time"))
-        classes = [c for c in det.columns if c not in ("file", "start_time", "end_time")]
+        classes = [c for c in det.columns if c not in ("file", "start_time", "end_time", "start_timestamp")]
         _numeric(det, "detections_csv", tuple(classes))
         mics = pd.DataFrame(
             {"file": coords["file"], col.MIC_X: coords["x"], col.MIC_Y: coords["y"], col.MIC_Z: coords["z"] if "z" in coords else 0.0}
@@ -274,9 +289,19 @@ class RecordingFolder:
                 det.loc[~known, "file"].iloc[0],
             )
         hit = det[classes].max(axis=1) > 0 if classes else pd.Series(True, index=det.index)
+        stated = coords.set_index("file")["start_timestamp"] if "start_timestamp" in coords else None
+        if stated is None and "start_timestamp" in det:  # the peer's absolute window starts: each file's start follows
+            absolute = _timestamps(det["start_timestamp"], f"field.detections_csv: {det.attrs.get('path')}", "start_timestamp")
+            stated = (absolute - pd.to_timedelta(det["start_time"].to_numpy(float), unit="s")).groupby(det["file"]).min()
+        where = f"field.coords_csv: {coords.attrs.get('path')}"
+        starts = self._file_starts(mics["file"].tolist(), None if stated is None else mics["file"].map(stated), where)
+        mics[FILE_OFFSET] = _offsets(starts, mics["file"])
         det = det[hit & known]
-        windows = det.groupby(["start_time", "end_time"])["file"].nunique().reset_index()
-        windows = windows[windows["file"] >= self.min_receivers]
+        offset = det["file"].map(dict(zip(mics["file"], mics[FILE_OFFSET], strict=True))).to_numpy(float)
+        windows = linked_windows(
+            det["file"].to_numpy(), det["start_time"].to_numpy(float) + offset, det["end_time"].to_numpy(float) + offset
+        )
+        windows = windows[windows["n_files"] >= self.min_receivers]
         if windows.empty:
             raise DataError(
                 f"field.detections_csv: no time window was detected by at least field.min_receivers={self.min_receivers} "
@@ -285,12 +310,32 @@ class RecordingFolder:
         events = pd.DataFrame(
             {
                 col.EVENT_ID: np.arange(len(windows)),
-                col.START: windows["start_time"].to_numpy(float),
-                col.END: windows["end_time"].to_numpy(float),
+                col.START: windows["start_s"].to_numpy(float),
+                col.END: windows["end_s"].to_numpy(float),
             }
         )
         events.attrs["path"] = det.attrs.get("path", self.detections_csv)
         return mics, events
+
+    def _file_starts(self, files: list[str], stated: pd.Series | None, where: str) -> pd.Series | None:
+        """Each per-mic file's start time: stated in a table column, else read from the file (metadata, else its name).
+
+        None where no file says when it starts (the files are taken to start together); one line
+        naming a file where some do and some do not.
+        """
+        if stated is not None:
+            return _timestamps(stated, where, "start_time" if "mics_csv" in where else "start_timestamp")
+        starts = pd.Series([file_start_time(self.audio_path(f)) for f in files], index=files, dtype=object)
+        known = starts.notna().to_numpy()
+        if not known.any():
+            return None
+        if not known.all():
+            missing, given = files[int(np.flatnonzero(~known)[0])], files[int(np.flatnonzero(known)[0])]
+            raise DataError(
+                f"field: {missing!r} says nothing of when it starts (no GUANO, Broadcast WAV or AudioMoth time, no time in its "
+                f"name) while {given!r} does; give every file's start ({where}, column start_time / start_timestamp) or none"
+            )
+        return pd.to_datetime(starts)
 
     # ------------------------------------------------------------------------------------ audio
     def audio_path(self, file: str) -> Path:
@@ -459,9 +504,10 @@ class RecordingFolder:
         per_mic = "file" in mics.columns
         paths = {f: str(self.audio_path(f)) for f in self._audio_files(mics, events)}  # resolved once, not per event and mic
         reasons = np.empty((len(events), len(mics)), dtype=object)
+        offset = mics[FILE_OFFSET].to_numpy(float) if FILE_OFFSET in mics else np.zeros(len(mics))
         for k, ev in enumerate(events.itertuples()):
-            start = int(round(ev.start_s * fs)) - pad
             for m in range(len(mics)):
+                start = int(round((ev.start_s - offset[m]) * fs)) - pad  # each file's own time: it may start later than the others
                 if per_mic and "channel" in mics:
                     signal = load_channels(paths[mics["file"].iloc[m]], fs)[int(mics["channel"].iloc[m])]
                 elif per_mic:
@@ -517,6 +563,62 @@ class RecordingFolder:
         if "time_s" in events:  # when the event happened (clock drift of a field calibration is per second of it)
             rows["time_s"] = events["time_s"].to_numpy(float)
         return RecordingBatch(audio=audio, sample_rate_hz=fs, events=rows)
+
+
+def _timestamps(values: pd.Series, where: str, column: str) -> pd.Series:
+    """ISO 8601 times of a table column (UTC where they carry a zone), or one line naming the first that is not one."""
+    text = values.astype(str).str.strip()
+    parsed = pd.to_datetime(text, errors="coerce", format="ISO8601", utc=True)
+    if parsed.isna().any():
+        i = int(np.flatnonzero(parsed.isna().to_numpy())[0])
+        raise DataError(f"{where}, line {i + 2}, column {column!r}: {show(values.iloc[i])} is not an ISO 8601 time")
+    return parsed.dt.tz_localize(None)
+
+
+def _offsets(starts: pd.Series | None, files: pd.Series) -> np.ndarray:
+    """(M,) each mic's file start after the earliest one, s (0 where the files are taken to start together)."""
+    if starts is None:
+        return np.zeros(len(files))
+    values = pd.to_datetime(pd.Series(np.asarray(starts)))
+    if values.nunique() > 1:
+        log.info(
+            "field: the mics' files start up to %.3f s apart; each clip is cut at its own file's time",
+            (values.max() - values.min()).total_seconds(),
+        )
+    return (values - values.min()).dt.total_seconds().to_numpy(float)
+
+
+def linked_windows(files: np.ndarray, start_s: np.ndarray, end_s: np.ndarray) -> pd.DataFrame:
+    """One event per call heard on several files: each file's detection window linked to the others' overlapping it most.
+
+    Windows are taken in order of their start (absolute, s); an unlinked window anchors an event
+    and, from every other file, the unlinked window overlapping it by at least half of the shorter
+    window joins it. A file contributes at most one window to an event, so a detector's
+    consecutive fixed windows (a long song cut in 3-s windows) stay separate events instead of
+    chaining into one long one.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``start_s, end_s`` (the anchor's window) and ``n_files`` per event, in order of start.
+    """
+    order = np.lexsort((end_s, start_s))
+    linked = np.zeros(len(files), dtype=bool)
+    rows = []
+    for anchor in order:
+        if linked[anchor]:
+            continue
+        linked[anchor] = True
+        members = {files[anchor]}
+        lo, hi = start_s[anchor], end_s[anchor]
+        overlap = np.minimum(end_s, hi) - np.maximum(start_s, lo)
+        enough = ~linked & (overlap >= 0.5 * np.minimum(end_s - start_s, hi - lo)) & (overlap > 0)
+        for k in np.flatnonzero(enough)[np.argsort(-overlap[enough], kind="stable")]:
+            if files[k] not in members:
+                members.add(files[k])
+                linked[k] = True
+        rows.append((lo, hi, len(members)))
+    return pd.DataFrame(rows, columns=["start_s", "end_s", "n_files"])
 
 
 def _describe(reasons_per_mic: np.ndarray, mics: pd.DataFrame) -> str:
