@@ -100,6 +100,10 @@ def closed_form_3d(mics: np.ndarray, rd: np.ndarray) -> np.ndarray:
     return u[:, None, :] + v[:, None, :] * r0[..., None] + mics[0]
 
 
+#: A misfit below this (m) is numerical precision: roots fitting that well tie whatever their ratio.
+NUMERICAL_FIT_M = 1e-6
+
+
 def solve_3d(mics: np.ndarray, rd: np.ndarray, n_iterations: int = 30, residual_tie_m: float = 0.05) -> dict[str, np.ndarray]:
     """3-D fixes for range differences rd (B, M−1) to mic 0 with mics (M ≥ 4, 3); see the module docstring.
 
@@ -107,7 +111,8 @@ def solve_3d(mics: np.ndarray, rd: np.ndarray, n_iterations: int = 30, residual_
     -------
     dict
         ``position_m`` (B, 3); ``cost_m2`` (B,) sum of squared residuals; ``height_ambiguous`` (B,) 1
-        where both mirror images are above ground and fit equally well; ``height_gdop`` (B,) the
+        where both mirror images are above ground and fit equally well; ``other_root_residual_m`` (B,)
+        the RMS residual of the root not chosen (NaN with one root); ``height_gdop`` (B,) the
         factor from a range-difference standard deviation (m) to the height's (m); ``n_roots`` (B,).
     """
     if mics.shape[0] < 4:
@@ -123,7 +128,9 @@ def solve_3d(mics: np.ndarray, rd: np.ndarray, n_iterations: int = 30, residual_
     fit = np.sqrt(cost / (mics.shape[0] - 1))
     usable = np.where(above.any(axis=1, keepdims=True), above, valid)
     best_fit = np.where(usable, fit, np.inf).min(axis=1, keepdims=True)
-    tie = usable & (fit <= best_fit + residual_tie_m)
+    # Two roots tie (a coplanar array's mirror images) when they fit alike: within residual_tie_m and within the better
+    # one's own misfit, i.e. the measurement noise. A root that fits to numerical precision is never beaten by one 3 cm off.
+    tie = usable & (fit <= best_fit + np.minimum(residual_tie_m, np.maximum(best_fit, NUMERICAL_FIT_M)))
     # among equally good fits take the upper one (the mirror of a coplanar array is below it)
     choice = np.argmax(np.where(tie, refined[..., 2], -np.inf), axis=1)
     rows = np.arange(bsz)
@@ -141,6 +148,7 @@ def solve_3d(mics: np.ndarray, rd: np.ndarray, n_iterations: int = 30, residual_
         "position_m": position,
         "cost_m2": cost[rows, choice],
         "height_ambiguous": ambiguous.astype(float),
+        "other_root_residual_m": np.where(valid[rows, 1 - choice], fit[rows, 1 - choice], np.nan),
         "height_gdop": height_gdop,
         "n_roots": valid.sum(axis=1).astype(float),
     }

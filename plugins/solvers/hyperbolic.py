@@ -235,7 +235,7 @@ class HyperbolicSolver:
         for name in out.diagnostics:
             if name in fix2.diagnostics:
                 out.diagnostics[name][bad] = fix2.diagnostics[name][bad]
-            elif name in ("height_gdop", "height_ambiguous"):
+            elif name in ("height_gdop", "height_ambiguous", "other_root_residual_m"):
                 out.diagnostics[name][bad] = np.nan
         return out
 
@@ -261,5 +261,6 @@ class HyperbolicSolver:
                 "source_height_m": position[:, 2],
                 "height_gdop": np.where(ok, fix["height_gdop"], np.nan),
                 "height_ambiguous": np.where(ok, fix["height_ambiguous"], np.nan),
+                "other_root_residual_m": np.where(ok, fix["other_root_residual_m"], np.nan),
             },
         )
