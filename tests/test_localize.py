@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 import soundfile as sf
 
+from acoustlab.core.errors import DataError
 from acoustlab.run.app import run_experiment
 
 pytestmark = pytest.mark.slow
@@ -177,3 +178,18 @@ def test_a_dead_recorder_costs_that_recorder_not_the_event(compose_cfg, tmp_path
         assert error < 2.0, (event, error)
     assert not by_event.loc[5, "placed"] and by_event.loc[5, "abstain_reason"].startswith("quality:")
     assert by_event.loc[0, "mics_dropped"] == ""
+
+
+def test_text_event_ids_come_back_as_given(compose_cfg, tmp_path):
+    """An events table whose ids are text (``call00``, …) is read, and positions.csv names each row by its own id; two rows
+    with one id stop the run naming it."""
+    _, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 4)
+    events = pd.read_csv(tmp_path / "recordings" / "events.csv")
+    events["event_id"] = [f"call{k:02d}" for k in range(len(events))]
+    events.to_csv(tmp_path / "recordings" / "events.csv", index=False)
+    table, _, _ = localize(compose_cfg, tmp_path, *overrides)
+    assert table["event_id"].tolist() == ["call00", "call01", "call02", "call03"]
+    events.loc[3, "event_id"] = "call00"
+    events.to_csv(tmp_path / "recordings" / "events.csv", index=False)
+    with pytest.raises(DataError, match="column 'event_id': 'call00' appears more than once"):
+        localize(compose_cfg, tmp_path / "again", *overrides)

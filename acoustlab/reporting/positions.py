@@ -32,6 +32,8 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     calibration's clock correction).
     """
     out = pd.DataFrame({c: predictions[c] for c in DETECTION_FIELDS if c in predictions})
+    if "event_name" in predictions and col.EVENT_ID in out:  # the user's own text ids (call00, …) where they gave them
+        out[col.EVENT_ID] = predictions["event_name"].to_numpy(object)
     gate_x, gate_y = col.estimate_xy("gate")
     placed = (
         predictions[col.PLACED].to_numpy(bool)

@@ -5,7 +5,8 @@ Two layouts are accepted.
 acoustlab layout
     ``mics_csv`` with ``mic_id, x_m, y_m, z_m`` and either a ``file`` column (one mono file per
     mic) or none (then ``events_csv`` has a ``file`` column naming one multichannel file per
-    event, channels in the mics table's order). ``events_csv`` has ``event_id, start_s, end_s``
+    event, channels in the mics table's order). ``events_csv`` has ``event_id`` (a whole number, or
+    text such as ``call00``, given back as is in the positions), ``start_s, end_s``
     and optionally ``file``, ``position_id``, ``x_m, y_m`` (true position when known),
     ``temperature_c``, ``relative_humidity_pct``, ``hardware_failure``, ``low_hz, high_hz`` (the
     event's own frequency band: its GCC runs there, as a season's detector bands do) and
@@ -54,6 +55,8 @@ from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_q
 
 log = logging.getLogger(__name__)
 
+#: Events column: the user's event id where it is text (``event_id`` is then the row's number).
+EVENT_NAME = "event_name"
 #: Mics table column (computed): when the mic's file starts after the earliest file, s.
 FILE_OFFSET = "file_offset_s"
 
@@ -213,6 +216,12 @@ class RecordingFolder:
             _unique(mics, "mics_csv", "mic_id")
         if "file" in mics:
             mics["file"] = mics["file"].astype(str).str.strip()
+        if col.EVENT_ID in events and pd.to_numeric(events[col.EVENT_ID], errors="coerce").isna().any():
+            # text ids (call00, …): kept as the user's name of the event, numbered in table order inside
+            events[col.EVENT_ID] = events[col.EVENT_ID].astype(str).str.strip()
+            _unique(events, "events_csv", col.EVENT_ID)
+            events[EVENT_NAME] = events[col.EVENT_ID]
+            events[col.EVENT_ID] = np.arange(len(events))
         _numeric(events, "events_csv", (col.EVENT_ID, col.START, col.END, col.POSITION_ID))
         _numeric(events, "events_csv", (col.TRUE_X, col.TRUE_Y, col.TRUE_Z), finite=False)
         _numeric(events, "events_csv", (col.TEMPERATURE,), lower=-60.0, upper=60.0)
@@ -560,6 +569,8 @@ class RecordingFolder:
         if "low_hz" in events:  # the GCC of each event runs in its own band (as a season's detector tables give it)
             rows[col.BAND_LOW] = events["low_hz"].to_numpy(float)
             rows[col.BAND_HIGH] = events["high_hz"].to_numpy(float)
+        if EVENT_NAME in events:  # the user's own (text) event ids, reported as event_id in the positions
+            rows[EVENT_NAME] = events[EVENT_NAME].to_numpy(object)
         if "time_s" in events:  # when the event happened (clock drift of a field calibration is per second of it)
             rows["time_s"] = events["time_s"].to_numpy(float)
         return RecordingBatch(audio=audio, sample_rate_hz=fs, events=rows)
