@@ -413,6 +413,8 @@ def test_an_unwritable_outputs_dir_is_named_before_hydra_starts(tmp_path, monkey
         preflight.check_output_dirs(["+site=forest", f"paths.outputs_dir={locked / 'outputs'}"])
     with pytest.raises(ConfigError, match=r"hydra.run.dir=.*: it is not writable"):
         preflight.check_output_dirs(["+site=forest", f"paths.outputs_dir={tmp_path}", f"hydra.run.dir={locked}"])
+    with pytest.raises(ConfigError, match=r"protocol.output_dir=.*locked/season: its parent .*locked is not writable"):  # a season's folder
+        preflight.check_output_dirs(["protocol=season", f"paths.outputs_dir={tmp_path}", f"protocol.output_dir={locked / 'season'}"])
     (tmp_path / "a_file").write_text("")
     with pytest.raises(ConfigError, match="is a file, not a folder"):
         preflight.check_output_dirs([f"paths.outputs_dir={tmp_path / 'a_file' / 'x'}"])

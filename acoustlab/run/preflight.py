@@ -119,7 +119,7 @@ def check_argv(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
 
 
 #: Command-line keys naming folders a run writes into, and the default of the first.
-OUTPUT_DIR_KEYS = ("paths.outputs_dir", "hydra.run.dir", "hydra.sweep.dir", "cache.dir")
+OUTPUT_DIR_KEYS = ("paths.outputs_dir", "hydra.run.dir", "hydra.sweep.dir", "cache.dir", "protocol.output_dir")
 DEFAULT_OUTPUTS_DIR = "outputs"
 
 
