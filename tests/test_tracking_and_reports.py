@@ -518,3 +518,34 @@ def test_a_run_logged_after_it_ended_keeps_its_own_start_and_duration(compose_cf
     assert upload.main([str(tmp_path / "run"), "--store-dir", str(tmp_path / "store")]) == 0
     (run,) = runs_in(tmp_path / "store" / "mlflow.db")
     assert run.info.start_time == clock["started_epoch_ms"] and run.info.end_time == clock["finished_epoch_ms"]
+
+
+BILLION_LAUGHS = (
+    "a: &a [x, x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]\nc: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b]\n"
+)
+
+
+@pytest.mark.parametrize(
+    "config,expected",
+    [(BILLION_LAUGHS, "anchors or aliases"), ("- just\n- a list\n", "holds a YAML list"), ("[" * 200 + "]" * 200, "nested deeper")],
+)
+def test_a_hostile_received_config_is_refused_in_one_line_and_quickly(tmp_path, capsys, config, expected):
+    run_dir = _received_run(tmp_path)
+    (run_dir / "config_resolved.yaml").write_text(config)
+    assert upload.main([str(run_dir), "--store-dir", str(tmp_path / "mine")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and expected in err and "config_resolved.yaml" in err
+
+
+def test_oversized_or_fake_parquet_artifacts_are_not_uploaded(tmp_path, caplog, monkeypatch):
+    from acoustlab.reporting import experiment_log
+
+    run_dir = _received_run(tmp_path)
+    (run_dir / "predictions.parquet").write_bytes(b"not parquet at all")
+    caplog.set_level(logging.WARNING)
+    names = [p.name for p in experiment_log.artifact_paths(run_dir)]
+    assert "predictions.parquet" not in names and any("not a readable Parquet file" in r.message for r in caplog.records)
+    monkeypatch.setattr(experiment_log, "MAX_ARTIFACT_BYTES", 10)
+    (run_dir / "metrics.json").write_text(json.dumps({"site": "forest", "dataset_hash": "abc", "code_version": "x"}))
+    assert "metrics.json" not in [p.name for p in experiment_log.artifact_paths(run_dir)]
+    assert any("over the 10-byte artifact limit" in r.message for r in caplog.records)

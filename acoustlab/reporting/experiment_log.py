@@ -30,6 +30,13 @@ PENDING_FILE = "TRACKING_PENDING.json"
 RUN_ARTIFACTS = ("metrics.json", "predictions.parquet", "config_resolved.yaml")
 
 
+#: Limits on what a received run folder may hold (an upload reads folders from anyone): YAML/JSON size (bytes), YAML
+#: nodes and nesting depth, and the size of one artifact (bytes).
+MAX_TEXT_BYTES = 16 * 2**20
+MAX_YAML_NODES = 200_000
+MAX_DEPTH = 64
+MAX_ARTIFACT_BYTES = 1 * 2**30
+
 #: metrics.json keys a run always writes and the tracker tags a run with.
 REQUIRED_METRICS_KEYS = ("site", "dataset_hash", "code_version")
 
@@ -45,11 +52,14 @@ def read_metrics(run_dir: Path, required: tuple[str, ...] = ()) -> dict[str, Any
     """
     path = Path(run_dir) / "metrics.json"
     try:
+        if path.stat().st_size > MAX_TEXT_BYTES:
+            raise DataError(f"{path} is {path.stat().st_size} bytes, more than a metrics.json can be ({MAX_TEXT_BYTES})")
         metrics = json.loads(path.read_text())
+        _check_depth(metrics, path)
     except OSError as exc:
         raise DataError(f"{path} cannot be read ({exc.strerror or exc})") from None
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path} is not valid JSON ({exc}); expected the metrics.json an acoustlab run writes") from None
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise DataError(f"{path} is not valid JSON ({str(exc)[:200]}); expected the metrics.json an acoustlab run writes") from None
     if not isinstance(metrics, dict):
         raise DataError(f"{path} holds a JSON {type(metrics).__name__}; expected an object of metrics")
     missing = [k for k in required if not isinstance(metrics.get(k), str)]
@@ -58,12 +68,67 @@ def read_metrics(run_dir: Path, required: tuple[str, ...] = ()) -> dict[str, Any
     return metrics
 
 
+def _check_depth(value: Any, path: Path, depth: int = 0) -> None:
+    """Refuse data nested deeper than ``MAX_DEPTH`` (one line naming the file)."""
+    if depth > MAX_DEPTH:
+        raise DataError(f"{path} is nested deeper than {MAX_DEPTH} levels; not an acoustlab run's file")
+    children = value.values() if isinstance(value, dict) else value if isinstance(value, list) else ()
+    for child in children:
+        _check_depth(child, path, depth + 1)
+
+
+def load_received_yaml(path: Path) -> dict[str, Any]:
+    """A received ``config_resolved.yaml`` as a mapping, read within limits (one line naming the file otherwise).
+
+    The file is parsed as events first: anchors and aliases are refused (acoustlab writes none,
+    and a few nested aliases expand to billions of values), as are more than ``MAX_YAML_NODES``
+    nodes, nesting deeper than ``MAX_DEPTH`` and files over ``MAX_TEXT_BYTES``.
+    """
+    if path.stat().st_size > MAX_TEXT_BYTES:
+        raise DataError(f"{path} is {path.stat().st_size} bytes, more than a run's config can be ({MAX_TEXT_BYTES})")
+    text = path.read_text(errors="replace")
+    depth = nodes = 0
+    try:
+        for event in yaml.parse(text, Loader=yaml.SafeLoader):
+            if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None):
+                raise DataError(f"{path} uses YAML anchors or aliases, which an acoustlab run's config never has; not read")
+            if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    raise DataError(f"{path} is nested deeper than {MAX_DEPTH} levels; not an acoustlab run's config")
+            elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+                depth -= 1
+            nodes += 1
+            if nodes > MAX_YAML_NODES:
+                raise DataError(f"{path} has more than {MAX_YAML_NODES} YAML nodes; not an acoustlab run's config")
+        received = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise DataError(f"{path} is not readable YAML: {str(exc).splitlines()[0]}") from None
+    if received is None:
+        return {}
+    if not isinstance(received, dict):
+        raise DataError(f"{path} holds a YAML {type(received).__name__}; expected the mapping of settings an acoustlab run writes")
+    return received
+
+
+def _parquet_ok(path: Path) -> bool:
+    """True for a Parquet file pyarrow can read the footer of (a received file named .parquet may be anything)."""
+    import pyarrow.parquet as pq
+
+    try:
+        pq.ParquetFile(path).metadata  # noqa: B018 - reading the footer is the check
+    except Exception:  # noqa: BLE001 - pyarrow raises ArrowInvalid/OSError and others for a damaged file
+        return False
+    return True
+
+
 def artifact_paths(run_dir: Path) -> list[Path]:
     """The run's artifacts to upload: regular files inside ``run_dir`` only.
 
     A symbolic link (in a folder received from someone else it could point at any file of the
-    uploading machine) and anything that resolves outside the folder are left out with a warning;
-    a directory (``plots``) is listed file by file.
+    uploading machine), anything that resolves outside the folder, a file over
+    ``MAX_ARTIFACT_BYTES`` and a ``.parquet`` that is not Parquet are left out with a warning; a
+    directory (``plots``) is listed file by file.
     """
     root = Path(run_dir).resolve()
     out: list[Path] = []
@@ -75,6 +140,12 @@ def artifact_paths(run_dir: Path) -> list[Path]:
                 continue
             if item.is_symlink() or not item.is_file() or not item.resolve().is_relative_to(root):
                 log.warning("%s is not a regular file inside %s; not uploaded", item, run_dir)
+                continue
+            if item.stat().st_size > MAX_ARTIFACT_BYTES:
+                log.warning("%s is %d bytes, over the %d-byte artifact limit; not uploaded", item, item.stat().st_size, MAX_ARTIFACT_BYTES)
+                continue
+            if item.suffix == ".parquet" and not _parquet_ok(item):
+                log.warning("%s is not a readable Parquet file; not uploaded", item)
                 continue
             out.append(item)
     return out
@@ -99,7 +170,7 @@ def run_params(run_dir: Path, metrics: dict) -> dict[str, Any]:
     params: dict[str, Any] = {f"choice.{g}": v for g, v in metrics.get("choices", {}).items()}
     config_file = run_dir / "config_resolved.yaml"
     if config_file.exists():
-        params.update(flatten(yaml.safe_load(config_file.read_text()) or {}))
+        params.update(flatten(load_received_yaml(config_file)))
     return params
 
 

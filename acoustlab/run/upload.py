@@ -22,12 +22,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import yaml
 from omegaconf import OmegaConf
 
 from acoustlab.core.contracts import declared
 from acoustlab.core.errors import AcoustlabError, ConfigError
-from acoustlab.reporting.experiment_log import PENDING_FILE, REQUIRED_METRICS_KEYS, log_run_dir, read_metrics
+from acoustlab.reporting.experiment_log import PENDING_FILE, REQUIRED_METRICS_KEYS, load_received_yaml, log_run_dir, read_metrics
 from acoustlab.run.registry import CONF_DIR, build
 
 log = logging.getLogger(__name__)
@@ -47,10 +46,7 @@ def tracker_for(run_dir: Path, tracking_uri: str | None, experiment: str | None,
     config_file = run_dir / "config_resolved.yaml"
     if not config_file.exists():
         raise ConfigError(f"{config_file} is missing: {run_dir} is not an acoustlab run directory")
-    try:
-        received = yaml.safe_load(config_file.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{config_file} is not readable YAML: {exc}") from exc
+    received = load_received_yaml(config_file)
     tracking = received.get("tracking") if isinstance(received.get("tracking"), dict) else {}
     node = OmegaConf.load(CONF_DIR / "tracking" / f"{DEFAULT_TRACKING_OPTION}.yaml")
     node.store_dir = store_dir  # the uploader's, never the received folder's paths.outputs_dir
