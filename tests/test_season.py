@@ -166,6 +166,45 @@ def test_a_killed_run_resumes_without_redoing_finished_chunks(season, tmp_path):
     pd.testing.assert_frame_equal(merge_parts(folder), pd.read_parquet(root / "run" / "positions.parquet"))
 
 
+def test_a_local_worker_stops_when_its_parent_is_killed(season, tmp_path):
+    """A worker started by a run (as joblib's local workers are) stops before its next chunk once that run is killed."""
+    root, _, _, _ = season
+    folder = tmp_path / "orphan"
+    shutil.copytree(root / "out", folder, ignore=shutil.ignore_patterns("parts"))
+    code = (
+        "import multiprocessing as mp, os, sys, time\n"
+        "from acoustlab.season.stream import localize_shard\n"
+        "if __name__ == '__main__':\n"
+        "    ctx = mp.get_context('spawn')\n"
+        f"    child = ctx.Process(target=localize_shard, args=({str(folder)!r}, 0, 1, 1, os.getpid()))\n"
+        "    child.start()\n"
+        "    print(child.pid, flush=True)\n"
+        "    time.sleep(600)\n"
+    )
+    parent = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"}
+    )
+    child = int(parent.stdout.readline())
+    deadline = time.monotonic() + 120
+    while not part_path(folder, 0).is_file() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        stat = Path(f"/proc/{child}/stat")
+        try:  # gone, or a zombie nobody reaps (a container's init may not)
+            if stat.read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                break
+        except (FileNotFoundError, ProcessLookupError):
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(child, signal.SIGKILL)
+        pytest.fail("the worker kept running after its parent was killed")
+    assert sum(part_path(folder, k).is_file() for k in range(5)) < 5
+
+
 def test_a_changed_method_file_is_refused_and_other_inputs_never_mix(season, compose_cfg, tmp_path):
     root, _, _, _ = season
     folder = tmp_path / "tampered"

@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -283,7 +284,7 @@ class SeasonLocalize:
         threads = max(1, free_cores() // self.n_jobs)  # workers × threads ≤ cores: oversubscribed OpenMP spin-waits
         log.info("season: %d local workers, %d thread(s) each", self.n_jobs, threads)
         done = Parallel(n_jobs=self.n_jobs, backend="loky")(
-            delayed(localize_shard)(str(folder), s, self.n_jobs, threads) for s in range(self.n_jobs)
+            delayed(localize_shard)(str(folder), s, self.n_jobs, threads, os.getpid()) for s in range(self.n_jobs)
         )
         return int(sum(done))
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -325,12 +326,20 @@ def read_part(directory: Path, k: int, event_ids: np.ndarray, columns: list[str]
 
 
 def localize_chunks(
-    directory: Path, chunks: Iterable[int], fitted: FittedSeasonMethod | None = None, progress_every_s: float = 5.0, label: str = "season"
+    directory: Path,
+    chunks: Iterable[int],
+    fitted: FittedSeasonMethod | None = None,
+    progress_every_s: float = 5.0,
+    label: str = "season",
+    parent_pid: int | None = None,
 ) -> int:
     """Compute the listed chunks whose part is not yet written; return how many were computed.
 
     Everything is read from ``directory`` (the method verified by its digest), so a shard on
-    another machine computes exactly what the unsharded run would.
+    another machine computes exactly what the unsharded run would. A local worker passes its
+    parent's ``parent_pid``: when the parent is gone (killed), the worker stops before its next
+    chunk instead of running on unseen (every part is written atomically, so a resume redoes
+    nothing that was finished).
     """
     keep_freed_memory()  # every batch allocates the same large arrays again
     manifest = read_manifest(directory)
@@ -342,13 +351,18 @@ def localize_chunks(
     todo = [k for k in chunks if not part_path(directory, k).is_file() or read_part(directory, k, chunk_ids[k], [col.EVENT_ID]) is None]
     total = sum(min(plan.chunk_events, manifest["n_events"] - k * plan.chunk_events) for k in todo)
     progress = _RateLog(total, progress_every_s, label)
+    computed = 0
     for k in todo:
+        if parent_pid is not None and os.getppid() != parent_pid:
+            log.warning("%s: the run that started this worker is gone; stopping before chunk %d", label, k)
+            break
+        computed += 1
         chunk = read_chunk(directory, k, plan.chunk_events)
         table = localize_events(fitted, recordings, chunk, manifest["recorders"], plan, recordings.origin, on_batch=progress.add)
         part_path(directory, k).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(part_path(directory, k), table.to_parquet(index=False))
     recordings.close()
-    return len(todo)
+    return computed
 
 
 class _RateLog:
@@ -389,8 +403,11 @@ def read_chunk(directory: Path, k: int, chunk_events: int) -> pd.DataFrame:
     return pd.read_parquet(directory / EVENTS).iloc[k * chunk_events : (k + 1) * chunk_events].reset_index(drop=True)
 
 
-def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1) -> int:
-    """One local worker's shard (joblib): the chunks k ≡ shard (mod n_shards), with ``threads`` threads for numerics."""
+def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1, parent_pid: int | None = None) -> int:
+    """One local worker's shard (joblib): the chunks k ≡ shard (mod n_shards), with ``threads`` threads for numerics.
+
+    ``parent_pid``: the run that started the worker; the worker stops when that process is gone.
+    """
     from threadpoolctl import threadpool_limits
 
     directory_path = Path(directory)
@@ -400,6 +417,7 @@ def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1) 
             directory_path,
             shard_chunks(manifest["n_events"], manifest["chunk_events"], shard, n_shards),
             label=f"season shard {shard + 1}/{n_shards}",
+            parent_pid=parent_pid,
         )
 
 
