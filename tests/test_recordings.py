@@ -224,3 +224,20 @@ def test_a_mics_table_with_each_files_start_time(tmp_path, compose_cfg):
     mics.to_csv(tmp_path / "mics.csv", index=False)
     with pytest.raises(DataError, match=r"line 2, column 'start_time': 'yesterday' is not an ISO 8601 time"):
         build(cfg.field, "field").load(site)
+
+
+def test_a_file_whose_header_misstates_its_rate_is_named_by_its_duration(tmp_path, compose_cfg):
+    """One mic's file holds its samples under twice their rate (a 48 kHz header on 24 kHz samples would last half as long):
+    the preflight names it by comparing the array's durations; a file that is merely a little shorter passes."""
+    import soundfile as sf
+
+    mics = copy_example_audio(tmp_path)
+    mics.to_csv(tmp_path / "mics.csv", index=False)
+    wrong = mics["file"].iloc[3]
+    audio, fs = sf.read(tmp_path / wrong)
+    sf.write(tmp_path / wrong, audio, 2 * fs)
+    cfg = compose_cfg(["+site=loca2021", "field=recordings", f"field.audio_dir={tmp_path}", f"field.mics_csv={tmp_path / 'mics.csv'}"])
+    with pytest.raises(DataError, match=rf"{wrong} lasts .* header's {2 * fs:g} Hz is likely wrong \({fs:g} Hz would make it"):
+        build(cfg.field, "field").validate(site_from_config(cfg.site))
+    sf.write(tmp_path / wrong, audio[: int(0.9 * len(audio))], fs)  # cut short: a recorder that stopped early
+    build(cfg.field, "field").validate(site_from_config(cfg.site))

@@ -149,6 +149,9 @@ class RecordingFolder:
     recorder_sample_rate_hz : float, optional
         The rate the recorders were set to; every audio file's header must declare it (a file whose
         samples were written under another rate would place sources metres off). None: not checked.
+    compare_durations : bool
+        With one file per mic, refuse a file whose duration is a standard-rate ratio of the
+        others' median (half as long: 24 kHz samples under a 48 kHz header), naming it.
 
     Notes
     -----
@@ -173,6 +176,7 @@ class RecordingFolder:
         allow_outside_audio_dir: bool = False,
         quality: dict | None = None,
         recorder_sample_rate_hz: float | None = None,
+        compare_durations: bool = True,
     ) -> None:
         if not ((mics_csv and events_csv) or (coords_csv and detections_csv)):
             raise ConfigError("field: give mics_csv and events_csv, or coords_csv and detections_csv (OpenSoundscape layout)")
@@ -198,6 +202,7 @@ class RecordingFolder:
         if recorder_sample_rate_hz is not None and not (isinstance(recorder_sample_rate_hz, (int, float)) and recorder_sample_rate_hz > 0):
             raise ConfigError(f"field.recorder_sample_rate_hz must be a positive number (Hz) or null; got {recorder_sample_rate_hz!r}")
         self.recorder_sample_rate_hz = None if recorder_sample_rate_hz is None else float(recorder_sample_rate_hz)
+        self.compare_durations = bool(compare_durations)
         try:
             self.thresholds = QualityThresholds(**(quality or {}))
         except TypeError as exc:
@@ -395,9 +400,11 @@ class RecordingFolder:
                     f"field: the recordings' {len(positions)} mic positions do not match site {site.name!r} "
                     f"({site.n_mics} mics); build the site from the same mics table"
                 )
+        durations: dict[str, tuple[float, float]] = {}
         for file in self._audio_files(mics, events):
             path = self.audio_path(file)
             info = self._header(path)
+            durations[str(path)] = (info.frames / info.samplerate, float(info.samplerate))
             if "file" not in mics and info.channels < len(mics):
                 raise DataError(f"field: {path} has {info.channels} channels but the mics table lists {len(mics)} mics")
             if self.recorder_sample_rate_hz is not None and info.samplerate != self.recorder_sample_rate_hz:
@@ -407,6 +414,8 @@ class RecordingFolder:
                 )
             if "file" in mics:
                 self._check_channels(mics, file, path, info.channels)
+        if "file" in mics and self.compare_durations:
+            _check_rate_labels(durations)
         n = int(((events[col.END] - events[col.START]).max() + 2 * self.pad_s) * self.sample_rate_hz) + 1
         size = len(events) * len(mics) * n * 4
         if size > MAX_AUDIO_BYTES:
@@ -574,6 +583,29 @@ class RecordingFolder:
         if "time_s" in events:  # when the event happened (clock drift of a field calibration is per second of it)
             rows["time_s"] = events["time_s"].to_numpy(float)
         return RecordingBatch(audio=audio, sample_rate_hz=fs, events=rows)
+
+
+#: Sample rates recorders are set to, Hz: a file whose duration says it holds one of these under another header is mislabelled.
+STANDARD_RATES_HZ = (8000, 11025, 16000, 22050, 24000, 32000, 44100, 48000, 88200, 96000, 192000, 250000, 256000, 384000)
+
+
+def _check_rate_labels(durations: dict[str, tuple[float, float]], tolerance: float = 0.005) -> None:
+    """One array's files record the same stretch of time: a file lasting a standard-rate ratio of the others' median
+    (e.g. half: 24 kHz samples under a 48 kHz header) has a wrong sample rate in its header (one line naming it)."""
+    if len(durations) < 3:
+        return
+    median = float(np.median([d for d, _ in durations.values()]))
+    if median <= 0:
+        return
+    for path, (duration, rate) in durations.items():
+        implied = rate * duration / median  # the rate at which the file would last as long as the others
+        for standard in STANDARD_RATES_HZ:
+            if standard != rate and abs(implied - standard) <= tolerance * standard:
+                raise DataError(
+                    f"field: {path} lasts {duration:.3f} s where the array's files last {median:.3f} s (median): its header's "
+                    f"{rate:g} Hz is likely wrong ({standard:g} Hz would make it {median:.3f} s); fix the header, or set "
+                    "field.compare_durations=false if this recorder really recorded that much less"
+                )
 
 
 def _timestamps(values: pd.Series, where: str, column: str) -> pd.Series:
