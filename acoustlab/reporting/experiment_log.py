@@ -90,7 +90,7 @@ def load_received_yaml(path: Path) -> dict[str, Any]:
     depth = nodes = 0
     try:
         for event in yaml.parse(text, Loader=yaml.SafeLoader):
-            if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None):
+            if isinstance(event, yaml.AliasEvent) or (isinstance(event, yaml.NodeEvent) and event.anchor):
                 raise DataError(f"{path} uses YAML anchors or aliases, which an acoustlab run's config never has; not read")
             if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
                 depth += 1
