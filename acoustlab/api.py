@@ -85,7 +85,7 @@ def localize(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | 
     Parameters
     ----------
     site : str
-        A site of ``conf/site`` (``"from_csv"`` with ``site={"mics_csv": ...}`` for your own array).
+        A site of ``conf/site`` (``"recordings"`` for your own array: its mics from ``field={"mics_csv": ...}``).
     overrides : sequence of str, optional
         Command-line overrides as they are written there (``"+experiment=smoke"``).
     run_dir : str or Path, optional

@@ -193,3 +193,19 @@ def test_text_event_ids_come_back_as_given(compose_cfg, tmp_path):
     events.to_csv(tmp_path / "recordings" / "events.csv", index=False)
     with pytest.raises(DataError, match="column 'event_id': 'call00' appears more than once"):
         localize(compose_cfg, tmp_path / "again", *overrides)
+
+
+def test_your_own_array_from_the_recordings_mics_table_alone(compose_cfg, tmp_path):
+    """``+site=recordings`` takes the simulation's mics from ``field.mics_csv``: one CSV describes the array, and the calls are
+    placed where they were."""
+    batch, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 6)
+    overrides = ["+site=recordings" if o == "+site=frozen_lake" else o for o in overrides]
+    cfg = compose_cfg([*overrides, "field=recordings"])
+    from acoustlab.stages.sites import site_from_config
+
+    mics = pd.read_csv(tmp_path / "recordings" / "mics.csv")
+    np.testing.assert_allclose(site_from_config(cfg.site).mic_positions_m, mics[["x_m", "y_m", "z_m"]].to_numpy())
+    table, _, _ = localize(compose_cfg, tmp_path, *overrides)
+    placed = table["placed"].to_numpy(bool)
+    err = np.hypot(table["x_m"] - batch.events["x_m"].to_numpy(), table["y_m"] - batch.events["y_m"].to_numpy())[placed]
+    assert placed.mean() >= 0.5 and np.median(err) < 2.0

@@ -87,6 +87,11 @@ def _code_text_of(source: bytes) -> bytes:
 
 #: Manifest of a cache entry (and the list of its files' SHA-256 under ``"files"``).
 MANIFEST = "manifest.json"
+#: What a miss of a costly stage means for the user: the first run on a site pays it once.
+FIRST_BUILD = {
+    "simulation": " (the site's training events are simulated once; later runs with the same site and settings reuse them from {root})",
+    "features": " (their features are computed once and reused likewise)",
+}
 
 
 class StorageError(AcoustlabError):
@@ -237,7 +242,8 @@ class StageCache:
                 return None
             self.discard(stage, key, problem)
         if log_miss:
-            log.info("cache %s: %s %s", "miss" if self.enabled else "bypassed", stage, key[:12])
+            why = FIRST_BUILD.get(stage, "") if self.enabled else ""
+            log.info("cache %s: %s %s%s", "miss" if self.enabled else "bypassed", stage, key[:12], why.format(root=self.root))
         return None
 
     @contextlib.contextmanager

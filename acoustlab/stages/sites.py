@@ -53,7 +53,10 @@ def load_mics(cfg: Mapping[str, Any]) -> np.ndarray:
         return table[list(col.MIC_XYZ)].to_numpy(dtype=float)
     mics = cfg.get("mics")
     if not mics:
-        raise ConfigError("site: give microphone positions as 'mics' ([[x, y, z], ...] in m) or 'mics_csv'")
+        raise ConfigError(
+            "site: give microphone positions as 'mics' ([[x, y, z], ...] in m) or 'mics_csv' "
+            "(+site=recordings takes them from field.mics_csv: add field=recordings field.mics_csv=PATH)"
+        )
     try:
         arr = np.asarray([[float(v) for v in row] for row in mics], dtype=float)
     except (TypeError, ValueError):
