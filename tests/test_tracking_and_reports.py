@@ -154,6 +154,7 @@ def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     assert ("tie on the gated p95 error" if same else "Smallest gated p95 error: ") in md
     assert not re.search(r"\bnan\b", md.split("## Plots")[0])  # a conclusion, no bare nan
     assert "> 5 m (%)" in md and "p95 (m)" in md
+    assert "> Too few to compare: " in md and "detections at" in md  # a smoke run's p99 and coverage rank nothing
     for png in (
         "sweep_error_cdf.png",
         "sweep_coverage_calibration.png",

@@ -187,6 +187,33 @@ def conclusion(runs: list[RunResult]) -> str:
     )
 
 
+#: Below these a run's tail errors and coverage are too noisy to rank runs by: detections, and source positions.
+FEW_DETECTIONS, FEW_POSITIONS = 200, 30
+
+
+def too_few_warning(runs: list[RunResult]) -> str | None:
+    """One line naming the runs whose p95, p99 and coverage rest on too few detections or positions to compare, or None."""
+    few = []
+    for r in runs:
+        gate = r.metrics.get(col.METRICS_ERRORS, {}).get("gate")
+        if not gate:
+            continue
+        n = int(gate.get("n", 0))
+        positions = r.metrics.get(col.METRICS_CI95, {}).get("n_positions")
+        if n < FEW_DETECTIONS or (positions is not None and positions < FEW_POSITIONS):
+            few.append((r.label, n, positions))
+    if not few:
+        return None
+    n_min = min(n for _, n, _ in few)
+    half = 1.96 * np.sqrt(0.95 * 0.05 / max(n_min, 1))
+    named = "; ".join(f"{label}: {n} detections" + (f" at {p} positions" if p is not None else "") for label, n, p in few)
+    return (
+        f"Too few to compare: {named}. At this size a coverage of 0.95 is known only to ±{half:.2f} (independent detections; "
+        f"wider when they share positions) and a p99 error is one or two detections: run at least {FEW_DETECTIONS} detections "
+        f"at {FEW_POSITIONS} positions before ranking runs."
+    )
+
+
 def paired_ratio_ci(
     first: pd.DataFrame, other: pd.DataFrame, q: float, n_boot: int = 1000, seed: int = 0, method: str = "gate"
 ) -> tuple[float, float] | None:
@@ -434,11 +461,13 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
 
     title = title or default_title(runs)
     summary = conclusion(runs)
+    warning = too_few_warning(runs)
     md = [
         f"# {title}",
         "",
         f"**{summary}**",
         "",
+        *([f"> {warning}", ""] if warning else []),
         f"{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
         f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.",
         "",
@@ -446,6 +475,7 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
     page = [
         f"<h1>{html.escape(title)}</h1>",
         f"<p><strong>{html.escape(summary)}</strong></p>",
+        *([f"<p><em>{html.escape(warning)}</em></p>"] if warning else []),
         f"<p>{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
         f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.</p>",
     ]
