@@ -436,6 +436,22 @@ def test_help_names_every_protocol_and_the_localize_command(compose_cfg):
     assert all(re.search(rf"\b{protocol}\s+\(", header) for protocol in group_options("protocol")), header
 
 
+def test_help_gives_every_option_of_every_group_a_description():
+    from acoustlab.run.schema import option_descriptions
+
+    described: dict[str, dict[str, str]] = {}
+    for row in option_descriptions().splitlines():
+        if not row.startswith(" "):
+            group = row.rstrip(":")
+            continue
+        option, _, text = row.strip().partition(" ")
+        described.setdefault(group, {})[option] = text.strip()
+    for group in ("model", "error_model", "gate", "solver", "conformal", "protocol", "site", "field", "experiment", "features"):
+        for option in group_options(group):
+            text = described[group][option]
+            assert text and "@package" not in text, f"{group}={option} has no description in --help"
+
+
 @pytest.mark.parametrize("experiment", ["ablate_features", "cross_fit_gates"])
 def test_long_experiments_say_what_they_cost_before_starting(compose_cfg, experiment):
     cfg = compose_cfg(["+site=forest", f"+experiment={experiment}"])

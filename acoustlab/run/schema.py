@@ -180,11 +180,30 @@ class _TypedRoot:
 AcoustlabConfig = make_dataclass("AcoustlabConfig", [(g, Any, None) for g in FREE_FORM_GROUPS], bases=(_TypedRoot,))
 
 
+def option_descriptions(width: int = 110) -> str:
+    """Every option of every config group with a one-line description: the first comment line of its YAML (for ``--help``)."""
+    from acoustlab.run.registry import CONF_DIR
+
+    lines = []
+    for group in sorted(p for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra"):
+        lines.append(f"{group.name}:")
+        for option in sorted(group.glob("*.yaml")):
+            comments = [line.lstrip("#").strip() for line in option.read_text().splitlines() if line.startswith("#")]
+            first = next((c for c in comments if c and not c.startswith("@package")), "")
+            head = next((line for line in option.read_text().splitlines() if line.strip() and not line.startswith("# @package")), "")
+            text = first if head.startswith("#") else ""
+            entry = f"  {option.stem:<28} {text}"
+            lines.append(entry if len(entry) <= width else entry[: width - 1] + "…")
+    return "\n".join(lines)
+
+
 def register() -> None:
-    """Register the schema with Hydra's ConfigStore and the ``${threads:}`` resolver (idempotent); imported before any compose."""
+    """Register the schema with Hydra's ConfigStore and the ``${threads:}`` and ``${options:}`` resolvers (idempotent)."""
     ConfigStore.instance().store(name=SCHEMA_NAME, node=AcoustlabConfig)
     if not OmegaConf.has_resolver("threads"):
         OmegaConf.register_new_resolver("threads", free_cores, use_cache=True)
+    if not OmegaConf.has_resolver("options"):  # --help: each option with its description
+        OmegaConf.register_new_resolver("options", option_descriptions, use_cache=True)
 
 
 register()
