@@ -375,3 +375,28 @@ def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_pa
     assert errors["calibrated"] < 0.4 * errors["stated"], errors
     assert (table["calibration_sha256"] == digest).all()
     assert metrics["field_calibration"]["sha256"] == digest
+
+
+def test_the_same_season_command_resumes_in_the_same_folder(season, tmp_path):
+    """Without protocol.output_dir the season's folder is named by its inputs under paths.outputs_dir: running the command
+    again finds it, reuses the fitted method and computes no chunk twice; another chunking gets a folder of its own."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from acoustlab.run.registry import CONF_DIR
+
+    root, _, _, _ = season
+
+    def run(name, *extra):
+        overrides = [o for o in season_overrides(root, None) if not o.startswith("protocol.output_dir")]
+        GlobalHydra.instance().clear()
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=[*overrides, f"paths.outputs_dir={tmp_path / 'outputs'}", *extra])
+        metrics = run_experiment(cfg, tmp_path / name)
+        GlobalHydra.instance().clear()
+        return metrics["season"]
+
+    first, again = run("first"), run("again")
+    assert first["output_dir"] == again["output_dir"] and Path(first["output_dir"]).is_relative_to(tmp_path / "outputs" / "seasons")
+    assert first["chunks_computed"] > 0 and again["chunks_computed"] == 0
+    assert run("other", "protocol.chunk_events=7")["output_dir"] != first["output_dir"]

@@ -17,11 +17,13 @@ runs four stages (``protocol.stage``):
 ``all`` (default)
     fit (unless the output folder holds a method fitted from the same config), localize, merge.
 
-Every stage of one season shares ``protocol.output_dir`` (default: ``season`` in the run folder).
+Every stage of one season shares ``protocol.output_dir`` (default: ``<paths.outputs_dir>/seasons/<site>-<key>``,
+named by the season's inputs, so the same command resumes it).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -191,9 +193,28 @@ class SeasonLocalize:
         raise ConfigError("protocol=season streams its results; run it with python -m acoustlab season +site=NAME ...")
 
     # -- stages -----------------------------------------------------------------------------------
-    def folder(self, run_dir: Path) -> Path:
-        """The season's output folder (shared by every stage and shard)."""
-        return Path(self.output_dir) if self.output_dir else run_dir / "season"
+    def folder(self, run_dir: Path, cfg: DictConfig | None = None) -> Path:
+        """The season's output folder, shared by every stage and shard: ``protocol.output_dir``, else one named by its inputs.
+
+        The default, ``<paths.outputs_dir>/seasons/<site>-<key>``, is the same for the same command
+        (site, recordings, detector tables, chunking, weather, quality and the method's config), so
+        running the command again resumes it; any change of those gets a folder of its own.
+        """
+        if self.output_dir:
+            return Path(self.output_dir)
+        if cfg is None:
+            return run_dir / "season"
+        inputs = {
+            "recordings": self.recordings_cfg,
+            "detections": self.detections_cfg,
+            "events": self.events_cfg,
+            "chunk": [self.chunk_events, self.batch_events],
+            "weather": [self.temperature_c, self.relative_humidity_pct],
+            "quality": dataclasses.asdict(self.quality),
+            "method": self.method_key(cfg),
+        }
+        key = hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()[:12]
+        return Path(str(cfg.paths.outputs_dir)) / "seasons" / f"{cfg.site.name}-{key}"
 
     def plan(self, site: Site) -> ChunkPlan:
         """Chunking and the weather assumed for every detection (the middle of the site's ranges unless given)."""
@@ -290,7 +311,8 @@ class SeasonLocalize:
 
     def run_season(self, cfg: DictConfig, built: Any, run_dir: Path, prepare: Any) -> dict[str, Any]:
         """Run the configured stage(s); returns the run's metrics (positions summary after a merge)."""
-        folder = self.folder(run_dir)
+        folder = self.folder(run_dir, cfg)
+        log.info("season folder: %s (the same command resumes it; protocol.output_dir=… chooses another)", folder)
         started = time.perf_counter()
         metrics: dict[str, Any] = {"season": {"output_dir": str(folder), "stage": self.stage}}
         if self.stage in ("fit", "all"):
