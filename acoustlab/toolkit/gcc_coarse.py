@@ -28,6 +28,8 @@ hand: no library picks peaks of a band-limited sequence between its samples.
 from __future__ import annotations
 
 import functools
+import logging
+import sys
 
 import numpy as np
 import scipy.signal as ss
@@ -35,6 +37,8 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.dsp import gcc, parabolic_peak
+
+log = logging.getLogger(__name__)
 
 #: Coarse maxima refined per pair window and kind (maxima of the samples, maxima of the two-sample sums).
 SEARCHED = 16
@@ -148,6 +152,8 @@ def coarse_pair_candidates(
 def _centres(seg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Samples (E, C) of a window to refine around (the top local maxima, then the top maxima of two-sample sums on their
     higher sample), which of them are maxima, and the window's sum of squares (E,) (``window_peaks``)."""
+    if "acoustlab.toolkit.window_peaks" not in sys.modules:  # say why the first coarse search may pause
+        log.info("loading the compiled GCC peak search (numba): the first use on a machine compiles it once, then it is cached")
     from acoustlab.toolkit.window_peaks import window_peaks  # numba: imported by the first coarse search only
 
     n = seg.shape[-1]
