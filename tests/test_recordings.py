@@ -35,8 +35,8 @@ def copy_example_audio(folder):
     return mics
 
 
-def load_opensoundscape_layout(compose_cfg, folder, coords_csv, detections_csv):
-    """The LOCA example read from OpenSoundscape-layout tables: the batch, and the features' TDOA matrix."""
+def load_opensoundscape_layout(compose_cfg, folder, coords_csv, detections_csv, site=(), extra=()):
+    """The LOCA example read from OpenSoundscape-layout tables: the batch, and the features' TDOA matrix (``site``, ``extra``: overrides)."""
     cfg = compose_cfg(
         [
             "+site=loca2021",
@@ -47,11 +47,13 @@ def load_opensoundscape_layout(compose_cfg, folder, coords_csv, detections_csv):
             f"field.coords_csv={coords_csv}",
             f"field.detections_csv={detections_csv}",
             *BAND,
+            *site,
+            *extra,
         ]
     )
     site = site_from_config(cfg.site)
     batch = build(cfg.field, "field").load(site)
-    return batch, tdoa_matrix(extract_features(batch, site, build_feature_sets(cfg.features)), 6)
+    return batch, tdoa_matrix(extract_features(batch, site, build_feature_sets(cfg.features)), site.n_mics)
 
 
 def test_opensoundscape_layout(tmp_path, compose_cfg):

@@ -1,0 +1,106 @@
+"""OpenSoundscape's localization test cases, ported: the same inputs and expectations, run against acoustlab.
+
+Ported from the peer's public test suite (``tests/test_localization.py`` of kitzeslab/opensoundscape):
+the inputs and the expected answers, not its code. Where acoustlab answers differently on purpose
+the test says so: arrival times without a zero are accepted (only differences count) where the
+peer raises.
+"""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import acoustlab
+from acoustlab.core.errors import DataError
+from acoustlab.toolkit.physics import speed_of_sound_m_s
+
+
+def test_speed_of_sound_at_20_c_is_343_m_s():
+    """The peer's dry-air value; humid air is faster (acoustlab includes humidity: ~344 m/s at 50 %)."""
+    assert speed_of_sound_m_s(20.0, 0.0) == pytest.approx(343.0, abs=1.0)
+    assert 343.5 < speed_of_sound_m_s(20.0, 50.0) < 345.0
+
+
+def test_sound_finder_2d_equal_arrivals_are_the_square_s_centre():
+    receivers = np.array([[0, 0], [0, 20], [20, 20], [20, 0]], dtype=float)
+    fix = acoustlab.solve(receivers, np.ones(4), source_height_m=0.0)
+    assert np.hypot(fix["x_m"].iloc[0] - 10, fix["y_m"].iloc[0] - 10) < 0.01
+
+
+@pytest.mark.parametrize("offset", [0.0, 100.0])  # the peer's centred and not-centred cases
+def test_sound_finder_3d_equal_arrivals_at_uneven_heights(offset):
+    receivers = np.array([[0, 0, 0], [0, 20, 1], [20, 20, -1], [20, 0, 0.1]], dtype=float) + [offset, 0, 0]
+    fix = acoustlab.solve(receivers, np.ones(4), dimensions=3, fallback_2d=False)
+    estimate = fix[["x_m", "y_m", "z_m"]].to_numpy()[0]
+    assert np.linalg.norm(estimate - [offset + 10, 10, 0]) < 0.1
+
+
+def test_arrival_times_without_a_zero_give_the_same_fix():
+    """The peer's Gillette solver raises when no arrival time is 0; acoustlab takes any reference (only differences count)."""
+    receivers = np.array([[100, 0], [100, 20], [120, 20], [120, 0], [110, 10]], dtype=float)
+    source = np.array([113.0, 6.0])
+    arrival = np.linalg.norm(receivers - source, axis=1) / 343.0
+    fixes = [acoustlab.solve(receivers, arrival + shift, source_height_m=0.0)[["x_m", "y_m"]].to_numpy()[0] for shift in (0.0, 1.0)]
+    np.testing.assert_allclose(fixes[0], source, atol=1e-6)
+    np.testing.assert_allclose(fixes[1], fixes[0], atol=1e-6)
+
+
+def test_gillette_2d_source_relative_to_the_first_arrival():
+    receivers = np.array([[0, 0], [0, 20], [20, 20], [20, 0], [10, 10]], dtype=float)
+    source = np.random.default_rng(0).random(2) * 20
+    time_of_flight = np.linalg.norm(receivers - source, axis=1) / 343.0
+    fix = acoustlab.solve(receivers, time_of_flight - time_of_flight.min(), source_height_m=0.0)
+    np.testing.assert_allclose(fix[["x_m", "y_m"]].to_numpy()[0], source, rtol=0.1)
+
+
+@pytest.mark.parametrize("reference", range(6))
+def test_gillette_3d_with_each_receiver_as_reference(reference):
+    """Every receiver in turn is the reference mic (mic 0): the 3-D fix is the source (the peer allows 2.5 m; exact here)."""
+    receivers = np.array([[0, 0, 10], [0, 20, 1], [20, 20, -1], [20, 0, 0.1], [10, 10, 0], [5, 5, 5]], dtype=float)
+    source = np.array([10.0, 12.0, 2.0])
+    order = [reference, *[m for m in range(6) if m != reference]]
+    time_of_flight = np.linalg.norm(receivers[order] - source, axis=1) / 343.0
+    fix = acoustlab.solve(receivers[order], time_of_flight - time_of_flight[0], dimensions=3, fallback_2d=False)
+    np.testing.assert_allclose(fix[["x_m", "y_m", "z_m"]].to_numpy()[0], source, atol=2.5)
+    np.testing.assert_allclose(fix[["x_m", "y_m", "z_m"]].to_numpy()[0], source, atol=1e-4)
+
+
+def _loca_folder(tmp_path):
+    from tests.test_recordings import copy_example_audio
+
+    mics = copy_example_audio(tmp_path)
+    coords = pd.DataFrame(mics[["x_m", "y_m", "z_m"]].to_numpy(), columns=["x", "y", "z"], index=mics["file"].tolist())
+    return mics, coords
+
+
+def test_a_too_short_file_is_dropped_from_the_event_not_the_event(tmp_path, compose_cfg):
+    """The peer's real-audio edge case: a seventh receiver whose file is shorter than the call is left out, and the event
+    keeps the other six (here: placed from them, ``mics_dropped`` naming it)."""
+    import soundfile as sf
+
+    from tests.test_recordings import load_opensoundscape_layout
+
+    mics, coords = _loca_folder(tmp_path)
+    audio, fs = sf.read(tmp_path / mics["file"].iloc[0])
+    sf.write(tmp_path / "veryshort.wav", audio[: int(0.05 * fs)], fs)
+    coords.loc["veryshort.wav"] = [5.0, 5.0, 3.0]
+    coords.to_csv(tmp_path / "aru_coords.csv")
+    det = pd.DataFrame({"file": coords.index, "start_time": 0.2, "end_time": 0.5, "zeep": 1})
+    det.to_csv(tmp_path / "det.csv", index=False)
+    cfg_site = ["site.mics_csv=null", f"site.mics={coords.to_numpy().tolist()}".replace(" ", "")]
+    batch, _ = load_opensoundscape_layout(compose_cfg, tmp_path, tmp_path / "aru_coords.csv", tmp_path / "det.csv", site=cfg_site)
+    assert batch.events["mics_dropped"].iloc[0] == "6" and bool(batch.events["quality_ok"].iloc[0])
+    assert "out_of_range" in batch.events["quality_flags"].iloc[0]
+
+
+def test_too_few_receivers_for_any_window_is_one_clear_line(tmp_path, compose_cfg):
+    """The peer returns no events when min_n_receivers exceeds the receivers; acoustlab says so in one line."""
+    from tests.test_recordings import load_opensoundscape_layout
+
+    mics, coords = _loca_folder(tmp_path)
+    coords.to_csv(tmp_path / "aru_coords.csv")
+    pd.DataFrame({"file": coords.index, "start_time": 0.2, "end_time": 0.5, "zeep": 1}).to_csv(tmp_path / "det.csv", index=False)
+    with pytest.raises(DataError, match="no time window was detected by at least field.min_receivers=10"):
+        load_opensoundscape_layout(
+            compose_cfg, tmp_path, tmp_path / "aru_coords.csv", tmp_path / "det.csv", extra=["field.min_receivers=10"]
+        )
