@@ -113,6 +113,33 @@ def test_bad_timestamps_stop_with_one_line_naming_the_file(tmp_path):
         RecorderFiles.from_table(table)
 
 
+def test_recorders_at_different_rates_are_read_each_at_its_own(tmp_path):
+    """Recorder B runs at twice A's rate: each reads its own samples for a time window (resampled later to the method's
+    rate); the index survives a save and load; one recorder's files at two rates stop the run naming one."""
+    import scipy.signal as ss
+
+    from acoustlab.season.stream import _clip
+    from acoustlab.toolkit.quality import QualityThresholds
+
+    t = np.arange(10 * FS) / FS
+    tone = (0.3 * np.sin(2 * np.pi * 440 * t)).astype(np.float32)
+    for recorder, rate in (("A", FS), ("B", 2 * FS)):
+        (tmp_path / recorder).mkdir()
+        signal = tone if rate == FS else ss.resample_poly(tone, 2, 1).astype(np.float32)
+        sf.write(tmp_path / recorder / "20260501_050000.wav", signal, rate, subtype="FLOAT")
+    files = RecorderFiles.from_file_names(tmp_path)
+    assert (files.rate_of("A"), files.rate_of("B"), files.sample_rate_hz) == (FS, 2 * FS, FS)
+    assert files.read("B", 2.0, 2 * FS).samples.size == 2 * FS and files.table[files.table["recorder_id"] == "B"]["end_s"].iloc[0] == 10.0
+    a, _ = _clip(files, "A", 2.0, 1.0, FS, QualityThresholds())
+    b, _ = _clip(files, "B", 2.0, 1.0, FS, QualityThresholds())
+    np.testing.assert_allclose(b[200:-200], a[200:-200], atol=0.01)  # the same tone at the method's rate
+    files.save(tmp_path / "files.parquet")
+    assert RecorderFiles.load(tmp_path / "files.parquet").rate_of("B") == 2 * FS
+    sf.write(tmp_path / "A" / "20260501_050010.wav", tone, 2 * FS, subtype="FLOAT")
+    with pytest.raises(DataError, match=r"recorder A's files differ in sample rate .*20260501_050010.wav"):
+        RecorderFiles.from_file_names(tmp_path)
+
+
 def test_overlapping_files_of_one_recorder_are_refused(tmp_path):
     rng = np.random.default_rng(1)
     write_files(tmp_path, "A", [0, 5], [10 * FS, 10 * FS], rng)  # the second starts 5 s into the first

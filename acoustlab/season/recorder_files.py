@@ -73,6 +73,8 @@ class _RecorderArrays:
         self.n_frames = table["n_frames"].to_numpy(np.int64)
         self.channel = table["channel"].to_numpy(np.int64)
         self.path = table["path"].astype(str).tolist()
+        #: the recorder's sample rate, Hz (all its files share it)
+        self.rate = float(table["sample_rate_hz"].iloc[0])
 
 
 class RecorderFiles:
@@ -109,21 +111,23 @@ class RecorderFiles:
         stats = [os.stat(path) for path in table["path"]]
         table["size_bytes"] = [s.st_size for s in stats]  # what the season was indexed from: a resume checks it
         table["mtime_ns"] = [s.st_mtime_ns for s in stats]
-        rates = np.asarray(rates, dtype=float)
-        if np.unique(rates).size > 1:
-            odd = table["path"].to_numpy()[rates != np.median(rates)][0]
-            raise DataError(
-                f"recordings: files differ in sample rate ({sorted({int(r) for r in rates})} Hz), e.g. {odd}; "
-                "resample them to one rate first"
-            )
-        self._index(table, float(rates[0]))
+        table["sample_rate_hz"] = np.asarray(rates, dtype=float)
+        for recorder, files in table.groupby("recorder_id", sort=False):  # recorders may differ; one recorder's files may not
+            if files["sample_rate_hz"].nunique() > 1:
+                odd = files["path"].to_numpy()[files["sample_rate_hz"].to_numpy() != files["sample_rate_hz"].iloc[0]][0]
+                raise DataError(
+                    f"recordings: recorder {recorder}'s files differ in sample rate "
+                    f"({sorted({int(r) for r in files['sample_rate_hz']})} Hz), e.g. {odd}; one recorder's files need one rate"
+                )
+        self._index(table)
 
-    def _index(self, table: pd.DataFrame, sample_rate_hz: float, max_open_files: int = 64) -> None:
+    def _index(self, table: pd.DataFrame, max_open_files: int = 64) -> None:
         """Season times of every file, sorted per recorder, checked for overlaps."""
-        self.sample_rate_hz = sample_rate_hz
+        #: the lowest recorder rate, Hz: a detection's band must lie below every recorder's Nyquist
+        self.sample_rate_hz = float(table["sample_rate_hz"].min())
         self.origin = table["start"].min()
         table[col.START] = (table["start"] - self.origin).dt.total_seconds().to_numpy(float)
-        table[col.END] = table[col.START] + table["n_frames"] / self.sample_rate_hz
+        table[col.END] = table[col.START] + table["n_frames"] / table["sample_rate_hz"]
         self.table = table.sort_values(["recorder_id", col.START], kind="stable").reset_index(drop=True)
         self._check_overlaps()
         self.recorders = sorted(self.table["recorder_id"].unique())
@@ -217,7 +221,10 @@ class RecorderFiles:
     def load(cls, path: Path) -> RecorderFiles:
         """The index written by ``save`` (headers are not read again)."""
         self = cls.__new__(cls)
-        self._index(pd.read_parquet(path), float(json.loads(path.with_suffix(".json").read_text())["sample_rate_hz"]))
+        table = pd.read_parquet(path)
+        if "sample_rate_hz" not in table:  # an index written before recorders could differ in rate
+            table["sample_rate_hz"] = float(json.loads(path.with_suffix(".json").read_text())["sample_rate_hz"])
+        self._index(table)
         return self
 
     def check_unchanged(self) -> None:
@@ -295,17 +302,24 @@ class RecorderFiles:
         while self._open:
             self._open.popitem()[1].close()
 
+    def rate_of(self, recorder_id: str) -> float:
+        """The sample rate of one recorder's files, Hz."""
+        files = self._by_recorder.get(str(recorder_id))
+        if files is None:
+            raise DataError(f"recordings: no files of recorder {recorder_id!r}; recorders: {', '.join(self.recorders)}")
+        return files.rate
+
     def read(self, recorder_id: str, start_s: float, n_samples: int) -> ClipRead:
         """``n_samples`` of one recorder from ``start_s`` (season seconds), stitched across its files.
 
-        Sample k of the clip is the recording at time ``start_s + k / sample_rate_hz``; in file f
+        Sample k of the clip is the recording at time ``start_s + k / fs`` (fs the recorder's rate, ``rate_of``); in file f
         that is sample ``round((start_s − start_f) · fs) + k``, so a clip across a boundary equals
         the same clip cut from the files joined end to end.
         """
         files = self._by_recorder.get(str(recorder_id))
         if files is None:
             raise DataError(f"recordings: no files of recorder {recorder_id!r}; recorders: {', '.join(self.recorders)}")
-        fs = self.sample_rate_hz
+        fs = files.rate
         out = np.zeros(n_samples, dtype=np.float32)
         covered = np.zeros(n_samples, dtype=bool)
         damaged: list[str] = []

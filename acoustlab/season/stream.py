@@ -184,11 +184,12 @@ def _clip(
     recordings: RecorderFiles, recorder: str, start_s: float, length_s: float, sample_rate_hz: float, thresholds: QualityThresholds
 ) -> tuple[np.ndarray, list[str]]:
     """One recorder's clip at the method's sample rate, and its quality flags."""
-    n_file = int(round(length_s * recordings.sample_rate_hz))
+    rate = recordings.rate_of(recorder)  # recorders may run at different rates: each clip is resampled from its own
+    n_file = int(round(length_s * rate))
     read = recordings.read(recorder, start_s, n_file)
     samples = read.samples
-    if recordings.sample_rate_hz != sample_rate_hz:  # the method was fitted at the simulator's rate
-        up, down = int(sample_rate_hz), int(recordings.sample_rate_hz)
+    if rate != sample_rate_hz:  # the method was fitted at the simulator's rate
+        up, down = int(sample_rate_hz), int(rate)
         g = np.gcd(up, down)
         samples = ss.resample_poly(samples, up // g, down // g).astype(np.float32)
     clip, reasons = clip_quality(samples, 0, samples.size, thresholds)
