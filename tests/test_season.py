@@ -400,3 +400,30 @@ def test_the_same_season_command_resumes_in_the_same_folder(season, tmp_path):
     assert first["output_dir"] == again["output_dir"] and Path(first["output_dir"]).is_relative_to(tmp_path / "outputs" / "seasons")
     assert first["chunks_computed"] > 0 and again["chunks_computed"] == 0
     assert run("other", "protocol.chunk_events=7")["output_dir"] != first["output_dir"]
+
+
+def test_the_detector_tables_are_read_once_and_kept_compact(season, tmp_path, monkeypatch):
+    """The preflight's read of the tables is the one the fit uses (not read twice); repeated strings are categories."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from acoustlab.run.registry import CONF_DIR
+    from acoustlab.season import protocol
+
+    root, _, _, _ = season
+    reads = []
+    real = protocol.read_detections
+
+    def counting(*args, **kwargs):
+        table = real(*args, **kwargs)
+        reads.append(table)
+        return table
+
+    monkeypatch.setattr(protocol, "read_detections", counting)
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=season_overrides(root, tmp_path / "out", f"paths.outputs_dir={root / 'outputs'}"))
+    run_experiment(cfg, tmp_path / "run")
+    GlobalHydra.instance().clear()
+    assert len(reads) == 1
+    assert all(str(reads[0][c].dtype) == "category" for c in ("recorder_id", "label", "source"))

@@ -309,5 +309,8 @@ def read_detections(
         keep &= ~(part["score"].to_numpy(float) < min_score)  # NaN scores (no Confidence column) are kept
         parts.append(part[keep])
     out = pd.concat(parts, ignore_index=True).sort_values([col.START, "recorder_id"], kind="stable").reset_index(drop=True)
+    for name in ("recorder_id", "label", "source"):  # a few distinct strings repeated on every row: categories, not objects
+        if name in out:
+            out[name] = out[name].astype("category")
     log.info("detections: %d from %d %s tables (classes %s, score >= %g)", len(out), len(files), fmt, classes or "all", min_score)
     return out

@@ -117,6 +117,8 @@ class SeasonLocalize:
         self.progress_every_s, self.write_csv = float(progress_every_s), bool(write_csv)
         self.quality = QualityThresholds(**(quality or {}))
         ChunkPlan(self.chunk_events, self.batch_events)  # checks the sizes now
+        #: (site name, recordings, events) the preflight read, handed to ``fit`` so the tables are read once
+        self._read: tuple[str, RecorderFiles, pd.DataFrame] | None = None
 
     # -- inputs -----------------------------------------------------------------------------------
     def recordings(self) -> RecorderFiles:
@@ -183,10 +185,19 @@ class SeasonLocalize:
         return events
 
     def validate(self, site: Site) -> None:
-        """Preflight: index the recordings and read the detector tables (headers and tables only, no audio)."""
+        """Preflight: index the recordings and read the detector tables (headers and tables only, no audio); kept for ``fit``."""
         if self.stage in ("fit", "all"):
             recordings = self.recordings()
-            self.events(recordings, site)
+            self._read = (site.name, recordings, self.events(recordings, site))
+
+    def _inputs(self, site: Site) -> tuple[RecorderFiles, pd.DataFrame]:
+        """The recordings' index and the events, read once: by the preflight where it ran, else now."""
+        read = self._read
+        if read is not None and read[0] == site.name:
+            self._read = None
+            return read[1], read[2]
+        recordings = self.recordings()
+        return recordings, self.events(recordings, site)
 
     def run(self, *args: Any, **kwargs: Any) -> Any:
         """Not an in-memory protocol: the app runs ``run_season``."""
@@ -244,8 +255,7 @@ class SeasonLocalize:
     def fit(self, cfg: DictConfig, built: Any, prepare: Any, folder: Path) -> None:
         """Index, events, and the method fitted once (reused when the folder holds one fitted from the same config)."""
         site = built.site
-        recordings = self.recordings()
-        events = self.events(recordings, site)
+        recordings, events = self._inputs(site)
         order = self.recorder_order(recordings, site)
         radii = {"levels": list(built.components.levels), "scorers": list(built.components.scorers)}
         check_manifest(
