@@ -64,6 +64,16 @@ def _hydra_main(cfg: DictConfig) -> None:
             raise
         _remove_if_empty(Path(hc.runtime.output_dir))
         _fail(exc)
+    except MemoryError as exc:
+        if hc.mode == RunMode.MULTIRUN:
+            log.error("job %s ran out of memory: %s", hc.job.num, exc)
+            raise
+        _fail(
+            AcoustlabError(
+                f"ran out of memory ({str(exc)[:120] or 'MemoryError'}); ask for less at once: localize fewer or shorter events "
+                "per run (split the events table), or for a season lower protocol.batch_events"
+            )
+        )
     except Exception:
         if hc.mode == RunMode.MULTIRUN:  # Hydra re-raises only the first failed job's exception: log every one
             log.exception("job %s failed", hc.job.num)

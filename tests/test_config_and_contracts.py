@@ -456,3 +456,23 @@ def test_help_gives_every_option_of_every_group_a_description():
 def test_long_experiments_say_what_they_cost_before_starting(compose_cfg, experiment):
     cfg = compose_cfg(["+site=forest", f"+experiment={experiment}"])
     assert "min" in cfg.expected_duration and "2 cores" in cfg.expected_duration
+
+
+def test_running_out_of_memory_is_one_line_not_a_traceback(tmp_path):
+    """A MemoryError deep in a run (numpy's ``_ArrayMemoryError``) ends the command with one line saying what to lower."""
+    import subprocess
+    import sys
+
+    code = (
+        "import runpy, sys\n"
+        "import acoustlab.run.app as app\n"
+        "def boom(*a, **k):\n"
+        "    raise MemoryError('Unable to allocate 7.2 GiB for an array with shape (60, 6, 2832000)')\n"
+        "app.run_experiment = boom\n"
+        f"sys.argv = ['acoustlab', '+site=frozen_lake', 'paths.outputs_dir={tmp_path}', 'hydra.run.dir={tmp_path / 'run'}']\n"
+        "runpy.run_module('acoustlab', run_name='__main__')\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    (line,) = [row for row in proc.stderr.splitlines() if row.strip()]
+    assert line.startswith("acoustlab: error: ran out of memory (Unable to allocate 7.2 GiB") and "split the events table" in line

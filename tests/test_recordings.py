@@ -243,3 +243,16 @@ def test_a_file_whose_header_misstates_its_rate_is_named_by_its_duration(tmp_pat
         build(cfg.field, "field").validate(site_from_config(cfg.site))
     sf.write(tmp_path / wrong, audio[: int(0.9 * len(audio))], fs)  # cut short: a recorder that stopped early
     build(cfg.field, "field").validate(site_from_config(cfg.site))
+
+
+def test_a_localize_too_large_for_the_memory_available_is_refused_before_it_starts(tmp_path, compose_cfg, monkeypatch):
+    """The preflight compares the features' expected peak (8 × the audio array) with the memory available: one line."""
+    from plugins.fields import recordings
+
+    cfg = compose_cfg(["+site=loca2021", "field=recordings"])
+    site = site_from_config(cfg.site)
+    monkeypatch.setattr(recordings, "available_memory_bytes", lambda: 1000)
+    with pytest.raises(DataError, match=r"need about .* GiB while their features are computed, and 0.0 GiB is available"):
+        build(cfg.field, "field").validate(site)
+    monkeypatch.setattr(recordings, "available_memory_bytes", lambda: None)  # unknown (not Linux): no refusal
+    build(cfg.field, "field").validate(site)

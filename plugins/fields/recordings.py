@@ -62,6 +62,20 @@ FILE_OFFSET = "file_offset_s"
 
 #: Largest audio array (events × mics × samples, float32) a load may allocate, bytes.
 MAX_AUDIO_BYTES = 4 * 2**30
+#: Peak memory of a localize run per byte of its audio array (the features' spectra and correlations; 7.2 GB measured for a
+#: 0.95 GiB array of 60 windows of 59 s), used by the preflight against the memory available.
+PEAK_PER_AUDIO_BYTE = 8
+
+
+def available_memory_bytes() -> int | None:
+    """Memory available to a new allocation (Linux ``MemAvailable``), or None where it cannot be read."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 
 def _read(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataFrame:
@@ -422,6 +436,13 @@ class RecordingFolder:
             raise DataError(
                 f"field: {len(events)} events × {len(mics)} mics × {n} samples need {size / 2**30:.1f} GiB; "
                 f"split the events table (at most {MAX_AUDIO_BYTES / 2**30:.0f} GiB at once)"
+            )
+        available = available_memory_bytes()
+        if available is not None and PEAK_PER_AUDIO_BYTE * size > available:
+            raise DataError(
+                f"field: {len(events)} events × {len(mics)} mics × {n} samples ({size / 2**30:.2f} GiB of audio) need about "
+                f"{PEAK_PER_AUDIO_BYTE * size / 2**30:.1f} GiB while their features are computed, and {available / 2**30:.1f} GiB "
+                "is available; split the events table, or use protocol=season, which streams"
             )
         return mics, events
 
