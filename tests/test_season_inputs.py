@@ -297,3 +297,12 @@ def test_detections_are_grouped_into_events_heard_by_enough_recorders():
     np.testing.assert_allclose(events[["start_s", "end_s"]].iloc[0], [9.7, 11.05])
     np.testing.assert_allclose(events[["band_low_hz", "band_high_hz"]].iloc[0], [2000, 6000])
     assert events["too_long"].tolist() == [False, False, True]
+
+
+def test_consecutive_fixed_windows_of_a_singing_bird_stay_separate_events():
+    """BirdNET's 3-s windows of a bird singing on and on, on three recorders: one event per window (each recorder once),
+    not one chained event too long to read (single linkage chained all 20 into one 60-s event)."""
+    rows = [(f"R{r}", 3.0 * k, 3.0 * k + 3.0, np.nan, np.nan, "wren") for k in range(20) for r in range(3)]
+    events = group_detections(detections(rows), margin_s=0.3, min_recorders=2, max_event_s=10.0)
+    assert len(events) == 20 and not events["too_long"].any() and (events["n_recorders"] == 3).all()
+    np.testing.assert_allclose(events["start_s"], 3.0 * np.arange(20) - 0.3)

@@ -1,9 +1,13 @@
 """Detections on single recorders grouped into events heard by the array.
 
 One call reaches every recorder within the array's largest travel time. Detections of one label
-whose windows lie within that time of each other (single linkage over time) are one event; the
-event's clip spans the earliest start to the latest end, widened by the travel time on both
-sides, so every recorder's clip holds the call whichever recorder heard it first. Events heard by
+whose windows lie within that time of each other are one event, each recorder at most once: a
+recorder's next detection is its next call, so a detector's consecutive fixed windows (BirdNET's
+3-s windows of a bird singing on and on) become one event per window instead of chaining into one
+long event. A detection joins the open event (within the travel time of its reach, lacking its
+recorder) it overlaps most, else starts one. The event's clip spans the earliest start to the
+latest end, widened by the travel time on both sides, so every recorder's clip holds the call
+whichever recorder heard it first. Events heard by
 fewer than ``min_recorders`` recorders are dropped (they cannot be localized); events longer than
 ``max_event_s`` (a chorus merged into one window) are kept but flagged ``too_long`` and not read.
 The detection band (Raven's ``Low/High Freq (Hz)``) of an event is the union of its detections'
@@ -37,6 +41,39 @@ EVENT_TABLE_COLUMNS = (
 )
 
 
+def link_per_recorder(start_s: np.ndarray, end_s: np.ndarray, recorder: np.ndarray, margin_s: float) -> np.ndarray:
+    """(N,) event number of each detection (sorted by start): linked within ``margin_s``, one detection per recorder per event.
+
+    Open events are those whose reach (latest end) plus ``margin_s`` is not before the detection's
+    start; the detection joins the open event without its recorder that it overlaps most (ties:
+    the earliest), else starts a new event.
+    """
+    cluster = np.empty(len(start_s), dtype=np.int64)
+    reach: list[float] = []
+    first: list[float] = []
+    members: list[set] = []
+    open_events: list[int] = []
+    for k in range(len(start_s)):
+        open_events = [c for c in open_events if reach[c] + margin_s >= start_s[k]]
+        best, best_overlap = -1, -np.inf
+        for c in open_events:
+            if recorder[k] in members[c]:
+                continue
+            overlap = min(end_s[k], reach[c]) - max(start_s[k], first[c])
+            if overlap > best_overlap:
+                best, best_overlap = c, overlap
+        if best < 0:
+            best = len(reach)
+            reach.append(end_s[k])
+            first.append(start_s[k])
+            members.append(set())
+            open_events.append(best)
+        reach[best] = max(reach[best], end_s[k])
+        members[best].add(recorder[k])
+        cluster[k] = best
+    return cluster
+
+
 def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: int = 2, max_event_s: float = 10.0) -> pd.DataFrame:
     """Events from detections (see the module docstring), in time order, ``event_id`` 0, 1, ….
 
@@ -54,13 +91,8 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
     """
     parts = []
     for label, group in detections.groupby("label", sort=True):
-        g = group.sort_values(col.START, kind="stable")
-        start, end = g[col.START].to_numpy(float), g[col.END].to_numpy(float)
-        reach = np.maximum.accumulate(end)
-        new = np.empty(len(g), bool)
-        new[0] = True
-        new[1:] = start[1:] > reach[:-1] + margin_s  # a gap longer than the travel time starts a new event
-        cluster = np.cumsum(new) - 1
+        g = group.sort_values([col.START, "recorder_id"], kind="stable")
+        cluster = link_per_recorder(g[col.START].to_numpy(float), g[col.END].to_numpy(float), g["recorder_id"].to_numpy(), margin_s)
         g = g.assign(_cluster=cluster)
         agg = g.groupby("_cluster", sort=True).agg(
             first=(col.START, "min"),
