@@ -189,6 +189,24 @@ def solve(
     return table
 
 
+def load_site(site: str, *, overrides: Sequence[str] = (), **settings: Any) -> Any:
+    """A site as every run builds it (``conf/site/<site>.yaml`` with ``settings``, e.g. ``field={"mics_csv": ...}``).
+
+    Returns
+    -------
+    acoustlab.core.types.Site
+        ``mic_positions_m`` (M, 3), ``mic_pairs``, trees, weather and source-height ranges, …
+    """
+    from acoustlab.run.plugin_checks import compose_config
+    from acoustlab.run.preflight import check_argv
+    from acoustlab.stages.sites import site_from_config
+
+    field = ["field=recordings"] if "field" in settings and not any(o.startswith("field=") for o in overrides) else []
+    given = [f"+site={site}", *field, *overrides_from(settings), *overrides]
+    check_argv(given)
+    return site_from_config(compose_config(given).site)
+
+
 def metrics(run_dir: str | Path) -> dict[str, Any]:
     """The ``metrics.json`` of a run folder (what ``localize`` and ``season`` wrote)."""
     return json.loads((Path(run_dir) / "metrics.json").read_text())

@@ -57,7 +57,9 @@ def test_import_acoustlab_gives_the_notebook_functions_and_calibrate_feeds_local
     import acoustlab.season  # the subpackage keeps its name; its function is acoustlab.api.season
     from acoustlab import api
 
-    assert all(getattr(acoustlab, name) is getattr(api, name) for name in ("localize", "calibrate", "solve", "metrics"))
+    assert all(getattr(acoustlab, name) is getattr(api, name) for name in ("localize", "calibrate", "solve", "metrics", "load_site"))
+    site = acoustlab.load_site("recordings", field={"mics_csv": "acoustlab://examples/loca2021/mics.csv"})
+    assert site.n_mics == 6 and acoustlab.load_site("forest").n_mics == 6 and len(acoustlab.load_site("frozen_lake").mic_pairs) == 3
     with pytest.raises(AttributeError, match="no attribute 'locate'"):
         acoustlab.locate  # noqa: B018
     cal = acoustlab.calibrate(
