@@ -196,7 +196,7 @@ def held_out_calibration_summary(table: pd.DataFrame, levels: list[float], score
     return {
         "n_playbacks": int(len(table)),
         "n_spots": int(table[col.POSITION_ID].nunique()),
-        "coverage": coverage,
+        col.METRICS_COVERAGE: coverage,
         "by_condition": by_condition,
         "note": "each spot's radii calibrated on the other spots, its errors from models that never saw it",
     }

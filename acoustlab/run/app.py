@@ -446,7 +446,7 @@ def _run_streaming(
 
 def _log_held_out(summary: dict[str, Any]) -> None:
     """One line per scorer: the radii's coverage on the calibration playbacks, each spot held out."""
-    for scorer, by_level in summary["coverage"].items():
+    for scorer, by_level in summary[col.METRICS_COVERAGE].items():
         cells = ", ".join(f"{level}: {'—' if c is None else format(c['detections'], '.2f')}" for level, c in by_level.items())
         log.info(
             "radii (%s) on the %d calibration playbacks at %d spots, each spot held out: coverage %s",

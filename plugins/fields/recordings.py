@@ -338,8 +338,8 @@ class RecordingFolder:
         events = pd.DataFrame(
             {
                 col.EVENT_ID: np.arange(len(windows)),
-                col.START: windows["start_s"].to_numpy(float),
-                col.END: windows["end_s"].to_numpy(float),
+                col.START: windows[col.START].to_numpy(float),
+                col.END: windows[col.END].to_numpy(float),
             }
         )
         events.attrs["path"] = det.attrs.get("path", self.detections_csv)
@@ -682,7 +682,7 @@ def linked_windows(files: np.ndarray, start_s: np.ndarray, end_s: np.ndarray) ->
                 members.add(files[k])
                 linked[k] = True
         rows.append((lo, hi, len(members)))
-    return pd.DataFrame(rows, columns=["start_s", "end_s", "n_files"])
+    return pd.DataFrame(rows, columns=[col.START, col.END, "n_files"])
 
 
 def _describe(reasons_per_mic: np.ndarray, mics: pd.DataFrame) -> str:
