@@ -235,8 +235,13 @@ class RecordingFolder:
             _unique(mics, "mics_csv", "mic_id")
         if "file" in mics:
             mics["file"] = mics["file"].astype(str).str.strip()
-        if col.EVENT_ID in events and pd.to_numeric(events[col.EVENT_ID], errors="coerce").isna().any():
-            # text ids (call00, …): kept as the user's name of the event, numbered in table order inside
+        if (
+            col.EVENT_ID in events
+            and events[col.EVENT_ID].notna().all()
+            and pd.to_numeric(events[col.EVENT_ID], errors="coerce").isna().all()
+        ):
+            # text ids (call00, …): kept as the user's name of the event, numbered in table order inside; a mix of numbers
+            # and text, or an empty id, is refused below as a cell that is not a number
             events[col.EVENT_ID] = events[col.EVENT_ID].astype(str).str.strip()
             _unique(events, "events_csv", col.EVENT_ID)
             events[EVENT_NAME] = events[col.EVENT_ID]
