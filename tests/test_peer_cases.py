@@ -104,3 +104,46 @@ def test_too_few_receivers_for_any_window_is_one_clear_line(tmp_path, compose_cf
         load_opensoundscape_layout(
             compose_cfg, tmp_path, tmp_path / "aru_coords.csv", tmp_path / "det.csv", extra=["field.min_receivers=10"]
         )
+
+
+def test_a_switching_users_three_tables_localize_without_editing(tmp_path, compose_cfg):
+    """The peer's coordinates table (file as pandas' unnamed index), its detections with per-file absolute start times (one
+    recorder started 0.1 s late) and a seventh receiver whose file is too short: localize places the call from the six
+    good recorders, 3-D, where the shipped example's reference places it."""
+    import soundfile as sf
+
+    from acoustlab.run.app import run_experiment
+    from tests.test_recordings import late_copy
+
+    mics, coords = _loca_folder(tmp_path)
+    late = late_copy(tmp_path, mics)
+    audio, fs = sf.read(tmp_path / mics["file"].iloc[0])
+    sf.write(tmp_path / "veryshort.wav", audio[: int(0.05 * fs)], fs)
+    coords.loc["veryshort.wav"] = [5.0, 5.0, 3.0]
+    coords.to_csv(tmp_path / "aru_coords.csv")
+    start = pd.Series(pd.Timestamp("2021-09-24T06:52:00"), index=coords.index)
+    start[late] += pd.Timedelta(seconds=0.1)
+    det = pd.DataFrame({"file": coords.index, "start_time": 0.2, "end_time": 0.5, "zeep": 1})
+    det.loc[det["file"] == late, ["start_time", "end_time"]] = [0.1, 0.4]
+    det["start_timestamp"] = (start[det["file"]].to_numpy() + pd.to_timedelta(det["start_time"], unit="s").to_numpy()).astype(str)
+    det.to_csv(tmp_path / "detections.csv", index=False)
+    site = ["+site=loca2021", "site.mics_csv=null", f"site.mics={coords.to_numpy().tolist()}".replace(" ", "")]
+    field = [f"field.audio_dir={tmp_path}", "field.mics_csv=null", "field.events_csv=null"]
+    tables = [f"field.coords_csv={tmp_path / 'aru_coords.csv'}", f"field.detections_csv={tmp_path / 'detections.csv'}"]
+    quick = ["+experiment=smoke", "tracking=none", "plots=false", "model.n_estimators=20", f"paths.outputs_dir={tmp_path / 'out'}"]
+    cfg = compose_cfg(
+        [
+            *site,
+            "protocol=localize",
+            "field=recordings",
+            *field,
+            *tables,
+            *quick,
+            "features.gcc.band_hz=[6000,10500]",
+            "solver.dimensions=3",
+        ]
+    )
+    run_experiment(cfg, tmp_path / "run")
+    (row,) = pd.read_parquet(tmp_path / "run" / "positions.parquet").to_dict("records")
+    assert row["placed"] and row["mics_dropped"] == "6" and row["source"] == "solver"
+    np.testing.assert_allclose([row["x_m"], row["y_m"]], [-2.22, 26.8], atol=1.0)  # the shipped example's fix (docs/localize.md)
