@@ -313,15 +313,21 @@ def test_image_source_field_renders_direct_path_delays(compose_cfg):
         np.testing.assert_allclose(arrival_s - arrival_s[0], (distance - distance[0]) / c, atol=3e-4)
 
 
-def test_calibration_on_too_few_positions_for_a_level_warns(caplog):
-    """4 field playback spots support 0.5 and 0.8 for a new position, not 0.95 (19 needed): said in the log, the diagnostics and
-    every row (no radius at 0.95, radius_note says why)."""
+def _calibrated_on_field_spots(n_spots: int):
+    """The scene's positions 1..n_spots are field playback spots that calibrate (position 0 is the test); settings and result."""
     features, events = scene(n_positions=60)
     groups = events["position_id"].to_numpy()
-    events["is_field"] = groups < 5
+    events["is_field"] = groups <= n_spots
     train, test = np.flatnonzero(groups != 0), np.flatnonzero(groups == 0)
     settings = components(BoundingBoxGate())
     settings.calibrate_on = "field"
+    return settings, (features, events, train, test)
+
+
+def test_calibration_on_too_few_positions_for_a_level_warns(caplog):
+    """4 field playback spots support 0.5 and 0.8 for a new position, not 0.95 (19 needed): said in the log, the diagnostics and
+    every row (no radius at 0.95, radius_note says why)."""
+    settings, (features, events, train, test) = _calibrated_on_field_spots(4)
     with caplog.at_level("WARNING"):
         result = LocalizationPipeline(settings).fit_predict(features, events, train, test)
     calibration = result.split_diagnostics[0]["calibration"]
@@ -440,12 +446,7 @@ def test_radii_are_tested_on_the_calibration_spots_each_held_out():
     the nominal share of its events; a level the 29 spots cannot guarantee (0.95 needs 19: it can) is reported."""
     from acoustlab.reporting.metrics import held_out_calibration_summary
 
-    features, events = scene(n_positions=60)
-    groups = events["position_id"].to_numpy()
-    events["is_field"] = groups < 31
-    train, test = np.flatnonzero(groups != 0), np.flatnonzero(groups == 0)
-    settings = components(BoundingBoxGate())
-    settings.calibrate_on = "field"
+    settings, (features, events, train, test) = _calibrated_on_field_spots(30)
     result = LocalizationPipeline(settings).fit_predict(features, events, train, test)
     table = result.split_diagnostics[0]["held_out_calibration"]
     assert sorted(table["position_id"].unique()) == list(range(1, 31))

@@ -595,8 +595,7 @@ class LocalizationPipeline:
                 else:  # a scorer with fit_predict_quantiles only: refitted (deterministically) at every predict
                     fitted.quantile_training = (x_fit, error_fit)
             else:
-                region = self._region(scorer, cal.gate.position_m[rows])
-                fitted.scorers[name] = scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], levels, groups=positions, **region)
+                fitted.scorers[name] = self._fit_scorer(scorer, cal, oof_pred, rows, s.groups[s.train])
         if fitted.calibration.get("not_guaranteed_levels"):
             self._fit_simulation_scorers(s, cal, oof_pred, fitted)
         if fitted.calibrated_on_field:
@@ -620,11 +619,7 @@ class LocalizationPipeline:
         for name, configured in self.c.scorers.items():
             if declared(configured, "needs_quantiles"):
                 continue  # a quantile scorer's tail is its own model's; not rescaled
-            scorer = clone(configured, safe=False)
-            region = self._region(scorer, cal.gate.position_m[rows])
-            fitted.simulation_scorers[name] = scorer.fit(
-                cal.error[rows], oof_pred[rows], cal.gdop[rows], self.c.levels, groups=positions, **region
-            )
+            fitted.simulation_scorers[name] = self._fit_scorer(clone(configured, safe=False), cal, oof_pred, rows, s.groups[s.train])
 
     def _held_out_calibration(self, s: SplitData, cal: CalibrationErrors, oof_pred: np.ndarray, fitted: FittedMethod) -> pd.DataFrame:
         """The field calibration rows with radii from scorers calibrated without their own position: coverage held out by spot.
@@ -652,23 +647,21 @@ class LocalizationPipeline:
             radii = np.full((domain.size, len(self.c.levels)), np.nan)
             if not declared(configured, "needs_quantiles"):
                 for spot in np.unique(positions[domain]):
-                    fit_rows = cal.rows & (positions != spot)
-                    held = cal.domain & (positions == spot)
-                    scorer = clone(fitted.scorers[name], safe=False)
-                    scorer.fit(
-                        cal.error[fit_rows],
-                        oof_pred[fit_rows],
-                        cal.gdop[fit_rows],
-                        self.c.levels,
-                        groups=positions[fit_rows],
-                        **self._region(scorer, cal.gate.position_m[fit_rows]),
+                    scorer = self._fit_scorer(
+                        clone(fitted.scorers[name], safe=False), cal, oof_pred, cal.rows & (positions != spot), positions
                     )
-                    at = np.isin(domain, np.flatnonzero(held))
+                    held = cal.domain & (positions == spot)
+                    at = positions[domain] == spot  # the held rows, among the table's
                     radii[at] = scorer.radius(oof_pred[held], cal.gdop[held], **self._region(scorer, cal.gate.position_m[held]))
             for k, level in enumerate(self.c.levels):
                 keep = col.level_key(level) not in unsupported and np.isfinite(radii[:, k]).all()
                 table[col.radius(name, level)] = radii[:, k] if keep else np.nan
         return table
+
+    def _fit_scorer(self, scorer: Any, cal: CalibrationErrors, oof_pred: np.ndarray, rows: np.ndarray, positions: np.ndarray) -> Any:
+        """``scorer`` (not a quantile scorer) calibrated on the training rows ``rows`` (mask over train; ``positions`` per train row)."""
+        region = self._region(scorer, cal.gate.position_m[rows])
+        return scorer.fit(cal.error[rows], oof_pred[rows], cal.gdop[rows], self.c.levels, groups=positions[rows], **region)
 
     def _region(self, scorer: Any, position_m: np.ndarray) -> dict[str, np.ndarray]:
         """``{"hull_distance": (B,)}`` for a scorer that bins by region: each estimate's distance outside the mics' hull, array extents."""

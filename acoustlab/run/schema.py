@@ -188,10 +188,9 @@ def option_descriptions(width: int = 110) -> str:
     for group in sorted(p for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra"):
         lines.append(f"{group.name}:")
         for option in sorted(group.glob("*.yaml")):
-            comments = [line.lstrip("#").strip() for line in option.read_text().splitlines() if line.startswith("#")]
-            first = next((c for c in comments if c and not c.startswith("@package")), "")
+            # the first line after any "# @package" directive, where it is a comment
             head = next((line for line in option.read_text().splitlines() if line.strip() and not line.startswith("# @package")), "")
-            text = first if head.startswith("#") else ""
+            text = head.lstrip("#").strip() if head.startswith("#") else ""
             entry = f"  {option.stem:<28} {text}"
             lines.append(entry if len(entry) <= width else entry[: width - 1] + "…")
     return "\n".join(lines)

@@ -280,7 +280,7 @@ class RecordingFolder:
             raise DataError("field: the mics table has no 'file' column, so events_csv needs one (multichannel files)")
         if "file" in mics and FILE_OFFSET not in mics:
             where = f"field.mics_csv: {mics.attrs.get('path')}"
-            starts = self._file_starts(mics["file"].astype(str).str.strip().tolist(), mics.get("start_time"), where)
+            starts = self._file_starts(mics["file"].astype(str).str.strip().tolist(), mics.get("start_time"), where, "start_time")
             mics[FILE_OFFSET] = _offsets(starts, mics["file"].astype(str).str.strip())
         if "file" in events:
             events["file"] = events["file"].astype(str).str.strip()
@@ -327,7 +327,7 @@ class RecordingFolder:
             absolute = _timestamps(det["start_timestamp"], f"field.detections_csv: {det.attrs.get('path')}", "start_timestamp")
             stated = (absolute - pd.to_timedelta(det["start_time"].to_numpy(float), unit="s")).groupby(det["file"]).min()
         where = f"field.coords_csv: {coords.attrs.get('path')}"
-        starts = self._file_starts(mics["file"].tolist(), None if stated is None else mics["file"].map(stated), where)
+        starts = self._file_starts(mics["file"].tolist(), None if stated is None else mics["file"].map(stated), where, "start_timestamp")
         mics[FILE_OFFSET] = _offsets(starts, mics["file"])
         det = det[hit & known]
         offset = det["file"].map(dict(zip(mics["file"], mics[FILE_OFFSET], strict=True))).to_numpy(float)
@@ -350,14 +350,14 @@ class RecordingFolder:
         events.attrs["path"] = det.attrs.get("path", self.detections_csv)
         return mics, events
 
-    def _file_starts(self, files: list[str], stated: pd.Series | None, where: str) -> pd.Series | None:
+    def _file_starts(self, files: list[str], stated: pd.Series | None, where: str, column: str) -> pd.Series | None:
         """Each per-mic file's start time: stated in a table column, else read from the file (metadata, else its name).
 
         None where no file says when it starts (the files are taken to start together); one line
         naming a file where some do and some do not.
         """
         if stated is not None:
-            return _timestamps(stated, where, "start_time" if "mics_csv" in where else "start_timestamp")
+            return _timestamps(stated, where, column)
         starts = pd.Series([file_start_time(self.audio_path(f)) for f in files], index=files, dtype=object)
         known = starts.notna().to_numpy()
         if not known.any():
@@ -366,7 +366,7 @@ class RecordingFolder:
             missing, given = files[int(np.flatnonzero(~known)[0])], files[int(np.flatnonzero(known)[0])]
             raise DataError(
                 f"field: {missing!r} says nothing of when it starts (no GUANO, Broadcast WAV or AudioMoth time, no time in its "
-                f"name) while {given!r} does; give every file's start ({where}, column start_time / start_timestamp) or none"
+                f"name) while {given!r} does; give every file's start ({where}, column {column}) or none"
             )
         return pd.to_datetime(starts)
 
