@@ -450,3 +450,22 @@ def test_error_messages_show_numbers_as_numbers():
     from acoustlab.core.errors import show
 
     assert [show(np.int64(24000)), show(np.float64("nan")), show(np.float32(0.5)), show("x")] == ["24000", "nan", "0.5", "'x'"]
+
+
+@given(n_mics=st.integers(3, 8), weak=st.sets(st.integers(0, 7), max_size=8), seed=st.integers(0, 10**6))
+def test_a_mic_is_weak_exactly_when_none_of_its_pairs_reaches_the_height(n_mics, weak, seed):
+    """``weakly_correlated_mics``: pairs of two good mics are high, every pair with a weak mic low; a mic is weak exactly when
+    it is one of the weak ones (or when it is the only good one left: no good partner)."""
+    from itertools import combinations
+
+    from acoustlab.toolkit.quality import weakly_correlated_mics
+
+    weak = {m for m in weak if m < n_mics}
+    pairs = list(combinations(range(n_mics), 2))
+    rng = np.random.default_rng(seed)
+    heights = np.array([[rng.uniform(0.1, 0.3) if not ({i, j} & weak) else rng.uniform(0.0, 0.02) for i, j in pairs]])
+    good = n_mics - len(weak)
+    expected = np.array([m in weak or good < 2 for m in range(n_mics)])
+    np.testing.assert_array_equal(weakly_correlated_mics(heights, pairs, n_mics, 0.05)[0], expected)
+    heights[0, 0] = np.nan  # a missing height counts as no peak
+    assert weakly_correlated_mics(heights, pairs, n_mics, 0.05).shape == (1, n_mics)

@@ -66,10 +66,11 @@ def test_localize_the_shipped_loca_example(compose_cfg, tmp_path):
     assert json.loads((run_dir / "metrics.json").read_text())["localization"]["n_detections"] == 1
 
 
-def simulated_folder(compose_cfg, folder, n_events, known=0, rotation_deg=None, site_name="frozen_lake", dead=None):
+def simulated_folder(compose_cfg, folder, n_events, known=0, rotation_deg=None, site_name="frozen_lake", dead=None, noise=None):
     """Simulated frozen-lake events written as one WAV per event with a mics and an events table; the first ``known``
     events carry their true position (calibration playbacks). With ``rotation_deg`` the mics table also has projected
-    coordinates (the local frame rotated and shifted into UTM-like numbers). ``dead``: {event: [mics]} written as silent channels."""
+    coordinates (the local frame rotated and shifted into UTM-like numbers). ``dead``: {event: [mics]} written as silent channels;
+    ``noise``: {event: [mics]} written as white noise of the channel's own RMS (a recorder that hears nothing of the call)."""
     from acoustlab.run.registry import build
     from acoustlab.stages.sites import site_from_config
 
@@ -82,6 +83,8 @@ def simulated_folder(compose_cfg, folder, n_events, known=0, rotation_deg=None, 
     for k, audio in enumerate(batch.audio):
         audio = audio.copy()
         audio[(dead or {}).get(k, [])] = 0.0
+        for m in (noise or {}).get(k, []):
+            audio[m] = np.random.default_rng([k, m]).normal(0.0, audio[m].std(), audio.shape[-1])
         sf.write(folder / f"event_{k}.wav", audio.T, int(batch.sample_rate_hz))
         row = {
             "event_id": k,
@@ -178,6 +181,25 @@ def test_a_dead_recorder_costs_that_recorder_not_the_event(compose_cfg, tmp_path
         assert error < 2.0, (event, error)
     assert not by_event.loc[5, "placed"] and by_event.loc[5, "abstain_reason"].startswith("quality:")
     assert by_event.loc[0, "mics_dropped"] == ""
+
+
+def test_a_recorder_without_a_gcc_peak_is_left_out_when_min_peak_is_set(compose_cfg, tmp_path):
+    """``features.gcc.min_peak``: a channel of pure noise (no peak with any mic, about 0.01 against 0.05–0.3 for the
+    call) is dropped from its event's solve and flagged ``weak_gcc``; four such channels leave too few mics and the event is
+    not placed. Off (the default), every channel is used."""
+    batch, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 6, site_name="forest", noise={1: [2], 4: [0, 1, 2, 3]})
+    _, _, run_dir = localize(compose_cfg, tmp_path, *overrides, "features.gcc.min_peak=0.03")
+    by_event = pd.read_parquet(run_dir / "positions.parquet").set_index("event_id")
+    assert by_event.loc[1, "mics_dropped"] == "2" and "mic 2: weak_gcc" in by_event.loc[1, "quality_flags"]
+    row, truth = by_event.loc[1], batch.events.set_index("event_id").loc[1001]
+    assert row["placed"] and row["source"] == "solver" and row["solver__n_mics_used"] == 5
+    assert np.hypot(row["x_m"] - truth["x_m"], row["y_m"] - truth["y_m"]) < 2.0
+    assert not by_event.loc[4, "placed"] and "weak_gcc" in by_event.loc[4, "abstain_reason"]
+    assert (by_event.drop(index=[1, 4])["mics_dropped"] == "").all()
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["quality_flags"]["weak_gcc"] == 2
+    _, _, default_run = localize(compose_cfg, tmp_path / "default", *overrides)
+    assert (pd.read_parquet(default_run / "positions.parquet")["mics_dropped"] == "").all()
 
 
 def test_text_event_ids_come_back_as_given(compose_cfg, tmp_path):

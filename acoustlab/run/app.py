@@ -313,6 +313,7 @@ def prepare_data(cfg: DictConfig, built: BuiltRun | None = None) -> RunData | No
             built.components.solver,
             cfg.pipeline.plausible_margin_fraction,
             built.calibration,
+            OmegaConf.select(cfg, "features.gcc.min_peak", default=None),
         )
     return RunData(dataset, field_data)
 

@@ -285,6 +285,7 @@ class SeasonLocalize:
                 list(built.components.levels),
                 list(built.components.scorers),
                 built.calibration,
+                OmegaConf.select(cfg, "features.gcc.min_peak", default=None),
             )
             digest = save_method(fitted, folder, key)
         write_manifest(folder, season_manifest(events, digest, self.plan(site), order, radii, recordings))

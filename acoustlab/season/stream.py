@@ -74,6 +74,8 @@ class FittedSeasonMethod:
     scorers: list[str]
     #: the field calibration (``calibration=PATH``) every chunk's time differences and temperatures are corrected with
     calibration: Any = None
+    #: ``features.gcc.min_peak``: a recorder without a GCC peak that high with another is left out of the event's solve
+    min_gcc_peak: float | None = None
 
 
 @dataclass
@@ -284,7 +286,7 @@ def localize_events(
             on_batch(batch.n_events)
     table_features, detections = pd.concat(features, ignore_index=True), pd.concat(rows, ignore_index=True)
     table_features, detections = field_solver_columns(
-        table_features, detections, c.site, c.solver, fitted.plausible_margin_fraction, fitted.calibration
+        table_features, detections, c.site, c.solver, fitted.plausible_margin_fraction, fitted.calibration, fitted.min_gcc_peak
     )
     predictions, _ = fitted.method.predict(table_features, detections)
     detections = detections.drop(columns=["is_field"]).assign(label=events["label"].to_numpy())

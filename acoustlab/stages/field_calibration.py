@@ -35,7 +35,7 @@ from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError
 from acoustlab.core.types import Site
 from acoustlab.stages.cache import atomic_write_bytes
-from acoustlab.stages.solver_columns import add_solver_columns, pair_candidate_lags
+from acoustlab.stages.solver_columns import add_solver_columns, drop_weakly_correlated_mics, pair_candidate_lags
 from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
@@ -261,8 +261,15 @@ def field_solver_columns(
     solver: Any,
     plausible_margin_fraction: float | None,
     calibration: FieldCalibration | None,
+    min_gcc_peak: float | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """The solver stage of field recordings (``localize`` and every season chunk alike): the calibration, then the solver's columns."""
+    """The solver stage of field recordings (``localize`` and every season chunk alike): the calibration, then the solver's columns.
+
+    ``min_gcc_peak`` (``features.gcc.min_peak``): a mic without a GCC peak that high with any other
+    mic is left out of its event's solve (``drop_weakly_correlated_mics``); None keeps every mic.
+    """
+    if min_gcc_peak is not None:
+        events = drop_weakly_correlated_mics(features, events, site, min_gcc_peak)
     if calibration is not None:  # the thermometer's offset and the recorders' clocks, before the solver
         features, events = apply_calibration(features, events, site, calibration)
     return add_solver_columns(features, events, site, solver, plausible_margin_fraction), events

@@ -9,11 +9,11 @@ import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import Solver, SolverInputs, SolverResult
-from acoustlab.core.errors import DataError
+from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
 from acoustlab.toolkit.event_physics import assumed_source_height_m, event_speed_of_sound_m_s
 from acoustlab.toolkit.geometry import bounding_box
-from acoustlab.toolkit.quality import MIN_GOOD_MICS, dropped_mask
+from acoustlab.toolkit.quality import MIN_GOOD_MICS, dropped_mask, weakly_correlated_mics
 
 
 def tdoa_matrix(features: pd.DataFrame, n_mics: int) -> np.ndarray:
@@ -100,6 +100,51 @@ def subset_inputs(inputs: SolverInputs, rows: np.ndarray, keep: np.ndarray, site
         pair_lag_weights=None if inputs.pair_lag_weights is None else np.asarray(inputs.pair_lag_weights, float)[np.ix_(rows, kept_pairs)],
         prior_position_m=None if inputs.prior_position_m is None else np.asarray(inputs.prior_position_m, float)[rows],
     )
+
+
+def drop_weakly_correlated_mics(features: pd.DataFrame, events: pd.DataFrame, site: Site, min_peak: float) -> pd.DataFrame:
+    """``events`` with every mic whose strongest GCC peak is below ``min_peak`` left out (``features.gcc.min_peak``).
+
+    Such a mic joins ``mics_dropped`` and its event's ``quality_flags`` say ``mic <m>: weak_gcc``
+    (``acoustlab.toolkit.quality.weakly_correlated_mics``); the event is solved from the others while
+    ``MIN_GOOD_MICS`` remain, and is not placed (``quality_ok`` false) when fewer do. Events already
+    not usable are left as they are.
+
+    Raises
+    ------
+    ConfigError
+        When the features have no GCC heights (the ``xcorr`` group).
+    """
+    pairs = list(site.mic_pairs)
+    names = [col.xcorr_peak(i, j, 1) for i, j in pairs]
+    missing = [n for n in names if n not in features]
+    if missing:
+        raise ConfigError(
+            f"features.gcc.min_peak needs the GCC heights of the xcorr feature group ({missing[0]}, …); "
+            "use features=physics or physics_lean, or set features.gcc.min_peak=null"
+        )
+    weak = weakly_correlated_mics(features[names].to_numpy(float), pairs, site.n_mics, float(min_peak))
+    events = events.copy()
+    usable = events["quality_ok"].fillna(True).to_numpy(bool, copy=True) if "quality_ok" in events else np.ones(len(events), bool)
+    already = dropped_mask(events[col.MICS_DROPPED] if col.MICS_DROPPED in events else None, len(events), site.n_mics)
+    new = weak & ~already & usable[:, None]
+    flags = (
+        events[col.QUALITY_FLAGS].fillna("").astype(str).to_numpy(object)
+        if col.QUALITY_FLAGS in events
+        else np.full(len(events), "", object)
+    )
+    dropped = (
+        events[col.MICS_DROPPED].fillna("").astype(str).to_numpy(object) if col.MICS_DROPPED in events else np.full(len(events), "", object)
+    )
+    for e in np.flatnonzero(new.any(axis=1)):
+        flags[e] = "; ".join([f for f in (flags[e], *(f"mic {m}: weak_gcc" for m in np.flatnonzero(new[e]))) if f])
+        bad = already[e] | new[e]
+        if site.n_mics - int(bad.sum()) >= MIN_GOOD_MICS:
+            dropped[e] = ";".join(str(m) for m in np.flatnonzero(bad))
+        else:  # too few good mics: not placed, the flags say why
+            usable[e], dropped[e] = False, ""
+    events[col.QUALITY_FLAGS], events[col.MICS_DROPPED], events["quality_ok"] = flags, dropped, usable
+    return events
 
 
 def solve_without_dropped_mics(solver: Solver, inputs: SolverInputs, dropped: np.ndarray, site: Site) -> SolverResult:

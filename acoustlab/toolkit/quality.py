@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 #: Every reason a clip can be flagged for, in the order they are reported.
-QUALITY_REASONS = ("out_of_range", "truncated", "nonfinite", "dead", "clipped", "duplicate")
+QUALITY_REASONS = ("out_of_range", "truncated", "nonfinite", "dead", "clipped", "duplicate", "weak_gcc")
 #: An event whose flagged clips leave at least this many good mics is solved from those (the bad ones dropped): three
 #: mics give a 2-D fix at the assumed height. With fewer the event is not placed.
 MIN_GOOD_MICS = 3
@@ -42,6 +42,32 @@ def mics_to_drop(reasons_per_mic: list[list[str]] | np.ndarray) -> tuple[str, bo
     if len(reasons_per_mic) - len(bad) < MIN_GOOD_MICS:
         return "", False
     return ";".join(str(m) for m in bad), True
+
+
+def weakly_correlated_mics(heights: np.ndarray, pairs: list[tuple[int, int]], n_mics: int, min_peak: float) -> np.ndarray:
+    """(E, M) True where a mic's strongest GCC peak with any other mic is below ``min_peak``.
+
+    A recorder that hears only its own noise (a wind-hit or covered microphone, a clock jump) has
+    no clear peak with anyone, while each good mic keeps a clear peak with another good one; the
+    maximum over a mic's pairs separates the two even when several mics are weak.
+
+    Parameters
+    ----------
+    heights : numpy.ndarray
+        (E, P) GCC height of each pair's strongest peak (dimensionless, 1 = a perfect match); NaN counts as no peak.
+    pairs : list of (int, int)
+        The P mic pairs, in the order of ``heights``' columns.
+    n_mics : int
+        Mics of the array.
+    min_peak : float
+        The height a mic needs with at least one other mic.
+    """
+    heights = np.where(np.isfinite(heights), heights, -np.inf)
+    best = np.full((heights.shape[0], n_mics), -np.inf)
+    for p, (i, j) in enumerate(pairs):
+        best[:, i] = np.maximum(best[:, i], heights[:, p])
+        best[:, j] = np.maximum(best[:, j], heights[:, p])
+    return best < min_peak
 
 
 def dropped_mask(dropped: pd.Series | None, n_events: int, n_mics: int) -> np.ndarray:

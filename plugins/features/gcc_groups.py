@@ -52,6 +52,10 @@ class _GccGroup:
         grid and refined on the 1/(2 fs) grid by band-limited interpolation, cheaper on the
         CPU with nearly the same first-stage fixes (``acoustlab.toolkit.gcc_coarse``); for the CPU
         path with ``upsample: 2``. Not in the default config; set, it is part of the key.
+    min_peak : float, optional
+        Field recordings only: a mic whose strongest GCC peak with every other mic is below this
+        height (dimensionless, 1 = a perfect match) is left out of that event's solve and flagged
+        ``weak_gcc``; None (default) keeps every mic. Read by the solver stage, not by the GCC.
     """
 
     cache_version = "1"
@@ -65,6 +69,7 @@ class _GccGroup:
         "device": "cpu",
         "device_memory_gb": 4.0,
         "search": "fine",
+        "min_peak": None,
     }
 
     def __init__(self, gcc: Mapping[str, Any] | None = None, **settings: Any) -> None:
@@ -90,6 +95,10 @@ class _GccGroup:
         self.device = check_device(params["device"])
         self.device_memory_gb = check_memory_gb(params["device_memory_gb"])
         self.search = check_search(str(params["search"]), self.upsample, device=self.device)
+        # read by the field's solver stage (a mic without a peak this high is left out of the solve), not by the GCC
+        min_peak = params["min_peak"]
+        if min_peak is not None and not (isinstance(min_peak, (int, float)) and 0.0 < float(min_peak) <= 1.0):
+            raise ConfigError(f"features.gcc.min_peak must be a GCC height in (0, 1] or null (off); got {min_peak!r}")
 
     def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
         band = event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz) if band_hz is None else band_hz
