@@ -147,3 +147,41 @@ def test_a_switching_users_three_tables_localize_without_editing(tmp_path, compo
     (row,) = pd.read_parquet(tmp_path / "run" / "positions.parquet").to_dict("records")
     assert row["placed"] and row["mics_dropped"] == "6" and row["source"] == "solver"
     np.testing.assert_allclose([row["x_m"], row["y_m"]], [-2.22, 26.8], atol=1.0)  # the shipped example's fix (docs/localize.md)
+
+
+def test_several_files_of_one_recorder_are_read_as_that_recorder(tmp_path, compose_cfg):
+    """The peer's coordinates table lists one row per file: a recorder that made two files (0.1 s, then the rest) appears twice
+    at one position. They are one mic whose clips are cut from the file recording at the time, so the time differences are the
+    single-file ones, and ``+site=recordings`` takes the six recorders (not twelve files) from the same tables."""
+    import soundfile as sf
+
+    from acoustlab.stages.sites import site_from_config
+    from tests.test_recordings import UPSTREAM_TDOA_S, load_opensoundscape_layout
+
+    mics, _ = _loca_folder(tmp_path)
+    rows, det = [], []
+    origin = pd.Timestamp("2021-09-24T06:52:00")
+    for name, x, y, z in mics[["file", "x_m", "y_m", "z_m"]].itertuples(index=False):
+        audio, fs = sf.read(tmp_path / name)
+        cut = int(0.1 * fs)
+        for part, samples, start in (("a", audio[:cut], origin), ("b", audio[cut:], origin + pd.Timedelta(seconds=0.1))):
+            file = f"{part}_{name}"
+            sf.write(tmp_path / file, samples, fs)
+            rows.append({"file": file, "x": x, "y": y, "z": z, "start_timestamp": start.isoformat()})
+            det.append(
+                {"file": file, "start_time": 0.1 if part == "b" else 0.0, "end_time": 0.4 if part == "b" else 0.1, "zeep": int(part == "b")}
+            )
+    pd.DataFrame(rows).set_index("file").to_csv(tmp_path / "aru_coords.csv")  # the file as pandas' unnamed index
+    pd.DataFrame(det).to_csv(tmp_path / "det.csv", index=False)
+    batch, tdoa = load_opensoundscape_layout(compose_cfg, tmp_path, tmp_path / "aru_coords.csv", tmp_path / "det.csv")
+    assert batch.n_events == 1 and batch.events["quality_flags"].iloc[0] == ""
+    np.testing.assert_allclose(tdoa[0], UPSTREAM_TDOA_S, atol=1e-3)
+    cfg = compose_cfg(
+        [
+            "+site=recordings",
+            "field=recordings",
+            f"field.coords_csv={tmp_path / 'aru_coords.csv'}",
+            f"field.detections_csv={tmp_path / 'det.csv'}",
+        ]
+    )
+    np.testing.assert_allclose(site_from_config(cfg.site).mic_positions_m, mics[["x_m", "y_m", "z_m"]].to_numpy())

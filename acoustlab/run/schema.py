@@ -142,6 +142,9 @@ class SiteConfig:
     name: str = "???"
     mics: Any | None = None
     mics_csv: str | None = None
+    #: OpenSoundscape's coordinates table (one row per file) and its detections: the recorders detections use
+    coords_csv: str | None = None
+    detections_csv: str | None = None
     trees_csv: str | None = None
     temperature_c: Any = None
     relative_humidity_pct: Any = None

@@ -19,6 +19,7 @@ from acoustlab.core.errors import ConfigError, DataError, show
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import NoiseRegime, Site, require_range
 from acoustlab.toolkit.geometry import collinearity_ratio
+from acoustlab.toolkit.peer_tables import recorder_positions_m, recorders_of
 
 NOISE_KINDS = ("recorded", "white", "pink", "band")
 #: Mics whose centred 2-D coordinates have a smaller/larger singular value below this are collinear.
@@ -46,8 +47,38 @@ def _read_csv(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataF
     return table
 
 
+def _opensoundscape_mics(coords_csv: str, detections_csv: str | None) -> np.ndarray:
+    """(R, 3) the recorders of OpenSoundscape's coordinates table that the detections use (``acoustlab.toolkit.peer_tables``), m."""
+    path = resolve_path(coords_csv)
+    if not path.is_file():
+        raise DataError(f"site.coords_csv: file {path} does not exist")
+    try:
+        coords = pd.read_csv(path, skipinitialspace=True)
+        used = None
+        if detections_csv:
+            used = set(pd.read_csv(resolve_path(detections_csv), usecols=["file"], skipinitialspace=True)["file"].astype(str).str.strip())
+    except (ValueError, OSError, pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise DataError(f"site: cannot read {coords_csv} / {detections_csv} as OpenSoundscape tables: {str(exc).splitlines()[0]}") from None
+    coords.columns = [str(c).strip() for c in coords.columns]
+    if "file" not in coords.columns and coords.columns[0].startswith("Unnamed: 0"):
+        coords = coords.rename(columns={coords.columns[0]: "file"})  # the index pandas wrote
+    missing = [c for c in ("file", "x", "y") if c not in coords.columns]
+    if missing:
+        raise DataError(f"site.coords_csv: {path} lacks columns {missing}; found {list(coords.columns)}")
+    coords["file"] = coords["file"].astype(str).str.strip()
+    if used is not None and coords["file"].isin(used).any():
+        coords = coords[coords["file"].isin(used)]
+    xyz = coords[[c for c in ("x", "y", "z") if c in coords]].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    if not np.isfinite(xyz).all():
+        row = int(np.flatnonzero(~np.isfinite(xyz).all(axis=1))[0])
+        raise DataError(f"site.coords_csv: {path}, file {coords['file'].iloc[row]!r}: its coordinates are not finite numbers")
+    return recorder_positions_m(recorders_of(coords, None))
+
+
 def load_mics(cfg: Mapping[str, Any]) -> np.ndarray:
-    """Microphone positions (M, 3) in m from ``mics`` or ``mics_csv``."""
+    """Microphone positions (M, 3) in m from ``coords_csv`` (OpenSoundscape's table, one row per file), ``mics_csv`` or ``mics``."""
+    if cfg.get("coords_csv"):
+        return _opensoundscape_mics(str(cfg["coords_csv"]), cfg.get("detections_csv"))
     if cfg.get("mics_csv"):
         table = _read_csv(str(cfg["mics_csv"]), "mics_csv", col.MIC_XYZ)
         return table[list(col.MIC_XYZ)].to_numpy(dtype=float)

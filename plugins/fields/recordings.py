@@ -13,14 +13,15 @@ acoustlab layout
     ``time_s`` (when it happened, for a field calibration's clock drift).
 
 OpenSoundscape layout (so its users can switch)
-    ``coords_csv`` with ``file, x, y[, z]`` (one receiver per file) and ``detections_csv`` with
-    ``file, start_time, end_time`` and one 0/1 column per class; every distinct
-    (start_time, end_time) window detected by at least ``min_receivers`` receivers becomes an
-    event (receivers that did not detect it are still used; their clip is cut at the same times).
-    Detection times are each file's own; windows of different files are linked by overlap
-    (``linked_windows``), one per file.
+    ``coords_csv`` with ``file, x, y[, z]`` (one row per file; files at the same coordinates are
+    one recorder's, read by their start times: ``acoustlab.toolkit.peer_tables``) and
+    ``detections_csv`` with ``file, start_time, end_time`` and one 0/1 column per class; every
+    window detected by at least ``min_receivers`` recorders becomes an event (recorders that did
+    not detect it are still used; their clip is cut at the same times). Detection times are each
+    file's own; windows of different recorders are linked by overlap (``linked_windows``), one per
+    recorder.
 
-Start times. Where the mics have one file each, each clip is cut at its own file's time: a
+Start times. Where the mics have files of their own, each clip is cut at its own file's time: a
 file's start comes from a table (mics ``start_time``, coordinates or detections
 ``start_timestamp``), else its metadata or name (``acoustlab.toolkit.file_start``); with none the
 files are taken to start together. ``events_csv`` times are seconds from the earliest file's start.
@@ -51,6 +52,7 @@ from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_channels, load_mono
 from acoustlab.toolkit.file_start import file_start_time
+from acoustlab.toolkit.peer_tables import RECORDER, recorders_of
 from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_quality, duplicate_channels, mics_to_drop
 
 log = logging.getLogger(__name__)
@@ -59,6 +61,9 @@ log = logging.getLogger(__name__)
 EVENT_NAME = "event_name"
 #: Mics table column (computed): when the mic's file starts after the earliest file, s.
 FILE_OFFSET = "file_offset_s"
+#: A recorder that made several files (OpenSoundscape's layout): its files in order of start, and each one's ``FILE_OFFSET``.
+RECORDER_FILES = "recorder_files"
+RECORDER_OFFSETS = "recorder_offsets_s"
 
 #: Largest audio array (events × mics × samples, float32) a load may allocate, bytes.
 MAX_AUDIO_BYTES = 4 * 2**30
@@ -292,9 +297,9 @@ class RecordingFolder:
         coords["file"] = coords["file"].astype(str).str.strip()
         det["file"] = det["file"].astype(str).str.strip()
         unused = ~coords["file"].isin(set(det["file"]))
-        if unused.any() and not unused.all():  # a recorder no detection names is no mic (its row may lack a z)
+        if unused.any() and not unused.all():  # a file no detection names needs no coordinates (its row may lack them)
             log.info(
-                "field.coords_csv: %d recorders have no detections and are left out (first: %r)",
+                "field.coords_csv: %d files have no detections and are left out (first: %r)",
                 int(unused.sum()),
                 coords["file"][unused].iloc[0],
             )
@@ -305,15 +310,12 @@ class RecordingFolder:
         _numeric(det, "detections_csv", ("start_time", "end_time"))
         classes = [c for c in det.columns if c not in ("file", "start_time", "end_time", "start_timestamp")]
         _numeric(det, "detections_csv", tuple(classes))
-        mics = pd.DataFrame(
-            {"file": coords["file"], col.MIC_X: coords["x"], col.MIC_Y: coords["y"], col.MIC_Z: coords["z"] if "z" in coords else 0.0}
-        )
-        mics.attrs["path"] = coords.attrs["path"]
-        known = det["file"].isin(set(mics["file"]))
+        files = recorders_of(coords, None)  # files at one position are one recorder's
+        known = det["file"].isin(set(files["file"]))
         if not known.any():
             raise DataError(
                 f"field.detections_csv: none of its files ({show(det['file'].iloc[0])}, …) is in the coords table "
-                f"{coords.attrs['path']} ({show(mics['file'].iloc[0])}, …); the file names must match"
+                f"{coords.attrs['path']} ({show(files['file'].iloc[0])}, …); the file names must match"
             )
         if not known.all():
             log.warning(
@@ -327,13 +329,14 @@ class RecordingFolder:
             absolute = _timestamps(det["start_timestamp"], f"field.detections_csv: {det.attrs.get('path')}", "start_timestamp")
             stated = (absolute - pd.to_timedelta(det["start_time"].to_numpy(float), unit="s")).groupby(det["file"]).min()
         where = f"field.coords_csv: {coords.attrs.get('path')}"
-        starts = self._file_starts(mics["file"].tolist(), None if stated is None else mics["file"].map(stated), where, "start_timestamp")
-        mics[FILE_OFFSET] = _offsets(starts, mics["file"])
+        starts = self._file_starts(files["file"].tolist(), None if stated is None else files["file"].map(stated), where, "start_timestamp")
+        files[FILE_OFFSET] = _offsets(starts, files["file"])
+        mics = _recorder_mics(files)
+        mics.attrs["path"] = coords.attrs["path"]
         det = det[hit & known]
-        offset = det["file"].map(dict(zip(mics["file"], mics[FILE_OFFSET], strict=True))).to_numpy(float)
-        windows = linked_windows(
-            det["file"].to_numpy(), det["start_time"].to_numpy(float) + offset, det["end_time"].to_numpy(float) + offset
-        )
+        offset = det["file"].map(dict(zip(files["file"], files[FILE_OFFSET], strict=True))).to_numpy(float)
+        recorder = det["file"].map(dict(zip(files["file"], files[RECORDER], strict=True))).to_numpy()
+        windows = linked_windows(recorder, det["start_time"].to_numpy(float) + offset, det["end_time"].to_numpy(float) + offset)
         windows = windows[windows["n_files"] >= self.min_receivers]
         if windows.empty:
             raise DataError(
@@ -386,7 +389,9 @@ class RecordingFolder:
 
     @staticmethod
     def _audio_files(mics: pd.DataFrame, events: pd.DataFrame) -> list[str]:
-        """The audio files the tables name, each once: one per mic, or one multichannel file per event."""
+        """The audio files the tables name, each once: one per mic (or several: a recorder's files), or one multichannel file per event."""
+        if RECORDER_FILES in mics:
+            return list(dict.fromkeys(f for files in mics[RECORDER_FILES] for f in files))
         return list(dict.fromkeys(mics["file"] if "file" in mics else events["file"]))
 
     def _header(self, path: Path) -> object:
@@ -433,7 +438,8 @@ class RecordingFolder:
                 )
             if "file" in mics:
                 self._check_channels(mics, file, path, info.channels)
-        if "file" in mics and self.compare_durations:
+        # a recorder's several files cover different stretches (only those with detections are read): nothing to compare
+        if "file" in mics and RECORDER_FILES not in mics and self.compare_durations:
             _check_rate_labels(durations)
         n = int(((events[col.END] - events[col.START]).max() + 2 * self.pad_s) * self.sample_rate_hz) + 1
         size = len(events) * len(mics) * n * 4
@@ -548,14 +554,14 @@ class RecordingFolder:
         per_mic = "file" in mics.columns
         paths = {f: str(self.audio_path(f)) for f in self._audio_files(mics, events)}  # resolved once, not per event and mic
         reasons = np.empty((len(events), len(mics)), dtype=object)
-        offset = mics[FILE_OFFSET].to_numpy(float) if FILE_OFFSET in mics else np.zeros(len(mics))
         for k, ev in enumerate(events.itertuples()):
             for m in range(len(mics)):
-                start = int(round((ev.start_s - offset[m]) * fs)) - pad  # each file's own time: it may start later than the others
+                file, offset = _file_at(mics, m, ev.start_s) if per_mic else (ev.file, 0.0)
+                start = int(round((ev.start_s - offset) * fs)) - pad  # each file's own time: it may start later than the others
                 if per_mic and "channel" in mics:
-                    signal = load_channels(paths[mics["file"].iloc[m]], fs)[int(mics["channel"].iloc[m])]
+                    signal = load_channels(paths[file], fs)[int(mics["channel"].iloc[m])]
                 elif per_mic:
-                    signal = load_mono(paths[mics["file"].iloc[m]], fs)
+                    signal = load_mono(paths[file], fs)
                 else:
                     signal = load_channels(paths[ev.file], fs)[m]
                 audio[k, m, : lengths[k]], reasons[k, m] = clip_quality(signal, start, int(lengths[k]), self.thresholds, margin=pad)
@@ -657,37 +663,75 @@ def _offsets(starts: pd.Series | None, files: pd.Series) -> np.ndarray:
     return (values - values.min()).dt.total_seconds().to_numpy(float)
 
 
-def linked_windows(files: np.ndarray, start_s: np.ndarray, end_s: np.ndarray) -> pd.DataFrame:
-    """One event per call heard on several files: each file's detection window linked to the others' overlapping it most.
+def linked_windows(recorders: np.ndarray, start_s: np.ndarray, end_s: np.ndarray) -> pd.DataFrame:
+    """One event per call heard by several recorders: each recorder's detection window linked to the others' overlapping it most.
 
     Windows are taken in order of their start (absolute, s); an unlinked window anchors an event
-    and, from every other file, the unlinked window overlapping it by at least half of the shorter
-    window joins it. A file contributes at most one window to an event, so a detector's
-    consecutive fixed windows (a long song cut in 3-s windows) stay separate events instead of
-    chaining into one long one.
+    and, from every other recorder, the unlinked window overlapping it by at least half of the
+    shorter window joins it. A recorder contributes at most one window to an event, so a
+    detector's consecutive fixed windows (a long song cut in 3-s windows) stay separate events
+    instead of chaining into one long one.
+
+    Parameters
+    ----------
+    recorders : numpy.ndarray
+        (N,) which recorder made each window (a file name, or a recorder index where one recorder made several files).
+    start_s, end_s : numpy.ndarray
+        (N,) each window's start and end on the common clock, s.
 
     Returns
     -------
     pandas.DataFrame
-        ``start_s, end_s`` (the anchor's window) and ``n_files`` per event, in order of start.
+        ``start_s, end_s`` (the anchor's window) and ``n_files`` (recorders linked) per event, in order of start.
     """
     order = np.lexsort((end_s, start_s))
-    linked = np.zeros(len(files), dtype=bool)
+    linked = np.zeros(len(recorders), dtype=bool)
     rows = []
     for anchor in order:
         if linked[anchor]:
             continue
         linked[anchor] = True
-        members = {files[anchor]}
+        members = {recorders[anchor]}
         lo, hi = start_s[anchor], end_s[anchor]
         overlap = np.minimum(end_s, hi) - np.maximum(start_s, lo)
         enough = ~linked & (overlap >= 0.5 * np.minimum(end_s - start_s, hi - lo)) & (overlap > 0)
         for k in np.flatnonzero(enough)[np.argsort(-overlap[enough], kind="stable")]:
-            if files[k] not in members:
-                members.add(files[k])
+            if recorders[k] not in members:
+                members.add(recorders[k])
                 linked[k] = True
         rows.append((lo, hi, len(members)))
     return pd.DataFrame(rows, columns=[col.START, col.END, "n_files"])
+
+
+def _recorder_mics(files: pd.DataFrame) -> pd.DataFrame:
+    """One mic per recorder from ``recorders_of``'s files (with ``FILE_OFFSET``): its first file, and all of them in order of start."""
+    files = files.sort_values([RECORDER, FILE_OFFSET], kind="stable")
+    first = files.drop_duplicates(RECORDER)
+    mics = pd.DataFrame(
+        {
+            "file": first["file"].to_numpy(),
+            col.MIC_X: first["x"].to_numpy(float),
+            col.MIC_Y: first["y"].to_numpy(float),
+            col.MIC_Z: first["z"].to_numpy(float),
+            FILE_OFFSET: first[FILE_OFFSET].to_numpy(float),
+        }
+    )
+    if len(files) > len(first):  # several files per recorder: read by time
+        grouped = files.groupby(RECORDER, sort=True)
+        mics[RECORDER_FILES] = [tuple(g["file"]) for _, g in grouped]
+        mics[RECORDER_OFFSETS] = [tuple(g[FILE_OFFSET].astype(float)) for _, g in grouped]
+        log.info("field.coords_csv: %d files from %d recorders (files at one position are one recorder's)", len(files), len(first))
+    return mics
+
+
+def _file_at(mics: pd.DataFrame, m: int, time_s: float) -> tuple[str, float]:
+    """The file of mic ``m`` a clip starting at ``time_s`` (common clock, s) lies in, and that file's offset, s: the last file
+    started by then (the first where none has; a clip in a gap is then flagged out of range or truncated)."""
+    if RECORDER_FILES not in mics:
+        return str(mics["file"].iloc[m]), float(mics[FILE_OFFSET].iloc[m]) if FILE_OFFSET in mics else 0.0
+    offsets = np.asarray(mics[RECORDER_OFFSETS].iloc[m], float)
+    k = max(int(np.searchsorted(offsets, time_s, side="right")) - 1, 0)
+    return str(mics[RECORDER_FILES].iloc[m][k]), float(offsets[k])
 
 
 def _describe(reasons_per_mic: np.ndarray, mics: pd.DataFrame) -> str:
