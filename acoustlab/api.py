@@ -22,6 +22,7 @@ from __future__ import annotations
 import datetime
 import json
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -65,9 +66,11 @@ def _value(value: Any) -> str:
     raise ConfigError(f"a setting must be a number, string, path, bool, None or list; got {type(value).__name__} {value!r}")
 
 
-def _run(protocol: str, site: str, overrides: Sequence[str], run_dir: str | Path | None, settings: Mapping[str, Any]) -> Path:
-    """Compose the config as the command line would, run the job, return its run folder."""
-    from acoustlab.run.app import run_experiment
+def _run(
+    protocol: str, site: str, overrides: Sequence[str], run_dir: str | Path | None, settings: Mapping[str, Any]
+) -> tuple[Path, Any, list[str]]:
+    """Compose the config as the command line would, run the job; its run folder, its built plugins and the overrides."""
+    from acoustlab.run.app import build_run, run_experiment
     from acoustlab.run.plugin_checks import compose_config
     from acoustlab.run.preflight import check_argv
 
@@ -75,11 +78,68 @@ def _run(protocol: str, site: str, overrides: Sequence[str], run_dir: str | Path
     check_argv(given)
     cfg = compose_config(given)
     folder = Path(run_dir) if run_dir is not None else Path("outputs") / "api" / datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S-%f")
-    run_experiment(cfg, folder)
-    return folder
+    built = build_run(cfg)
+    run_experiment(cfg, folder, built=built)
+    return folder, built, given
 
 
-def localize(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> pd.DataFrame:
+@dataclass
+class FittedLocalizer:
+    """The method one ``localize`` call fitted, to place more recordings of the same array without fitting again.
+
+    Everything but the recordings stays as fitted: site, calibration, features, solver, models, gate and
+    radii. ``method.localize(field={"events_csv": "night2.csv"})`` changes only ``field`` settings (the
+    rest of ``field`` as first given) and returns the positions table ``localize`` would write, row for row.
+    It lives in this Python session; nothing is written to disk that could later run code.
+    """
+
+    given: list[str]
+    fitted: Any
+
+    def localize(self, *, overrides: Sequence[str] = (), **settings: Any) -> pd.DataFrame:
+        """Positions of other recordings' detections (rows with a known ``x_m, y_m`` are playbacks and are skipped).
+
+        Parameters
+        ----------
+        overrides : sequence of str, optional
+            ``field.*`` overrides as on the command line.
+        **settings
+            Only ``field={...}``.
+
+        Raises
+        ------
+        ConfigError
+            For a setting outside ``field``, or recordings with nothing to place.
+        """
+        from acoustlab.method.protocols.field import field_events
+        from acoustlab.method.protocols.localize import without_truth
+        from acoustlab.reporting.positions import positions_table
+        from acoustlab.run.app import build_run, prepare_field
+        from acoustlab.run.plugin_checks import compose_config
+        from acoustlab.stages.field_calibration import CALIBRATION_COLUMN
+
+        changed = [*overrides_from(settings), *overrides]
+        outside = [o for o in changed if not o.startswith("field.")]
+        if outside:
+            raise ConfigError(f"a fitted method places other recordings: only field.* settings may change; got {outside[0]!r}")
+        cfg = compose_config([*self.given, *changed])
+        built = build_run(cfg)
+        data = prepare_field(cfg, built)
+        events = field_events(data.events)
+        rows = np.flatnonzero(~np.isfinite(events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1))
+        if rows.size == 0:
+            raise ConfigError("every detection of these recordings has a known position (x_m, y_m): there is nothing to place")
+        predictions, _ = self.fitted.predict(data.features.iloc[rows], events.iloc[rows])
+        placed = without_truth(predictions, data.features.iloc[rows], data.events.iloc[rows])
+        table = positions_table(placed, built.components.levels, list(built.components.scorers))
+        if built.calibration is not None:
+            table[CALIBRATION_COLUMN] = built.calibration.sha256
+        return table
+
+
+def localize(
+    site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, return_method: bool = False, **settings: Any
+) -> pd.DataFrame | tuple[pd.DataFrame, FittedLocalizer]:
     """Place every detection of your recordings, as ``python -m acoustlab localize``; the positions table.
 
     Parameters
@@ -90,6 +150,9 @@ def localize(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | 
         Command-line overrides as they are written there (``"+experiment=smoke"``).
     run_dir : str or Path, optional
         The run folder (default: a new one under ``outputs/api/``).
+    return_method : bool
+        Also return the fitted method (``FittedLocalizer``): ``method.localize(field={...})`` places
+        more recordings of the same array without fitting again.
     **settings
         Config groups as nested dicts: ``field={"mics_csv": ..., "events_csv": ..., "audio_dir": ...}``,
         ``solver={"dimensions": 3}``; ``field`` defaults to ``recordings``; ``calibration="…/calibration.json"``
@@ -99,11 +162,13 @@ def localize(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | 
     -------
     pandas.DataFrame
         One row per detection, the columns of ``positions.csv`` (docs/localize.md): ``x_m, y_m,
-        z_m`` in m, ``source``, the radii ``radius_<scorer>_<level>_m`` in m, the solver's diagnostics.
+        z_m`` in m, ``source``, the radii ``radius_<scorer>_<level>_m`` in m, the solver's diagnostics;
+        with ``return_method``, ``(positions, method)``.
     """
     overrides = ["field=recordings", *overrides] if not any(o.startswith("field=") for o in overrides) else list(overrides)
-    folder = _run("localize", site, overrides, run_dir, settings)
-    return pd.read_parquet(folder / "positions.parquet")
+    folder, built, given = _run("localize", site, overrides, run_dir, settings)
+    positions = pd.read_parquet(folder / "positions.parquet")
+    return (positions, FittedLocalizer(given, built.protocol.fitted)) if return_method else positions
 
 
 def calibrate(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> dict[str, Any]:
@@ -120,7 +185,7 @@ def calibrate(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path |
         with ``path``, the file.
     """
     overrides = ["field=recordings", *overrides] if not any(o.startswith("field=") for o in overrides) else list(overrides)
-    folder = _run("calibrate", site, overrides, run_dir, settings)
+    folder, _, _ = _run("calibrate", site, overrides, run_dir, settings)
     return {**json.loads((folder / "calibration.json").read_text()), "path": str(folder / "calibration.json")}
 
 
@@ -130,7 +195,7 @@ def season(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | No
     ``protocol={"recordings": {"audio_dir": ...}, "detections": {"paths": [...], "format": "raven"}}`` names
     the inputs (docs/season.md); the other parameters are ``localize``'s.
     """
-    folder = _run("season", site, list(overrides), run_dir, settings)
+    folder, _, _ = _run("season", site, list(overrides), run_dir, settings)
     return pd.read_parquet(folder / "positions.parquet")
 
 

@@ -69,3 +69,20 @@ def test_import_acoustlab_gives_the_notebook_functions_and_calibrate_feeds_local
         field={"n_positions": 6, "events_per_position": 2, "outside_share": 0, "mic_position_error_m": 2.0, "clock_offset_max_s": 0.001},
     )
     assert Path(cal["path"]).is_file() and len(cal["mic_positions_m"]) == 6 and cal["n_spots"] == 6
+
+
+@pytest.mark.slow
+def test_the_fitted_method_localize_returns_places_more_recordings_as_one_run_would(tmp_path, compose_cfg):
+    """``localize(..., return_method=True)``: the fitted method places another events table of the same array without fitting
+    again, row for row what the first run gave those detections; only ``field`` settings may change."""
+    from tests.test_localize import simulated_folder
+
+    _, folder_overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 6)
+    quick = ["+experiment=smoke", "tracking=none", "plots=false", "model.n_estimators=20", f"paths.outputs_dir={tmp_path / 'outputs'}"]
+    table, method = localize("frozen_lake", overrides=[*folder_overrides[1:], *quick], run_dir=tmp_path / "api", return_method=True)
+    events = pd.read_csv(tmp_path / "recordings" / "events.csv")
+    events.iloc[2:].to_csv(tmp_path / "recordings" / "later.csv", index=False)
+    again = method.localize(field={"events_csv": tmp_path / "recordings" / "later.csv"})
+    pd.testing.assert_frame_equal(again, table.iloc[2:].reset_index(drop=True))
+    with pytest.raises(ConfigError, match="only field.. settings may change; got 'solver.dimensions=3'"):
+        method.localize(solver={"dimensions": 3})

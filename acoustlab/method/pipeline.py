@@ -438,6 +438,12 @@ class LocalizationPipeline:
             (m), GDOP, predicted error (m), substitution flag and ``radius__<scorer>__<level>`` (m);
             ``split_diagnostics``: ``[{"gate": ..., "trust": ..., "calibration": ...}]``.
         """
+        return self.fit_predict_keeping(features, events, train, test)[0]
+
+    def fit_predict_keeping(
+        self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray, test: np.ndarray
+    ) -> tuple[MethodResult, FittedMethod]:
+        """``fit_predict``, also returning the fitted method (``localize`` hands it back for more recordings)."""
         groups = events[col.POSITION_ID].to_numpy()
         if np.intersect1d(groups[train], groups[test]).size:
             raise DataError("a source position appears in both training and test rows")
@@ -446,7 +452,7 @@ class LocalizationPipeline:
         info = fitted.split_info(trust)
         if fitted.held_out_calibration is not None:  # a table, summarised by the protocol that reports it (localize)
             info["held_out_calibration"] = fitted.held_out_calibration
-        return MethodResult(out, [info])
+        return MethodResult(out, [info]), fitted
 
     def fit(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray) -> FittedMethod:
         """Fit every learned part of the method on rows ``train`` of the tables.

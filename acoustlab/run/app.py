@@ -295,27 +295,30 @@ def prepare_data(cfg: DictConfig, built: BuiltRun | None = None) -> RunData | No
     if dataset is None:
         return None
     dataset.features = solver_features(cfg, dataset.features, dataset.events, built.site, built.components.solver)
-    field_data = None
-    if built.field_source is not None:
-        field_data = load_or_build_field(
-            built.site,
-            built.field_source,
-            to_plain(cfg.field),
-            built.feature_sets,
-            to_plain(cfg.features.groups),
-            built.cache,
-            stated_site=built.stated_site,
-        )
-        field_data.features, field_data.events = field_solver_columns(
-            field_data.features,
-            field_data.events,
-            built.site,
-            built.components.solver,
-            cfg.pipeline.plausible_margin_fraction,
-            built.calibration,
-            OmegaConf.select(cfg, "features.gcc.min_peak", default=None),
-        )
-    return RunData(dataset, field_data)
+    return RunData(dataset, prepare_field(cfg, built) if built.field_source is not None else None)
+
+
+def prepare_field(cfg: DictConfig, built: BuiltRun) -> Any:
+    """The field recordings' features and events (cached), the calibration applied, with the solver's columns."""
+    field_data = load_or_build_field(
+        built.site,
+        built.field_source,
+        to_plain(cfg.field),
+        built.feature_sets,
+        to_plain(cfg.features.groups),
+        built.cache,
+        stated_site=built.stated_site,
+    )
+    field_data.features, field_data.events = field_solver_columns(
+        field_data.features,
+        field_data.events,
+        built.site,
+        built.components.solver,
+        cfg.pipeline.plausible_margin_fraction,
+        built.calibration,
+        OmegaConf.select(cfg, "features.gcc.min_peak", default=None),
+    )
+    return field_data
 
 
 def solver_features(cfg: DictConfig, features: pd.DataFrame, events: pd.DataFrame, site: Any, solver: Any) -> pd.DataFrame:
@@ -324,7 +327,12 @@ def solver_features(cfg: DictConfig, features: pd.DataFrame, events: pd.DataFram
 
 
 def run_experiment(
-    cfg: DictConfig, run_dir: Path, choices: dict[str, str] | None = None, parent_run_id: str | None = None, run_name: str | None = None
+    cfg: DictConfig,
+    run_dir: Path,
+    choices: dict[str, str] | None = None,
+    parent_run_id: str | None = None,
+    run_name: str | None = None,
+    built: BuiltRun | None = None,
 ) -> dict:
     """Run one job: build plugins, get the (cached) dataset, run the protocol, write and log results.
 
@@ -340,6 +348,8 @@ def run_experiment(
         The sweep's parent run in the tracker (set by ``acoustlab.run.sweep.SweepTrackingCallback``).
     run_name : str, optional
         The run's name in the tracker (the CLI names it by the overrides that vary; default ``<site>-<model>``).
+    built : BuiltRun, optional
+        The run's plugins, built from ``cfg`` by ``build_run`` (the notebook API keeps them to reuse the fitted method).
 
     Returns
     -------
@@ -350,7 +360,7 @@ def run_experiment(
     run_dir.mkdir(parents=True, exist_ok=True)
     choices = {g: str(v) for g, v in (choices or {}).items() if g in (*PLUGIN_GROUPS, "site", "experiment") and v is not None}
 
-    built = build_run(cfg, choices)
+    built = built if built is not None else build_run(cfg, choices)
     if cfg.get("expected_duration"):
         log.info("this experiment takes %s", cfg.expected_duration)
     site, components, protocol, tracker, plan = built.site, built.components, built.protocol, built.tracker, built.plan

@@ -26,6 +26,20 @@ log = logging.getLogger(__name__)
 FIELD_POSITION_OFFSET = 10**9
 
 
+def field_events(events: pd.DataFrame) -> pd.DataFrame:
+    """Field events as the method sees them beside simulated ones: truth columns (NaN where unknown), position ids
+    offset past every simulated one (each detection its own where none is given), ``is_field``."""
+    fev = events.copy()
+    for name in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z):
+        if name not in fev:
+            fev[name] = np.nan
+    if col.POSITION_ID not in fev or fev[col.POSITION_ID].isna().any():
+        fev[col.POSITION_ID] = np.arange(len(fev))  # unknown positions: every detection its own group
+    fev[col.POSITION_ID] = fev[col.POSITION_ID].astype(np.int64) + FIELD_POSITION_OFFSET
+    fev["is_field"] = True
+    return fev
+
+
 def combine(sim: Dataset, field_recordings: Dataset, need_truth: bool = True) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray, np.ndarray]:
     """Stack simulated and field tables; return features, events and the row indices of each part.
 
@@ -35,19 +49,12 @@ def combine(sim: Dataset, field_recordings: Dataset, need_truth: bool = True) ->
     missing = set(sim.features.columns) ^ set(field_recordings.features.columns)
     if missing:
         raise DataError(f"simulated and field feature tables differ in columns {sorted(missing)[:5]}")
-    fev = field_recordings.events.copy()
-    for name in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z):
-        if name not in fev:
-            fev[name] = np.nan
+    fev = field_events(field_recordings.events)
     if need_truth and fev[[col.TRUE_X, col.TRUE_Y]].isna().any().any():
         raise DataError(
             "field evaluation needs true positions for every field event (x_m, y_m); to localize recordings "
             "without them use protocol=localize (python -m acoustlab localize +site=NAME field=recordings)"
         )
-    if col.POSITION_ID not in fev or fev[col.POSITION_ID].isna().any():
-        fev[col.POSITION_ID] = np.arange(len(fev))  # unknown positions: every detection its own group
-    fev[col.POSITION_ID] = fev[col.POSITION_ID].astype(np.int64) + FIELD_POSITION_OFFSET
-    fev["is_field"] = True
     sev = sim.events.copy()
     sev["is_field"] = False
     events = pd.concat([sev, fev], ignore_index=True)

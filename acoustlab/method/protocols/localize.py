@@ -17,7 +17,7 @@ import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
-from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
+from acoustlab.method.pipeline import FittedMethod, LocalizationPipeline, MethodResult
 from acoustlab.method.protocols.field import combine
 from acoustlab.method.splits import cap_rows
 from acoustlab.stages.dataset import Dataset
@@ -63,6 +63,8 @@ class LocalizeProtocol:
         self.max_train_rows = int(max_train_rows)
         self.seed = int(seed)
         self.calibration_fraction = float(calibration_fraction)
+        #: the method the last ``run`` fitted (``acoustlab.api.localize(..., return_method=True)`` reuses it)
+        self.fitted: FittedMethod | None = None
 
     def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
         """Positions of every field detection (error columns are NaN: there is no truth)."""
@@ -88,7 +90,7 @@ class LocalizeProtocol:
             f" and {calibration.size} calibration playbacks with known positions" if calibration.size else "",
             field_rows.size,
         )
-        result = pipeline.fit_predict(features, events, np.sort(train), field_rows)
+        result, self.fitted = pipeline.fit_predict_keeping(features, events, np.sort(train), field_rows)
         result.split_diagnostics[0]["training"] = {
             "n_simulated": int(train.size - calibration.size),
             "n_calibration_playbacks": int(calibration.size),
