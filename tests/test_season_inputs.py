@@ -78,6 +78,13 @@ def test_gaps_and_times_outside_the_recordings_are_flagged(season_files):
     assert files.read("B", 45.0, FS).flags == ["out_of_range"]
     assert files.read("A", 5.0, FS).flags == []
     assert files.origin == pd.Timestamp("2026-05-01 05:00:00")
+    # a detection at the recordings' very start: the clip's context before it lies outside them and flags nothing, while a
+    # clip whose own span (inside the context) is missing still does
+    quarter = FS // 4
+    assert files.read("A", -0.25, FS + 2 * quarter, context=quarter).flags == []
+    assert files.read("A", -0.25, FS + 2 * quarter).flags == ["out_of_range"]
+    assert files.read("A", -0.5, FS + 2 * quarter, context=quarter).flags == ["out_of_range"]
+    assert files.read("B", 9.9, FS // 5, context=FS // 10).flags == []  # only the context reaches into the gap
 
 
 def test_a_damaged_stretch_of_a_flac_file_flags_its_clips_and_the_rest_is_read(tmp_path):

@@ -240,6 +240,7 @@ class SeasonLocalize:
             float(humidity),
             bool(self.events_cfg.get("use_detection_band", True)),
             self.quality,
+            self.margin_s(site),
         )
 
     def method_key(self, cfg: DictConfig) -> str:

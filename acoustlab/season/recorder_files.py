@@ -309,12 +309,13 @@ class RecorderFiles:
             raise DataError(f"recordings: no files of recorder {recorder_id!r}; recorders: {', '.join(self.recorders)}")
         return files.rate
 
-    def read(self, recorder_id: str, start_s: float, n_samples: int) -> ClipRead:
+    def read(self, recorder_id: str, start_s: float, n_samples: int, context: int = 0) -> ClipRead:
         """``n_samples`` of one recorder from ``start_s`` (season seconds), stitched across its files.
 
         Sample k of the clip is the recording at time ``start_s + k / fs`` (fs the recorder's rate, ``rate_of``); in file f
         that is sample ``round((start_s − start_f) · fs) + k``, so a clip across a boundary equals
-        the same clip cut from the files joined end to end.
+        the same clip cut from the files joined end to end. The first and last ``context`` samples are
+        context around the detections: where no file covers them they are zeros and flag nothing.
         """
         files = self._by_recorder.get(str(recorder_id))
         if files is None:
@@ -347,6 +348,7 @@ class RecorderFiles:
             lead = -int(round((start_s - files.start_s[first_k]) * fs))
             tail = int(files.n_frames[last_k]) - int(round((start_s - files.start_s[last_k]) * fs))
             missing = np.flatnonzero(~covered)
+            missing = missing[(missing >= context) & (missing < n_samples - context)]
             if ((missing >= lead) & (missing < tail)).any():
                 flags.append("gap")
             if ((missing < lead) | (missing >= tail)).any():

@@ -88,6 +88,9 @@ class ChunkPlan:
     relative_humidity_pct: float = 60.0
     use_detection_band: bool = True
     quality: QualityThresholds = field(default_factory=QualityThresholds)
+    #: each event's clip reaches this far beyond its detections on either side, s (``protocol.events.margin_s``): context,
+    #: so where it lies outside the recordings (a detection at a file's very start) the clip is not flagged
+    margin_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.chunk_events < 1 or self.batch_events < 1:
@@ -183,12 +186,18 @@ def read_manifest(directory: Path) -> dict[str, Any]:
 
 
 def _clip(
-    recordings: RecorderFiles, recorder: str, start_s: float, length_s: float, sample_rate_hz: float, thresholds: QualityThresholds
+    recordings: RecorderFiles,
+    recorder: str,
+    start_s: float,
+    length_s: float,
+    sample_rate_hz: float,
+    thresholds: QualityThresholds,
+    margin_s: float = 0.0,
 ) -> tuple[np.ndarray, list[str]]:
-    """One recorder's clip at the method's sample rate, and its quality flags."""
+    """One recorder's clip at the method's sample rate, and its quality flags (none for what is missing in the ``margin_s`` context)."""
     rate = recordings.rate_of(recorder)  # recorders may run at different rates: each clip is resampled from its own
     n_file = int(round(length_s * rate))
-    read = recordings.read(recorder, start_s, n_file)
+    read = recordings.read(recorder, start_s, n_file, context=min(int(round(margin_s * rate)), n_file // 2))
     samples = read.samples
     if rate != sample_rate_hz:  # the method was fitted at the simulator's rate
         up, down = int(sample_rate_hz), int(rate)
@@ -227,7 +236,7 @@ def read_batch(
             continue
         parts, per_mic = [], []
         for m, recorder in enumerate(recorders):
-            clip, reasons = _clip(recordings, recorder, start, length, sample_rate_hz, plan.quality)
+            clip, reasons = _clip(recordings, recorder, start, length, sample_rate_hz, plan.quality, plan.margin_s)
             audio[e, m, : clip.size] = clip[:n_max]
             per_mic.append(reasons)
             if reasons:

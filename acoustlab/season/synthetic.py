@@ -55,6 +55,8 @@ class SyntheticSeason:
         Seed of every random draw.
     origin : str
         Wall-clock start of the season (ISO 8601).
+    singer_m : (float, float, float), optional
+        One bird singing from this spot (x, y, z in m) for the whole season; None: each call at a random spot.
     """
 
     mics_m: np.ndarray
@@ -69,6 +71,7 @@ class SyntheticSeason:
     min_spacing_s: float = 1.0
     seed: int = 0
     origin: str = "2026-05-01T05:00:00"
+    singer_m: tuple[float, float, float] | None = None
 
     @classmethod
     def for_site(cls, site: Site, **settings: Any) -> SyntheticSeason:
@@ -109,6 +112,8 @@ def write_season(settings: SyntheticSeason, directory: Path) -> pd.DataFrame:
     emission = 0.5 + slots * s.min_spacing_s + rng.uniform(0, 0.2, s.n_calls)
     xy = rng.uniform(lo, hi, size=(s.n_calls, 2))
     z = rng.uniform(*s.source_height_m, size=s.n_calls)
+    if s.singer_m is not None:  # one bird on one perch all season
+        xy, z = np.tile(np.asarray(s.singer_m[:2], float), (s.n_calls, 1)), np.full(s.n_calls, float(s.singer_m[2]))
     drawn = [_call(rng, fs) for _ in range(s.n_calls)]
     calls, bands = [d[0] for d in drawn], [(d[1], d[2]) for d in drawn]
     dist = np.sqrt(((xy[:, None, :] - mics[None, :, :2]) ** 2).sum(-1) + (z[:, None] - mics[None, :, 2]) ** 2)
@@ -163,5 +168,46 @@ def write_season(settings: SyntheticSeason, directory: Path) -> pd.DataFrame:
             col.TRUE_Z: z,
             "low_hz": [b[0] for b in bands],
             "high_hz": [b[1] for b in bands],
+            "duration_s": [c.size / fs for c in calls],
         }
     )
+
+
+def write_window_tables(
+    settings: SyntheticSeason, truth: pd.DataFrame, directory: Path, window_s: float = 3.0, step_s: float = 3.0
+) -> Path:
+    """BirdNET-Analyzer tables of the season in ``directory``: fixed windows per file, as a window classifier reports them.
+
+    Every ``step_s`` from each file's start, a ``window_s`` window gets ``Confidence`` 0.9 where a call
+    arrives at that recorder overlapping it by at least 0.1 s (else no row), so one song is reported
+    in each window it touches and a bird singing every few seconds makes a chain of consecutive
+    windows. Layout: ``directory/birdnet/R<k>.BirdNET.results.csv`` with a ``File`` column.
+
+    Returns
+    -------
+    pathlib.Path
+        The folder of the tables.
+    """
+    s = settings
+    mics = np.asarray(s.mics_m, float)
+    xyz = truth[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float)
+    arrival = truth["emission_s"].to_numpy(float)[:, None] + np.linalg.norm(xyz[:, None, :] - mics[None], axis=-1) / s.speed_of_sound_m_s
+    length = truth["duration_s"].to_numpy(float)
+    origin = pd.Timestamp(s.origin)
+    n_files = int(np.ceil(s.duration_s / s.file_s))
+    out = directory / "birdnet"
+    out.mkdir(parents=True, exist_ok=True)
+    starts = np.arange(0.0, s.file_s - window_s + 1e-9, step_s)
+    for m in range(len(mics)):
+        rows = []
+        for k in range(n_files):
+            name = f"{(origin + pd.Timedelta(seconds=k * s.file_s)):%Y%m%d_%H%M%S}.wav"
+            begin = k * s.file_s + starts  # season seconds
+            overlap = np.minimum(begin[:, None] + window_s, arrival[None, :, m] + length[None]) - np.maximum(
+                begin[:, None], arrival[None, :, m]
+            )
+            for w in np.flatnonzero((overlap >= 0.1).any(axis=1)):
+                rows.append((starts[w], starts[w] + window_s, "Synthetica cantans", "synthetic singer", 0.9, name))
+        table = pd.DataFrame(rows, columns=["Start (s)", "End (s)", "Scientific name", "Common name", "Confidence", "File"])
+        table.to_csv(out / f"R{m}.BirdNET.results.csv", index=False)
+    return out
