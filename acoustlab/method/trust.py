@@ -218,7 +218,9 @@ class TrainingSupport:
 
         z = self._standardise(x)
         per_position = int(np.unique(groups, return_counts=True)[1].max())
-        self.neighbours_ = NearestNeighbors(n_neighbors=min(len(x), s.n_neighbors + per_position)).fit(z)
+        # a k-d tree sums each pair's squared differences itself; the brute-force path's matrix product rounds by how many
+        # rows are asked at once, so a detection's novelty would depend on its batch (one ulp, but not bit for bit)
+        self.neighbours_ = NearestNeighbors(n_neighbors=min(len(x), s.n_neighbors + per_position), algorithm="kd_tree").fit(z)
         distance, index = self.neighbours_.kneighbors(z)
         other = groups[index] != groups[:, None]  # leave the row's own position out
         own = np.array([d[o][: s.n_neighbors].mean() if o.any() else np.nan for d, o in zip(distance, other, strict=True)])
