@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from acoustlab.core.errors import DataError
 from acoustlab.method.saved import METHOD_FILE, load_method
@@ -78,44 +80,54 @@ def test_a_season_is_localized_from_raven_tables_near_the_truth(season):
     ] == N_CALLS
 
 
-def test_a_season_s_answer_does_not_depend_on_how_it_is_cut(season):
-    """Batch size, chunk boundaries and an event's neighbours leave every column of every row as it was, bit for bit:
-    each clip is padded by its own length only, and every later step is per event."""
+def _placed(season, table: pd.DataFrame, batch_events: int) -> pd.DataFrame:
+    """The positions ``localize_events`` gives the events of ``table`` as one chunk, ``batch_events`` at a time."""
     from dataclasses import replace
 
     from acoustlab.season.recorder_files import RecorderFiles
-    from acoustlab.season.stream import EVENTS, FILES, ChunkPlan, localize_events
+    from acoustlab.season.stream import FILES, ChunkPlan, localize_events
 
-    root, _, _, _ = season
-    directory = root / "out"
+    directory = season[0] / "out"
     manifest = read_manifest(directory)
-    fitted = load_method(directory, manifest["method_sha256"])
     recordings = RecorderFiles.load(directory / FILES)
-    plan = ChunkPlan.from_manifest(manifest)
-    events = pd.read_parquet(directory / EVENTS)
-
-    def placed(table: pd.DataFrame, batch_events: int) -> pd.DataFrame:
+    try:
         return localize_events(
-            fitted,
+            load_method(directory, manifest["method_sha256"]),
             recordings,
             table.reset_index(drop=True),
             manifest["recorders"],
-            replace(plan, batch_events=batch_events),
+            replace(ChunkPlan.from_manifest(manifest), batch_events=batch_events),
             recordings.origin,
         )
+    finally:
+        recordings.close()
 
-    whole = placed(events, 64)
+
+@pytest.fixture(scope="module")
+def whole_season(season):
+    """Every event of the season placed in one chunk of 64 (the reference for cutting it otherwise)."""
+    from acoustlab.season.stream import EVENTS
+
+    events = pd.read_parquet(season[0] / "out" / EVENTS)
     assert len({round(e - s, 6) for s, e in zip(events["start_s"], events["end_s"], strict=True)}) > 1  # clips of several lengths
-    for batch_events in (1, 5):
-        pd.testing.assert_frame_equal(placed(events, batch_events), whole)
-    cut = pd.concat([placed(events.iloc[:7], 3), placed(events.iloc[7:], 3)], ignore_index=True)
-    pd.testing.assert_frame_equal(cut, whole)
-    copies = pd.concat([events.iloc[[0, 0, 0]], events.iloc[::-1]], ignore_index=True)  # one call three times, beside others
-    again = placed(copies, 4)
+    return events, _placed(season, events, 64)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(batch=st.integers(1, 30), cuts=st.lists(st.integers(1, N_CALLS - 1), max_size=3, unique=True), repeat=st.integers(0, N_CALLS - 1))
+def test_a_season_s_answer_does_not_depend_on_how_it_is_cut(season, whole_season, batch, cuts, repeat):
+    """Any batch size and any chunk boundaries leave every column of every row bit for bit as it was (``check_exact``), and
+    a call placed three times among other events gets its own answer each time: each clip is padded by its own length
+    only, and every later step is per event (the trust check's neighbours included)."""
+    events, whole = whole_season
+    bounds = [0, *sorted(cuts), len(events)]
+    cut = pd.concat([_placed(season, events.iloc[a:b], batch) for a, b in zip(bounds[:-1], bounds[1:], strict=True)], ignore_index=True)
+    pd.testing.assert_frame_equal(cut, whole, check_exact=True)
+    copies = pd.concat([events.iloc[[repeat] * 3], events.iloc[::-1]], ignore_index=True)
+    again = _placed(season, copies, batch)
     for k in range(3):
-        pd.testing.assert_series_equal(again.iloc[k], whole.iloc[0], check_names=False)
-    pd.testing.assert_frame_equal(again.iloc[3:].iloc[::-1].reset_index(drop=True), whole)
-    recordings.close()
+        pd.testing.assert_series_equal(again.iloc[k], whole.iloc[repeat], check_names=False, check_exact=True)
+    pd.testing.assert_frame_equal(again.iloc[3:].iloc[::-1].reset_index(drop=True), whole, check_exact=True)
 
 
 def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path):
@@ -137,12 +149,12 @@ def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path
         run_experiment(cfg, tmp_path / f"shard{shard}")
     cfg = compose_cfg(season_overrides(root, fitted, "protocol.stage=merge", f"paths.outputs_dir={tmp_path / 'outputs'}"))
     run_experiment(cfg, tmp_path / "merged")
-    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "merged" / "positions.parquet"), unsharded)
+    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "merged" / "positions.parquet"), unsharded, check_exact=True)
     local = tmp_path / "local"  # two local worker processes (joblib)
     shutil.copytree(root / "out", local, ignore=shutil.ignore_patterns("parts"))
     cfg = compose_cfg(season_overrides(root, local, "protocol.n_jobs=2", f"paths.outputs_dir={tmp_path / 'outputs'}"))
     run_experiment(cfg, tmp_path / "local_run")
-    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "local_run" / "positions.parquet"), unsharded)
+    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "local_run" / "positions.parquet"), unsharded, check_exact=True)
 
 
 def test_a_killed_run_resumes_without_redoing_finished_chunks(season, tmp_path):

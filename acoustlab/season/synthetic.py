@@ -136,7 +136,8 @@ def write_season(settings: SyntheticSeason, directory: Path) -> pd.DataFrame:
                 start = int(np.floor(arrival[e, m] * fs))
                 shaped = delay_and_scale(calls[e], np.array([arrival[e, m] - start / fs]), gain[e, m : m + 1], fs, calls[e].size + 2)[0]
                 a, b = max(start, t0), min(start + shaped.size, t0 + n_file)
-                audio[a - t0 : b - t0] += shaped[a - start : b - start]
+                if b > a:  # a call ending just before the file starts adds nothing to it
+                    audio[a - t0 : b - t0] += shaped[a - start : b - start]
             sf.write(folder / names[k], np.clip(audio, -1, 1).astype(np.float32), int(fs), subtype="PCM_16")
     raven = directory / "raven"
     raven.mkdir(parents=True, exist_ok=True)

@@ -78,7 +78,7 @@ def half_samples(values: np.ndarray, index: np.ndarray, kernel: np.ndarray) -> n
     taps = kernel.size
     around = index[..., None] + np.arange(-taps // 2 + 1, taps // 2 + 1)
     gathered = np.take_along_axis(values[..., None, :], np.clip(around, 0, values.shape[-1] - 1), -1)
-    return gathered @ kernel
+    return np.einsum("...t,t->...", gathered, kernel)  # not @: BLAS would round a row by its batch-mates
 
 
 def coarse_pair_candidates(
@@ -213,7 +213,8 @@ def _clamped_windows(rows: np.ndarray, centre: np.ndarray, taps: int) -> np.ndar
 def _assemble(windows: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """(..., 5) fine samples from windows (..., taps + 1) of samples centre − taps/2 … centre + taps/2."""
     taps, mid = kernel.size, kernel.size // 2
-    left, right = windows[..., :taps] @ kernel, windows[..., 1:] @ kernel  # values at centre − ½ and centre + ½
+    # values at centre − ½ and centre + ½ (einsum, not @: BLAS would round a row by its batch-mates)
+    left, right = np.einsum("...t,t->...", windows[..., :taps], kernel), np.einsum("...t,t->...", windows[..., 1:], kernel)
     return np.stack([windows[..., mid - 1], left, windows[..., mid], right, windows[..., mid + 1]], axis=-1)
 
 

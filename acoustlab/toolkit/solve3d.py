@@ -83,11 +83,12 @@ def closed_form_3d(mics: np.ndarray, rd: np.ndarray) -> np.ndarray:
         ok = np.isfinite(sol).all(-1) & (sol[:, 2] >= 0)
         for k, sign in enumerate((1.0, -1.0)):
             local_p = np.column_stack([sol[:, 0], sol[:, 1], sign * w])
-            out[:, k] = np.where(ok[:, None], local_p @ frame + mics[0], np.nan)
+            out[:, k] = np.where(ok[:, None], np.einsum("bk,kj->bj", local_p, frame) + mics[0], np.nan)
         return out
     pinv = np.linalg.pinv(-2 * q)  # (3, M-1)
-    u = b @ pinv.T
-    v = (2 * rd) @ pinv.T
+    # einsum, not @: BLAS rounds a row differently by how many rows come with it, and a fix must not depend on its batch
+    u = np.einsum("bk,jk->bj", b, pinv)
+    v = np.einsum("bk,jk->bj", 2 * rd, pinv)
     a2 = (v**2).sum(-1) - 1
     a1 = 2 * (u * v).sum(-1)
     a0 = (u**2).sum(-1)

@@ -109,8 +109,9 @@ class HyperbolicSolver:
         a_mat = -2 * q  # (M-1, 2)
         pinv = np.linalg.pinv(a_mat)  # (2, M-1)
         b = rd**2 - (q**2).sum(-1) - h[1:] ** 2 + h[0] ** 2  # (B, M-1)
-        u = b @ pinv.T  # (B, 2)
-        v = (2 * rd) @ pinv.T  # (B, 2): p = u + v r0 since −g = 2 d
+        # einsum, not @: BLAS rounds a row differently by how many rows come with it, and a fix must not depend on its batch
+        u = np.einsum("bk,jk->bj", b, pinv)  # (B, 2)
+        v = np.einsum("bk,jk->bj", 2 * rd, pinv)  # (B, 2): p = u + v r0 since −g = 2 d
         a2 = (v**2).sum(-1) - 1
         a1 = 2 * (u * v).sum(-1)
         a0 = (u**2).sum(-1) + h[0] ** 2
