@@ -259,6 +259,19 @@ def test_damaged_recordings_are_flagged_not_localized_from_zeros(tmp_path, lake_
     ]
     assert batch.events["hardware_failure"].tolist() == [True, True, False, False, False, False]
     assert np.isfinite(batch.audio).all()
+    # read one event at a time (localize streams chunks): the same clips and flags, and the position's failure once joined
+    from acoustlab.toolkit.quality import failed_positions
+
+    one_at_a_time = folder(root)
+    one_at_a_time.chunk_events = 1
+    parts = list(one_at_a_time.load_chunks(lake_site))
+    assert len(parts) == 6 and all(not p.events["hardware_failure"].any() for p in parts)  # no chunk sees a whole position
+    joined = pd.concat([p.events for p in parts], ignore_index=True)
+    assert failed_positions(joined).tolist() == [True, True, False, False, False, False]
+    assert joined["quality_flags"].tolist() == flags
+    for k, part in enumerate(parts):
+        length = int(batch.events["clip_samples"].iloc[k])
+        np.testing.assert_array_equal(part.audio[0, :, :length], batch.audio[k, :, :length])
     # the event that begins before its file keeps its samples at their true times: the file's first sample lands 0.2 s + pad in
     pad = int(0.05 * RATE)
     first = sf.read(root / "ev5.wav", dtype="float32")[0][0, 0]

@@ -231,3 +231,16 @@ def test_your_own_array_from_the_recordings_mics_table_alone(compose_cfg, tmp_pa
     placed = table["placed"].to_numpy(bool)
     err = np.hypot(table["x_m"] - batch.events["x_m"].to_numpy(), table["y_m"] - batch.events["y_m"].to_numpy())[placed]
     assert placed.mean() >= 0.5 and np.median(err) < 2.0
+
+
+def test_localize_streams_the_recordings_and_the_answer_does_not_depend_on_the_chunks(compose_cfg, tmp_path):
+    """``field.chunk_events``: the recordings are read and turned into features a few events at a time (peak memory: one
+    chunk's audio); two events at a time gives every column of every row the whole table gives, bit for bit."""
+    _, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 7, dead={3: [1]})
+    _, _, whole = localize(compose_cfg, tmp_path / "whole", *overrides)
+    _, _, chunked = localize(compose_cfg, tmp_path / "chunked", *overrides, "field.chunk_events=2")
+    pd.testing.assert_frame_equal(
+        pd.read_parquet(chunked / "positions.parquet"), pd.read_parquet(whole / "positions.parquet"), check_exact=True
+    )
+    with pytest.raises(DataError, match="lower field.chunk_events"):  # one chunk too large for memory: said before any work
+        localize(compose_cfg, tmp_path / "huge", *overrides, "field.chunk_events=100000", "field.max_event_s=100000", "field.pad_s=40000")

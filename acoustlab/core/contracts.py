@@ -49,7 +49,7 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
 #: (field sources and protocol=season: check tables and headers), ``input_files()`` (field sources: the files whose contents key the
 #: cache), ``projection()`` (field sources: the rigid map to projected coordinates, or None), ``fit_quantiles(x, error, levels)``
 #: (conformal scorers with ``needs_quantiles``: fit the final quantile model once, applied by their ``predict_quantiles``).
-OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection", "fit_quantiles", "tables")
+OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection", "fit_quantiles", "tables", "load_chunks")
 
 
 def declared(plugin: Any, name: str) -> Any:
@@ -321,7 +321,11 @@ class FieldSource(Protocol):
     """Supplies field recordings with known or unknown source positions."""
 
     def load(self, site: Site) -> RecordingBatch:
-        """All field events; unknown true positions are NaN, ``position_id`` groups repeated playbacks."""
+        """All field events; unknown true positions are NaN, ``position_id`` groups repeated playbacks.
+
+        A source may also offer ``load_chunks(site)`` (an optional hook): the same events as batches
+        of a bounded size, which the field stage then reads one at a time.
+        """
 
 
 @runtime_checkable

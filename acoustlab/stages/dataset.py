@@ -36,6 +36,7 @@ from acoustlab.stages.cache import (
     plugin_version,
     write_manifest,
 )
+from acoustlab.toolkit.quality import DEAD_MICS, failed_positions
 
 log = logging.getLogger(__name__)
 
@@ -395,10 +396,18 @@ def load_or_build_field(
     )
 
     def build() -> Path:
-        batch = field_source.load(stated_site if stated_site is not None else site)
-        digest = _DataHasher()
-        digest.update(batch.audio, batch.events)
-        return _store_tables(cache, "field_features", key, extract_features(batch, site, feature_sets), batch.events, digest.hexdigest())
+        read_site = stated_site if stated_site is not None else site
+        chunks = hook(field_source, "load_chunks")
+        batches = chunks(read_site) if chunks is not None else iter([field_source.load(read_site)])
+        digest, features, events = _DataHasher(), [], []
+        for batch in batches:  # a chunk's audio at a time (peak memory), each event's features its own
+            digest.update(batch.audio, batch.events)
+            features.append(extract_features(batch, site, feature_sets))
+            events.append(batch.events)
+        joined = pd.concat(events, ignore_index=True)
+        if DEAD_MICS in joined:  # a mic dead at every event of a position failed there (needs all chunks)
+            joined[col.HARDWARE_FAILURE] = failed_positions(joined)
+        return _store_tables(cache, "field_features", key, pd.concat(features, ignore_index=True), joined, digest.hexdigest())
 
     dataset = _get_verified_tables(cache, "field_features", key, build)
     cache.cleanup()

@@ -170,9 +170,9 @@ def _compute_pair_candidates(
     sidelobe = np.empty((e, p))
     for k, max_lag in enumerate(windows):
         inside = np.flatnonzero(np.abs(lags) <= max_lag)  # one contiguous run of lags
-        # events along the fast axis, as boolean indexing laid it out before: float32 sums depend on the layout,
-        # and the features stay bit-identical to those already cached
-        seg = np.asfortranarray(cc[:, k, inside[0] : inside[-1] + 1])
+        # lags along the fast axis: numpy sums a contiguous row pairwise, whatever the number of events, while events along
+        # it (Fortran order) summed each row in sequence unless there was one event, so a feature depended on its batch
+        seg = np.ascontiguousarray(cc[:, k, inside[0] : inside[-1] + 1])
         first_lag = lags[inside[0]]
         sidelobe[:, k] = np.sqrt(np.mean(seg**2, axis=-1))
         masked = np.where(local_maxima(seg), seg, -np.inf)  # local maxima (edges allowed), then the K highest

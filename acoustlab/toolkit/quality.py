@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
+
 #: Every reason a clip can be flagged for, in the order they are reported.
 QUALITY_REASONS = ("out_of_range", "truncated", "nonfinite", "dead", "clipped", "duplicate", "weak_gcc")
 #: An event whose flagged clips leave at least this many good mics is solved from those (the bad ones dropped): three
@@ -42,6 +44,30 @@ def mics_to_drop(reasons_per_mic: list[list[str]] | np.ndarray) -> tuple[str, bo
     if len(reasons_per_mic) - len(bad) < MIN_GOOD_MICS:
         return "", False
     return ";".join(str(m) for m in bad), True
+
+
+#: Events column: the mics whose clip was dead (``;``-separated indices), for ``failed_positions``.
+DEAD_MICS = "dead_mics"
+
+
+def failed_positions(events: pd.DataFrame) -> np.ndarray:
+    """(E,) each event's ``hardware_failure``: as stated, or true where some mic is dead in every event of its position.
+
+    A recorder dead for one call may have been masked by wind; dead for every call at a spot, it
+    failed there. Needs all of a position's events at once (after reading them in chunks).
+    """
+    stated = events[col.HARDWARE_FAILURE].to_numpy(bool) if col.HARDWARE_FAILURE in events else np.zeros(len(events), bool)
+    if DEAD_MICS not in events or len(events) == 0:
+        return stated
+    dead = events[DEAD_MICS].fillna("").astype(str)
+    position = events[col.POSITION_ID].to_numpy()
+    out = stated.copy()
+    for pos in np.unique(position):
+        rows = position == pos
+        shared = set.intersection(*(set(filter(None, text.split(";"))) for text in dead[rows]))
+        if shared:
+            out[rows] = True
+    return out
 
 
 def weakly_correlated_mics(heights: np.ndarray, pairs: list[tuple[int, int]], n_mics: int, min_peak: float) -> np.ndarray:

@@ -41,6 +41,7 @@ summaries, and a mic dead in every event of a position sets that position's ``ha
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +54,15 @@ from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_channels, load_mono
 from acoustlab.toolkit.file_start import file_start_time
 from acoustlab.toolkit.peer_tables import RECORDER, recorders_of
-from acoustlab.toolkit.quality import QUALITY_REASONS, QualityThresholds, clip_quality, duplicate_channels, mics_to_drop
+from acoustlab.toolkit.quality import (
+    DEAD_MICS,
+    QUALITY_REASONS,
+    QualityThresholds,
+    clip_quality,
+    duplicate_channels,
+    failed_positions,
+    mics_to_drop,
+)
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +180,10 @@ class RecordingFolder:
     compare_durations : bool
         With one file per mic, refuse a file whose duration is a standard-rate ratio of the
         others' median (half as long: 24 kHz samples under a 48 kHz header), naming it.
+    chunk_events : int
+        Events read and turned into features at a time (``load_chunks``): peak memory is one
+        chunk's audio and its transforms, whatever the number of events. The answer does not
+        depend on it (each event's features are its own).
 
     Notes
     -----
@@ -196,6 +209,7 @@ class RecordingFolder:
         quality: dict | None = None,
         recorder_sample_rate_hz: float | None = None,
         compare_durations: bool = True,
+        chunk_events: int = 256,
     ) -> None:
         if not ((mics_csv and events_csv) or (coords_csv and detections_csv)):
             raise ConfigError("field: give mics_csv and events_csv, or coords_csv and detections_csv (OpenSoundscape layout)")
@@ -206,6 +220,9 @@ class RecordingFolder:
             raise ConfigError(f"field.temperature_c must lie in [-60, 60] °C; got {temperature_c}")
         if not 0.0 <= float(relative_humidity_pct) <= 100.0:
             raise ConfigError(f"field.relative_humidity_pct must lie in [0, 100] %; got {relative_humidity_pct}")
+        if not isinstance(chunk_events, int) or chunk_events < 1:
+            raise ConfigError(f"field.chunk_events must be a whole number >= 1; got {chunk_events!r}")
+        self.chunk_events = chunk_events
         if int(min_receivers) < 2:
             raise ConfigError(f"field.min_receivers must be >= 2; got {min_receivers}")
         self.audio_dir = audio_dir
@@ -441,21 +458,26 @@ class RecordingFolder:
         # a recorder's several files cover different stretches (only those with detections are read): nothing to compare
         if "file" in mics and RECORDER_FILES not in mics and self.compare_durations:
             _check_rate_labels(durations)
+        self._check_memory(len(mics), events)
+        return mics, events
+
+    def _check_memory(self, n_mics: int, events: pd.DataFrame) -> None:
+        """One chunk of events (``chunk_events``, at the longest event) must fit in memory while its features are computed."""
         n = int(((events[col.END] - events[col.START]).max() + 2 * self.pad_s) * self.sample_rate_hz) + 1
-        size = len(events) * len(mics) * n * 4
+        at_once = min(len(events), self.chunk_events)
+        size = at_once * n_mics * n * 4
         if size > MAX_AUDIO_BYTES:
             raise DataError(
-                f"field: {len(events)} events × {len(mics)} mics × {n} samples need {size / 2**30:.1f} GiB; "
-                f"split the events table (at most {MAX_AUDIO_BYTES / 2**30:.0f} GiB at once)"
+                f"field: {at_once} events × {n_mics} mics × {n} samples need {size / 2**30:.1f} GiB at once; "
+                f"lower field.chunk_events (now {self.chunk_events}; at most {MAX_AUDIO_BYTES / 2**30:.0f} GiB at once)"
             )
         available = available_memory_bytes()
         if available is not None and PEAK_PER_AUDIO_BYTE * size > available:
             raise DataError(
-                f"field: {len(events)} events × {len(mics)} mics × {n} samples ({size / 2**30:.2f} GiB of audio) need about "
+                f"field: {at_once} events × {n_mics} mics × {n} samples ({size / 2**30:.2f} GiB of audio) at once need about "
                 f"{PEAK_PER_AUDIO_BYTE * size / 2**30:.1f} GiB while their features are computed, and {available / 2**30:.1f} GiB "
-                "is available; split the events table, or use protocol=season, which streams"
+                f"is available; lower field.chunk_events (now {self.chunk_events})"
             )
-        return mics, events
 
     def _check_bands(self, events: pd.DataFrame) -> None:
         """Per-event frequency bands (``low_hz``, ``high_hz``, as a detector table gives them): 0 ≤ low < high ≤ Nyquist, or both empty."""
@@ -545,8 +567,27 @@ class RecordingFolder:
         return tables + [self.audio_path(f) for f in self._audio_files(mics, events)]
 
     def load(self, site: Site) -> RecordingBatch:
-        """Cut every event from the recordings, flagging bad clips; see ``acoustlab.core.contracts.FieldSource``."""
+        """Cut every event from the recordings, flagging bad clips; see ``acoustlab.core.contracts.FieldSource``.
+
+        All events at once (``load_chunks`` streams them ``chunk_events`` at a time, as ``localize`` does).
+        """
         mics, events = self.validate(site)
+        batch = self._batch(mics, events)
+        batch.events[col.HARDWARE_FAILURE] = failed_positions(batch.events)
+        return batch
+
+    def load_chunks(self, site: Site) -> Iterator[RecordingBatch]:
+        """The events ``chunk_events`` at a time, each chunk's batch as ``load`` would cut its events (memory: one chunk's audio).
+
+        A position's ``hardware_failure`` from a mic dead in all its events needs every chunk: the
+        caller applies ``acoustlab.toolkit.quality.failed_positions`` to the joined events.
+        """
+        mics, events = self.validate(site)
+        for first in range(0, len(events), self.chunk_events):
+            yield self._batch(mics, events.iloc[first : first + self.chunk_events])
+
+    def _batch(self, mics: pd.DataFrame, events: pd.DataFrame) -> RecordingBatch:
+        """The clips of ``events`` on every mic, each flagged; ``dead_mics`` and the stated ``hardware_failure`` per event."""
         fs = self.sample_rate_hz
         pad = int(self.pad_s * fs)
         lengths = ((events[col.END] - events[col.START]).to_numpy(float) * fs).astype(int) + 2 * pad
@@ -570,19 +611,18 @@ class RecordingFolder:
         flags = [_describe(row, mics) for row in reasons]
         dropped, usable = zip(*(mics_to_drop(list(row)) for row in reasons), strict=True) if len(reasons) else ((), ())
         position = events[col.POSITION_ID].to_numpy(int) if col.POSITION_ID in events else events[col.EVENT_ID].to_numpy(int)
-        failed = (
+        stated_failure = (
             events[col.HARDWARE_FAILURE].astype(str).str.strip().str.lower().isin(["1", "1.0", "true", "yes"]).to_numpy()
             if col.HARDWARE_FAILURE in events
             else np.zeros(len(events), bool)
         )
-        failed = failed | _dead_at_position(reasons, position)
         n_flagged = sum(bool(f) for f in flags)
         if n_flagged:
             log.warning(
                 "field: %d of %d events flagged (%s); they are kept in the predictions and left out of summaries",
                 n_flagged,
                 len(events),
-                "; ".join(f"event {e}: {f}" for e, f in zip(events[col.EVENT_ID], flags) if f)[:300],
+                "; ".join(f"event {e}: {f}" for e, f in zip(events[col.EVENT_ID], flags, strict=True) if f)[:300],
             )
         rows = pd.DataFrame(
             {
@@ -603,7 +643,8 @@ class RecordingFolder:
                 # a flagged clip costs its mic, not the event, while enough good mics remain (solved from those)
                 "quality_ok": list(usable),
                 col.MICS_DROPPED: list(dropped),
-                col.HARDWARE_FAILURE: failed,
+                DEAD_MICS: [";".join(str(m) for m, r in enumerate(row) if "dead" in r) for row in reasons],
+                col.HARDWARE_FAILURE: stated_failure,
                 col.CLIP_SAMPLES: lengths,
             }
         )
@@ -741,14 +782,3 @@ def _describe(reasons_per_mic: np.ndarray, mics: pd.DataFrame) -> str:
         f"mic {names[m]}: {', '.join(r for r in QUALITY_REASONS if r in reasons)}" for m, reasons in enumerate(reasons_per_mic) if reasons
     ]
     return "; ".join(parts)
-
-
-def _dead_at_position(reasons: np.ndarray, position: np.ndarray) -> np.ndarray:
-    """True for every event of a position where some mic is dead in all of the position's events."""
-    dead = np.vectorize(lambda r: "dead" in r, otypes=[bool])(reasons)
-    out = np.zeros(len(position), bool)
-    for pos in np.unique(position):
-        rows = position == pos
-        if dead[rows].all(axis=0).any():
-            out[rows] = True
-    return out
