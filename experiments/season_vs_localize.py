@@ -1,0 +1,209 @@
+"""A season against ``localize`` on the same independent recordings: what the season's defaults and its clips cost.
+
+Usage: python experiments/season_vs_localize.py [--site forest] [--n-positions 200]
+
+``--n-positions`` × 5 events rendered by the second simulator (pyroomacoustics' image-source
+method, ``field=image_source``: sources in and around the array, SNR 5–30 dB, real calls and
+noise; acoustlab never trains on it) are evaluated two ways, each method fitted on 1,000 of the
+site's own simulated events:
+
+* as events: ``protocol=field_eval field=image_source`` (what ``localize`` does with recordings of
+  those events), with the full feature set (the default) and with the season's lean set with the
+  coarse GCC search (``features=physics_lean_coarse``);
+* as a season: the same clips laid end to end in one long file per recorder (600-s files), 0.5 s
+  of noise at each clip's own noise floor between them, one Raven selection per clip per recorder
+  (its bounds), localized by ``python -m acoustlab season`` with its defaults (the lean set, the
+  coarse search) and with ``features=physics features.gcc.search=fine``.
+
+So features (lean vs full, coarse vs fine) and the season's clip windows (a detection widened by the
+array's travel time, read from long files) are separated. Failures count as infinite errors; > 5 m
+and p95 carry 95 % bootstrap intervals over source positions. Writes
+experiments/results/season_vs_localize.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import soundfile as sf
+from common import REPO, compose_cfg, machine, write_results
+
+from acoustlab.run.registry import build
+from acoustlab.stages.sites import site_from_config
+
+log = logging.getLogger("experiments.season_vs_localize")
+GAP_S = 0.5
+FILE_S = 600.0
+ORIGIN = pd.Timestamp("2026-05-01T05:00:00")
+RUNS = {
+    "localize, full features (default)": ("events", []),
+    "localize, lean + coarse": ("events", ["features=physics_lean_coarse"]),
+    "season, lean + coarse (default)": ("season", []),
+    "season, full + fine": ("season", ["features=physics"]),
+}
+
+
+def field_settings(n_positions: int) -> list[str]:
+    return ["field=image_source", f"field.n_positions={n_positions}"]
+
+
+def lay_out(site_name: str, n_positions: int, folder: Path) -> pd.DataFrame:
+    """Write the image-source events as a season in ``folder`` (audio/R<m>/, raven/); the events' truth and clip times, s."""
+    cfg = compose_cfg([f"+site={site_name}", *field_settings(n_positions)])
+    site = site_from_config(cfg.site)
+    batch = build(cfg.field, "field").load(site)
+    fs = batch.sample_rate_hz
+    lengths = (
+        batch.events["clip_samples"].to_numpy(int) if "clip_samples" in batch.events else np.full(batch.n_events, batch.audio.shape[-1])
+    )
+    rng = np.random.default_rng(0)
+    gap = int(GAP_S * fs)
+    pieces = [[] for _ in range(site.n_mics)]
+    starts, cursor = [], 0
+    for e in range(batch.n_events):
+        clip = batch.audio[e, :, : lengths[e]]
+        blocks = clip[:, : (lengths[e] // 1200) * 1200].reshape(site.n_mics, -1, 1200)
+        floor = np.sqrt(np.min(np.mean(blocks**2, axis=-1), axis=-1))  # each mic's quietest 50 ms: its noise level
+        for m in range(site.n_mics):
+            pieces[m] += [rng.normal(0.0, floor[m], gap).astype(np.float32), clip[m]]
+        starts.append(cursor + gap)
+        cursor += gap + lengths[e]
+    n_file = int(FILE_S * fs)
+    for m in range(site.n_mics):
+        signal = np.concatenate(pieces[m])
+        (folder / "audio" / f"R{m}").mkdir(parents=True, exist_ok=True)
+        for k, first in enumerate(range(0, signal.size, n_file)):
+            name = f"{ORIGIN + pd.Timedelta(seconds=k * FILE_S):%Y%m%d_%H%M%S}.wav"
+            sf.write(folder / "audio" / f"R{m}" / name, signal[first : first + n_file], int(fs), subtype="FLOAT")
+    begin = np.array(starts) / fs
+    end = begin + lengths / fs
+    (folder / "raven").mkdir(parents=True, exist_ok=True)
+    index = (begin // FILE_S).astype(int)
+    for m in range(site.n_mics):
+        pd.DataFrame(
+            {
+                "Selection": np.arange(1, batch.n_events + 1),
+                "Begin Time (s)": begin,
+                "End Time (s)": end,
+                "Begin File": [f"{ORIGIN + pd.Timedelta(seconds=k * FILE_S):%Y%m%d_%H%M%S}.wav" for k in index],
+                "File Offset (s)": begin - index * FILE_S,
+                "Species": "call",
+            }
+        ).to_csv(folder / "raven" / f"R{m}.Table.1.selections.txt", sep="\t", index=False)
+    return batch.events.assign(begin_s=begin, end_s=end)
+
+
+def acoustlab(args: list[str], run_dir: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "acoustlab", *args, "tracking=none", "plots=false", f"hydra.run.dir={run_dir}"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    if proc.returncode != 0:
+        raise SystemExit(f"failed: {' '.join(args)}\n{proc.stderr[-3000:]}")
+
+
+def errors(kind: str, run_dir: Path, truth: pd.DataFrame) -> pd.DataFrame:
+    """Per event: position id, solver and gate (reported position) errors, m (inf where not placed)."""
+    xy = truth[["x_m", "y_m"]].to_numpy(float)
+    if kind == "events":
+        p = pd.read_parquet(run_dir / "predictions.parquet").sort_values("event_id")
+        solver = p[["solver_x_m", "solver_y_m"]].to_numpy(float)
+        gate = p[["gate_x_m", "gate_y_m"]].to_numpy(float)
+    else:
+        p = pd.read_parquet(run_dir / "positions.parquet")
+        # each season event is the clip holding its start (the clips are 0.5 s apart, the widening shorter)
+        centre = (p["start_s"].to_numpy(float) + p["end_s"].to_numpy(float)) / 2
+        event = np.searchsorted(truth["begin_s"].to_numpy(float), centre) - 1
+        solver = np.full((len(truth), 2), np.nan)
+        gate = np.full((len(truth), 2), np.nan)
+        solver[event] = p[["solver_x_m", "solver_y_m"]].to_numpy(float)
+        placed = p["placed"].to_numpy(bool)
+        gate[event] = np.where(placed[:, None], p[["x_m", "y_m"]].to_numpy(float), np.nan)
+    out = pd.DataFrame({"position": truth["position_id"].to_numpy()})
+    for name, est in (("solver", solver), ("gate", gate)):
+        e = np.hypot(*(est - xy).T)
+        out[name] = np.where(np.isfinite(e), e, np.inf)
+    return out
+
+
+def summary(err: pd.DataFrame, name: str, rng: np.random.Generator) -> dict[str, str]:
+    """p50, p95 and > 5 m with 95 % bootstrap intervals over source positions."""
+    groups = [g[name].to_numpy() for _, g in err.groupby("position")]
+    stats = []
+    for _ in range(1000):
+        pick = np.concatenate([groups[k] for k in rng.integers(0, len(groups), len(groups))])
+        stats.append((np.percentile(pick, 95), 100 * np.mean(pick > 5)))
+    lo, hi = np.percentile(np.array(stats), [2.5, 97.5], axis=0)
+    v = err[name].to_numpy()
+    return {
+        f"{name} p50 (m)": f"{np.median(v):.3f}",
+        f"{name} p95 (m)": f"{np.percentile(v, 95):.2f} [{lo[0]:.2f}, {hi[0]:.2f}]",
+        f"{name} > 5 m (%)": f"{100 * np.mean(v > 5):.1f} [{lo[1]:.1f}, {hi[1]:.1f}]",
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--site", default="forest")
+    parser.add_argument("--n-positions", type=int, default=200)
+    parser.add_argument("--extra", nargs="*", default=[], help="overrides for every run (e.g. +experiment=smoke for a quick check)")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    rows, seconds = {}, {}
+    rng = np.random.default_rng(0)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        truth = lay_out(args.site, args.n_positions, folder)
+        log.info("laid out %d events as a season", len(truth))
+        for name, (kind, extra) in RUNS.items():
+            run_dir = folder / f"run{len(seconds)}"
+            started = time.perf_counter()
+            if kind == "events":
+                acoustlab([f"+site={args.site}", "protocol=field_eval", *field_settings(args.n_positions), *extra, *args.extra], run_dir)
+            else:
+                acoustlab(
+                    [
+                        "season",
+                        f"+site={args.site}",
+                        f"protocol.recordings.audio_dir={folder / 'audio'}",
+                        f"protocol.detections.paths=[{folder / 'raven'}]",
+                        f"protocol.output_dir={folder / f'season{len(seconds)}'}",
+                        *extra,
+                        *args.extra,
+                    ],
+                    run_dir,
+                )
+            seconds[name] = time.perf_counter() - started
+            err = errors(kind, run_dir, truth)
+            rows[name] = {"events": str(len(err)), **summary(err, "solver", rng), **summary(err, "gate", rng)}
+            log.info("%s (%.0f s): %s", name, seconds[name], rows[name])
+    table = pd.DataFrame(rows).T
+    markdown = [
+        "# A season against localize on the same independent recordings",
+        "",
+        f"`python experiments/season_vs_localize.py --site {args.site} --n-positions {args.n_positions}"
+        + (f" --extra {' '.join(args.extra)}" if args.extra else "")
+        + "`: "
+        f"{len(truth)} events of the second simulator (image-source, {args.n_positions} positions), as events "
+        "(`protocol=field_eval`, what `localize` does) and laid out as a season (long files, one Raven selection per clip). "
+        "Failures are infinite errors; [95 % bootstrap over positions]. `gate` is the reported position.",
+        "",
+        table.to_markdown(),
+        "",
+        "Wall time per run (each fits its method): " + ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items()) + f". Machine: {machine()}.",
+    ]
+    write_results("season_vs_localize", {"rows": rows, "seconds": seconds}, markdown)
+
+
+if __name__ == "__main__":
+    main()
