@@ -173,6 +173,12 @@ def test_a_dead_recorder_costs_that_recorder_not_the_event(compose_cfg, tmp_path
     by_event = pd.read_parquet(run_dir / "positions.parquet").set_index("event_id")
     assert by_event.loc[1, "mics_dropped"] == "2" and by_event.loc[3, "mics_dropped"] == "0"
     assert "mic 2: dead" in by_event.loc[1, "quality_flags"]
+    # the mics each fix rests on: never a dropped one, and as many as the solver says it used
+    for event, row in by_event.iterrows():
+        used = [int(m) for m in str(row["mics_used"]).split(";") if m]
+        assert not set(used) & {int(m) for m in str(row["mics_dropped"]).split(";") if m}, event
+        assert not row["placed"] or len(used) == row["solver__n_mics_used"], event
+    assert by_event.loc[0, "mics_used"] != "" and "2" not in by_event.loc[1, "mics_used"].split(";")
     truth = batch.events.set_index("event_id")
     for event in (1, 3):  # mic 0, the usual reference, may be the one dropped
         row = by_event.loc[event]

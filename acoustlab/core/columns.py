@@ -69,6 +69,8 @@ QUALITY_FLAGS = "quality_flags"
 HARDWARE_FAILURE = "hardware_failure"
 #: events: the mics (indices in the site's order, ";"-separated) whose clip was unusable and are left out of the solve
 MICS_DROPPED = "mics_dropped"
+#: The mics a field fix rests on, by index in the mics table's order (``;``-separated): neither dropped nor left out by the solver.
+MICS_USED = "mics_used"
 #: Samples of an event's own clip in a batch padded to its longest (the features see only these).
 CLIP_SAMPLES = "clip_samples"
 #: The solver's point estimate (withheld from the error model).

@@ -111,6 +111,11 @@ class FeatureSet(Protocol):
         """One row per event of ``batch`` (same order), columns ``group__name``, all float."""
 
 
+#: A solver diagnostic that is not a feature: the mics a fix rests on, as bits (mic m adds 2^m). A solver that leaves some of
+#: its mics out (the consistent set) reports it; without it every mic given was used.
+MICS_USED_MASK = "mics_used_mask"
+
+
 @dataclass
 class SolverResult:
     """Output of a TDOA solver for a batch of events.

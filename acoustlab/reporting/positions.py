@@ -10,14 +10,25 @@ import pandas as pd
 from acoustlab.core import columns as col
 
 #: Columns of a detection's own record carried into the table when present.
-DETECTION_FIELDS = (col.EVENT_ID, "file", col.START, col.END, "label", col.QUALITY_FLAGS, col.MICS_DROPPED, col.HARDWARE_FAILURE)
+DETECTION_FIELDS = (
+    col.EVENT_ID,
+    "file",
+    col.START,
+    col.END,
+    "label",
+    col.QUALITY_FLAGS,
+    col.MICS_DROPPED,
+    col.MICS_USED,
+    col.HARDWARE_FAILURE,
+)
 
 
 def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> pd.DataFrame:
     """One row per detection: the position (gate), the solver's and model's estimates, the decision, radii, flags.
 
     Columns: the detection's own fields (``quality_flags``; ``mics_dropped``: the mics, by index in
-    the mics table's order, whose clips were unusable and were left out of the solve); ``x_m, y_m, z_m`` (the method's estimate, all three from
+    the mics table's order, whose clips were unusable and were left out of the solve; ``mics_used``:
+    the mics the solver's fix rests on, also without those the solver found inconsistent); ``x_m, y_m, z_m`` (the method's estimate, all three from
     one estimate: the solver's fix with its height, estimated with ``solver.dimensions=3`` or else
     assumed, or the model's, which has no height: ``z_m`` NaN; NaN where it abstains);
     ``solver_x_m, solver_y_m, solver_z_m, model_x_m, model_y_m`` and ``solver_model_distance_m``;

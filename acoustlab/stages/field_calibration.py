@@ -35,7 +35,14 @@ from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError
 from acoustlab.core.types import Site
 from acoustlab.stages.cache import atomic_write_bytes
-from acoustlab.stages.solver_columns import add_solver_columns, drop_weakly_correlated_mics, pair_candidate_lags
+from acoustlab.stages.solver_columns import (
+    add_solver_columns,
+    drop_weakly_correlated_mics,
+    events_dropped_mask,
+    mics_used,
+    pair_candidate_lags,
+    solve_events,
+)
 from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
@@ -272,7 +279,9 @@ def field_solver_columns(
         events = drop_weakly_correlated_mics(features, events, site, min_gcc_peak)
     if calibration is not None:  # the thermometer's offset and the recorders' clocks, before the solver
         features, events = apply_calibration(features, events, site, calibration)
-    return add_solver_columns(features, events, site, solver, plausible_margin_fraction), events
+    result = solve_events(features, events, site, solver)
+    features = add_solver_columns(features, events, site, solver, plausible_margin_fraction, result=result)
+    return features, events.assign(**{col.MICS_USED: mics_used(result, events_dropped_mask(events, site))})
 
 
 def apply_calibration(

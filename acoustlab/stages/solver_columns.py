@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 
 from acoustlab.core import columns as col
-from acoustlab.core.contracts import Solver, SolverInputs, SolverResult
+from acoustlab.core.contracts import MICS_USED_MASK, Solver, SolverInputs, SolverResult
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
 from acoustlab.toolkit.event_physics import assumed_source_height_m, event_speed_of_sound_m_s
@@ -163,11 +163,39 @@ def solve_without_dropped_mics(solver: Solver, inputs: SolverInputs, dropped: np
     masks, group = np.unique(np.where(droppable[:, None], dropped, False), axis=0, return_inverse=True)
     for g, mask in enumerate(masks):
         rows = np.flatnonzero(group.ravel() == g)
-        part = solver.solve(subset_inputs(inputs, rows, np.flatnonzero(~mask), site) if mask.any() else _rows(inputs, rows))
+        keep = np.flatnonzero(~mask)
+        part = solver.solve(subset_inputs(inputs, rows, keep, site) if mask.any() else _rows(inputs, rows))
         position[rows], residual[rows], converged[rows] = part.position_m, part.residual_m, part.converged
+        if MICS_USED_MASK in part.diagnostics:  # the subset's mic k is the site's mic keep[k]
+            part.diagnostics[MICS_USED_MASK] = _remapped_mask(part.diagnostics[MICS_USED_MASK], keep)
         for name, values in part.diagnostics.items():
             diagnostics.setdefault(name, np.full(n, np.nan))[rows] = values
     return SolverResult(position_m=position, residual_m=residual, converged=converged, diagnostics=diagnostics)
+
+
+def _remapped_mask(mask: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Bits of a subset's mics (bit k: mic ``keep[k]``) as bits of the site's mics."""
+    bits = np.nan_to_num(np.asarray(mask, float)).astype(np.int64)
+    out = sum((((bits >> k) & 1) << int(m)) for k, m in enumerate(keep))
+    return np.where(np.isfinite(mask), np.asarray(out, float), np.nan)
+
+
+def mics_used(result: SolverResult, dropped: np.ndarray) -> list[str]:
+    """Each event's mics the fix rests on (``;``-joined indices): the solver's own choice where it reports one
+    (``MICS_USED_MASK``), else every mic not ``dropped`` ((E, M) bool); empty without a fix."""
+    n, m = dropped.shape
+    mask = result.diagnostics.get(MICS_USED_MASK)
+    fixed = np.isfinite(np.asarray(result.position_m, float)).all(axis=1)
+    out = []
+    for e in range(n):
+        if not fixed[e]:
+            out.append("")
+        elif mask is not None and np.isfinite(mask[e]):
+            bits = int(mask[e])
+            out.append(";".join(str(k) for k in range(m) if bits >> k & 1))
+        else:
+            out.append(";".join(str(k) for k in np.flatnonzero(~dropped[e])))
+    return out
 
 
 def _rows(inputs: SolverInputs, rows: np.ndarray) -> SolverInputs:
@@ -223,17 +251,31 @@ def bound_fixes(position_m: np.ndarray, site: Site, plausible_margin_fraction: f
     return position_m, failure
 
 
+def solve_events(features: pd.DataFrame, events: pd.DataFrame, site: Site, solver: Solver) -> SolverResult:
+    """The solver's result for every event, each from its mics not in ``mics_dropped``."""
+    inputs = solver_inputs_for(features, events, site)
+    return solve_without_dropped_mics(solver, inputs, events_dropped_mask(events, site), site)
+
+
+def events_dropped_mask(events: pd.DataFrame, site: Site) -> np.ndarray:
+    """(E, M) True where an event's mic is in its ``mics_dropped``."""
+    return dropped_mask(events[col.MICS_DROPPED] if col.MICS_DROPPED in events else None, len(events), site.n_mics)
+
+
 def add_solver_columns(
-    features: pd.DataFrame, events: pd.DataFrame, site: Site, solver: Solver, plausible_margin_fraction: float | None = None
+    features: pd.DataFrame,
+    events: pd.DataFrame,
+    site: Site,
+    solver: Solver,
+    plausible_margin_fraction: float | None = None,
+    result: SolverResult | None = None,
 ) -> pd.DataFrame:
-    """Run the solver on every event and append its estimate and diagnostics as group ``solver``.
+    """Run the solver on every event (or take its ``result``) and append its estimate and diagnostics as group ``solver``.
 
     With ``plausible_margin_fraction`` a fix outside the plausible region (see ``bound_fixes``)
     is never emitted as a number: its position is NaN and ``solver__failure`` says why.
     """
-    inputs = solver_inputs_for(features, events, site)
-    dropped = dropped_mask(events[col.MICS_DROPPED] if col.MICS_DROPPED in events else None, len(events), site.n_mics)
-    result = solve_without_dropped_mics(solver, inputs, dropped, site)
+    result = solve_events(features, events, site, solver) if result is None else result
     position, failure = bound_fixes(result.position_m, site, plausible_margin_fraction)
     out = features.copy()
     out[col.SOLVER_X] = position[:, 0]
@@ -241,7 +283,8 @@ def add_solver_columns(
     out[col.solver_column("residual_m")] = result.residual_m
     out[col.solver_column("converged")] = result.converged.astype(float)
     for name, values in result.diagnostics.items():
-        out[col.solver_column(name)] = np.asarray(values, dtype=float)
+        if name != MICS_USED_MASK:  # which mics is no feature (reported as mics_used in the positions)
+            out[col.solver_column(name)] = np.asarray(values, dtype=float)
     out[col.SOLVER_FAILURE] = failure.astype(float)
     if {col.SRP_X, col.SRP_Y} <= set(features.columns):  # score-based agreement: how far the SRP-PHAT map's peak lies
         srp = features[[col.SRP_X, col.SRP_Y]].to_numpy(float)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from acoustlab.core.contracts import SolverInputs, SolverResult
+from acoustlab.core.contracts import MICS_USED_MASK, SolverInputs, SolverResult
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.toolkit.tdoa import solver_inputs
 from plugins.solvers.hyperbolic import HyperbolicSolver
@@ -43,7 +43,7 @@ from plugins.solvers.hypothesis_search import exhaustive_best, hypothesis_design
 EXHAUSTIVE_UP_TO = 20_000
 
 #: Diagnostics this solver adds to the hyperbolic solver's (catalogued in ``acoustlab.core.columns.SOLVER_CATALOG``).
-EXTRA_DIAGNOSTICS = ("consistent_pairs", "consistency", "score_margin", "n_mics_used", "closure_rms_s")
+EXTRA_DIAGNOSTICS = ("consistent_pairs", "consistency", "score_margin", "n_mics_used", "closure_rms_s", MICS_USED_MASK)
 
 
 def checked_weights(weights: np.ndarray, candidates_s: np.ndarray) -> np.ndarray:
@@ -209,6 +209,8 @@ class ConsistentSetSolver:
             "consistency": n_use / np.maximum(pair_trusted.sum(1), 1),
             "score_margin": margin,
             "n_mics_used": trusted.sum(1).astype(float),
+            # which mics, as bits (mic m: 2^m): the positions table lists them (it is no feature: acoustlab.stages.solver_columns)
+            MICS_USED_MASK: (trusted * 2.0 ** np.arange(m)).sum(1),
             "closure_rms_s": np.where(n_use > 0, closure, np.nan),
         }
 
