@@ -104,11 +104,11 @@ def _place(
         k = int(np.flatnonzero(duration_s <= 0)[0])
         raise DataError(f"detections: {table.attrs['path']} line {k + 2}: the detection ends before it begins ({duration_s[k]:.3f} s)")
     _check_band(table, low, high, recordings.sample_rate_hz)
-    rows = [recordings.file_row(f, r) for f, r in zip(files, recorders, strict=True)]
-    start = np.array([r[col.START] for r in rows]) + offset_s
+    rows = recordings.file_indices(files, recorders)
+    start = recordings.table[col.START].to_numpy(float)[rows] + offset_s
     return pd.DataFrame(
         {
-            "recorder_id": [r["recorder_id"] for r in rows],
+            "recorder_id": recordings.table["recorder_id"].to_numpy()[rows],
             col.START: start,
             col.END: start + duration_s,
             "low_hz": low,

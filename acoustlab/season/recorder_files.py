@@ -22,6 +22,7 @@ import json
 import logging
 import os
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -264,6 +265,16 @@ class RecorderFiles:
         DataError
             When no indexed file matches, or the name is shared by several recorders and none is given.
         """
+        return self.table.iloc[self.file_index(name, recorder_id)]
+
+    def file_indices(self, names: Sequence[str], recorder_ids: Sequence[str | None]) -> np.ndarray:
+        """(N,) ``file_index`` of every (name, recorder) pair, each distinct pair looked up once (a table repeats its files)."""
+        pairs = list(zip(map(str, names), recorder_ids, strict=True))
+        found = {pair: self.file_index(*pair) for pair in dict.fromkeys(pairs)}
+        return np.fromiter((found[pair] for pair in pairs), dtype=np.int64, count=len(pairs))
+
+    def file_index(self, name: str, recorder_id: str | None = None) -> int:
+        """The position in ``table`` of a file given by its path, or its name (see ``file_row``)."""
         text = str(name)
         rows = self._by_path.get(text)
         if rows is None:
@@ -279,7 +290,7 @@ class RecorderFiles:
                 f"detections: file name {Path(text).name!r} is used by recorders {', '.join(owners)}: give the recorder "
                 "(protocol.detections.recorder_column, one table per recorder named or foldered by its id, or Begin Path)"
             )
-        return self.table.iloc[rows[0]]
+        return int(rows[0])
 
     # -- reading ------------------------------------------------------------------------------
     def _handle(self, path: str) -> sf.SoundFile:
