@@ -439,3 +439,35 @@ def test_the_detector_tables_are_read_once_and_kept_compact(season, tmp_path, mo
     GlobalHydra.instance().clear()
     assert len(reads) == 1
     assert all(str(reads[0][c].dtype) == "category" for c in ("recorder_id", "label", "source"))
+
+
+def test_a_season_folder_with_an_attacker_s_method_runs_no_code(season, compose_cfg, tmp_path):
+    """A received or tampered season folder whose method is replaced by a pickle that would create a file, with every digest
+    beside it (method.sha256.json, season.json) updated to match: the season stops in one line and the file is never made
+    (the method must carry this user's signature before anything is unpickled)."""
+    import hashlib
+    import pickle
+
+    from acoustlab.method.saved import DIGEST_FILE
+    from acoustlab.season.stream import MANIFEST
+
+    root, _, _, _ = season
+    folder = tmp_path / "received"
+    shutil.copytree(root / "out", folder, ignore=shutil.ignore_patterns("parts"))
+    created = tmp_path / "pwned"
+
+    class Payload:  # what an attacker would ship: code that runs when unpickled
+        def __reduce__(self):
+            return (open, (str(created), "w"))
+
+    evil = pickle.dumps(Payload())
+    (folder / METHOD_FILE).write_bytes(evil)
+    digest = hashlib.sha256(evil).hexdigest()
+    record = json.loads((folder / DIGEST_FILE).read_text())
+    (folder / DIGEST_FILE).write_text(json.dumps({**record, "sha256": digest}))
+    manifest = json.loads((folder / MANIFEST).read_text())
+    (folder / MANIFEST).write_text(json.dumps({**manifest, "method_sha256": digest}))
+    cfg = compose_cfg(season_overrides(root, folder, f"paths.outputs_dir={tmp_path / 'outputs'}"))
+    with pytest.raises(DataError, match="key"):
+        run_experiment(cfg, tmp_path / "run")
+    assert not created.exists()
