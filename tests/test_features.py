@@ -193,8 +193,9 @@ def test_envelope_lags_equal_the_full_length_correlation(clean_batches):
 
 
 def test_peak_to_sidelobe_rms_is_that_of_the_lag_window_bit_for_bit(clean_batches):
-    """The candidates' sidelobe RMS equals the RMS over each pair's lag window as boolean indexing selects it
-    (float32 sums depend on the memory layout; a change there would silently change cached features)."""
+    """The candidates' sidelobe RMS equals the RMS over each pair's lag window, each event's row summed by itself (float32
+    sums depend on the memory layout: a batch laid out with events along the fast axis sums each row in sequence, one event
+    alone pairwise, so a feature would depend on its batch)."""
     from acoustlab.core.types import RecordingBatch
     from acoustlab.toolkit.dsp import gcc
     from acoustlab.toolkit.gcc_candidates import lag_windows_s, pair_candidates
@@ -206,7 +207,9 @@ def test_peak_to_sidelobe_rms_is_that_of_the_lag_window_bit_for_bit(clean_batche
     )
     cc, lags = gcc(batch.audio, site.mic_pairs, batch.sample_rate_hz, "beta_phat", (300.0, 10000.0), 2, 0.8, max_lag_s=float(windows.max()))
     for k, max_lag in enumerate(windows):
-        np.testing.assert_array_equal(ours.sidelobe[:, k], np.sqrt(np.mean(cc[:, k, np.abs(lags) <= max_lag] ** 2, axis=-1)))
+        window = np.abs(lags) <= max_lag
+        each = [np.sqrt(np.mean(cc[e, k, window] ** 2)) for e in range(len(cc))]  # one contiguous row at a time
+        np.testing.assert_array_equal(ours.sidelobe[:, k], np.array(each, dtype=np.float32))
 
 
 def test_one_transform_envelope_equals_filtfilt_then_hilbert_away_from_the_edges(clean_batches):
