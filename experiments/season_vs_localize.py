@@ -11,7 +11,8 @@ site's own simulated events:
   those events), with the full feature set (the default) and with the season's lean set with the
   coarse GCC search (``features=physics_lean_coarse``);
 * as a season: the same clips laid end to end in one long file per recorder (600-s files), 0.5 s
-  of noise at each clip's own noise floor between them, one Raven selection per clip per recorder
+  between them of white noise at each clip's own noise floor (``--gap zeros``: silence), one Raven
+  selection per clip per recorder
   (its bounds), localized by ``python -m acoustlab season`` with its defaults (the lean set, the
   coarse search) and with ``features=physics features.gcc.search=fine``.
 
@@ -55,7 +56,7 @@ def field_settings(n_positions: int) -> list[str]:
     return ["field=image_source", f"field.n_positions={n_positions}"]
 
 
-def lay_out(site_name: str, n_positions: int, folder: Path) -> pd.DataFrame:
+def lay_out(site_name: str, n_positions: int, folder: Path, gap_fill: str = "white") -> pd.DataFrame:
     """Write the image-source events as a season in ``folder`` (audio/R<m>/, raven/); the events' truth and clip times, s."""
     cfg = compose_cfg([f"+site={site_name}", *field_settings(n_positions)])
     site = site_from_config(cfg.site)
@@ -73,7 +74,8 @@ def lay_out(site_name: str, n_positions: int, folder: Path) -> pd.DataFrame:
         blocks = clip[:, : (lengths[e] // 1200) * 1200].reshape(site.n_mics, -1, 1200)
         floor = np.sqrt(np.min(np.mean(blocks**2, axis=-1), axis=-1))  # each mic's quietest 50 ms: its noise level
         for m in range(site.n_mics):
-            pieces[m] += [rng.normal(0.0, floor[m], gap).astype(np.float32), clip[m]]
+            noise = rng.normal(0.0, floor[m], gap) if gap_fill == "white" else np.zeros(gap)
+            pieces[m] += [noise.astype(np.float32), clip[m]]
         starts.append(cursor + gap)
         cursor += gap + lengths[e]
     n_file = int(FILE_S * fs)
@@ -157,15 +159,17 @@ def main() -> None:
     parser.add_argument("--site", default="forest")
     parser.add_argument("--n-positions", type=int, default=200)
     parser.add_argument("--extra", nargs="*", default=[], help="overrides for every run (e.g. +experiment=smoke for a quick check)")
+    parser.add_argument("--gap", choices=["white", "zeros"], default="white", help="what lies between the clips in the long files")
+    parser.add_argument("--runs", nargs="*", default=list(RUNS), help="which of the runs (default: all)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     rows, seconds = {}, {}
     rng = np.random.default_rng(0)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        truth = lay_out(args.site, args.n_positions, folder)
+        truth = lay_out(args.site, args.n_positions, folder, args.gap)
         log.info("laid out %d events as a season", len(truth))
-        for name, (kind, extra) in RUNS.items():
+        for name, (kind, extra) in ((n, RUNS[n]) for n in args.runs):
             run_dir = folder / f"run{len(seconds)}"
             started = time.perf_counter()
             if kind == "events":
@@ -193,6 +197,7 @@ def main() -> None:
         "",
         f"`python experiments/season_vs_localize.py --site {args.site} --n-positions {args.n_positions}"
         + (f" --extra {' '.join(args.extra)}" if args.extra else "")
+        + (f" --gap {args.gap}" if args.gap != "white" else "")
         + "`: "
         f"{len(truth)} events of the second simulator (image-source, {args.n_positions} positions), as events "
         "(`protocol=field_eval`, what `localize` does) and laid out as a season (long files, one Raven selection per clip). "
