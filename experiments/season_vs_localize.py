@@ -19,7 +19,7 @@ site's own simulated events:
 So features (lean vs full, coarse vs fine) and the season's clip windows (a detection widened by the
 array's travel time, read from long files) are separated. Failures count as infinite errors; > 5 m
 and p95 carry 95 % bootstrap intervals over source positions. Writes
-experiments/results/season_vs_localize.md.
+experiments/results/season_vs_localize.md (``--gap zeros``: season_vs_localize_silence.md).
 """
 
 from __future__ import annotations
@@ -207,7 +207,8 @@ def main() -> None:
         "",
         "Wall time per run (each fits its method): " + ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items()) + f". Machine: {machine()}.",
     ]
-    write_results("season_vs_localize", {"rows": rows, "seconds": seconds}, markdown)
+    name = "season_vs_localize" + ("_silence" if args.gap == "zeros" else "")  # one result file per layout
+    write_results(name, {"rows": rows, "seconds": seconds}, markdown)
 
 
 if __name__ == "__main__":
