@@ -23,15 +23,13 @@ from __future__ import annotations
 import argparse
 import logging
 import shutil
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from common import REPO, compose_cfg, machine, write_results
+from common import compose_cfg, machine, time_cli, write_results
 
 from acoustlab.method.saved import DIGEST_FILE, METHOD_FILE
 from acoustlab.season.synthetic import SyntheticSeason, write_season
@@ -81,11 +79,7 @@ def run(site: str, folder: Path, out: Path, extra: list[str]) -> float:
         f"hydra.run.dir={out}_run",
         *extra,
     ]
-    started = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise SystemExit(f"season {' '.join(extra)} failed:\n{proc.stderr[-3000:]}")
-    return time.perf_counter() - started
+    return time_cli(args)
 
 
 def differences(table: pd.DataFrame, reference: pd.DataFrame) -> dict[str, float]:

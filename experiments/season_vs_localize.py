@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -35,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import soundfile as sf
-from common import REPO, compose_cfg, machine, write_results
+from common import compose_cfg, machine, time_cli, write_results
 
 from acoustlab.run.registry import build
 from acoustlab.stages.sites import site_from_config
@@ -104,14 +102,7 @@ def lay_out(site_name: str, n_positions: int, folder: Path, gap_fill: str = "whi
 
 
 def acoustlab(args: list[str], run_dir: Path) -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "acoustlab", *args, "tracking=none", "plots=false", f"hydra.run.dir={run_dir}"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-    )
-    if proc.returncode != 0:
-        raise SystemExit(f"failed: {' '.join(args)}\n{proc.stderr[-3000:]}")
+    time_cli([*args, "tracking=none", "plots=false", f"hydra.run.dir={run_dir}"])
 
 
 def errors(kind: str, run_dir: Path, truth: pd.DataFrame) -> pd.DataFrame:

@@ -22,15 +22,13 @@ from __future__ import annotations
 import argparse
 import logging
 import shutil
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from common import REPO, compose_cfg, machine, write_results
+from common import compose_cfg, machine, time_cli, write_results
 
 from acoustlab.method.saved import DIGEST_FILE, METHOD_FILE
 from acoustlab.season.synthetic import SyntheticSeason, write_season, write_window_tables
@@ -59,9 +57,7 @@ def season(site: str, folder: Path, tables: str, fmt: str, out: Path) -> pd.Data
         f"protocol.output_dir={out}",
         f"hydra.run.dir={out}_run",
     ]
-    proc = subprocess.run([sys.executable, "-m", "acoustlab", *args], cwd=REPO, capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise SystemExit(f"season over {tables} failed:\n{proc.stderr[-3000:]}")
+    time_cli(args)
     return pd.read_parquet(Path(f"{out}_run") / "positions.parquet")
 
 
