@@ -113,10 +113,8 @@ class FittedLocalizer:
         """
         from acoustlab.method.protocols.field import field_events
         from acoustlab.method.protocols.localize import without_truth
-        from acoustlab.reporting.positions import positions_table
-        from acoustlab.run.app import build_run, prepare_field
+        from acoustlab.run.app import build_run, localization_table, prepare_field
         from acoustlab.run.plugin_checks import compose_config
-        from acoustlab.stages.field_calibration import CALIBRATION_COLUMN
 
         changed = [*overrides_from(settings), *overrides]
         outside = [o for o in changed if not o.startswith("field.")]
@@ -131,10 +129,7 @@ class FittedLocalizer:
             raise ConfigError("every detection of these recordings has a known position (x_m, y_m): there is nothing to place")
         predictions, _ = self.fitted.predict(data.features.iloc[rows], events.iloc[rows])
         placed = without_truth(predictions, data.features.iloc[rows], data.events.iloc[rows])
-        table = positions_table(placed, built.components.levels, list(built.components.scorers))
-        if built.calibration is not None:
-            table[CALIBRATION_COLUMN] = built.calibration.sha256
-        return table
+        return localization_table(placed, built.components, built.calibration, built.field_source)
 
 
 def localize(

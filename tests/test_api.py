@@ -77,12 +77,13 @@ def test_the_fitted_method_localize_returns_places_more_recordings_as_one_run_wo
     again, row for row what the first run gave those detections; only ``field`` settings may change."""
     from tests.test_localize import simulated_folder
 
-    _, folder_overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 6)
+    _, folder_overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 6, rotation_deg=30.0)  # map coordinates too
     quick = ["+experiment=smoke", "tracking=none", "plots=false", "model.n_estimators=20", f"paths.outputs_dir={tmp_path / 'outputs'}"]
     table, method = localize("frozen_lake", overrides=[*folder_overrides[1:], *quick], run_dir=tmp_path / "api", return_method=True)
     events = pd.read_csv(tmp_path / "recordings" / "events.csv")
     events.iloc[2:].to_csv(tmp_path / "recordings" / "later.csv", index=False)
     again = method.localize(field={"events_csv": tmp_path / "recordings" / "later.csv"})
+    assert {"easting_m", "northing_m", "crs"} <= set(again.columns)
     pd.testing.assert_frame_equal(again, table.iloc[2:].reset_index(drop=True))
     with pytest.raises(ConfigError, match="only field.. settings may change; got 'solver.dimensions=3'"):
         method.localize(solver={"dimensions": 3})

@@ -551,6 +551,26 @@ def plot_and_time(
     )
 
 
+def localization_table(
+    predictions: pd.DataFrame, components: Components, calibration: FieldCalibration | None, field_source: Any
+) -> pd.DataFrame:
+    """The positions table of placed field detections: ``positions_table``, the calibration each was placed with, and
+    the positions in the mics table's projected coordinates where it has them."""
+    table = positions_table(predictions, components.levels, list(components.scorers))
+    if calibration is not None:  # which field calibration placed each detection
+        table[CALIBRATION_COLUMN] = calibration.sha256
+    project = hook(field_source, "projection")
+    projection = project() if project is not None else None
+    if projection is not None:  # also in the mics table's projected coordinates
+        rotation, translation, crs = projection
+        projected = table[[col.TRUE_X, col.TRUE_Y]].to_numpy(float) @ rotation.T + translation
+        at = table.columns.get_loc(col.TRUE_Y) + 1
+        table.insert(at, "easting_m", projected[:, 0])
+        table.insert(at + 1, "northing_m", projected[:, 1])
+        table.insert(at + 2, "crs", crs)
+    return table
+
+
 def _write_localization(
     cfg: DictConfig,
     run_dir: Path,
@@ -570,18 +590,7 @@ def _write_localization(
     calibration: FieldCalibration | None = None,
 ) -> dict:
     """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
-    table = positions_table(predictions, components.levels, list(components.scorers))
-    if calibration is not None:  # which field calibration placed each detection
-        table[CALIBRATION_COLUMN] = calibration.sha256
-    project = hook(field_source, "projection")
-    projection = project() if project is not None else None
-    if projection is not None:  # also in the mics table's projected coordinates
-        rotation, translation, crs = projection
-        projected = table[[col.TRUE_X, col.TRUE_Y]].to_numpy(float) @ rotation.T + translation
-        at = table.columns.get_loc(col.TRUE_Y) + 1
-        table.insert(at, "easting_m", projected[:, 0])
-        table.insert(at + 1, "northing_m", projected[:, 1])
-        table.insert(at + 2, "crs", crs)
+    table = localization_table(predictions, components, calibration, field_source)
     atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
     atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
     metrics: dict[str, Any] = {col.METRICS_LOCALIZATION: localization_summary(table, components.levels, list(components.scorers))}
