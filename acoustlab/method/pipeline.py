@@ -67,9 +67,10 @@ GUARANTEE_SIMULATION = (
 )
 GUARANTEE_FIELD = (
     "A radius at level l covers the error of a random detection at a new spot with probability at least l, marginally over "
-    "spots, if the field calibration spots are exchangeable with the spots of the calls (one calibration event per spot drawn "
-    "at random: Dunn, Wasserman and Ramdas 2022; Lee, Barber and Willett 2023); a level needing more spots than given has no "
-    "radius. Calibration errors come from out-of-fold models and radii use the refitted one (CV+-style)."
+    "spots, if the field calibration spots are exchangeable with the spots of the calls and the calls of one spot with each "
+    "other (the spots' error distributions pooled, each spot weighing the same, the new spot's share at infinity: Dunn, "
+    "Wasserman and Ramdas 2022; Lee, Barber and Willett 2023); a level needing more spots than given has no radius. "
+    "Calibration errors come from out-of-fold models and radii use the refitted one (CV+-style)."
 )
 
 
@@ -778,7 +779,8 @@ class LocalizationPipeline:
             "not_guaranteed_levels": rescaled,
             "not_guaranteed_method": NOT_GUARANTEED_METHOD if rescaled else None,
             "guarantee": GUARANTEE_FIELD if on == "field" else GUARANTEE_SIMULATION,
-            # what one calibration set of this many positions gives: coverage ~ Beta(k, n + 1 − k), k = ⌈(n + 1)·level⌉
+            # what one calibration set of this many positions gives with one event per position (position_method=subsample):
+            # coverage ~ Beta(k, n + 1 − k), k = ⌈(n + 1)·level⌉; pooling every event (the default) scatters less
             "coverage_of_one_set": {
                 col.level_key(level): [round(float(beta.ppf(q, k, n_positions + 1 - k)), 3) for q in (0.05, 0.95)]
                 for level in self.c.levels

@@ -72,17 +72,23 @@ def subsampled_position_quantile(scores: np.ndarray, groups: np.ndarray, level: 
 
 
 def grouped_conformal_quantile(scores: np.ndarray, groups: np.ndarray, level: float) -> float:
-    """A conformal quantile whose guarantee is over *groups* (source positions), not events: pooled CDFs (asymptotic).
+    """A conformal quantile whose guarantee is over *groups* (source positions), not events: pooled CDFs, finite-sample.
 
     Events at one position share its propagation; when a position's events are not exchangeable
     with other positions' (field playbacks at a handful of spots), the event-level quantile
     over-weights positions with many events and its n + 1 correction counts events, not
     positions. This pools the positions' empirical CDFs, each weighing 1/n (n positions), and
     takes the smallest score t with pooled CDF(t) ≥ level × (1 + 1/n): the "pooling CDFs"
-    method for two-layer hierarchical data (Dunn, Wasserman & Ramdas 2022). It uses every event,
-    but its coverage of a random event of a new position reaches ``level`` only asymptotically
-    (many positions); with a few spots use ``subsampled_position_quantile``, whose guarantee holds
-    in finite samples. Returns ``inf`` where level × (1 + 1/n) > 1 (too few positions: 19 for 0.95).
+    method for two-layer hierarchical data (Dunn, Wasserman & Ramdas 2022) with the new
+    position's share, 1/(n + 1), put at +∞. That share makes the guarantee finite-sample under
+    hierarchical exchangeability (positions exchangeable, and the events of one position
+    exchangeable among themselves; Lee, Barber & Willett 2023): the quantile t* of all n + 1
+    positions' pooled CDF is symmetric in the positions, so a random event of the new one falls
+    at or below it with probability E[F̂_new(t*)] = E[mean of all F̂_k(t*)] ≥ ``level``, and
+    putting the new position's mass at +∞ only raises the quantile. Unlike
+    ``subsampled_position_quantile`` it uses every event, so one calibration set's coverage
+    scatters less around its mean (``tests/test_conformal.py`` measures both). Returns ``inf``
+    where level × (1 + 1/n) > 1 (too few positions: 19 for 0.95).
 
     Parameters
     ----------

@@ -66,10 +66,12 @@ class SplitConformal:
         ``event``: the usual quantile over calibration events. ``position``: a guarantee over
         source positions, for calibration on field playback spots whose events are not
         exchangeable across spots (a calibration on the field is always position-level).
-    position_method : {"subsample", "pooled"}
-        How a position-level quantile is taken: one event per position drawn at random, a
-        finite-sample guarantee (``subsampled_position_quantile``, default); or the pooled
-        per-position CDFs, every event used, valid only asymptotically (``grouped_conformal_quantile``).
+    position_method : {"pooled", "subsample"}
+        How a position-level quantile is taken: the positions' empirical CDFs pooled, each
+        position weighing the same, every event used (``grouped_conformal_quantile``, default);
+        or one event per position drawn at random (``subsampled_position_quantile``). Both
+        guarantee the level in finite samples for a random event of a new position; pooling
+        scatters less from one calibration set to the next.
     seed : int
         Seed of the ``subsample`` draw.
     """
@@ -83,7 +85,7 @@ class SplitConformal:
         use_error_model: bool = True,
         gdop_cap_quantile: float | None = 0.95,
         calibration_unit: str = "event",
-        position_method: str = "subsample",
+        position_method: str = "pooled",
         seed: int = 0,
     ) -> None:
         if calibration_unit not in ("event", "position"):
