@@ -357,6 +357,28 @@ def test_calibration_on_too_few_positions_for_a_level_warns(caplog):
     ).all()
 
 
+def test_a_rescaled_radius_with_nothing_to_scale_by_is_unbounded_not_nan():
+    """Rescaling the simulation's 0.95 radius by field/simulation at 0.8: where either 0.8 radius is infinite (an empty
+    Mondrian bin) or the field's is 0, the 0.95 radius is infinite or finite, never NaN."""
+    from types import SimpleNamespace
+
+    from acoustlab.method.pipeline import FittedMethod
+
+    class Fixed:  # the simulation's radii, row by row
+        def radius(self, predicted, gdop):
+            return np.array([[0.2, 1.0, 2.0], [0.2, np.inf, np.inf], [0.2, 1.0, np.inf], [0.2, 1.0, 2.0]])
+
+    fitted = SimpleNamespace(
+        pipeline=SimpleNamespace(c=SimpleNamespace(levels=[0.5, 0.8, 0.95])),
+        calibration={"unsupported_levels": ["0.95"], "not_guaranteed_levels": ["0.95"]},
+        simulation_scorers={"fixed": Fixed()},
+    )
+    field = np.array([[0.1, 0.5, 9.0], [0.1, 0.5, 9.0], [0.1, np.inf, 9.0], [0.0, 0.0, 9.0]])
+    out = FittedMethod._rescale_unsupported(fitted, "fixed", field, np.zeros(4), np.ones(4), {})
+    np.testing.assert_array_equal(out[:, 2], [1.0, np.inf, np.inf, 0.0])  # 2 × 0.5/1; no tail; unbounded at 0.8; 2 × 0
+    np.testing.assert_array_equal(out[:, :2], field[:, :2])
+
+
 # ------------------------------------------------------------------------------- measured-input uncertainty
 def _solve_xy(mics: np.ndarray, ranges_m: np.ndarray, start: np.ndarray, height: float) -> np.ndarray:
     from scipy.optimize import least_squares

@@ -1079,8 +1079,13 @@ class FittedMethod:
         supported = np.flatnonzero(~unsupported)
         if supported.size:  # the field's scale at its highest supported level
             top = supported[np.argmax(np.asarray(self.pipeline.c.levels)[supported])]
-            ratio = np.where(sim[:, top] > 0, radii[:, top] / np.where(sim[:, top] > 0, sim[:, top], 1.0), 1.0)
-            out[:, unsupported] = np.maximum(sim[:, unsupported] * ratio[:, None], radii[:, top : top + 1])
+            scalable = (sim[:, top] > 0) & np.isfinite(sim[:, top]) & np.isfinite(radii[:, top])
+            ratio = np.where(scalable, radii[:, top] / np.where(scalable, sim[:, top], 1.0), 1.0)
+            with np.errstate(invalid="ignore"):
+                rescaled = np.maximum(sim[:, unsupported] * ratio[:, None], radii[:, top : top + 1])
+            # an unbounded radius at the top supported level, or a simulation with no tail there (an empty Mondrian
+            # bin), bounds nothing above it: infinite, never NaN (inf × 0)
+            out[:, unsupported] = np.where(np.isnan(rescaled), np.inf, rescaled)
         else:
             out[:, unsupported] = sim[:, unsupported]
         return out
