@@ -2,8 +2,7 @@
 
 Usage: python experiments/season_off_simulation.py [--sites forest frozen_lake] [--n-positions 200]
 
-``+experiment=season_fast`` (the lean feature set, the GCC's coarse peak search, the compiled
-solver) was measured on this project's own simulation only (``lean_features``, ``season_search``).
+``+experiment=season_fast`` (the lean feature set and the GCC's coarse peak search) was measured on this project's own simulation only (``lean_features``, ``season_search``).
 Per site, three jobs of ``protocol=field_eval field=image_source`` with bench_cross_simulator.py's
 method (XGBoost point model, XGBoost-quantile error model, learned gate, the paper's fixed and
 GDOP-scaled conformal): each is fitted on 1,000 of the site's own simulated events and evaluated on

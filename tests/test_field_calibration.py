@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -216,3 +217,32 @@ def test_a_calibration_is_not_calibrated_again(compose_cfg, tmp_path: Path):
     cfg = compose_cfg(["+site=frozen_lake", "protocol=calibrate", "field=image_source", f"calibration={tmp_path / 'c.json'}"])
     with pytest.raises(ConfigError, match="not calibrated again"):
         build_run(cfg)
+
+
+def test_the_jackknife_over_spots_holds_what_the_posterior_misses():
+    """Each spot's time differences carry their own bias (multipath, as on the second simulator's forest): more playbacks per
+    spot shrink the posterior σ but not the error; the jackknife over spots covers the mics' real errors, the posterior
+    does not, and a loaded calibration carries the larger of the two into the radii."""
+    from acoustlab.method.protocols.calibrate import CalibrateProtocol
+    from plugins.solvers.hyperbolic import HyperbolicSolver
+
+    stated, true = array(6, 7)
+    rng = np.random.default_rng(8)
+    pb = playbacks(true, spots_in(rng, 12), np.zeros(6), 0.0, noise_s=1e-5, per=12)
+    pb.tdoa_s += rng.normal(0, 1.5e-4, (12, pb.tdoa_s.shape[1]))[pb.spot]  # one bias per spot and pair
+    ids, priors = list("abcdef"), Priors(stated, np.full(6, 2.0))
+    protocol = CalibrateProtocol(held_out_folds=12)
+    cal = protocol.calibrate(pb, priors, ids)
+    site = dataclasses.replace(site3(), mic_positions_m=stated)
+    held, jackknife = protocol.held_out(pb, priors, ids, site, HyperbolicSolver())
+    assert held["n_spots"] == 12 and jackknife["n_groups"] == 12
+    error = np.hypot(*(cal.mic_positions_m - true)[:, :2].T) / np.sqrt(2)  # per axis, as the σ are
+    # a σ that holds its errors gives a median |error| / σ of about 0.83 here (√(χ²₂ median / 2))
+    assert np.median(error / cal.position_sd_m()) > 2  # the posterior is far too sure (2.6)
+    assert np.median(error / np.asarray(jackknife["mic_position_sd_m"])) < 1  # the jackknife holds them (0.49)
+    cal.extra["jackknife_sd"] = jackknife
+    path = Path(tempfile.mkdtemp()) / "calibration.json"
+    write_calibration(path, cal, site, pd.DataFrame({col.EVENT_ID: np.arange(len(pb.spot)), col.POSITION_ID: pb.spot}))
+    loaded = load_calibration(str(path), site)
+    np.testing.assert_allclose(loaded.mic_position_sd_m, np.maximum(cal.position_sd_m(), jackknife["mic_position_sd_m"]), rtol=1e-5)
+    assert loaded.temperature_offset_sd_c == max(cal.sd("temperature_offset_c"), jackknife["temperature_offset_sd_c"])

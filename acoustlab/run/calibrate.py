@@ -40,7 +40,9 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
     log.info("calibrating %d mics from %d playbacks", site.n_mics, len(playback_events))
     # the field sources fill each event's weather (their defaults where a table has none)
     calibration, playbacks = calibrate_playbacks(field.features, field.events, site, lambda p: protocol.calibrate(p, priors, mic_ids))
-    calibration.extra["held_out"] = protocol.held_out(playbacks, priors, mic_ids, site, built.components.solver)
+    calibration.extra["held_out"], calibration.extra["jackknife_sd"] = protocol.held_out(
+        playbacks, priors, mic_ids, site, built.components.solver
+    )
     digest = write_calibration(run_dir / "calibration.json", calibration, site, playback_events)
     summary = calibration.to_json()
     metrics = {
@@ -50,7 +52,14 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
             **{k: summary[k] for k in ("n_playbacks", "n_spots", "temperature_offset_c", "temperature_offset_sd_c", "timing_sigma_s")},
             **{
                 k: summary[k]
-                for k in ("residual_median_abs_before_s", "residual_median_abs_after_s", "n_outliers", "not_identified", "held_out")
+                for k in (
+                    "residual_median_abs_before_s",
+                    "residual_median_abs_after_s",
+                    "n_outliers",
+                    "not_identified",
+                    "held_out",
+                    "jackknife_sd",
+                )
             },
             "clock_offset_ms": [round(1e3 * v, 4) for v in summary["clock_offset_s"]],
             "mic_position_shift_m": summary["mic_position_shift_m"],

@@ -173,7 +173,11 @@ def write_calibration(path: Path, calibration: ArrayCalibration, site: Site, eve
 
 @dataclasses.dataclass(frozen=True)
 class FieldCalibration:
-    """A loaded ``calibration.json``: what ``apply_calibration`` and ``calibrated_site`` need."""
+    """A loaded ``calibration.json``: what ``apply_calibration`` and ``calibrated_site`` need.
+
+    Each ``*_sd_*`` is the larger of the posterior standard deviation and the jackknife one over
+    spots (``jackknife_sd``, where the file has it): what the calibration leaves uncertain.
+    """
 
     path: str
     sha256: str
@@ -201,7 +205,7 @@ class FieldCalibration:
         }
 
     def input_uncertainty(self) -> InputUncertainty:
-        """What the calibration leaves uncertain, as the radii's stated input errors (posterior standard deviations)."""
+        """What the calibration leaves uncertain, as the radii's stated input errors (standard deviations, class docstring)."""
         clocks = self.clock_offset_sd_s[1:]
         return InputUncertainty(
             temperature_c=float(self.temperature_offset_sd_c),
@@ -229,17 +233,23 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
         raise DataError(f"{where}: its content does not match its sha256 (edited after it was written?); run calibrate again")
     try:
         mics = np.asarray(body["mic_positions_m"], dtype=float)
+        jackknife = body.get("jackknife_sd") or {}
+
+        def sd(name: str) -> np.ndarray:  # the posterior's, or the jackknife's over spots where larger
+            posterior = np.asarray(body[name], dtype=float)
+            return np.maximum(posterior, np.asarray(jackknife[name], dtype=float)) if name in jackknife else posterior
+
         out = FieldCalibration(
             path=str(path),
             sha256=stated,
             mic_positions_m=mics,
             temperature_offset_c=float(body["temperature_offset_c"]),
-            temperature_offset_sd_c=float(body["temperature_offset_sd_c"]),
+            temperature_offset_sd_c=float(sd("temperature_offset_sd_c")),
             clock_offset_s=np.asarray(body["clock_offset_s"], dtype=float),
-            clock_offset_sd_s=np.asarray(body["clock_offset_sd_s"], dtype=float),
+            clock_offset_sd_s=sd("clock_offset_sd_s"),
             clock_drift=np.asarray(body["clock_drift_s_per_s"], dtype=float),
             drift_origin_s=float(body["drift_origin_s"]),
-            mic_position_sd_m=np.asarray(body["mic_position_sd_m"], dtype=float),
+            mic_position_sd_m=sd("mic_position_sd_m"),
             n_spots=int(body["n_spots"]),
             not_identified=dict(body.get("not_identified", {})),
         )
