@@ -5,6 +5,8 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.resources import PACKAGE_DATA
@@ -206,6 +208,41 @@ def test_windows_of_files_starting_apart_link_without_chaining():
     start = np.array([0.0, 3.0, 6.0, 0.1, 3.1, 6.1])
     windows = linked_windows(files, start, start + 3.0)
     assert windows["n_files"].tolist() == [2, 2, 2] and windows["start_s"].tolist() == [0.0, 3.0, 6.0]
+
+
+def _linked_windows_by_every_pair(recorders: np.ndarray, start_s: np.ndarray, end_s: np.ndarray) -> list[tuple]:
+    """The rule of ``linked_windows`` written out plainly: each anchor against every window (the reference)."""
+    order = np.lexsort((end_s, start_s))
+    linked = np.zeros(len(recorders), dtype=bool)
+    rows = []
+    for anchor in order:
+        if linked[anchor]:
+            continue
+        linked[anchor] = True
+        members = {recorders[anchor]}
+        lo, hi = start_s[anchor], end_s[anchor]
+        overlap = np.minimum(end_s, hi) - np.maximum(start_s, lo)
+        enough = ~linked & (overlap >= 0.5 * np.minimum(end_s - start_s, hi - lo)) & (overlap > 0)
+        for k in np.flatnonzero(enough)[np.argsort(-overlap[enough], kind="stable")]:
+            if recorders[k] not in members:
+                members.add(recorders[k])
+                linked[k] = True
+        rows.append((lo, hi, len(members)))
+    return rows
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 60), st.sampled_from([0.5, 1.0, 3.0]))
+def test_linked_windows_sweep_links_as_every_pair_would(seed, n, grid_s):
+    """Windows on a coarse grid (many ties of start, end and overlap) from 4 recorders: the sweep gives the reference's events."""
+    from plugins.fields.recordings import linked_windows
+
+    rng = np.random.default_rng(seed)
+    recorders = rng.integers(0, 4, n)
+    start = rng.integers(0, 20, n) * grid_s / 2
+    end = start + rng.integers(1, 5, n) * grid_s / 2
+    got = linked_windows(recorders, start, end)
+    assert list(got.itertuples(index=False, name=None)) == _linked_windows_by_every_pair(recorders, start, end)
 
 
 def test_a_mics_table_with_each_files_start_time(tmp_path, compose_cfg):

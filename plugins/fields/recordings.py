@@ -726,17 +726,21 @@ def linked_windows(recorders: np.ndarray, start_s: np.ndarray, end_s: np.ndarray
         ``start_s, end_s`` (the anchor's window) and ``n_files`` (recorders linked) per event, in order of start.
     """
     order = np.lexsort((end_s, start_s))
+    sorted_start = start_s[order]
     linked = np.zeros(len(recorders), dtype=bool)
     rows = []
-    for anchor in order:
+    for position, anchor in enumerate(order):
         if linked[anchor]:
             continue
         linked[anchor] = True
         members = {recorders[anchor]}
         lo, hi = start_s[anchor], end_s[anchor]
-        overlap = np.minimum(end_s, hi) - np.maximum(start_s, lo)
-        enough = ~linked & (overlap >= 0.5 * np.minimum(end_s - start_s, hi - lo)) & (overlap > 0)
-        for k in np.flatnonzero(enough)[np.argsort(-overlap[enough], kind="stable")]:
+        # every window before the anchor in start order is linked already, and a later one overlaps it only if it
+        # starts before its end: a sweep, not all N windows per anchor (a season's table has 10⁵)
+        near = np.sort(order[position + 1 : np.searchsorted(sorted_start, hi, side="left")])  # ties broken by table order
+        overlap = np.minimum(end_s[near], hi) - np.maximum(start_s[near], lo)
+        enough = ~linked[near] & (overlap >= 0.5 * np.minimum(end_s[near] - start_s[near], hi - lo)) & (overlap > 0)
+        for k in near[enough][np.argsort(-overlap[enough], kind="stable")]:
             if recorders[k] not in members:
                 members.add(recorders[k])
                 linked[k] = True
