@@ -293,3 +293,21 @@ def test_a_localize_too_large_for_the_memory_available_is_refused_before_it_star
         build(cfg.field, "field").validate(site)
     monkeypatch.setattr(recordings, "available_memory_bytes", lambda: None)  # unknown (not Linux): no refusal
     build(cfg.field, "field").validate(site)
+
+
+def test_the_tables_are_read_once_until_a_table_file_changes(tmp_path, compose_cfg, monkeypatch):
+    from plugins.fields.recordings import RecordingFolder
+
+    mics = copy_example_audio(tmp_path)
+    mics.to_csv(tmp_path / "mics.csv", index=False)
+    cfg = compose_cfg(["+site=loca2021", "field=recordings", f"field.audio_dir={tmp_path}", f"field.mics_csv={tmp_path / 'mics.csv'}"])
+    folder = build(cfg.field, "field")
+    reads = []
+    original = RecordingFolder._read_tables
+    monkeypatch.setattr(RecordingFolder, "_read_tables", lambda self: reads.append(1) or original(self))
+    first, _ = folder.tables()
+    first.loc[0, "file"] = "changed by the caller"  # a copy: the next call is unaffected
+    again, _ = folder.tables()
+    assert len(reads) == 1 and again.loc[0, "file"] != "changed by the caller"
+    mics.assign(mic_id=[f"m{k}" for k in range(len(mics))]).to_csv(tmp_path / "mics.csv", index=False)
+    assert folder.tables()[0]["mic_id"].iloc[0] == "m0" and len(reads) == 2

@@ -246,7 +246,21 @@ class RecordingFolder:
 
     # ----------------------------------------------------------------------------------- tables
     def tables(self) -> tuple[pd.DataFrame, pd.DataFrame]:
-        """(mics, events) in the acoustlab layout, checked, converting the OpenSoundscape layout if needed."""
+        """(mics, events) in the acoustlab layout, checked, converting the OpenSoundscape layout if needed.
+
+        Read once per state of the table files (path, size, modification time): a run asks for them
+        several times, and the files' start times may come from every audio file's metadata.
+        """
+        state = tuple(
+            (str(path), path.stat().st_size, path.stat().st_mtime_ns) if path.is_file() else (str(path),)
+            for path in (resolve_path(t) for t in (self.mics_csv, self.events_csv, self.coords_csv, self.detections_csv) if t)
+        )
+        if getattr(self, "_tables_read", (None,))[0] != state:
+            self._tables_read = (state, self._read_tables())
+        mics, events = self._tables_read[1]
+        return mics.copy(), events.copy()
+
+    def _read_tables(self) -> tuple[pd.DataFrame, pd.DataFrame]:
         if self.mics_csv and self.events_csv:
             mics = _read(self.mics_csv, "mics_csv", col.MIC_XYZ)
             events = _read(self.events_csv, "events_csv", (col.EVENT_ID, col.START, col.END))
