@@ -150,6 +150,9 @@ def main() -> None:
                         "mic_position_shift_m": body["mic_position_shift_m"],
                         "not_identified": body["not_identified"],
                         "held_out": body.get("held_out"),
+                        # what the calibration says of its own mic positions (per axis): posterior, and jackknife over spots
+                        "mic_position_sd_m": body["mic_position_sd_m"],
+                        "jackknife_sd": body.get("jackknife_sd"),
                     }
                 )
         groups = np.concatenate(groups_all)
@@ -174,9 +177,11 @@ def main() -> None:
                 if held
                 else "no held-out measure"
             )
+            jackknife = c["jackknife_sd"]["mic_position_sd_m"] if c["jackknife_sd"] else [float("nan")]
             lines.append(
                 f"- {site}, array {c['array_seed']}, {c['n_spots']} spots: median mic error {c['mic_error_stated_m']:.2f} m as stated → "
-                f"{c['mic_error_calibrated_m']:.2f} m calibrated; thermometer offset {c['temperature_offset_c']:+.2f} °C "
+                f"{c['mic_error_calibrated_m']:.2f} m calibrated (median σ per axis: posterior {np.median(c['mic_position_sd_m']):.3f} m, "
+                f"jackknife {np.median(jackknife):.3f} m); thermometer offset {c['temperature_offset_c']:+.2f} °C "
                 f"(truth −3); not identified: {c['not_identified'] or 'nothing'}; {held_text}"
             )
     write_results("field_calibration", {"machine": machine(), "sites": raw}, lines)
