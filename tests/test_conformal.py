@@ -249,6 +249,26 @@ def test_cqr_without_quantiles_is_fixed():
     np.testing.assert_allclose(cqr.radius(predicted, gdop), fixed.radius(predicted, gdop))
 
 
+def test_cqr_calibrated_over_positions_weighs_each_position_the_same():
+    """One spot with 40 large-error playbacks beside 9 with 2 each: over events that spot dominates the correction, over
+    positions it weighs 1/10 (the field's calibration is position-level for CQR too)."""
+    from xgboost import XGBRegressor
+
+    from plugins.conformal.cqr import ConformalizedQuantile
+
+    groups = np.r_[np.zeros(40), np.repeat(np.arange(1, 10), 2)]
+    error = np.where(groups == 0, 5.0, 0.5) + np.linspace(0, 0.1, groups.size)
+    predicted, gdop = np.zeros(groups.size), np.ones(groups.size)
+    model = XGBRegressor(objective="reg:quantileerror")
+    by_event = ConformalizedQuantile(model).fit(error, predicted, gdop, [0.5, 0.8])
+    by_position = ConformalizedQuantile(model, calibration_unit="position").fit(error, predicted, gdop, [0.5, 0.8], groups=groups)
+    assert by_event.corrections_[0] >= 5.0  # most events are the one spot's
+    np.testing.assert_array_equal(by_position.corrections_, [grouped_conformal_quantile(error, groups, v) for v in (0.5, 0.8)])
+    assert by_position.corrections_[0] < 1.0
+    with pytest.raises(ValueError, match="needs the calibration events' positions"):
+        ConformalizedQuantile(model, calibration_unit="position").fit(error, predicted, gdop, [0.5])
+
+
 def test_cqr_rejects_a_model_without_quantiles():
     from sklearn.linear_model import LinearRegression
 

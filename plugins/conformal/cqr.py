@@ -26,7 +26,7 @@ import pandas as pd
 from sklearn.base import clone
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.conformal import conformal_quantile
+from acoustlab.toolkit.conformal import conformal_quantile, grouped_conformal_quantile
 
 
 class ConformalizedQuantile:
@@ -39,12 +39,19 @@ class ConformalizedQuantile:
         ``reg:quantileerror``) is fitted once for all levels; one with ``quantile`` (scikit-learn's
         ``HistGradientBoostingRegressor(loss="quantile")``) or ``alpha`` (``GradientBoostingRegressor``)
         once per level.
+    calibration_unit : {"event", "position"}
+        ``event``: the usual quantile over calibration events. ``position``: the positions' score
+        CDFs pooled, each position weighing the same (``grouped_conformal_quantile``), a guarantee
+        for a new position; a calibration on field spots is always position-level.
     """
 
     #: the pipeline fits this scorer's quantile model on the error model's features
     needs_quantiles = True
 
-    def __init__(self, model: Any) -> None:
+    def __init__(self, model: Any, calibration_unit: str = "event") -> None:
+        if calibration_unit not in ("event", "position"):
+            raise ConfigError(f"conformal calibration_unit must be 'event' or 'position'; got {calibration_unit!r}")
+        self.calibration_unit = calibration_unit
         if not hasattr(model, "fit") or not hasattr(model, "get_params"):
             raise ConfigError(f"conformal cqr: model must be a scikit-learn regressor; got {type(model).__name__}")
         self.model = model
@@ -95,10 +102,19 @@ class ConformalizedQuantile:
         quantiles: np.ndarray | None = None,
         groups: np.ndarray | None = None,
     ) -> ConformalizedQuantile:
-        """Calibrate one correction per level from calibration errors and their out-of-fold quantile predictions (``groups`` unused)."""
+        """Calibrate one correction per level from calibration errors and their out-of-fold quantile predictions (``groups``: their
+        positions, for ``calibration_unit="position"``)."""
         self.levels_ = [float(v) for v in levels]
         scores = np.asarray(error_m, dtype=float)[:, None] - self._quantiles(predicted_m, quantiles)
-        self.corrections_ = np.array([conformal_quantile(scores[:, k], level) for k, level in enumerate(self.levels_)])
+        if self.calibration_unit == "position" and groups is None:
+            raise ValueError("calibration_unit='position' needs the calibration events' positions (groups)")
+
+        def quantile(s: np.ndarray, level: float) -> float:
+            if self.calibration_unit == "position":
+                return grouped_conformal_quantile(s, np.asarray(groups), level)
+            return conformal_quantile(s, level)
+
+        self.corrections_ = np.array([quantile(scores[:, k], level) for k, level in enumerate(self.levels_)])
         self.n_calibration_ = int(scores.shape[0])
         return self
 
