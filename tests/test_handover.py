@@ -42,7 +42,10 @@ def test_the_true_position_explains_its_time_differences_whichever_candidate_hol
     moved = candidate_misfit_m(
         source[:, :2] + 8.0, np.ones(1), site.mic_positions_m, np.array(site.mic_pairs), candidates, np.array([SPEED])
     )
-    assert moved[0] > 0.5  # 8 m off changes at least one range difference by metres
+    # 8 m off explains them worse: over this domain the smallest misfit is 0.109 m (at (−17, −30), found by
+    # minimising it from a 41 × 37 grid of starts); far outside a 3-mic array a move can nearly keep every
+    # range difference, so the bound is that, not metres
+    assert moved[0] > 0.1
 
 
 def test_a_pair_without_candidates_is_left_out_and_no_position_gives_nan():
