@@ -12,8 +12,8 @@ spot: each spot's playbacks are solved with the array calibrated without that sp
 stated array, by the configured solver (``held_out`` in ``metrics.json``). The same calibrations
 without a group of spots give each estimate's delete-group jackknife standard deviation
 (``jackknife_sd``): unlike the posterior's, it also holds what the fit's model lacks (multipath
-that biases one spot's peaks, a speed-of-sound formula not the air's), which on the second
-simulator's forest left mic positions 3–8× further off than their posterior σ.
+that biases one spot's peaks, a speed-of-sound formula not the air's), which the posterior, counting
+every playback as independent, leaves out (docs/calibrate.md gives the measured ratio).
 """
 
 from __future__ import annotations
