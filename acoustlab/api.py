@@ -184,6 +184,66 @@ def calibrate(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path |
     return {**json.loads((folder / "calibration.json").read_text()), "path": str(folder / "calibration.json")}
 
 
+def plan_playbacks(
+    site: str,
+    n_spots: int,
+    *,
+    position_sigma_m: float | Sequence[float] = 2.0,
+    candidates_xy_m: np.ndarray | None = None,
+    source_height_m: float | None = None,
+    overrides: Sequence[str] = (),
+    **settings: Any,
+) -> pd.DataFrame:
+    """Where to play back for ``calibrate``: ``n_spots`` spots chosen for the stated array (docs/calibrate.md).
+
+    Parameters
+    ----------
+    site : str
+        The site (its mics as stated, e.g. ``field={"mics_csv": "mics.csv"}`` in ``settings``).
+    n_spots : int
+        Spots to play back from (≥ 3).
+    position_sigma_m : float or sequence of float
+        The mics' stated horizontal error per axis, m (one value, or one per mic; 0 for a surveyed mic).
+    candidates_xy_m : numpy.ndarray, optional
+        (C, 2) the spots a field team can reach, m; default a grid over the array grown by 0.3 × its extent.
+    source_height_m : float, optional
+        The speaker's height, m (default the site's assumed source height).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per spot in the order chosen: ``position_id`` (``spot_01`` …), ``x_m``, ``y_m``,
+        ``z_m`` and ``predicted_mic_sd_m``, the root-mean-square standard deviation of the mics'
+        coordinates a calibration from the spots so far would leave (timing noise only: a lower bound).
+        Add a playback's time and clip to each row and it is ``calibrate``'s events table.
+    """
+    from acoustlab.method.protocols.calibrate import CalibrateProtocol
+    from acoustlab.toolkit.event_physics import assumed_source_height_m
+    from acoustlab.toolkit.playback_plan import plan_playbacks as plan
+
+    built = load_site(site, overrides=overrides, **settings)
+    sigma = (
+        np.broadcast_to(np.asarray(position_sigma_m, dtype=float), (built.n_mics,))
+        if np.ndim(position_sigma_m) == 0
+        else np.asarray(position_sigma_m, dtype=float)
+    )
+    if sigma.shape != (built.n_mics,) or not np.isfinite(sigma).all() or (sigma < 0).any():
+        raise ConfigError(f"plan_playbacks: position_sigma_m must be one number >= 0 or {built.n_mics} of them (m); got {position_sigma_m}")
+    priors = CalibrateProtocol().priors(built, None)
+    priors.position_sigma_m = sigma.copy()
+    height = assumed_source_height_m(built) if source_height_m is None else float(source_height_m)
+    result = plan(priors, n_spots, candidates_xy_m=candidates_xy_m, source_height_m=height)
+    return pd.DataFrame(
+        {
+            col.POSITION_ID: [f"spot_{k + 1:02d}" for k in range(n_spots)],
+            col.TRUE_X: result.spots_m[:, 0],
+            col.TRUE_Y: result.spots_m[:, 1],
+            col.TRUE_Z: result.spots_m[:, 2],
+            "predicted_mic_sd_m": result.predicted_sd_m,
+        }
+    )
+
+
 def season(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> pd.DataFrame:
     """Localize a season of long recordings from detector tables, as ``python -m acoustlab season``; the positions table.
 

@@ -1,14 +1,17 @@
 """Does ``acoustlab calibrate`` recover the array? Playbacks at known spots, then calls localized with and without it.
 
 Usage: python experiments/field_calibration.py [--sites frozen_lake forest] [--arrays 3] [--spots 5 10] [--n-positions 60]
+[--designs random planned]
 
 Per site and per array draw (``field.array_seed``), recordings rendered by the second simulator
 (pyroomacoustics' image-source method, ``field=image_source``) with the errors a field study has:
 the recorders stand off their stated positions by N(0, 2 m) per axis (consumer GPS), their clocks
 are off by up to ±1 ms, the thermometer reads 3 °C high. Then:
 
-* **playbacks**: ``--spots`` spots inside the array, 3 playbacks each (their own seed), calibrate
-  from them (``protocol=calibrate``, defaults);
+* **playbacks**: ``--spots`` spots, 3 playbacks each (their own seed), calibrate from them
+  (``protocol=calibrate``, defaults); the spots either drawn at random inside the array
+  (``random``) or where ``acoustlab.api.plan_playbacks`` puts them for the stated array
+  (``planned``);
 * **calls**: ``--n-positions`` × 3 other events, in and around the array (30 % outside), localized
   by the configured solver (consistent set) with the array as stated (uncalibrated), with each
   calibration (``calibration=PATH``), and with the true array known exactly (the same sources,
@@ -52,8 +55,18 @@ def solver_errors(overrides: list[str]) -> tuple[np.ndarray, np.ndarray]:
     return np.where(np.isfinite(err), err, np.inf), e[col.POSITION_ID].to_numpy()
 
 
-def calibrate(site: str, array_seed: int, n_spots: int, out: Path) -> dict:
-    """Run ``calibrate`` on ``n_spots`` playback spots of the impaired array; return its calibration.json."""
+def spot_overrides(site: str, n_spots: int, design: str) -> list[str]:
+    """The field's overrides that put ``n_spots`` playback spots: drawn at random inside the array, or planned."""
+    if design == "random":
+        return [f"field.n_positions={n_spots}", "field.outside_share=0"]
+    from acoustlab.api import plan_playbacks
+
+    spots = plan_playbacks(site, n_spots)[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy()
+    return ["field.positions_m=[" + ",".join(f"[{x:.3f},{y:.3f},{z:.3f}]" for x, y, z in spots) + "]"]
+
+
+def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path) -> dict:
+    """Run ``calibrate`` on ``n_spots`` playback spots (``design``) of the impaired array; return its calibration.json."""
     from acoustlab.run.app import run_experiment
 
     cfg = compose_cfg(
@@ -61,9 +74,8 @@ def calibrate(site: str, array_seed: int, n_spots: int, out: Path) -> dict:
             f"+site={site}",
             "protocol=calibrate",
             "field=image_source",
-            f"field.n_positions={n_spots}",
+            *spot_overrides(site, n_spots, design),
             "field.events_per_position=3",
-            "field.outside_share=0",
             f"field.array_seed={array_seed}",
             f"field.seed={9000 + array_seed}",
             *IMPAIRED,
@@ -99,13 +111,14 @@ def main() -> None:
     parser.add_argument("--arrays", type=int, default=3)
     parser.add_argument("--spots", nargs="+", type=int, default=[5, 10])
     parser.add_argument("--n-positions", type=int, default=60)
+    parser.add_argument("--designs", nargs="+", choices=["random", "planned"], default=["random", "planned"])
     opts = parser.parse_args()
     raw: dict[str, dict] = {}
     lines = [
         "# Field calibration: playbacks at known spots recover the array",
         "",
         f"`python experiments/field_calibration.py --sites {' '.join(opts.sites)} --arrays {opts.arrays} --spots "
-        f"{' '.join(map(str, opts.spots))} --n-positions {opts.n_positions}`. Second simulator (pyroomacoustics), mics 2 m off "
+        f"{' '.join(map(str, opts.spots))} --n-positions {opts.n_positions} --designs {' '.join(opts.designs)}`. Second simulator (pyroomacoustics), mics 2 m off "
         "per axis (σ), clocks within ±1 ms, thermometer 3 °C high; solver (consistent set) errors of calls at "
         f"{opts.n_positions} positions × 3 per array, pooled over {opts.arrays} arrays; failures infinite; 95 % position-bootstrap intervals.",
         "",
@@ -131,11 +144,11 @@ def main() -> None:
             groups_all.append(groups + 10**6 * a)
             pooled.setdefault("true array", []).append(truth_err)
             pooled.setdefault("stated (uncalibrated)", []).append(solver_errors([*calls, *array, *IMPAIRED])[0])
-            for n_spots in opts.spots:
+            for n_spots, design in ((n, d) for d in opts.designs for n in opts.spots):
                 with tempfile.TemporaryDirectory() as tmp:
-                    body = calibrate(site, seed, n_spots, Path(tmp) / "run")
+                    body = calibrate(site, seed, n_spots, design, Path(tmp) / "run")
                     path = Path(tmp) / "run" / "calibration.json"
-                    pooled.setdefault(f"calibrated, {n_spots} spots", []).append(
+                    pooled.setdefault(f"calibrated, {n_spots} {design} spots", []).append(
                         solver_errors([*calls, *array, *IMPAIRED, f"calibration={path}"])[0]
                     )
                 true_mics = true_array(site, seed)
@@ -146,6 +159,7 @@ def main() -> None:
                         "mic_error_calibrated_m": float(np.median(np.hypot(*(np.asarray(body["mic_positions_m"]) - true_mics)[:, :2].T))),
                         "array_seed": seed,
                         "n_spots": n_spots,
+                        "design": design,
                         "temperature_offset_c": body["temperature_offset_c"],
                         "mic_position_shift_m": body["mic_position_shift_m"],
                         "not_identified": body["not_identified"],
@@ -179,7 +193,7 @@ def main() -> None:
             )
             jackknife = c["jackknife_sd"]["mic_position_sd_m"] if c["jackknife_sd"] else [float("nan")]
             lines.append(
-                f"- {site}, array {c['array_seed']}, {c['n_spots']} spots: median mic error {c['mic_error_stated_m']:.2f} m as stated → "
+                f"- {site}, array {c['array_seed']}, {c['n_spots']} {c['design']} spots: median mic error {c['mic_error_stated_m']:.2f} m as stated → "
                 f"{c['mic_error_calibrated_m']:.2f} m calibrated (median σ per axis: posterior {np.median(c['mic_position_sd_m']):.3f} m, "
                 f"jackknife {np.median(jackknife):.3f} m); thermometer offset {c['temperature_offset_c']:+.2f} °C "
                 f"(truth −3); not identified: {c['not_identified'] or 'nothing'}; {held_text}"

@@ -319,6 +319,29 @@ class _Model:
         return np.vstack([data, np.eye(len(self.names))])
 
 
+def linearised_rows(
+    playbacks: Playbacks, priors: Priors, kinds: tuple[str, ...], timing_sigma_s: float
+) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """The model's Jacobian at the stated array: what each playback tells about each parameter (for planning spots).
+
+    Returns
+    -------
+    rows : numpy.ndarray
+        (N, P, p) d Δ_{n,pair} / d u in units of ``timing_sigma_s``, with u the parameters in units
+        of their prior standard deviations (so the prior's information is the identity).
+    names : list of str
+        The p parameters' names.
+    sd : numpy.ndarray
+        (p,) their prior standard deviations (°C, s, m).
+    """
+    if not np.isfinite(playbacks.tdoa_s).all():
+        raise ValueError("linearised_rows needs every pair of every playback measured")
+    model = _Model(playbacks, priors, set(kinds), 0.0)
+    n_rows = int(model.measured.sum())
+    data = model.jacobian(np.zeros(len(model.names)), timing_sigma_s, np.ones(n_rows))[:n_rows]
+    return data.reshape(len(playbacks.source_m), len(playbacks.pairs), len(model.names)), model.names, model.sd
+
+
 def calibrate_array(
     playbacks: Playbacks,
     priors: Priors,

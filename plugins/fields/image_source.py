@@ -84,6 +84,9 @@ class ImageSourceField:
         Seed of those array errors (None: ``seed``); one array, many sets of sources (playbacks and calls).
     seed : int
         Seed of positions and renders (independent of the training simulation's).
+    positions_m : list of [x, y] or [x, y, z], optional
+        The positions themselves, m (e.g. a playback plan's spots): they replace ``n_positions``
+        drawn ones; heights are drawn from the site's range where not given.
     """
 
     def __init__(
@@ -104,7 +107,14 @@ class ImageSourceField:
         clock_offset_max_s: float = 0.0,
         array_seed: int | None = None,
         seed: int = 2000,
+        positions_m: Sequence[Sequence[float]] | None = None,
     ) -> None:
+        given = None if positions_m is None else np.asarray(positions_m, dtype=float)
+        if given is not None:
+            if given.ndim != 2 or given.shape[1] not in (2, 3) or len(given) < 2 or not np.isfinite(given).all():
+                raise ConfigError(f"field.positions_m must be a list of 2 or more [x, y] or [x, y, z] positions in m; got {positions_m}")
+            n_positions = len(given)
+        self.positions_m = given
         if n_positions < 2 or events_per_position < 1:
             raise ConfigError(
                 f"field.n_positions must be >= 2 and field.events_per_position >= 1; got {n_positions}, {events_per_position}"
@@ -164,6 +174,10 @@ class ImageSourceField:
     def source_positions(self, site: Site) -> np.ndarray:
         """(K, 3) source positions in m: inside the inner region, and ``outside_share`` of them around it."""
         rng = np.random.default_rng([self.seed, _POSITIONS_STREAM])
+        if self.positions_m is not None:
+            if self.positions_m.shape[1] == 3:
+                return self.positions_m.copy()
+            return np.column_stack([self.positions_m, rng.uniform(*site.source_height_range_m, size=len(self.positions_m))])
         n_out = int(round(self.outside_share * self.n_positions))
         inside = sample_in_expanded_hull(rng, site.mic_positions_m, self.inside_expansion, self.n_positions - n_out)
         polygon, buffer_m = source_region(site.mic_positions_m, self.inside_expansion)
