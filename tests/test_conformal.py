@@ -431,3 +431,20 @@ def test_the_position_level_certificate_holds_when_gross_errors_cluster_by_posit
     assert failed["position"] / reps <= epsilon
     assert failed["event"] / reps >= 0.12  # the event-level certificate's overconfidence on clustered errors
     assert certified >= reps // 3  # it does certify something with 800 positions
+
+
+def test_both_scorers_refuse_an_unknown_calibration_unit_or_method_in_one_line():
+    from sklearn.ensemble import GradientBoostingRegressor
+
+    from plugins.conformal.cqr import ConformalizedQuantile
+
+    with pytest.raises(ConfigError, match="calibration_unit must be 'event' or 'position'; got 'spot'"):
+        SplitConformal(calibration_unit="spot")
+    with pytest.raises(ConfigError, match="position_method must be 'pooled' or 'subsample'; got 'mean'"):
+        SplitConformal(calibration_unit="position", position_method="mean")
+    with pytest.raises(ConfigError, match="calibration_unit must be 'event' or 'position'; got 'spot'"):
+        ConformalizedQuantile(GradientBoostingRegressor(loss="quantile"), calibration_unit="spot")
+    with pytest.raises(ValueError, match="needs the calibration events' positions"):
+        ConformalizedQuantile(GradientBoostingRegressor(loss="quantile"), calibration_unit="position").fit(
+            np.ones(5), np.ones(5), np.ones(5), [0.5], quantiles=np.ones((5, 1))
+        )

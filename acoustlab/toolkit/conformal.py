@@ -6,6 +6,13 @@ import math
 
 import numpy as np
 
+from acoustlab.core.errors import ConfigError
+
+#: What a calibration's guarantee is over: random events, or random source positions (field spots).
+CALIBRATION_UNITS = ("event", "position")
+#: How a position-level quantile uses a position's events: all of them pooled, or one drawn at random.
+POSITION_METHODS = ("pooled", "subsample")
+
 
 def conformal_quantile(scores: np.ndarray, level: float) -> float:
     """The finite-sample conformal quantile: the ⌈(n+1)·level⌉-th smallest score.
@@ -250,3 +257,28 @@ def selective_threshold_by_position(
         if p_value <= epsilon / len(candidates):
             threshold = max(threshold, float(t))
     return threshold, path
+
+
+def check_calibration_unit(unit: str, method: str = "pooled") -> None:
+    """Refuse a calibration unit or position method the scorers do not know (one line naming the value)."""
+    if unit not in CALIBRATION_UNITS:
+        raise ConfigError(f"conformal calibration_unit must be 'event' or 'position'; got {unit!r}")
+    if method not in POSITION_METHODS:
+        raise ConfigError(f"conformal position_method must be 'pooled' or 'subsample'; got {method!r}")
+
+
+def calibration_quantile(
+    scores: np.ndarray, level: float, unit: str = "event", groups: np.ndarray | None = None, method: str = "pooled", seed: int = 0
+) -> float:
+    """The conformal quantile of ``scores`` whose guarantee is over ``unit``: events, or positions (``groups``) by ``method``.
+
+    ``event``: ``conformal_quantile``; ``position``: ``grouped_conformal_quantile`` (``pooled``) or
+    ``subsampled_position_quantile`` (``subsample``, one event per position drawn with ``seed``).
+    """
+    if unit == "event":
+        return conformal_quantile(scores, level)
+    if groups is None:
+        raise ValueError("calibration_unit='position' needs the calibration events' positions (groups)")
+    if method == "pooled":
+        return grouped_conformal_quantile(scores, np.asarray(groups), level)
+    return subsampled_position_quantile(scores, np.asarray(groups), level, seed)

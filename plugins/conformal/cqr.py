@@ -26,7 +26,7 @@ import pandas as pd
 from sklearn.base import clone
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.conformal import conformal_quantile, grouped_conformal_quantile
+from acoustlab.toolkit.conformal import calibration_quantile, check_calibration_unit
 
 
 class ConformalizedQuantile:
@@ -49,8 +49,7 @@ class ConformalizedQuantile:
     needs_quantiles = True
 
     def __init__(self, model: Any, calibration_unit: str = "event") -> None:
-        if calibration_unit not in ("event", "position"):
-            raise ConfigError(f"conformal calibration_unit must be 'event' or 'position'; got {calibration_unit!r}")
+        check_calibration_unit(calibration_unit)
         self.calibration_unit = calibration_unit
         if not hasattr(model, "fit") or not hasattr(model, "get_params"):
             raise ConfigError(f"conformal cqr: model must be a scikit-learn regressor; got {type(model).__name__}")
@@ -106,15 +105,9 @@ class ConformalizedQuantile:
         positions, for ``calibration_unit="position"``)."""
         self.levels_ = [float(v) for v in levels]
         scores = np.asarray(error_m, dtype=float)[:, None] - self._quantiles(predicted_m, quantiles)
-        if self.calibration_unit == "position" and groups is None:
-            raise ValueError("calibration_unit='position' needs the calibration events' positions (groups)")
-
-        def quantile(s: np.ndarray, level: float) -> float:
-            if self.calibration_unit == "position":
-                return grouped_conformal_quantile(s, np.asarray(groups), level)
-            return conformal_quantile(s, level)
-
-        self.corrections_ = np.array([quantile(scores[:, k], level) for k, level in enumerate(self.levels_)])
+        self.corrections_ = np.array(
+            [calibration_quantile(scores[:, k], level, self.calibration_unit, groups) for k, level in enumerate(self.levels_)]
+        )
         self.n_calibration_ = int(scores.shape[0])
         return self
 

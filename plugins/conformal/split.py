@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.conformal import conformal_quantile, grouped_conformal_quantile, subsampled_position_quantile
+from acoustlab.toolkit.conformal import calibration_quantile, check_calibration_unit
 
 NORMALISERS = ("none", "gdop", "predicted_error")
 BINNINGS = ("none", "gdop", "predicted_error", "region")
@@ -88,10 +88,7 @@ class SplitConformal:
         position_method: str = "pooled",
         seed: int = 0,
     ) -> None:
-        if calibration_unit not in ("event", "position"):
-            raise ConfigError(f"conformal calibration_unit must be 'event' or 'position'; got {calibration_unit!r}")
-        if position_method not in ("subsample", "pooled"):
-            raise ConfigError(f"conformal position_method must be 'subsample' or 'pooled'; got {position_method!r}")
+        check_calibration_unit(calibration_unit, position_method)
         self.calibration_unit = calibration_unit
         self.position_method = position_method
         self.seed = int(seed)
@@ -172,11 +169,8 @@ class SplitConformal:
         def quantile(in_bin: np.ndarray, level: float) -> float:
             if not in_bin.any():
                 return np.inf
-            if self.calibration_unit == "position" and self.position_method == "pooled":
-                return grouped_conformal_quantile(scores[in_bin], np.asarray(groups)[in_bin], level)
-            if self.calibration_unit == "position":
-                return subsampled_position_quantile(scores[in_bin], np.asarray(groups)[in_bin], level, self.seed)
-            return conformal_quantile(scores[in_bin], level)
+            in_groups = None if groups is None else np.asarray(groups)[in_bin]
+            return calibration_quantile(scores[in_bin], level, self.calibration_unit, in_groups, self.position_method, self.seed)
 
         self.quantiles_ = np.array([[quantile(bins == b, v) for v in self.levels_] for b in range(n_bins)])
         self.n_calibration_ = int(scores.size)
