@@ -43,6 +43,26 @@ def test_planned_spots_calibrate_better_than_random_ones_under_per_spot_multipat
     assert np.quantile(errors["planned"], 0.9) < 0.5 * np.quantile(errors["random"], 0.9)  # measured 0.038 vs 0.20 m
 
 
+def test_a_plan_keeps_away_from_where_a_stated_mic_may_really_be():
+    # 3-mic arrays, 5 spots: spots 3 m from the stated mics let the fit of one array of 30 run 2 m off
+    # (measured 2.17 m); at the default distance (5 GPS errors) the worst is 0.25 m
+    worst = {}
+    for label, distance in (("beside", 3.0), ("default", None)):
+        errors = []
+        for seed in range(30):
+            stated, true = array(3, seed)
+            rng = np.random.default_rng(seed + 1)
+            clocks = np.r_[0.0, rng.uniform(-1e-3, 1e-3, 2)]
+            priors = Priors(stated, np.full(3, 2.0))
+            spots = plan_playbacks(priors, 5, source_height_m=1.5, min_mic_distance_m=distance).spots_m
+            pb = with_spot_bias(playbacks(true, spots, clocks, 3.0, noise_s=5e-5, seed=seed), 1e-4, seed)
+            cal = calibrate_array(pb, priors, ["0", "1", "2"])
+            errors.append(float(np.median(np.hypot(*(cal.mic_positions_m - true)[:, :2].T))))
+        worst[label] = max(errors)
+    assert worst["beside"] > 1.0
+    assert worst["default"] < 0.5
+
+
 def test_a_plan_keeps_its_distances_and_shrinks_the_mics_uncertainty():
     stated, _ = array(5, 3)
     plan = plan_playbacks(Priors(stated, np.full(5, 2.0)), 8, min_mic_distance_m=4.0, min_separation_m=10.0)
@@ -70,8 +90,11 @@ def test_a_plan_refuses_what_it_cannot_do():
     priors = Priors(stated, np.full(4, 2.0))
     with pytest.raises(ConfigError, match="n_spots must be >= 3"):
         plan_playbacks(priors, 2)
-    with pytest.raises(ConfigError, match="2 candidate spots for 3 spots"):
-        plan_playbacks(priors, 3, candidates_xy_m=np.array([[1.0, 1.0], [50.0, 50.0]]))
+    with pytest.raises(ConfigError, match="2 of 2 candidate spots lie 10.0 m or more from every mic, 3 spots asked for"):
+        plan_playbacks(priors, 3, candidates_xy_m=np.array([[-100.0, -100.0], [200.0, 200.0]]))
+    beside_a_mic = stated[:3, :2] + 4.0  # within 5 GPS errors of the stated mics: where the real mic is, is unknown
+    with pytest.raises(ConfigError, match="0 of 3 candidate spots lie 10.0 m or more"):
+        plan_playbacks(priors, 3, candidates_xy_m=beside_a_mic)
     with pytest.raises(ConfigError, match="lie 500.0 m apart"):
         plan_playbacks(priors, 3, min_separation_m=500.0)
 

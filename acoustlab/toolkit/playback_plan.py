@@ -18,8 +18,13 @@ uses for sensor placement (Krause, Singh & Guestrin 2008, JMLR 9: 235–284). It
 because the criterion is this model's; NumPy does the algebra.
 
 Candidates are a grid over the mics' hull grown by ``expansion`` × the array's extent (or the
-user's own reachable spots), at least ``min_mic_distance_m`` from every mic and, once chosen, at
-least ``min_separation_m`` from each other (two spots side by side share their multipath).
+user's own reachable spots), at least ``min_mic_distance_m`` from every stated mic and, once
+chosen, at least ``min_separation_m`` from each other (two spots side by side share their
+multipath). The distance from the mics defaults to five times the largest stated GPS error (at
+least 3 m): the plan and the fit start from the stated array, and a spot within a few GPS errors
+of a mic may stand on either side of the real one, so the direction the fit pulls that mic is
+unknown (on the second simulator's 3-mic lake, five spots 3–4 m from the stated mics moved one
+array's mics further off than stated).
 """
 
 from __future__ import annotations
@@ -57,15 +62,33 @@ class PlaybackPlan:
     prior_sd_m: float
 
 
-def grid_candidates(mic_positions_m: np.ndarray, expansion: float, spacing_m: float, min_mic_distance_m: float) -> np.ndarray:
-    """(C, 2) grid points inside the mics' hull grown by ``expansion`` × the array's extent, ≥ ``min_mic_distance_m`` from every mic."""
+def grid_candidates(mic_positions_m: np.ndarray, expansion: float, spacing_m: float) -> np.ndarray:
+    """(C, 2) grid points inside the mics' hull grown by ``expansion`` × the largest mic-to-mic distance, m."""
     polygon, buffer_m = source_region(mic_positions_m, expansion)
     low, high = polygon.min(axis=0) - buffer_m, polygon.max(axis=0) + buffer_m
     axes = [np.arange(lo, hi + spacing_m / 2, spacing_m) for lo, hi in zip(low, high, strict=True)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 2)
-    grid = grid[distance_to_polygon_m(grid, polygon) <= buffer_m]
-    to_mic = np.sqrt(((grid[:, None, :] - np.asarray(mic_positions_m)[None, :, :2]) ** 2).sum(-1)).min(axis=1)
-    return grid[to_mic >= min_mic_distance_m]
+    return grid[distance_to_polygon_m(grid, polygon) <= buffer_m]
+
+
+def _usable_candidates(
+    priors: Priors, candidates_xy_m: np.ndarray | None, expansion: float, min_mic_distance_m: float | None, n_spots: int
+) -> np.ndarray:
+    """(C, 2) the candidates (the grid by default) at least the minimum distance from every stated mic, m."""
+    mics = np.asarray(priors.mic_positions_m, dtype=float)[:, :2]
+    extent = float(np.sqrt(((mics[:, None] - mics[None]) ** 2).sum(-1)).max())
+    distance = max(3.0, 5.0 * float(np.max(priors.position_sigma_m))) if min_mic_distance_m is None else float(min_mic_distance_m)
+    # a compact array's grid reaches at least twice that distance beyond its hull, so spots remain on every side
+    reach = max(expansion, 2.0 * distance / extent)
+    given = grid_candidates(mics, reach, extent / 25) if candidates_xy_m is None else np.asarray(candidates_xy_m, float).reshape(-1, 2)
+    to_mic = np.sqrt(((given[:, None, :] - mics[None]) ** 2).sum(-1)).min(axis=1)
+    usable = given[to_mic >= distance]
+    if len(usable) < n_spots:
+        raise ConfigError(
+            f"plan_playbacks: {len(usable)} of {len(given)} candidate spots lie {distance:.1f} m or more from every mic, "
+            f"{n_spots} spots asked for; give more candidates or a smaller min_mic_distance_m"
+        )
+    return usable
 
 
 def _spreading_noise(source_m: np.ndarray, mics_m: np.ndarray, pairs: list[tuple[int, int]], reference_m: float) -> np.ndarray:
@@ -98,7 +121,7 @@ def plan_playbacks(
     candidates_xy_m: np.ndarray | None = None,
     source_height_m: float = 1.5,
     expansion: float = 0.3,
-    min_mic_distance_m: float = 3.0,
+    min_mic_distance_m: float | None = None,
     min_separation_m: float | None = None,
     temperature_c: float = 15.0,
     humidity_pct: float = 60.0,
@@ -118,9 +141,11 @@ def plan_playbacks(
     source_height_m : float
         The speaker's height above ground, m.
     expansion : float
-        The default grid covers the mics' hull grown by this × the largest mic-to-mic distance.
-    min_mic_distance_m : float
-        No spot nearer a mic than this, m (a speaker beside a recorder clips it).
+        The default grid covers the mics' hull grown by this × the largest mic-to-mic distance (or
+        by twice ``min_mic_distance_m``, where that is more).
+    min_mic_distance_m : float, optional
+        No spot nearer a stated mic than this, m (default 5 × the largest ``position_sigma_m``, at
+        least 3 m: module docstring).
     min_separation_m : float, optional
         Chosen spots at least this far apart, m (default 1/10 of the array's extent).
     temperature_c, humidity_pct : float
@@ -137,13 +162,7 @@ def plan_playbacks(
     extent = float(np.sqrt(((mics[:, None, :2] - mics[None, :, :2]) ** 2).sum(-1)).max())
     if n_spots < 3:
         raise ConfigError(f"plan_playbacks: n_spots must be >= 3 (mic positions need 3 spots not on a line); got {n_spots}")
-    candidates = (
-        grid_candidates(mics, expansion, extent / 25, min_mic_distance_m)
-        if candidates_xy_m is None
-        else np.asarray(candidates_xy_m, dtype=float).reshape(-1, 2)
-    )
-    if len(candidates) < n_spots:
-        raise ConfigError(f"plan_playbacks: {len(candidates)} candidate spots for {n_spots} spots; give more candidates")
+    candidates = _usable_candidates(priors, candidates_xy_m, expansion, min_mic_distance_m, n_spots)
     separation = extent / 10 if min_separation_m is None else float(min_separation_m)
     source = np.column_stack([candidates, np.full(len(candidates), float(source_height_m))])
     pairs = [(i, j) for i in range(len(mics)) for j in range(i + 1, len(mics))]
@@ -169,7 +188,8 @@ def plan_playbacks(
     for _ in range(n_spots):
         if not available.any():
             raise ConfigError(
-                f"plan_playbacks: only {len(chosen)} candidate spots lie {separation:.1f} m apart; lower min_separation_m or give more"
+                f"plan_playbacks: only {len(chosen)} of the candidate spots lie {separation:.1f} m apart, {n_spots} asked for; "
+                "lower min_separation_m or give more candidates"
             )
         covariance = np.linalg.inv(information[None] + per_candidate[available])
         loss = np.einsum("ckk,k->c", covariance, weight)
