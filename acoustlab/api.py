@@ -191,6 +191,7 @@ def plan_playbacks(
     position_sigma_m: float | Sequence[float] = 2.0,
     candidates_xy_m: np.ndarray | None = None,
     source_height_m: float | None = None,
+    min_mic_distance_m: float | None = None,
     overrides: Sequence[str] = (),
     **settings: Any,
 ) -> pd.DataFrame:
@@ -208,6 +209,8 @@ def plan_playbacks(
         (C, 2) the spots a field team can reach, m; default a grid over the array grown by 0.3 × its extent.
     source_height_m : float, optional
         The speaker's height, m (default the site's assumed source height).
+    min_mic_distance_m : float, optional
+        No spot nearer a stated mic than this, m (default 5 × the largest ``position_sigma_m``, at least 3 m).
 
     Returns
     -------
@@ -232,7 +235,7 @@ def plan_playbacks(
     priors = CalibrateProtocol().priors(built, None)
     priors.position_sigma_m = sigma.copy()
     height = assumed_source_height_m(built) if source_height_m is None else float(source_height_m)
-    result = plan(priors, n_spots, candidates_xy_m=candidates_xy_m, source_height_m=height)
+    result = plan(priors, n_spots, candidates_xy_m=candidates_xy_m, source_height_m=height, min_mic_distance_m=min_mic_distance_m)
     return pd.DataFrame(
         {
             col.POSITION_ID: [f"spot_{k + 1:02d}" for k in range(n_spots)],
