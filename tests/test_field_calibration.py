@@ -100,6 +100,17 @@ def test_a_wrong_gcc_peak_is_down_weighted():
     assert cal.to_json()["n_outliers"] >= 3
 
 
+def test_time_differences_no_air_could_give_leave_the_thermometer_within_its_bound():
+    # every time difference 3x too long (wrong peaks): the speed of sound they imply (~114 m/s) needs air far below
+    # absolute zero; unbounded, the fit stepped there and the speed-of-sound formula raised deep inside scipy
+    stated, true = array(3, 3)
+    pb = playbacks(true, spots_in(np.random.default_rng(8), 5), np.zeros(3), 0.0)
+    pb.tdoa_s[:] = 3.0 * pb.tdoa_s
+    cal = calibrate_array(pb, Priors(stated, np.full(3, 2.0)), ["a", "b", "c"])
+    assert -30.0 - 1e-9 <= cal.temperature_offset_c <= 30.0 + 1e-9
+    assert np.isfinite(cal.mic_positions_m).all()
+
+
 def test_drift_is_estimated_only_from_playbacks_spread_over_time():
     stated, true = array(5, 7)
     rng = np.random.default_rng(8)

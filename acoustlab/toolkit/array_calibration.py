@@ -48,6 +48,8 @@ HUBER_K = 2.5
 CAUCHY_K = 2.385
 #: A residual beyond this many timing-noise units counts as an outlier in the report.
 OUTLIER_K = 5.0
+#: The thermometer's offset is bounded to this many prior standard deviations (±30 °C for the default 3 °C).
+MAX_TEMPERATURE_PRIORS = 10.0
 #: What can be estimated.
 PARAMETER_KINDS = ("temperature", "clocks", "drift", "positions")
 
@@ -268,6 +270,10 @@ class _Model:
             names += [f"mic_{m}_x_m", f"mic_{m}_y_m"]
             sd += [float(priors.position_sigma_m[m])] * 2
         self.names, self.sd = names, np.asarray(sd, dtype=float)
+        # the thermometer's offset stays within MAX_TEMPERATURE_PRIORS of its prior σ: wrong peaks must not
+        # take the air below absolute zero (the speed-of-sound formula refuses it) on the way to a fit
+        limit = np.where(np.array([n == "temperature_offset_c" for n in names], dtype=bool), MAX_TEMPERATURE_PRIORS, np.inf)
+        self.bounds = (-limit, limit)
         self.t = np.nan_to_num(playbacks.time_s - drift_origin_s)
         self.first = np.array([i for i, _ in playbacks.pairs], dtype=int)
         self.second = np.array([j for _, j in playbacks.pairs], dtype=int)
@@ -390,7 +396,9 @@ def calibrate_array(
     weights = np.ones(int(model.measured.sum()))
     sigma_t = float(timing_sigma_s)
     for k in range(max(1, n_reweight)):
-        fit = least_squares(model.residuals, u, jac=model.jacobian, args=(sigma_t, weights), method="trf", x_scale="jac")
+        fit = least_squares(
+            model.residuals, u, jac=model.jacobian, args=(sigma_t, weights), method="trf", x_scale="jac", bounds=model.bounds
+        )
         u = fit.x
         r = (model.predicted_s(u)[0] - playbacks.tdoa_s)[model.measured]
         sigma_t = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-6)
