@@ -111,6 +111,22 @@ def test_time_differences_no_air_could_give_leave_the_thermometer_within_its_bou
     assert np.isfinite(cal.mic_positions_m).all()
 
 
+def test_a_calibration_searches_lags_as_far_as_the_stated_array_may_be_off(compose_cfg):
+    from acoustlab.run.calibrate import _lag_window_for
+    from acoustlab.toolkit.array_calibration import lag_margin_needed_s
+
+    priors = Priors(np.zeros((3, 3)), np.array([2.0, 1.0, 0.0]), clock_sigma_s=0.002)
+    needed = 3 * np.sqrt(2) * (2.0 / 343.0 + 0.002)  # 3 sigma of a pair's time difference: mics (GPS) and clocks
+    assert lag_margin_needed_s(priors) == pytest.approx(needed)
+    cfg = compose_cfg(["+site=frozen_lake", "protocol=calibrate"])
+    widened = _lag_window_for(cfg, priors)
+    assert widened.features.gcc.max_lag_margin_s == pytest.approx(needed)
+    assert widened.features.groups.tdoa.gcc.max_lag_margin_s == pytest.approx(needed)  # the groups read it through ${features.gcc}
+    assert cfg.features.gcc.max_lag_margin_s == 0.002  # the run's own config is untouched
+    wide = compose_cfg(["+site=frozen_lake", "protocol=calibrate", "features.gcc.max_lag_margin_s=0.05"])
+    assert _lag_window_for(wide, priors) is wide  # never narrowed
+
+
 def test_drift_is_estimated_only_from_playbacks_spread_over_time():
     stated, true = array(5, 7)
     rng = np.random.default_rng(8)

@@ -12,31 +12,54 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from acoustlab.core.contracts import hook
 from acoustlab.method.protocols.calibrate import residual_rows
-from acoustlab.run.registry import to_plain
+from acoustlab.run.registry import build_feature_sets, to_plain
 from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import load_or_build_field
 from acoustlab.stages.field_calibration import calibrate_playbacks, playback_rows, write_calibration
+from acoustlab.toolkit.array_calibration import lag_margin_needed_s
 
 log = logging.getLogger(__name__)
+
+
+def _lag_window_for(cfg: DictConfig, priors: Any) -> DictConfig:
+    """The run's config with the GCC lag window's margin widened to what the stated array and clocks may be off.
+
+    A localization run's margin (2 ms by default) is for an array known to centimetres; before
+    calibration the mics may be metres off, and a playback near a pair's endfire then has its
+    direct path outside the window (``lag_margin_needed_s``). Only widened, never narrowed.
+    """
+    gcc = cfg.features.get("gcc")
+    needed = lag_margin_needed_s(priors)
+    if gcc is None or "max_lag_margin_s" not in gcc or float(gcc.max_lag_margin_s) >= needed:
+        return cfg
+    log.info(
+        "calibrate: the GCC lag window's margin is widened from %.1f to %.1f ms, what the stated mics (GPS error) and clocks may shift "
+        "a pair's time difference by (3 sigma)",
+        1e3 * float(gcc.max_lag_margin_s),
+        1e3 * needed,
+    )
+    return OmegaConf.merge(cfg, {"features": {"gcc": {"max_lag_margin_s": needed}}})
 
 
 def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[str, str]) -> dict[str, Any]:
     """Calibrate the array from the field events with known positions; write the calibration and its summary."""
     site, protocol, source = built.site, built.protocol, built.field_source
-    field = load_or_build_field(site, source, to_plain(cfg.field), built.feature_sets, to_plain(cfg.features.groups), built.cache)
     tables = hook(source, "tables")
     mics_table = tables()[0] if tables is not None else None
+    priors = protocol.priors(site, mics_table)
+    widened = _lag_window_for(cfg, priors)
+    feature_sets = built.feature_sets if widened is cfg else build_feature_sets(widened.features)
+    field = load_or_build_field(site, source, to_plain(cfg.field), feature_sets, to_plain(widened.features.groups), built.cache)
     playback_events = field.events[playback_rows(field.events)].reset_index(drop=True)
     mic_ids = (
         mics_table["mic_id"].astype(str).tolist()
         if mics_table is not None and "mic_id" in mics_table and len(mics_table) == site.n_mics
         else [str(m) for m in range(site.n_mics)]
     )
-    priors = protocol.priors(site, mics_table)
     log.info("calibrating %d mics from %d playbacks", site.n_mics, len(playback_events))
     # the field sources fill each event's weather (their defaults where a table has none)
     calibration, playbacks = calibrate_playbacks(field.features, field.events, site, lambda p: protocol.calibrate(p, priors, mic_ids))

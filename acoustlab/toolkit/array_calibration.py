@@ -325,6 +325,17 @@ class _Model:
         return np.vstack([data, np.eye(len(self.names))])
 
 
+def lag_margin_needed_s(priors: Priors, speed_of_sound_m_s: float = 343.0) -> float:
+    """The margin a pair's GCC lag window needs beyond its stated distance / c for a playback's direct path to lie in it, s.
+
+    Three standard deviations of what the stated array and clocks may shift a pair's time
+    difference by: 3 √2 (σ_position / c + σ_clock), the √2 for the two mics of a pair. A spot on a
+    pair's endfire has the largest lag the stated distance allows; a real array off by its GPS error
+    moves that lag out of a window with a smaller margin, and the calibration then fits a wrong peak.
+    """
+    return float(3.0 * np.sqrt(2.0) * (np.max(priors.position_sigma_m) / speed_of_sound_m_s + priors.clock_sigma_s))
+
+
 def linearised_rows(
     playbacks: Playbacks, priors: Priors, kinds: tuple[str, ...], timing_sigma_s: float
 ) -> tuple[np.ndarray, list[str], np.ndarray]:
