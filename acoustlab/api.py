@@ -22,7 +22,7 @@ from __future__ import annotations
 import datetime
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -232,8 +232,7 @@ def plan_playbacks(
     )
     if sigma.shape != (built.n_mics,) or not np.isfinite(sigma).all() or (sigma < 0).any():
         raise ConfigError(f"plan_playbacks: position_sigma_m must be one number >= 0 or {built.n_mics} of them (m); got {position_sigma_m}")
-    priors = CalibrateProtocol().priors(built, None)
-    priors.position_sigma_m = sigma.copy()
+    priors = replace(CalibrateProtocol().priors(built, None), position_sigma_m=sigma.copy())
     height = assumed_source_height_m(built) if source_height_m is None else float(source_height_m)
     result = plan(priors, n_spots, candidates_xy_m=candidates_xy_m, source_height_m=height, min_mic_distance_m=min_mic_distance_m)
     return pd.DataFrame(

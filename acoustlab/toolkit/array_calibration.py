@@ -221,7 +221,7 @@ class ArrayCalibration:
         }
 
 
-def _dc_dt(temperature_c: np.ndarray, humidity: np.ndarray) -> np.ndarray:
+def speed_of_sound_slope(temperature_c: np.ndarray, humidity: np.ndarray) -> np.ndarray:
     """d c / d T at each playback, m/s per °C (central difference)."""
     return (speed_of_sound_m_s(temperature_c + 0.05, humidity) - speed_of_sound_m_s(temperature_c - 0.05, humidity)) / 0.1
 
@@ -278,7 +278,7 @@ class _Model:
         self.first = np.array([i for i, _ in playbacks.pairs], dtype=int)
         self.second = np.array([j for _, j in playbacks.pairs], dtype=int)
         self.measured = np.isfinite(playbacks.tdoa_s)
-        self.dcdt = _dc_dt(playbacks.temperature_c, playbacks.relative_humidity_pct)
+        self.dcdt = speed_of_sound_slope(playbacks.temperature_c, playbacks.relative_humidity_pct)
 
     def unpack(self, u: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         theta = dict(zip(self.names, self.sd * u, strict=True))

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.array_calibration import Playbacks, Priors, linearised_rows
+from acoustlab.toolkit.array_calibration import Playbacks, Priors, linearised_rows, speed_of_sound_slope
 from acoustlab.toolkit.geometry import distance_to_polygon_m, source_region
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
@@ -72,11 +72,10 @@ def grid_candidates(mic_positions_m: np.ndarray, expansion: float, spacing_m: fl
 
 
 def _usable_candidates(
-    priors: Priors, candidates_xy_m: np.ndarray | None, expansion: float, min_mic_distance_m: float | None, n_spots: int
+    priors: Priors, candidates_xy_m: np.ndarray | None, expansion: float, min_mic_distance_m: float | None, n_spots: int, extent: float
 ) -> np.ndarray:
-    """(C, 2) the candidates (the grid by default) at least the minimum distance from every stated mic, m."""
+    """(C, 2) the candidates (the grid by default) at least the minimum distance from every stated mic, m (``extent``: the largest mic-to-mic distance)."""
     mics = np.asarray(priors.mic_positions_m, dtype=float)[:, :2]
-    extent = float(np.sqrt(((mics[:, None] - mics[None]) ** 2).sum(-1)).max())
     distance = max(3.0, 5.0 * float(np.max(priors.position_sigma_m))) if min_mic_distance_m is None else float(min_mic_distance_m)
     # a compact array's grid reaches at least twice that distance beyond its hull, so spots remain on every side
     reach = max(expansion, 2.0 * distance / extent)
@@ -162,7 +161,7 @@ def plan_playbacks(
     extent = float(np.sqrt(((mics[:, None, :2] - mics[None, :, :2]) ** 2).sum(-1)).max())
     if n_spots < 3:
         raise ConfigError(f"plan_playbacks: n_spots must be >= 3 (mic positions need 3 spots not on a line); got {n_spots}")
-    candidates = _usable_candidates(priors, candidates_xy_m, expansion, min_mic_distance_m, n_spots)
+    candidates = _usable_candidates(priors, candidates_xy_m, expansion, min_mic_distance_m, n_spots, extent)
     separation = extent / 10 if min_separation_m is None else float(min_separation_m)
     source = np.column_stack([candidates, np.full(len(candidates), float(source_height_m))])
     pairs = [(i, j) for i in range(len(mics)) for j in range(i + 1, len(mics))]
@@ -178,7 +177,7 @@ def plan_playbacks(
     rows, names, sd = linearised_rows(playbacks, priors, PLANNED_KINDS, timing_sigma_s)  # (C, P, p)
     rows = rows / _spreading_noise(source, mics, pairs, extent / 2)[:, :, None]
     speed = float(speed_of_sound_m_s(temperature_c, humidity_pct))
-    dc_dt = float(speed_of_sound_m_s(temperature_c + 0.5, humidity_pct) - speed_of_sound_m_s(temperature_c - 0.5, humidity_pct))
+    dc_dt = float(speed_of_sound_slope(np.array([temperature_c]), np.array([humidity_pct]))[0])
     weight = _metres_per_unit(names, sd, speed, extent, dc_dt) ** 2
     position = np.array([n.startswith("mic_") for n in names])
     per_candidate = np.einsum("cpa,cpb->cab", rows, rows)  # each candidate's information, (C, p, p)

@@ -163,8 +163,6 @@ class SplitConformal:
         scores = (np.abs(residual) if self.score == "absolute" else residual) / self._sigma(predicted_m, gdop)
         bins = self._bins(predicted_m, gdop, hull_distance)
         self.levels_ = [float(v) for v in levels]
-        if self.calibration_unit == "position" and groups is None:
-            raise ValueError("calibration_unit='position' needs the calibration events' positions (groups)")
 
         def quantile(in_bin: np.ndarray, level: float) -> float:
             if not in_bin.any():
