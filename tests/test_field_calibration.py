@@ -169,39 +169,68 @@ def _features_for(site, mics_m: np.ndarray, source_xyz: np.ndarray, clocks_s: np
     return pd.DataFrame({col.tdoa_lag(i, j): arrival[:, j] - arrival[:, i] for i, j in site.mic_pairs})
 
 
-def test_picks_are_redone_until_they_hold_and_the_array_is_then_found_to_a_centimetre():
-    # 6 recorders 2 m off their stated spots, clocks within ±1 ms; each pair's GCC offers the direct
-    # path (10 µs noise) among two echoes 0.3–3 ms off, in random order: the stated array's lags pick
-    # an echo on most pairs, and only repeated calibrate-and-re-pick rounds find every direct path
-    rng = np.random.default_rng(3)
-    stated, true = array(6, 4)
+def _echoed_playbacks(seed: int, n_spots: int, direct_first: float | None):
+    """Playbacks at ``n_spots`` spots (3 each) heard by 6 recorders 2 m off their stated spots, clocks within ±1 ms.
+
+    Each pair's GCC offers the direct path (10 µs noise) among two echoes 0.3–3 ms off: in random
+    order (``direct_first`` None), or the direct path highest in that share of the playbacks and
+    second otherwise. Returns the site (stated array), the true mics, the clocks, the features, the
+    events, the direct paths' lags (N, P) and the priors.
+    """
+    rng = np.random.default_rng(seed)
+    stated, true = array(6, seed + 100)
     site = dataclasses.replace(site3(), mic_positions_m=stated)
     clocks = np.concatenate([[0.0], rng.uniform(-1e-3, 1e-3, 5)])
-    spots = np.repeat(spots_in(rng, 10), 3, axis=0)
-    air = speed_of_sound_m_s(12.0, 70.0)
-    direct = _features_for(site, true, spots, clocks, air)
+    spots = np.repeat(spots_in(rng, n_spots), 3, axis=0)
+    direct = _features_for(site, true, spots, clocks, speed_of_sound_m_s(12.0, 70.0))
     features = {}
     for i, j in site.mic_pairs:
         lag = direct[col.tdoa_lag(i, j)].to_numpy() + rng.normal(0, 1e-5, len(spots))
         echoes = lag[:, None] + rng.choice([-1, 1], (len(spots), 2)) * rng.uniform(3e-4, 3e-3, (len(spots), 2))
-        ranked = rng.permuted(np.column_stack([lag, echoes]), axis=1)
+        if direct_first is None:
+            ranked = rng.permuted(np.column_stack([lag, echoes]), axis=1)
+        else:
+            first = (rng.random(len(spots)) < direct_first)[:, None]
+            ranked = np.where(first, np.column_stack([lag, echoes]), np.column_stack([echoes[:, :1], lag, echoes[:, 1:]]))
         features |= {col.tdoa_lag(i, j, k + 1): ranked[:, k] for k in range(3)}
-    events = pd.DataFrame(
-        {
-            col.POSITION_ID: np.repeat(np.arange(10), 3),
-            col.TRUE_X: spots[:, 0],
-            col.TRUE_Y: spots[:, 1],
-            col.TRUE_Z: spots[:, 2],
-            col.TEMPERATURE: 12.0,
-            col.HUMIDITY: 70.0,
-        }
-    )
+    xyz = {col.TRUE_X: spots[:, 0], col.TRUE_Y: spots[:, 1], col.TRUE_Z: spots[:, 2]}
+    events = pd.DataFrame({col.POSITION_ID: np.repeat(np.arange(n_spots), 3), **xyz, col.TEMPERATURE: 12.0, col.HUMIDITY: 70.0})
     priors = Priors(stated, np.full(6, 2.0), temperature_sigma_c=3.0, clock_sigma_s=2e-3)
-    cal, picked = calibrate_playbacks(pd.DataFrame(features), events, site, lambda p: calibrate_array(p, priors, list("abcdef")))
-    wrong = np.abs(picked.tdoa_s - direct.to_numpy()[:, : len(site.mic_pairs)]) > 1e-4
-    assert wrong.mean() < 0.01
+    return site, true, clocks, pd.DataFrame(features), events, direct.to_numpy(), priors
+
+
+def test_picks_are_redone_until_they_hold_and_the_array_is_then_found_to_a_centimetre():
+    # in random order, the stated array's lags pick an echo on most pairs, and only repeated
+    # calibrate-and-re-pick rounds find every direct path: four rounds (the old limit) leave many wrong
+    from acoustlab.stages.field_calibration import _until_picks_hold, playbacks_from
+
+    site, true, clocks, features, events, direct, priors = _echoed_playbacks(0, 10, None)
+    fit = lambda p: calibrate_array(p, priors, list("abcdef"))  # noqa: E731
+    first = playbacks_from(features, events, site, 12.0, 70.0)
+    _, after_four = _until_picks_hold(first, features, events, site, fit, 12.0, 70.0, 4)
+    assert (np.abs(after_four.tdoa_s - direct) > 1e-4).mean() > 0.1
+    cal, picked = calibrate_playbacks(features, events, site, fit)
+    assert (np.abs(picked.tdoa_s - direct) > 1e-4).mean() < 0.01
     assert np.hypot(*(cal.mic_positions_m - true)[:, :2].T).max() < 0.02
     np.testing.assert_allclose(cal.clock_offset_s, clocks, atol=3e-5)
+    assert _until_picks_hold(first, features, events, site, fit, 12.0, 70.0, 30)[0].mic_positions_m == pytest.approx(cal.mic_positions_m)
+
+
+def test_from_few_spots_the_picks_that_fit_tighter_are_kept():
+    # 5 spots, the direct path highest in 80 % of the playbacks: from the stated array's lags the rounds can
+    # settle on wrong picks that agree with each other (mics metres off); from the highest peaks they do
+    # not, and calibrate keeps the calibration with the smaller timing σ
+    from acoustlab.stages.field_calibration import _until_picks_hold, playbacks_from
+
+    stated_start_failed = 0
+    for seed in (0, 1, 5, 8):
+        site, true, _, features, events, _, priors = _echoed_playbacks(seed, 5, 0.8)
+        fit = lambda p, priors=priors: calibrate_array(p, priors, list("abcdef"))  # noqa: E731
+        from_stated, _ = _until_picks_hold(playbacks_from(features, events, site, 12.0, 70.0), features, events, site, fit, 12.0, 70.0, 30)
+        stated_start_failed += np.hypot(*(from_stated.mic_positions_m - true)[:, :2].T).max() > 0.2
+        cal, _ = calibrate_playbacks(features, events, site, fit)
+        assert np.hypot(*(cal.mic_positions_m - true)[:, :2].T).max() < 0.1
+    assert stated_start_failed >= 2
 
 
 def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path):
