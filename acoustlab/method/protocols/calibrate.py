@@ -129,7 +129,7 @@ class CalibrateProtocol:
         for held in folds:
             test = np.isin(playbacks.spot, held)
             train = playbacks.subset(~test)
-            cal = calibrate_array(train, priors, mic_ids, self.estimate, min_drift_span_s=self.min_drift_span_s, n_reweight=3)
+            cal = self.calibrate(train, priors, mic_ids)  # the same estimator: a jackknife of another one measures that one
             without.append(cal)
             stated[test] = _solve_errors(playbacks.subset(test), site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
             clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(playbacks.time_s[test] - cal.drift_origin_s)[:, None]
