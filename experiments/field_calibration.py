@@ -1,10 +1,11 @@
 """Does ``acoustlab calibrate`` recover the array? Playbacks at known spots, then calls localized with and without it.
 
 Usage: python experiments/field_calibration.py [--sites frozen_lake forest] [--arrays 3] [--spots 5 10] [--n-positions 60]
-[--designs random planned]
+[--designs random planned] [--field image_source]
 
 Per site and per array draw (``field.array_seed``), recordings rendered by the second simulator
-(pyroomacoustics' image-source method, ``field=image_source``) with the errors a field study has:
+(pyroomacoustics' image-source method, ``field=image_source``; or with ``--field outdoor`` by
+acoustlab's own simulator, the propagation the method learned from) with the errors a field study has:
 the recorders stand off their stated positions by N(0, 2 m) per axis (consumer GPS), their clocks
 are off by up to ±1 ms, the thermometer reads 3 °C high. Then:
 
@@ -18,7 +19,8 @@ are off by up to ±1 ms, the thermometer reads 3 °C high. Then:
   calls and noise rendered with no errors: the bound).
 
 Errors are the solver's 2-D errors (failures infinite); 95 % intervals by position bootstrap over
-all arrays' positions. Writes experiments/results/field_calibration.md.
+all arrays' positions. Writes experiments/results/field_calibration.md (``--field outdoor``:
+field_calibration_outdoor.md).
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ from acoustlab.reporting.metrics import error_summary, share_gross
 log = logging.getLogger("experiments.field_calibration")
 IMPAIRED = ["field.mic_position_error_m=2.0", "field.clock_offset_max_s=0.001", "field.temperature_error_c=3.0"]
 N_BOOT = 1000
+#: the field sources the array's errors are rendered with
+RENDERERS = {"image_source": "Second simulator (pyroomacoustics)", "outdoor": "acoustlab's own outdoor simulator"}
 #: only the field recordings' solver fixes are measured: the method's training simulation is kept tiny
 SMALL_TRAINING = ["data.n_events=8", "data.events_per_position=1", "data.chunk_size=8"]
 
@@ -65,7 +69,7 @@ def spot_overrides(site: str, n_spots: int, design: str) -> list[str]:
     return ["field.positions_m=[" + ",".join(f"[{x:.3f},{y:.3f},{z:.3f}]" for x, y, z in spots) + "]"]
 
 
-def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path) -> dict:
+def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path, field: str = "image_source") -> dict:
     """Run ``calibrate`` on ``n_spots`` playback spots (``design``) of the impaired array; return its calibration.json."""
     from acoustlab.run.app import run_experiment
 
@@ -73,7 +77,7 @@ def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path) 
         [
             f"+site={site}",
             "protocol=calibrate",
-            "field=image_source",
+            f"field={field}",
             *spot_overrides(site, n_spots, design),
             "field.events_per_position=3",
             f"field.array_seed={array_seed}",
@@ -112,13 +116,15 @@ def main() -> None:
     parser.add_argument("--spots", nargs="+", type=int, default=[5, 10])
     parser.add_argument("--n-positions", type=int, default=60)
     parser.add_argument("--designs", nargs="+", choices=["random", "planned"], default=["random", "planned"])
+    parser.add_argument("--field", choices=list(RENDERERS), default="image_source")
     opts = parser.parse_args()
     raw: dict[str, dict] = {}
     lines = [
-        "# Field calibration: playbacks at known spots recover the array",
+        f"# Field calibration: playbacks at known spots recover the array ({RENDERERS[opts.field]})",
         "",
         f"`python experiments/field_calibration.py --sites {' '.join(opts.sites)} --arrays {opts.arrays} --spots "
-        f"{' '.join(map(str, opts.spots))} --n-positions {opts.n_positions} --designs {' '.join(opts.designs)}`. Second simulator (pyroomacoustics), mics 2 m off "
+        f"{' '.join(map(str, opts.spots))} --n-positions {opts.n_positions} --designs {' '.join(opts.designs)} --field {opts.field}`. "
+        f"{RENDERERS[opts.field]}, mics 2 m off "
         "per axis (σ), clocks within ±1 ms, thermometer 3 °C high; solver (consistent set) errors of calls at "
         f"{opts.n_positions} positions × 3 per array, pooled over {opts.arrays} arrays; failures infinite; 95 % position-bootstrap intervals.",
         "",
@@ -129,7 +135,7 @@ def main() -> None:
         calls = [
             f"+site={site}",
             "protocol=field_eval",
-            "field=image_source",
+            f"field={opts.field}",
             f"field.n_positions={opts.n_positions}",
             "field.events_per_position=3",
             *SMALL_TRAINING,
@@ -146,7 +152,7 @@ def main() -> None:
             pooled.setdefault("stated (uncalibrated)", []).append(solver_errors([*calls, *array, *IMPAIRED])[0])
             for n_spots, design in ((n, d) for d in opts.designs for n in opts.spots):
                 with tempfile.TemporaryDirectory() as tmp:
-                    body = calibrate(site, seed, n_spots, design, Path(tmp) / "run")
+                    body = calibrate(site, seed, n_spots, design, Path(tmp) / "run", opts.field)
                     path = Path(tmp) / "run" / "calibration.json"
                     pooled.setdefault(f"calibrated, {n_spots} {design} spots", []).append(
                         solver_errors([*calls, *array, *IMPAIRED, f"calibration={path}"])[0]
@@ -198,7 +204,8 @@ def main() -> None:
                 f"jackknife {np.median(jackknife):.3f} m); thermometer offset {c['temperature_offset_c']:+.2f} °C "
                 f"(truth −3); not identified: {c['not_identified'] or 'nothing'}; {held_text}"
             )
-    write_results("field_calibration", {"machine": machine(), "sites": raw}, lines)
+    name = "field_calibration" if opts.field == "image_source" else f"field_calibration_{opts.field}"
+    write_results(name, {"machine": machine(), "sites": raw}, lines)
     log.info("\n".join(lines))
 
 

@@ -89,6 +89,9 @@ class ImageSourceField:
         drawn ones; heights are drawn from the site's range where not given.
     """
 
+    #: The events' ``source`` column: which renderer made them.
+    source_label = "pyroomacoustics_image_source"
+
     def __init__(
         self,
         sample_rate_hz: float = 24000.0,
@@ -190,7 +193,14 @@ class ImageSourceField:
         return np.column_stack([xy, height])
 
     def _render(
-        self, mics_m: np.ndarray, source_m: np.ndarray, signal: np.ndarray, onset_s: float, temperature_c: float, humidity_pct: float
+        self,
+        site: Site,
+        mics_m: np.ndarray,
+        source_m: np.ndarray,
+        signal: np.ndarray,
+        onset_s: float,
+        temperature_c: float,
+        humidity_pct: float,
     ) -> tuple[np.ndarray, float]:
         """(M, S) clean recording at ``mics_m`` of ``signal`` emitted at ``onset_s`` from ``source_m``, and pyroomacoustics' speed of sound."""
         import pyroomacoustics as pra
@@ -245,7 +255,9 @@ class ImageSourceField:
             onset = rng.uniform(*self.onset_s)
             snr_db = rng.uniform(*self.snr_db)
             regime = int(rng.integers(len(site.noise_regimes)))
-            clean, simulator_c = self._render(true_mics, source, call.signal, onset, weather.temperature_c, weather.relative_humidity_pct)
+            clean, simulator_c = self._render(
+                site, true_mics, source, call.signal, onset, weather.temperature_c, weather.relative_humidity_pct
+            )
             if np.any(clocks != 0):
                 clean = _delayed(clean, clocks, self.sample_rate_hz)
             nearest = int(np.argmin(np.sqrt(((true_mics - source) ** 2).sum(-1))))
@@ -273,10 +285,10 @@ class ImageSourceField:
                     col.EMISSION_TIME: onset,
                     "outside_simulated_region": bool(outside_site[pid]),
                     col.HARDWARE_FAILURE: False,
-                    "source": "pyroomacoustics_image_source",
+                    "source": self.source_label,
                 }
             )
-        log.info("image-source field: %d events at %d positions rendered with pyroomacoustics", len(rows), len(positions))
+        log.info("%s field: %d events at %d positions rendered", self.source_label, len(rows), len(positions))
         return RecordingBatch(audio=audio, sample_rate_hz=self.sample_rate_hz, events=pd.DataFrame(rows))
 
 
