@@ -307,7 +307,7 @@ def test_image_source_field_renders_direct_path_delays(compose_cfg):
     click = np.zeros(64)
     click[0] = 1.0
     for source_m in source.source_positions(site):
-        clean, c = source._render(site.mic_positions_m, source_m, click, 0.1, -10.0, 80.0)
+        clean, c = source._render(site, site.mic_positions_m, source_m, click, 0.1, -10.0, 80.0)
         distance = np.sqrt(((site.mic_positions_m - source_m) ** 2).sum(axis=1))
         arrival_s = np.argmax(np.abs(clean), axis=1) / fs
         np.testing.assert_allclose(arrival_s - arrival_s[0], (distance - distance[0]) / c, atol=3e-4)
