@@ -118,13 +118,20 @@ class CalibrateProtocol:
     ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
         """Errors of each spot's playbacks solved with the array calibrated without that spot, and with the stated array, m;
         and the estimates' jackknife standard deviations over those calibrations (``jackknife_sd``). None, None with fewer
-        than 4 spots or ``held_out_folds=0``."""
+        than 4 spots or ``held_out_folds=0``.
+
+        Beside the fixes' errors, the median |residual| of the held-out playbacks' time differences
+        (``median_abs_residual_ms``): what the array predicts at a spot it was not fitted on, free of
+        the fix's geometry. A fix outside a 3-mic array magnifies a small error of the array many
+        times, so with few spots the fixes' errors can grow where the time differences shrink.
+        """
         spots = np.unique(playbacks.spot)
         if self.held_out_folds == 0 or spots.size < 4:
             return None, None
         folds = np.array_split(np.random.default_rng(0).permutation(spots), min(self.held_out_folds, spots.size))
         stated = np.full(len(playbacks.spot), np.nan)
         calibrated = np.full(len(playbacks.spot), np.nan)
+        residual = {"stated": np.full(playbacks.tdoa_s.shape, np.nan), "calibrated": np.full(playbacks.tdoa_s.shape, np.nan)}
         without: list[ArrayCalibration] = []
         for held in folds:
             test = np.isin(playbacks.spot, held)
@@ -134,16 +141,24 @@ class CalibrateProtocol:
             stated[test] = _solve_errors(playbacks.subset(test), site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
             clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(playbacks.time_s[test] - cal.drift_origin_s)[:, None]
             calibrated[test] = _solve_errors(playbacks.subset(test), cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
+            residual["stated"][test] = _pair_residuals_s(playbacks.subset(test), _stated_arrivals_s(playbacks.subset(test), site))
+            residual["calibrated"][test] = _pair_residuals_s(playbacks.subset(test), cal.predicted_tdoa_s(playbacks.subset(test)))
 
-        def summary(e: np.ndarray) -> dict[str, float]:
+        def summary(e: np.ndarray, r: np.ndarray) -> dict[str, float | None]:
             e = np.where(np.isfinite(e), e, np.inf)
-            return {"p50_m": float(np.median(e)), "p95_m": float(np.quantile(e, 0.95)), "share_gt_1m": float(np.mean(e > 1.0))}
+            r = np.abs(r[np.isfinite(r)])
+            return {
+                "p50_m": float(np.median(e)),
+                "p95_m": float(np.quantile(e, 0.95)),
+                "share_gt_1m": float(np.mean(e > 1.0)),
+                "median_abs_residual_ms": float(1e3 * np.median(r)) if r.size else None,
+            }
 
         held_out = {
             "n_playbacks": int(len(stated)),
             "n_spots": int(spots.size),
-            "stated": summary(stated),
-            "calibrated": summary(calibrated),
+            "stated": summary(stated, residual["stated"]),
+            "calibrated": summary(calibrated, residual["calibrated"]),
         }
         return held_out, jackknife_sd(without)
 
@@ -166,6 +181,18 @@ def jackknife_sd(without: list[ArrayCalibration]) -> dict[str, Any]:
         "temperature_offset_sd_c": float(sd(np.array([c.temperature_offset_c for c in without]))),
         "clock_offset_sd_s": sd(np.array([c.clock_offset_s for c in without])).tolist(),
     }
+
+
+def _stated_arrivals_s(p: Playbacks, site: Site) -> np.ndarray:
+    """(N, M) travel times from each playback's spot to the stated mics at the thermometer's speed of sound, s."""
+    distance = np.sqrt(((p.source_m[:, None, :] - site.mic_positions_m[None]) ** 2).sum(-1))
+    return distance / speed_of_sound_m_s(p.temperature_c, p.relative_humidity_pct)[:, None]
+
+
+def _pair_residuals_s(p: Playbacks, arrival_s: np.ndarray) -> np.ndarray:
+    """(N, P) predicted − measured time difference of each pair, from (N, M) predicted arrivals (any common offset), s."""
+    first, second = np.array([i for i, _ in p.pairs]), np.array([j for _, j in p.pairs])
+    return arrival_s[:, second] - arrival_s[:, first] - p.tdoa_s
 
 
 def _solve_errors(
