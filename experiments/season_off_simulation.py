@@ -136,7 +136,7 @@ def main() -> None:
             "|---|---|---|---|",
             *regions,
         ]
-    write_results("season_fast_off_simulation", result, lines)
+    write_results("season_off_simulation", result, lines)
     log.info("\n".join(lines))
 
 
