@@ -135,14 +135,14 @@ class CalibrateProtocol:
         without: list[ArrayCalibration] = []
         for held in folds:
             test = np.isin(playbacks.spot, held)
-            train = playbacks.subset(~test)
-            cal = self.calibrate(train, priors, mic_ids)  # the same estimator: a jackknife of another one measures that one
+            tested = playbacks.subset(test)
+            cal = self.calibrate(playbacks.subset(~test), priors, mic_ids)  # the same estimator: a jackknife of another measures that one
             without.append(cal)
-            stated[test] = _solve_errors(playbacks.subset(test), site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
-            clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(playbacks.time_s[test] - cal.drift_origin_s)[:, None]
-            calibrated[test] = _solve_errors(playbacks.subset(test), cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
-            residual["stated"][test] = _pair_residuals_s(playbacks.subset(test), _stated_arrivals_s(playbacks.subset(test), site))
-            residual["calibrated"][test] = _pair_residuals_s(playbacks.subset(test), cal.predicted_tdoa_s(playbacks.subset(test)))
+            stated[test] = _solve_errors(tested, site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
+            clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(tested.time_s - cal.drift_origin_s)[:, None]
+            calibrated[test] = _solve_errors(tested, cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
+            residual["stated"][test] = _pair_residuals_s(tested, _stated_arrivals_s(tested, site))
+            residual["calibrated"][test] = _pair_residuals_s(tested, cal.predicted_tdoa_s(tested))
 
         def summary(e: np.ndarray, r: np.ndarray) -> dict[str, float | None]:
             e = np.where(np.isfinite(e), e, np.inf)
