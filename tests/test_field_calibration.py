@@ -125,6 +125,23 @@ def test_the_robust_fit_reweights_until_its_estimates_hold(caplog):
     assert not any("after 50 reweighting passes" in r.message for r in caplog.records)
 
 
+@pytest.mark.parametrize(
+    ("n_mics", "n_spots", "enough", "needed"), [(3, 5, False, 9), (3, 10, True, 9), (6, 5, False, 8), (6, 10, True, 8)]
+)
+def test_a_calibration_says_when_its_spots_are_too_few_to_tell_wrong_peaks(n_mics, n_spots, enough, needed):
+    # unknowns: the thermometer, M − 1 clocks, 2 coordinates per mic; a spot gives M − 1 independent time differences
+    stated, true = array(n_mics, 1)
+    pb = playbacks(true, spots_in(np.random.default_rng(2), n_spots), np.zeros(n_mics), 0.0, noise_s=1e-5)
+    said = calibrate_array(pb, Priors(stated, np.full(n_mics, 2.0)), [str(m) for m in range(n_mics)]).to_json()["redundancy"]
+    assert said["unknowns"] == 1 + (n_mics - 1) + 2 * n_mics
+    assert said["independent_time_differences"] == n_spots * (n_mics - 1)
+    assert (said["enough"], said["spots_needed"]) == (enough, needed)
+    pb.tdoa_s[pb.spot == 0, :] = np.nan  # a spot nobody heard gives nothing
+    assert calibrate_array(pb, Priors(stated, np.full(n_mics, 2.0)), [str(m) for m in range(n_mics)]).to_json()["redundancy"][
+        "independent_time_differences"
+    ] == (n_spots - 1) * (n_mics - 1)
+
+
 def test_time_differences_no_air_could_give_leave_the_thermometer_within_its_bound():
     # every time difference 3x too long (wrong peaks): the speed of sound they imply (~114 m/s) needs air far below
     # absolute zero; unbounded, the fit stepped there and the speed-of-sound formula raised deep inside scipy
@@ -315,6 +332,9 @@ def test_calibrate_recovers_a_rendered_array_and_localize_uses_it(compose_cfg, t
     after = np.median(np.hypot(*(np.asarray(body["mic_positions_m"]) - true_mics)[:, :2].T))
     assert after < 0.3 * before
     assert metrics["calibration"]["sha256"] == body["sha256"]
+    # 8 spots heard by all 6 mics: 40 independent time differences for 18 unknowns (thermometer, 5 clocks, 6 mics x, y)
+    assert metrics["calibration"]["redundancy"] == body["redundancy"]
+    assert body["redundancy"]["unknowns"] == 18 and body["redundancy"]["independent_time_differences"] == 40
     # the same array heard later: with calibration=PATH the solver's fixes are closer to the truth
     calls = [*common, *small, *impaired, "protocol=field_eval", "field.n_positions=10", "field.seed=12"]
     errors = {}

@@ -20,7 +20,7 @@ from acoustlab.run.registry import build_feature_sets, to_plain
 from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import load_or_build_field
 from acoustlab.stages.field_calibration import calibrate_playbacks, playback_rows, write_calibration
-from acoustlab.toolkit.array_calibration import lag_margin_needed_s
+from acoustlab.toolkit.array_calibration import MIN_REDUNDANCY, lag_margin_needed_s
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +80,7 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
                     "residual_median_abs_after_s",
                     "n_outliers",
                     "not_identified",
+                    "redundancy",
                     "held_out",
                     "jackknife_sd",
                 )
@@ -93,6 +94,18 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
     atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode())
     for kind, why in calibration.not_identified.items():
         log.warning("calibrate: %s not estimated: %s", kind, why)
+    enough = summary["redundancy"]
+    if not enough["enough"]:
+        log.warning(
+            "calibrate: %d spots give %d independent time differences for %d unknowns (%.1f each); with fewer than %.0f each a "
+            "set of wrong GCC peaks can fit as tightly as the right one: plan %s spots or more (docs/calibrate.md)",
+            calibration.n_spots,
+            enough["independent_time_differences"],
+            enough["unknowns"],
+            enough["per_unknown"],
+            MIN_REDUNDANCY,
+            enough["spots_needed"],
+        )
     log.info(
         "thermometer offset %+.2f ± %.2f °C; clock offsets (ms) %s; mic shifts (m) %s; median time-difference residual %.3g → %.3g ms",
         calibration.temperature_offset_c,
