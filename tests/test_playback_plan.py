@@ -99,6 +99,16 @@ def test_a_plan_refuses_what_it_cannot_do():
         plan_playbacks(priors, 3, min_separation_m=500.0)
 
 
+def test_a_plan_of_too_few_spots_says_how_many_would_do(caplog):
+    stated, _ = array(3, 1)
+    plan_playbacks(Priors(stated, np.full(3, 2.0)), 5)  # 10 time differences for 9 unknowns
+    assert "plan 9 or more" in caplog.text
+    caplog.clear()
+    plan_playbacks(Priors(stated, np.full(3, 2.0)), 9)
+    plan_playbacks(Priors(stated, np.array([0.0, 0.0, 2.0])), 5)  # two surveyed mics: 5 unknowns, 3 spots do
+    assert "too few" not in caplog.text
+
+
 def test_the_api_plans_for_a_site_as_calibrate_reads_it():
     spots = plan_for_site("frozen_lake", 5, source_height_m=1.5)
     assert list(spots.columns) == [col.POSITION_ID, col.TRUE_X, col.TRUE_Y, col.TRUE_Z, "predicted_mic_sd_m"]

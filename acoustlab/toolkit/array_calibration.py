@@ -250,14 +250,18 @@ def redundancy(playbacks: Playbacks, n_unknowns: int) -> dict[str, Any]:
         heard = np.isfinite(playbacks.tdoa_s[spots == spot]).any(axis=0)
         independent += max(len(np.unique(np.r_[first[heard], second[heard]])) - 1, 0)
     per_spot = independent / max(len(np.unique(spots)), 1)
-    needed = int(np.ceil(MIN_REDUNDANCY * n_unknowns / per_spot)) if per_spot > 0 else None
     return {
         "independent_time_differences": int(independent),
         "unknowns": int(n_unknowns),
         "per_unknown": round(independent / max(n_unknowns, 1), 3),
         "enough": bool(independent >= MIN_REDUNDANCY * n_unknowns),
-        "spots_needed": needed,
+        "spots_needed": spots_for(n_unknowns, per_spot),
     }
+
+
+def spots_for(n_unknowns: int, per_spot: float) -> int | None:
+    """Spots giving ``per_spot`` independent time differences each that ``MIN_REDUNDANCY`` asks for ``n_unknowns`` (None if 0)."""
+    return int(np.ceil(MIN_REDUNDANCY * n_unknowns / per_spot)) if per_spot > 0 else None
 
 
 def _structural_limits(playbacks: Playbacks, priors: Priors, wanted: set[str], min_drift_span_s: float) -> dict[str, str]:

@@ -29,14 +29,17 @@ array's mics further off than stated).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.array_calibration import Playbacks, Priors, linearised_rows, speed_of_sound_slope
+from acoustlab.toolkit.array_calibration import Playbacks, Priors, linearised_rows, speed_of_sound_slope, spots_for
 from acoustlab.toolkit.geometry import distance_to_polygon_m, source_region
 from acoustlab.toolkit.physics import speed_of_sound_m_s
+
+log = logging.getLogger(__name__)
 
 #: What a plan determines: drift needs playbacks spread over hours, which a plan of places does not choose.
 PLANNED_KINDS = ("temperature", "clocks", "positions")
@@ -161,6 +164,16 @@ def plan_playbacks(
     extent = float(np.sqrt(((mics[:, None, :2] - mics[None, :, :2]) ** 2).sum(-1)).max())
     if n_spots < 3:
         raise ConfigError(f"plan_playbacks: n_spots must be >= 3 (mic positions need 3 spots not on a line); got {n_spots}")
+    # the thermometer, the clocks against mic 0, x and y of each mic that may move; a spot gives M − 1 time differences
+    needed = spots_for(len(mics) + 2 * int((np.asarray(priors.position_sigma_m) > 0).sum()), len(mics) - 1)
+    if needed is not None and n_spots < needed:
+        log.warning(
+            "plan_playbacks: %d spots are too few for a calibration that can tell wrong GCC peaks from right ones on %d mics; "
+            "plan %d or more (docs/calibrate.md)",
+            n_spots,
+            len(mics),
+            needed,
+        )
     candidates = _usable_candidates(priors, candidates_xy_m, expansion, min_mic_distance_m, n_spots, extent)
     separation = extent / 10 if min_separation_m is None else float(min_separation_m)
     source = np.column_stack([candidates, np.full(len(candidates), float(source_height_m))])
