@@ -269,7 +269,7 @@ def test_from_few_spots_the_picks_that_fit_tighter_are_kept():
     assert stated_start_failed >= 2
 
 
-def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path):
+def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path, caplog):
     stated, true = array(5, 21)
     site = dataclasses.replace(site3(), mic_positions_m=stated)
     clocks = np.array([0.0, 4e-4, -3e-4, 2e-4, 1e-4])
@@ -282,6 +282,13 @@ def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path):
     digest = write_calibration(path, cal, site, events)
     loaded = load_calibration(str(path), site)
     assert loaded.sha256 == digest and len(json.loads(path.read_text())["playbacks"]) == len(events)
+    # 8 spots × 4 time differences for 15 unknowns: enough, said in what a run records, and no warning
+    assert loaded.summary()["redundancy"] == cal.to_json()["redundancy"] and loaded.redundancy["enough"]
+    assert "fewer than calibrate asks for" not in caplog.text
+    few = pb.subset(pb.spot < 4)  # 16 for 15: a run using it is warned with the spots calibrate asks for
+    write_calibration(tmp_path / "few.json", calibrate_array(few, Priors(stated, np.full(5, 2.0)), list("abcde")), site, events[:16])
+    assert not load_calibration(str(tmp_path / "few.json"), site).redundancy["enough"]
+    assert "rests on 4 spots, fewer than calibrate asks for (8)" in caplog.text
     # applied to a later call: the clocks come off its time differences, the thermometer's offset onto its temperature
     source = np.array([[38.0, 22.0, 1.5]])
     air = speed_of_sound_m_s(10.0 - 1.5, 50.0)

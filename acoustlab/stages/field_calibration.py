@@ -237,6 +237,8 @@ class FieldCalibration:
     mic_position_sd_m: np.ndarray
     n_spots: int
     not_identified: dict[str, str]
+    #: ``calibrate``'s count of independent time differences per unknown (``array_calibration.redundancy``); None in older files
+    redundancy: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """For metrics.json: where it came from and what it changed."""
@@ -248,6 +250,7 @@ class FieldCalibration:
             "clock_offset_s": self.clock_offset_s.tolist(),
             "mic_positions_m": np.round(self.mic_positions_m, 4).tolist(),
             "not_identified": self.not_identified,
+            "redundancy": self.redundancy,
         }
 
     def input_uncertainty(self) -> InputUncertainty:
@@ -298,6 +301,7 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
             mic_position_sd_m=sd("mic_position_sd_m"),
             n_spots=int(body["n_spots"]),
             not_identified=dict(body.get("not_identified", {})),
+            redundancy=dict(body["redundancy"]) if isinstance(body.get("redundancy"), dict) else None,
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{where}: field {exc} is missing or not a number") from None
@@ -305,6 +309,13 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
         raise DataError(f"{where}: calibrates {mics.shape[0]} mics; site {site.name!r} has {site.n_mics}")
     if body.get("site") != site.name:
         log.warning("%s was made for site %r; applying it to site %r", where, body.get("site"), site.name)
+    if out.redundancy is not None and out.redundancy.get("enough") is False:
+        log.warning(
+            "%s rests on %d spots, fewer than calibrate asks for (%s): its mics and clocks may rest on wrong GCC peaks",
+            where,
+            out.n_spots,
+            out.redundancy.get("spots_needed"),
+        )
     stated_mics = np.asarray(body.get("stated_mic_positions_m", mics), dtype=float)
     moved = np.abs(stated_mics - site.mic_positions_m).max()
     if moved > 1e-3:
