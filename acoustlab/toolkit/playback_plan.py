@@ -164,16 +164,6 @@ def plan_playbacks(
     extent = float(np.sqrt(((mics[:, None, :2] - mics[None, :, :2]) ** 2).sum(-1)).max())
     if n_spots < 3:
         raise ConfigError(f"plan_playbacks: n_spots must be >= 3 (mic positions need 3 spots not on a line); got {n_spots}")
-    # the thermometer, the clocks against mic 0, x and y of each mic that may move; a spot gives M − 1 time differences
-    needed = spots_for(len(mics) + 2 * int((np.asarray(priors.position_sigma_m) > 0).sum()), len(mics) - 1)
-    if needed is not None and n_spots < needed:
-        log.warning(
-            "plan_playbacks: %d spots are too few for a calibration that can tell wrong GCC peaks from right ones on %d mics; "
-            "plan %d or more (docs/calibrate.md)",
-            n_spots,
-            len(mics),
-            needed,
-        )
     candidates = _usable_candidates(priors, candidates_xy_m, expansion, min_mic_distance_m, n_spots, extent)
     separation = extent / 10 if min_separation_m is None else float(min_separation_m)
     source = np.column_stack([candidates, np.full(len(candidates), float(source_height_m))])
@@ -188,6 +178,15 @@ def plan_playbacks(
         pairs,
     )
     rows, names, sd = linearised_rows(playbacks, priors, PLANNED_KINDS, timing_sigma_s)  # (C, P, p)
+    needed = spots_for(len(names), len(mics) - 1)  # calibrate's unknowns; a spot gives M − 1 time differences
+    if needed is not None and n_spots < needed:
+        log.warning(
+            "plan_playbacks: %d spots are too few for a calibration that can tell wrong GCC peaks from right ones on %d mics; "
+            "plan %d or more (docs/calibrate.md)",
+            n_spots,
+            len(mics),
+            needed,
+        )
     rows = rows / _spreading_noise(source, mics, pairs, extent / 2)[:, :, None]
     speed = float(speed_of_sound_m_s(temperature_c, humidity_pct))
     dc_dt = float(speed_of_sound_slope(np.array([temperature_c]), np.array([humidity_pct]))[0])
