@@ -69,6 +69,23 @@ def spots_in(rng: np.random.Generator, n: int) -> np.ndarray:
     return np.column_stack([rng.uniform(5, 75, n), rng.uniform(5, 75, n), np.full(n, 1.5)])
 
 
+def test_playbacks_predict_each_pairs_time_difference_from_where_the_mics_stand():
+    mics = np.array([[0.0, 0.0, 1.5], [34.0, 0.0, 1.5], [0.0, 20.0, 1.5]])
+    # on the line through mics 0 and 1, beyond mic 0; on the perpendicular bisector of mics 0 and 1
+    spots = np.array([[-10.0, 0.0, 1.5], [17.0, -30.0, 1.5]])
+    p = Playbacks(
+        spots, np.zeros((2, 3)), np.array([20.0, 20.0]), np.array([50.0, 50.0]), np.zeros(2), np.arange(2), [(0, 1), (0, 2), (1, 2)]
+    )
+    for offset_c in (0.0, -3.0):
+        c = speed_of_sound_m_s(20.0 + offset_c, 50.0)
+        travel = p.travel_times_s(mics, offset_c)
+        np.testing.assert_allclose(travel[0], np.hypot(mics[:, 0] + 10.0, mics[:, 1]) / c)
+        differences = p.pair_differences_s(travel + 0.7)  # a common offset (the unknown emission time) cancels
+        assert differences[0, 0] == pytest.approx(34.0 / c)  # t_1 − t_0: the whole baseline
+        assert differences[1, 0] == pytest.approx(0.0, abs=1e-12)
+        assert differences[1, 2] == pytest.approx(travel[1, 2] - travel[1, 1])
+
+
 @settings(max_examples=12, deadline=None)
 @given(st.integers(4, 8), st.integers(0, 10_000))
 def test_exact_playbacks_recover_the_thermometer_clocks_and_mics(n_mics, seed):

@@ -101,18 +101,17 @@ def playbacks_from(
     source = np.column_stack([ev[[col.TRUE_X, col.TRUE_Y]].to_numpy(float), np.where(np.isfinite(z), z, assumed_source_height_m(site))])
     temperature = ev[col.TEMPERATURE].fillna(temperature_c).to_numpy(float) if col.TEMPERATURE in ev else np.full(len(ev), temperature_c)
     humidity = ev[col.HUMIDITY].fillna(humidity_pct).to_numpy(float) if col.HUMIDITY in ev else np.full(len(ev), humidity_pct)
-    mics = site.mic_positions_m
-    distance = np.sqrt(((source[:, None, :] - mics[None]) ** 2).sum(-1))
-    expected = (
-        (distance - distance[:, :1]) / speed_of_sound_m_s(temperature, humidity)[:, None] if expected_tdoa_s is None else expected_tdoa_s
+    playbacks = Playbacks(
+        source, lags[:, :, 0], temperature, humidity, event_time_s(ev), ev[col.POSITION_ID].to_numpy(), list(site.mic_pairs)
     )
-    pairs = list(site.mic_pairs)
-    first, second = np.array([i for i, _ in pairs]), np.array([j for _, j in pairs])
-    gap = np.abs(lags - (expected[:, second] - expected[:, first])[:, :, None])
+    if strongest:
+        return playbacks
+    expected = playbacks.travel_times_s(site.mic_positions_m) if expected_tdoa_s is None else expected_tdoa_s
+    gap = np.abs(lags - playbacks.pair_differences_s(expected)[:, :, None])
     gap = np.where(np.isfinite(gap), gap, np.inf)
     best = np.take_along_axis(lags, np.argmin(gap, axis=2)[:, :, None], axis=2)[:, :, 0]
-    tdoa = lags[:, :, 0] if strongest else np.where(np.isfinite(gap.min(axis=2)), best, np.nan)
-    return Playbacks(source, tdoa, temperature, humidity, event_time_s(ev), ev[col.POSITION_ID].to_numpy(), pairs)
+    playbacks.tdoa_s = np.where(np.isfinite(gap.min(axis=2)), best, np.nan)
+    return playbacks
 
 
 def calibrate_playbacks(

@@ -113,6 +113,20 @@ class Playbacks:
             self.pairs,
         )
 
+    def travel_times_s(self, mics_m: np.ndarray, temperature_offset_c: float = 0.0) -> np.ndarray:
+        """(N, M) travel time from each playback's spot to each mic at ``mics_m`` ((M, 3), m), s.
+
+        At the speed of sound of the thermometer's reading plus ``temperature_offset_c`` (°C) and the humidity.
+        """
+        speed = speed_of_sound_m_s(self.temperature_c + temperature_offset_c, self.relative_humidity_pct)
+        distance = np.sqrt(((self.source_m[:, None, :] - np.asarray(mics_m, dtype=float)[None]) ** 2).sum(-1))
+        return distance / speed[:, None]
+
+    def pair_differences_s(self, arrival_s: np.ndarray) -> np.ndarray:
+        """(N, P) t_j − t_i of each pair (i, j) from (N, M) arrival times (any offset common to a row), s."""
+        first, second = np.array([i for i, _ in self.pairs], dtype=int), np.array([j for _, j in self.pairs], dtype=int)
+        return arrival_s[:, second] - arrival_s[:, first]
+
     def reference_tdoa_s(self, n_mics: int) -> np.ndarray:
         """(N, M) time differences t_m − t_0 from the pairs (0, m) (column 0 is 0; NaN where that pair is not measured), s."""
         out = np.full((len(self.source_m), n_mics), np.nan)
@@ -189,10 +203,8 @@ class ArrayCalibration:
 
     def predicted_tdoa_s(self, playbacks: Playbacks) -> np.ndarray:
         """(N, M) the time differences t_m − t_0 this calibrated array predicts for the playbacks, s (a pair (i, j): column j − column i)."""
-        speed = speed_of_sound_m_s(playbacks.temperature_c + self.temperature_offset_c, playbacks.relative_humidity_pct)
-        distance = np.sqrt(((playbacks.source_m[:, None, :] - self.mic_positions_m[None]) ** 2).sum(-1))
         clock = self.clock_offset_s[None, :] + self.clock_drift[None, :] * np.nan_to_num(playbacks.time_s - self.drift_origin_s)[:, None]
-        arrival = distance / speed[:, None] + clock
+        arrival = playbacks.travel_times_s(self.mic_positions_m, self.temperature_offset_c) + clock
         return arrival - arrival[:, :1]
 
     def position_sd_m(self) -> np.ndarray:

@@ -141,8 +141,8 @@ class CalibrateProtocol:
             stated[test] = _solve_errors(tested, site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
             clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(tested.time_s - cal.drift_origin_s)[:, None]
             calibrated[test] = _solve_errors(tested, cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
-            residual["stated"][test] = _pair_residuals_s(tested, _stated_arrivals_s(tested, site))
-            residual["calibrated"][test] = _pair_residuals_s(tested, cal.predicted_tdoa_s(tested))
+            residual["stated"][test] = tested.pair_differences_s(tested.travel_times_s(site.mic_positions_m)) - tested.tdoa_s
+            residual["calibrated"][test] = tested.pair_differences_s(cal.predicted_tdoa_s(tested)) - tested.tdoa_s
 
         def summary(e: np.ndarray, r: np.ndarray) -> dict[str, float | None]:
             e = np.where(np.isfinite(e), e, np.inf)
@@ -181,18 +181,6 @@ def jackknife_sd(without: list[ArrayCalibration]) -> dict[str, Any]:
         "temperature_offset_sd_c": float(sd(np.array([c.temperature_offset_c for c in without]))),
         "clock_offset_sd_s": sd(np.array([c.clock_offset_s for c in without])).tolist(),
     }
-
-
-def _stated_arrivals_s(p: Playbacks, site: Site) -> np.ndarray:
-    """(N, M) travel times from each playback's spot to the stated mics at the thermometer's speed of sound, s."""
-    distance = np.sqrt(((p.source_m[:, None, :] - site.mic_positions_m[None]) ** 2).sum(-1))
-    return distance / speed_of_sound_m_s(p.temperature_c, p.relative_humidity_pct)[:, None]
-
-
-def _pair_residuals_s(p: Playbacks, arrival_s: np.ndarray) -> np.ndarray:
-    """(N, P) predicted − measured time difference of each pair, from (N, M) predicted arrivals (any common offset), s."""
-    first, second = np.array([i for i, _ in p.pairs]), np.array([j for _, j in p.pairs])
-    return arrival_s[:, second] - arrival_s[:, first] - p.tdoa_s
 
 
 def _solve_errors(
