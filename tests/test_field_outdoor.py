@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from acoustlab.core import columns as col
+from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 
@@ -45,3 +47,10 @@ def test_the_own_simulator_renders_at_the_true_array_with_a_wrong_thermometer(co
     np.testing.assert_allclose(arrival_s, expected_s, atol=2.0 / rate)
     as_stated_s = 0.05 + np.sqrt(((np.asarray(spots[0]) - site.mic_positions_m) ** 2).sum(-1)) / c
     assert np.abs(arrival_s - as_stated_s).max() > 20 / rate  # the stated array would put them elsewhere
+
+
+def test_the_image_source_renderers_ground_is_refused_not_ignored():
+    from plugins.fields.outdoor import OutdoorField
+
+    with pytest.raises(ConfigError, match="ground_energy_absorption is field=image_source's"):
+        OutdoorField(ground_energy_absorption=0.4)

@@ -6,8 +6,8 @@ positions and injected errors as ``field=image_source`` (recorders off their sta
 clocks off, a thermometer off; ``plugins.fields.image_source.ImageSourceField``), rendered by
 ``plugins.simulators.outdoor.OutdoorSimulator`` (impedance ground, trunk scattering, occlusion,
 ISO 9613-1 air absorption) at the recorders' true positions. ``calibrate`` is measured on both
-(``experiments/field_calibration.py --field``). ``ground_energy_absorption`` is the image-source
-renderer's and is not used here: the site's ground is.
+(``experiments/field_calibration.py --field``). The ground is the site's; the image-source
+renderer's ``ground_energy_absorption`` is refused here rather than ignored.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from scipy import fft as sfft
 
+from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import Site
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 from plugins.fields.image_source import ImageSourceField
@@ -41,6 +42,11 @@ class OutdoorField(ImageSourceField):
     source_label = "acoustlab_outdoor_simulator"
 
     def __init__(self, simulator: Mapping[str, Any] | None = None, **kwargs: Any) -> None:
+        if "ground_energy_absorption" in kwargs:
+            raise ConfigError(
+                "field.ground_energy_absorption is field=image_source's; field=outdoor renders the site's ground "
+                "(simulator.ground): remove it"
+            )
         super().__init__(**kwargs)
         options = {k: v for k, v in dict(simulator or {}).items() if k != "_target_"}
         self.simulator = OutdoorSimulator(**{**options, "sample_rate_hz": self.sample_rate_hz, "duration_s": self.duration_s})
