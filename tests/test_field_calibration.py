@@ -286,6 +286,61 @@ def test_from_few_spots_the_picks_that_fit_tighter_are_kept():
     assert stated_start_failed >= 2
 
 
+def _late_echo_playbacks(seed: int, n_spots: int):
+    """Playbacks at ``n_spots`` spots (3 each) heard by 6 recorders 2 m off their stated spots, clocks within ±1 ms.
+
+    Each spot's sound reaches each mic again 0.1–0.5 ms after its direct path (a reflection: the
+    same for the spot's three playbacks), so each pair's GCC offers, in random order, the direct
+    lag and the two lags of one mic's reflection with the other's direct path (10 µs noise).
+    Returns the site (stated array), the features, the events, the direct lags (N, P) and the priors.
+    """
+    rng = np.random.default_rng(seed)
+    stated, true = array(6, seed + 100)
+    site = dataclasses.replace(site3(), mic_positions_m=stated)
+    clocks = np.concatenate([[0.0], rng.uniform(-1e-3, 1e-3, 5)])
+    spots = np.repeat(spots_in(rng, n_spots), 3, axis=0)
+    direct = _features_for(site, true, spots, clocks, speed_of_sound_m_s(12.0, 70.0))
+    delay = np.repeat(rng.uniform(1e-4, 5e-4, (n_spots, 6)), 3, axis=0)
+    features = {}
+    for i, j in site.mic_pairs:
+        lag = direct[col.tdoa_lag(i, j)].to_numpy()
+        heard = np.column_stack([lag, lag + delay[:, j], lag - delay[:, i]]) + rng.normal(0, 1e-5, (len(spots), 3))
+        features |= {col.tdoa_lag(i, j, k + 1): v for k, v in enumerate(rng.permuted(heard, axis=1).T)}
+    xyz = {col.TRUE_X: spots[:, 0], col.TRUE_Y: spots[:, 1], col.TRUE_Z: spots[:, 2]}
+    events = pd.DataFrame({col.POSITION_ID: np.repeat(np.arange(n_spots), 3), **xyz, col.TEMPERATURE: 12.0, col.HUMIDITY: 70.0})
+    priors = Priors(stated, np.full(6, 2.0), temperature_sigma_c=3.0, clock_sigma_s=2e-3)
+    return site, pd.DataFrame(features), events, direct.to_numpy(), priors
+
+
+def test_the_annealed_search_finds_the_direct_paths_among_late_echoes_from_ms_off(caplog):
+    # 5 spots, reflections 0.1–0.5 ms late: the stated array predicts lags ms off, so its nearest peaks are
+    # mostly echoes; the mixture over all candidates, annealed from ms to tens of µs, predicts the direct paths
+    from acoustlab.stages.field_calibration import playback_rows, playbacks_from
+    from acoustlab.stages.solver_columns import pair_candidate_lags
+    from acoustlab.toolkit.array_calibration import annealed_prediction_s
+
+    found = []
+    for seed in range(4):
+        site, features, events, direct, priors = _late_echo_playbacks(seed, 5)
+        strongest = playbacks_from(features, events, site, 12.0, 70.0, strongest=True)
+        lags = pair_candidate_lags(features[playback_rows(events)], site)
+        predicted = annealed_prediction_s(strongest, lags, priors)
+        assert predicted.shape == (15, 6) and np.all(predicted[:, 0] == 0.0)
+        stated = playbacks_from(features, events, site, 12.0, 70.0)
+        assert np.mean(np.abs(stated.tdoa_s - direct) < 5e-5) < 0.6
+        found.append(np.mean(np.abs(strongest.pair_differences_s(predicted) - direct) < 3e-5))
+    assert sum(share >= 0.95 for share in found) >= 3, found
+    with caplog.at_level("INFO", logger="acoustlab.stages.field_calibration"):
+        calibrate_playbacks(
+            features,
+            events,
+            site,
+            lambda p: calibrate_array(p, priors, list("abcdef")),
+            anneal=lambda p, lags: annealed_prediction_s(p, lags, priors),
+        )
+    assert "from the annealed search over all candidates" in caplog.text
+
+
 def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path, caplog):
     stated, true = array(5, 21)
     site = dataclasses.replace(site3(), mic_positions_m=stated)

@@ -62,7 +62,13 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
     )
     log.info("calibrating %d mics from %d playbacks", site.n_mics, len(playback_events))
     # the field sources fill each event's weather (their defaults where a table has none)
-    calibration, playbacks = calibrate_playbacks(field.features, field.events, site, lambda p: protocol.calibrate(p, priors, mic_ids))
+    calibration, playbacks = calibrate_playbacks(
+        field.features,
+        field.events,
+        site,
+        lambda p: protocol.calibrate(p, priors, mic_ids),
+        anneal=lambda p, lags: protocol.annealed_prediction(p, lags, priors),
+    )
     calibration.extra["held_out"], calibration.extra["jackknife_sd"] = protocol.held_out(
         playbacks, priors, mic_ids, site, built.components.solver
     )

@@ -122,6 +122,7 @@ def calibrate_playbacks(
     temperature_c: float = 15.0,
     humidity_pct: float = 60.0,
     max_rounds: int = 30,
+    anneal: Callable[[Playbacks, np.ndarray], np.ndarray] | None = None,
 ) -> tuple[ArrayCalibration, Playbacks]:
     """Calibrate, re-pick each pair's GCC candidate with what the calibration predicts, and calibrate again until the picks hold.
 
@@ -134,14 +135,23 @@ def calibrate_playbacks(
 
     From few spots the rounds can settle on picks that are wrong but agree with each other (the
     forest from 5 spots: 37 % of the picks, the thermometer 3 °C off the truth). So the rounds run
-    twice, from the peaks nearest the stated array's lags and from the highest peaks, and the
-    calibration whose time differences fit their picks more tightly (smaller robust timing σ) is
-    kept. ``fit`` is the calibration (``CalibrateProtocol.calibrate``).
+    from the peaks nearest the stated array's lags, from the highest peaks and, with ``anneal``,
+    from the peaks nearest the lags of the array that explains all candidates at once
+    (``acoustlab.toolkit.array_calibration.annealed_prediction_s``), and the calibration whose
+    time differences fit their picks more tightly (smaller robust timing σ) is kept. ``fit`` is the
+    calibration (``CalibrateProtocol.calibrate``), ``anneal`` that search
+    (``CalibrateProtocol.annealed_prediction``: playbacks and their (N, P, K) candidate lags).
     """
+    strongest = playbacks_from(features, events, site, temperature_c, humidity_pct, strongest=True)
     starts = {
         "the stated array's lags": playbacks_from(features, events, site, temperature_c, humidity_pct),
-        "the highest GCC peaks": playbacks_from(features, events, site, temperature_c, humidity_pct, strongest=True),
+        "the highest GCC peaks": strongest,
     }
+    if anneal is not None:
+        lags = pair_candidate_lags(features[playback_rows(events)], site)
+        starts["the annealed search over all candidates"] = playbacks_from(
+            features, events, site, temperature_c, humidity_pct, anneal(strongest, lags)
+        )
     results = {
         name: _until_picks_hold(first, features, events, site, fit, temperature_c, humidity_pct, max_rounds)
         for name, first in starts.items()

@@ -32,12 +32,13 @@ playbacks shrink its standard deviation to at most ``IDENTIFIED_RATIO`` of its p
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import brentq, least_squares
+from scipy.optimize import brentq, least_squares, minimize
 
 from acoustlab.core.errors import DataError
 from acoustlab.toolkit.physics import speed_of_sound_m_s
@@ -60,6 +61,13 @@ CONVERGED_PRIORS = 1e-4
 OUTLIER_K = 5.0
 #: The thermometer's offset is bounded to this many prior standard deviations (±30 °C for the default 3 °C).
 MAX_TEMPERATURE_PRIORS = 10.0
+#: The annealed search's mixture widths, s: from where every candidate within a few ms pulls (the stated array's
+#: GPS error moves a pair's lag by ms) down to a clean peak's timing noise (tens of µs); set on the forest's 5-spot
+#: playbacks of acoustlab's own simulator (docs/calibrate.md).
+ANNEALING_WIDTHS_S = np.geomspace(2e-3, 3e-5, 10)
+#: The likelihood floor of a time difference none of whose candidates is the direct path (relative to one candidate
+#: at zero residual among K = 1): about what a residual of 2.8 widths costs.
+ANNEALING_FLOOR = 0.02
 #: What can be estimated.
 PARAMETER_KINDS = ("temperature", "clocks", "drift", "positions")
 
@@ -407,6 +415,67 @@ def linearised_rows(
     n_rows = int(model.measured.sum())
     data = model.jacobian(np.zeros(len(model.names)), timing_sigma_s, np.ones(n_rows))[:n_rows]
     return data.reshape(len(playbacks.source_m), len(playbacks.pairs), len(model.names)), model.names, model.sd
+
+
+def annealed_prediction_s(
+    playbacks: Playbacks,
+    candidate_lags_s: np.ndarray,
+    priors: Priors,
+    estimate: tuple[str, ...] = PARAMETER_KINDS,
+    widths_s: np.ndarray = ANNEALING_WIDTHS_S,
+    min_drift_span_s: float = 3600.0,
+) -> np.ndarray:
+    """(N, M) time differences t_m − t_0 predicted by the array that best explains every pair's GCC candidates at once.
+
+    Picking one candidate per pair and fitting (``calibrate_array``) from a few spots settles where
+    the first picks lead, and wrong picks that agree with each other hold a mic centimetres to
+    decimetres off. Here no pick is made: each time difference's likelihood is a mixture over its
+    pair's K candidates, Σ_k exp(−r_k² / 2w²) / K, with a floor ``ANNEALING_FLOOR`` for a pair none
+    of whose candidates is the direct path, and the parameters (in units of their priors, with
+    their Gaussian priors) maximise the product over all playbacks. The width w is annealed from
+    ms, where every candidate within a few ms pulls and the objective has one broad basin, down to
+    the timing noise of a clean peak, each step starting where the last ended (deterministic
+    annealing; Rose 1998, Proc. IEEE 86: 2210–2239). L-BFGS-B minimises each step with the model's
+    analytic Jacobian. The result is a start for the picks, not a calibration: it has no robust
+    timing σ, covariance or residuals.
+
+    Parameters
+    ----------
+    playbacks : Playbacks
+        The playbacks (spots, weather, times, pairs); their ``tdoa_s`` is not used.
+    candidate_lags_s : numpy.ndarray
+        (N, P, K) each pair's GCC candidate lags t_j − t_i, s (NaN where fewer than K).
+    priors, estimate, min_drift_span_s
+        As for ``calibrate_array``.
+    widths_s : numpy.ndarray
+        The mixture's widths, s, from wide to narrow.
+    """
+    lags = np.asarray(candidate_lags_s, dtype=float)
+    usable = np.isfinite(lags)
+    measured = dataclasses.replace(playbacks, tdoa_s=np.where(usable.any(axis=2), 0.0, np.nan))
+    kinds = set(estimate) - set(_structural_limits(measured, priors, set(estimate), min_drift_span_s))
+    origin = float(np.nanmin(playbacks.time_s)) if np.isfinite(playbacks.time_s).any() else 0.0
+    model = _Model(measured, priors, kinds, origin)
+    observed = np.where(usable, lags, 0.0)[model.measured]  # (R, K)
+    share = usable[model.measured] / usable[model.measured].sum(axis=1, keepdims=True)
+    n_rows = int(model.measured.sum())
+
+    def objective(u: np.ndarray, width_s: float) -> tuple[float, np.ndarray]:
+        predicted = model.predicted_s(u)[0][model.measured]
+        r = observed - predicted[:, None]
+        e = share * np.exp(-0.5 * (r / width_s) ** 2)
+        total = e.sum(axis=1) + ANNEALING_FLOOR
+        d_predicted = -(e * r).sum(axis=1) / width_s**2 / total  # d(−log likelihood)/d prediction
+        d_u = model.jacobian(u, 1.0, np.ones(n_rows))[:n_rows]
+        return float(-np.log(total).sum() + 0.5 * u @ u), d_u.T @ d_predicted + u
+
+    u = np.zeros(len(model.names))
+    bounds = list(zip(*model.bounds, strict=True))
+    for width in widths_s:
+        u = minimize(objective, u, args=(float(width),), jac=True, method="L-BFGS-B", bounds=bounds).x
+    offset, clocks, drift, mics = model.unpack(u)
+    arrival = playbacks.travel_times_s(mics, offset) + clocks[None] + drift[None] * model.t[:, None]
+    return arrival - arrival[:, :1]
 
 
 def calibrate_array(

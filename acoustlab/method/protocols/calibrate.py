@@ -28,7 +28,14 @@ from acoustlab.core import columns as col
 from acoustlab.core.contracts import SolverInputs
 from acoustlab.core.errors import ConfigError, show
 from acoustlab.core.types import Site
-from acoustlab.toolkit.array_calibration import PARAMETER_KINDS, ArrayCalibration, Playbacks, Priors, calibrate_array
+from acoustlab.toolkit.array_calibration import (
+    PARAMETER_KINDS,
+    ArrayCalibration,
+    Playbacks,
+    Priors,
+    annealed_prediction_s,
+    calibrate_array,
+)
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
@@ -112,6 +119,10 @@ class CalibrateProtocol:
     def calibrate(self, playbacks: Playbacks, priors: Priors, mic_ids: list[str]) -> ArrayCalibration:
         """The calibration from every playback."""
         return calibrate_array(playbacks, priors, mic_ids, self.estimate, min_drift_span_s=self.min_drift_span_s)
+
+    def annealed_prediction(self, playbacks: Playbacks, candidate_lags_s: np.ndarray, priors: Priors) -> np.ndarray:
+        """(N, M) t_m − t_0 of the array that best explains every pair's GCC candidates (``annealed_prediction_s``), s."""
+        return annealed_prediction_s(playbacks, candidate_lags_s, priors, self.estimate, min_drift_span_s=self.min_drift_span_s)
 
     def held_out(
         self, playbacks: Playbacks, priors: Priors, mic_ids: list[str], site: Site, solver: Any
