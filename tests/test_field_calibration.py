@@ -222,6 +222,27 @@ def _features_for(site, mics_m: np.ndarray, source_xyz: np.ndarray, clocks_s: np
     return pd.DataFrame({col.tdoa_lag(i, j): arrival[:, j] - arrival[:, i] for i, j in site.mic_pairs})
 
 
+def _six_recorders(seed: int, n_spots: int):
+    """6 recorders 2 m off their stated spots, clocks within ±1 ms, ``n_spots`` spots 3 playbacks each.
+
+    Returns the random generator (for the echoes), the site (stated array), the true mics, the
+    clocks, the (N, 3) playback positions and the direct paths' lags (a features table).
+    """
+    rng = np.random.default_rng(seed)
+    stated, true = array(6, seed + 100)
+    site = dataclasses.replace(site3(), mic_positions_m=stated)
+    clocks = np.concatenate([[0.0], rng.uniform(-1e-3, 1e-3, 5)])
+    spots = np.repeat(spots_in(rng, n_spots), 3, axis=0)
+    return rng, site, true, clocks, spots, _features_for(site, true, spots, clocks, speed_of_sound_m_s(12.0, 70.0))
+
+
+def _playback_table(spots: np.ndarray, site) -> tuple[pd.DataFrame, Priors]:
+    """The events of playbacks at ``spots`` (3 per spot, 12 °C, 70 %) and the stated array's priors."""
+    xyz = {col.TRUE_X: spots[:, 0], col.TRUE_Y: spots[:, 1], col.TRUE_Z: spots[:, 2]}
+    events = pd.DataFrame({col.POSITION_ID: np.arange(len(spots)) // 3, **xyz, col.TEMPERATURE: 12.0, col.HUMIDITY: 70.0})
+    return events, Priors(site.mic_positions_m, np.full(site.n_mics, 2.0), temperature_sigma_c=3.0, clock_sigma_s=2e-3)
+
+
 def _echoed_playbacks(seed: int, n_spots: int, direct_first: float | None):
     """Playbacks at ``n_spots`` spots (3 each) heard by 6 recorders 2 m off their stated spots, clocks within ±1 ms.
 
@@ -230,12 +251,7 @@ def _echoed_playbacks(seed: int, n_spots: int, direct_first: float | None):
     second otherwise. Returns the site (stated array), the true mics, the clocks, the features, the
     events, the direct paths' lags (N, P) and the priors.
     """
-    rng = np.random.default_rng(seed)
-    stated, true = array(6, seed + 100)
-    site = dataclasses.replace(site3(), mic_positions_m=stated)
-    clocks = np.concatenate([[0.0], rng.uniform(-1e-3, 1e-3, 5)])
-    spots = np.repeat(spots_in(rng, n_spots), 3, axis=0)
-    direct = _features_for(site, true, spots, clocks, speed_of_sound_m_s(12.0, 70.0))
+    rng, site, true, clocks, spots, direct = _six_recorders(seed, n_spots)
     features = {}
     for i, j in site.mic_pairs:
         lag = direct[col.tdoa_lag(i, j)].to_numpy() + rng.normal(0, 1e-5, len(spots))
@@ -246,9 +262,7 @@ def _echoed_playbacks(seed: int, n_spots: int, direct_first: float | None):
             first = (rng.random(len(spots)) < direct_first)[:, None]
             ranked = np.where(first, np.column_stack([lag, echoes]), np.column_stack([echoes[:, :1], lag, echoes[:, 1:]]))
         features |= {col.tdoa_lag(i, j, k + 1): ranked[:, k] for k in range(3)}
-    xyz = {col.TRUE_X: spots[:, 0], col.TRUE_Y: spots[:, 1], col.TRUE_Z: spots[:, 2]}
-    events = pd.DataFrame({col.POSITION_ID: np.repeat(np.arange(n_spots), 3), **xyz, col.TEMPERATURE: 12.0, col.HUMIDITY: 70.0})
-    priors = Priors(stated, np.full(6, 2.0), temperature_sigma_c=3.0, clock_sigma_s=2e-3)
+    events, priors = _playback_table(spots, site)
     return site, true, clocks, pd.DataFrame(features), events, direct.to_numpy(), priors
 
 
@@ -294,21 +308,14 @@ def _late_echo_playbacks(seed: int, n_spots: int):
     lag and the two lags of one mic's reflection with the other's direct path (10 µs noise).
     Returns the site (stated array), the features, the events, the direct lags (N, P) and the priors.
     """
-    rng = np.random.default_rng(seed)
-    stated, true = array(6, seed + 100)
-    site = dataclasses.replace(site3(), mic_positions_m=stated)
-    clocks = np.concatenate([[0.0], rng.uniform(-1e-3, 1e-3, 5)])
-    spots = np.repeat(spots_in(rng, n_spots), 3, axis=0)
-    direct = _features_for(site, true, spots, clocks, speed_of_sound_m_s(12.0, 70.0))
+    rng, site, true, clocks, spots, direct = _six_recorders(seed, n_spots)
     delay = np.repeat(rng.uniform(1e-4, 5e-4, (n_spots, 6)), 3, axis=0)
     features = {}
     for i, j in site.mic_pairs:
         lag = direct[col.tdoa_lag(i, j)].to_numpy()
         heard = np.column_stack([lag, lag + delay[:, j], lag - delay[:, i]]) + rng.normal(0, 1e-5, (len(spots), 3))
         features |= {col.tdoa_lag(i, j, k + 1): v for k, v in enumerate(rng.permuted(heard, axis=1).T)}
-    xyz = {col.TRUE_X: spots[:, 0], col.TRUE_Y: spots[:, 1], col.TRUE_Z: spots[:, 2]}
-    events = pd.DataFrame({col.POSITION_ID: np.repeat(np.arange(n_spots), 3), **xyz, col.TEMPERATURE: 12.0, col.HUMIDITY: 70.0})
-    priors = Priors(stated, np.full(6, 2.0), temperature_sigma_c=3.0, clock_sigma_s=2e-3)
+    events, priors = _playback_table(spots, site)
     return site, pd.DataFrame(features), events, direct.to_numpy(), priors
 
 
