@@ -102,6 +102,8 @@ class Playbacks:
 
     def __post_init__(self) -> None:
         self.pairs = [(int(i), int(j)) for i, j in self.pairs]
+        index = np.array(self.pairs, dtype=int).reshape(-1, 2)
+        self._first, self._second = index[:, 0], index[:, 1]
         if self.tdoa_s.shape[1:] != (len(self.pairs),):
             raise DataError(f"calibration: {self.tdoa_s.shape[1:]} time-difference columns for {len(self.pairs)} mic pairs")
 
@@ -132,8 +134,7 @@ class Playbacks:
 
     def pair_differences_s(self, arrival_s: np.ndarray) -> np.ndarray:
         """(N, P) t_j − t_i of each pair (i, j) from (N, M) arrival times (any offset common to a row), s."""
-        first, second = np.array([i for i, _ in self.pairs], dtype=int), np.array([j for _, j in self.pairs], dtype=int)
-        return arrival_s[:, second] - arrival_s[:, first]
+        return arrival_s[:, self._second] - arrival_s[:, self._first]
 
     def reference_tdoa_s(self, n_mics: int) -> np.ndarray:
         """(N, M) time differences t_m − t_0 from the pairs (0, m) (column 0 is 0; NaN where that pair is not measured), s."""
@@ -333,8 +334,6 @@ class _Model:
         limit = np.where(np.array([n == "temperature_offset_c" for n in names], dtype=bool), MAX_TEMPERATURE_PRIORS, np.inf)
         self.bounds = (-limit, limit)
         self.t = np.nan_to_num(playbacks.time_s - drift_origin_s)
-        self.first = np.array([i for i, _ in playbacks.pairs], dtype=int)
-        self.second = np.array([j for _, j in playbacks.pairs], dtype=int)
         self.measured = np.isfinite(playbacks.tdoa_s)
         self.dcdt = speed_of_sound_slope(playbacks.temperature_c, playbacks.relative_humidity_pct)
 
@@ -349,14 +348,18 @@ class _Model:
             mics[m, 1] += theta[f"mic_{m}_y_m"]
         return float(theta.get("temperature_offset_c", 0.0)), clocks, drift, mics
 
-    def predicted_s(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(N, P) predicted pair time differences, and the (N, M) distances, (N, M, 3) spot − mic vectors and (N,) speeds."""
+    def arrival_s(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(N, M) arrival times less the emission's, and the (N, M) distances, (N, M, 3) spot − mic vectors and (N,) speeds."""
         offset, clocks, drift, mics = self.unpack(u)
         speed = speed_of_sound_m_s(self.pb.temperature_c + offset, self.pb.relative_humidity_pct)
         diff = self.pb.source_m[:, None, :] - mics[None]
         dist = np.sqrt((diff**2).sum(-1))
-        arrival = dist / speed[:, None] + clocks[None, :] + drift[None, :] * self.t[:, None]
-        return arrival[:, self.second] - arrival[:, self.first], dist, diff, speed
+        return dist / speed[:, None] + clocks[None, :] + drift[None, :] * self.t[:, None], dist, diff, speed
+
+    def predicted_s(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(N, P) predicted pair time differences, and ``arrival_s``'s distances, spot − mic vectors and speeds."""
+        arrival, dist, diff, speed = self.arrival_s(u)
+        return self.pb.pair_differences_s(arrival), dist, diff, speed
 
     def residuals(self, u: np.ndarray, sigma_t: float, weights: np.ndarray) -> np.ndarray:
         pred, *_ = self.predicted_s(u)
@@ -378,7 +381,7 @@ class _Model:
             else:
                 m, axis = int(name.split("_")[1]), 0 if name.split("_")[2] == "x" else 1
                 d_arrival[:, m] = -diff[:, m, axis] / dist[:, m] / speed  # d‖s − p_m‖/dp_m / c
-            cols.append((d_arrival[:, self.second] - d_arrival[:, self.first])[self.measured])
+            cols.append(self.pb.pair_differences_s(d_arrival)[self.measured])
         data = np.stack(cols, axis=1) * self.sd / sigma_t * np.sqrt(weights)[:, None] if cols else np.zeros((self.measured.sum(), 0))
         return np.vstack([data, np.eye(len(self.names))])
 
@@ -473,8 +476,7 @@ def annealed_prediction_s(
     bounds = list(zip(*model.bounds, strict=True))
     for width in widths_s:
         u = minimize(objective, u, args=(float(width),), jac=True, method="L-BFGS-B", bounds=bounds).x
-    offset, clocks, drift, mics = model.unpack(u)
-    arrival = playbacks.travel_times_s(mics, offset) + clocks[None] + drift[None] * model.t[:, None]
+    arrival = model.arrival_s(u)[0]
     return arrival - arrival[:, :1]
 
 
