@@ -343,9 +343,56 @@ def test_the_annealed_search_finds_the_direct_paths_among_late_echoes_from_ms_of
             events,
             site,
             lambda p: calibrate_array(p, priors, list("abcdef")),
-            anneal=lambda p, lags: annealed_prediction_s(p, lags, priors),
+            anneal=lambda p, lags, heights: annealed_prediction_s(p, lags, priors, candidate_heights=heights),
         )
     assert "from the annealed search over all candidates" in caplog.text
+
+
+def _wall_echo_playbacks(seed: int, n_spots: int):
+    """Playbacks (``_six_recorders``) where each recorder hears a reflection the same 0.2–0.6 ms after every direct path.
+
+    A recorder beside a wall: its echo is late by the same delay from every spot, so the lags of
+    the echoes alone are the direct paths' with other clock offsets. Each pair's GCC offers the
+    direct lag, the two echoes' and the one mic's echo against the other's direct path, ranked by
+    height: the direct path's 0.7–1.0, the others' 0.4–0.8 (10 µs noise). Returns the site, the
+    features (lags and heights), the events, the direct lags (N, P) and the priors.
+    """
+    rng, site, true, clocks, spots, direct = _six_recorders(seed, n_spots)
+    delay = rng.uniform(2e-4, 6e-4, 6)
+    features = {}
+    for i, j in site.mic_pairs:
+        lag = direct[col.tdoa_lag(i, j)].to_numpy()
+        heard = np.column_stack([lag, lag + delay[j] - delay[i], lag + delay[j]]) + rng.normal(0, 1e-5, (len(spots), 3))
+        height = np.column_stack([rng.uniform(0.7, 1.0, len(spots)), *rng.uniform(0.4, 0.8, (2, len(spots)))])
+        rank = np.argsort(-height, axis=1)
+        for k in range(3):
+            features[col.tdoa_lag(i, j, k + 1)] = np.take_along_axis(heard, rank, axis=1)[:, k]
+            features[col.xcorr_peak(i, j, k + 1)] = np.take_along_axis(height, rank, axis=1)[:, k]
+    events, priors = _playback_table(spots, site)
+    return site, pd.DataFrame(features), events, direct.to_numpy(), priors
+
+
+def test_the_annealed_search_weighs_each_candidate_by_its_peak_height():
+    # a constant echo per recorder fits the lags as well as the direct paths (the clocks absorb it);
+    # the heights are what tells them apart, and without heights the candidates weigh equally
+    from acoustlab.stages.field_calibration import playback_rows, playbacks_from
+    from acoustlab.stages.solver_columns import pair_candidate_lags, pair_candidate_weights
+    from acoustlab.toolkit.array_calibration import annealed_prediction_s
+
+    equal, weighed = [], []
+    for seed in range(6):
+        site, features, events, direct, priors = _wall_echo_playbacks(seed, 5)
+        strongest = playbacks_from(features, events, site, 12.0, 70.0, strongest=True)
+        rows = playback_rows(events)
+        lags, heights = pair_candidate_lags(features[rows], site), pair_candidate_weights(features[rows], site, 3)
+        for out, weights in ((equal, None), (weighed, heights)):
+            predicted = annealed_prediction_s(strongest, lags, priors, candidate_heights=weights)
+            out.append(np.mean(np.abs(strongest.pair_differences_s(predicted) - direct) < 3e-5))
+        if seed == 0:
+            unknown = annealed_prediction_s(strongest, lags, priors, candidate_heights=np.full(heights.shape, np.nan))
+            assert np.array_equal(unknown, annealed_prediction_s(strongest, lags, priors))
+    assert min(weighed) >= 0.95, weighed
+    assert sum(share < 0.95 for share in equal) >= 2, equal
 
 
 def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path, caplog):

@@ -67,7 +67,7 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
         field.events,
         site,
         lambda p: protocol.calibrate(p, priors, mic_ids),
-        anneal=lambda p, lags: protocol.annealed_prediction(p, lags, priors),
+        anneal=lambda p, lags, heights: protocol.annealed_prediction(p, lags, heights, priors),
     )
     calibration.extra["held_out"], calibration.extra["jackknife_sd"] = protocol.held_out(
         playbacks, priors, mic_ids, site, built.components.solver

@@ -41,6 +41,7 @@ from acoustlab.stages.solver_columns import (
     events_dropped_mask,
     mics_used,
     pair_candidate_lags,
+    pair_candidate_weights,
     solve_events,
 )
 from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks
@@ -122,7 +123,7 @@ def calibrate_playbacks(
     temperature_c: float = 15.0,
     humidity_pct: float = 60.0,
     max_rounds: int = 30,
-    anneal: Callable[[Playbacks, np.ndarray], np.ndarray] | None = None,
+    anneal: Callable[[Playbacks, np.ndarray, np.ndarray | None], np.ndarray] | None = None,
 ) -> tuple[ArrayCalibration, Playbacks]:
     """Calibrate, re-pick each pair's GCC candidate with what the calibration predicts, and calibrate again until the picks hold.
 
@@ -140,7 +141,8 @@ def calibrate_playbacks(
     (``acoustlab.toolkit.array_calibration.annealed_prediction_s``), and the calibration whose
     time differences fit their picks more tightly (smaller robust timing σ) is kept. ``fit`` is the
     calibration (``CalibrateProtocol.calibrate``), ``anneal`` that search
-    (``CalibrateProtocol.annealed_prediction``: playbacks and their (N, P, K) candidate lags).
+    (``CalibrateProtocol.annealed_prediction``: playbacks, their (N, P, K) candidate lags and the
+    candidates' GCC peak heights, None without the ``xcorr`` feature group).
     """
     strongest = playbacks_from(features, events, site, temperature_c, humidity_pct, strongest=True)
     starts = {
@@ -148,9 +150,15 @@ def calibrate_playbacks(
         "the highest GCC peaks": strongest,
     }
     if anneal is not None:
-        lags = pair_candidate_lags(features[playback_rows(events)], site)
+        known = features[playback_rows(events)]
+        lags = pair_candidate_lags(known, site)
+        heights = pair_candidate_weights(known, site, lags.shape[2])
+        if heights is None:
+            log.info(
+                "calibrate: the features have no GCC peak heights (the 'xcorr' group); the annealed search weighs each pair's candidates equally"
+            )
         starts["the annealed search over all candidates"] = playbacks_from(
-            features, events, site, temperature_c, humidity_pct, anneal(strongest, lags)
+            features, events, site, temperature_c, humidity_pct, anneal(strongest, lags, heights)
         )
     results = {
         name: _until_picks_hold(first, features, events, site, fit, temperature_c, humidity_pct, max_rounds)

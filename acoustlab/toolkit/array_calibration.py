@@ -68,6 +68,10 @@ ANNEALING_WIDTHS_S = np.geomspace(2e-3, 3e-5, 10)
 #: The likelihood floor of a time difference none of whose candidates is the direct path (relative to one candidate
 #: at zero residual among K = 1): about what a residual of 2.8 widths costs.
 ANNEALING_FLOOR = 0.02
+#: Each candidate's share of its pair's mixture grows as its GCC peak height to this power (its energy share):
+#: a peak that stands well above the others is the direct path far more often than not (on the forest's playbacks
+#: of acoustlab's own simulator, a strongest peak ≥ 1.3× the second was the direct path 81–100 % of the time).
+ANNEALING_HEIGHT_POWER = 2.0
 #: What can be estimated.
 PARAMETER_KINDS = ("temperature", "clocks", "drift", "positions")
 
@@ -427,13 +431,15 @@ def annealed_prediction_s(
     estimate: tuple[str, ...] = PARAMETER_KINDS,
     widths_s: np.ndarray = ANNEALING_WIDTHS_S,
     min_drift_span_s: float = 3600.0,
+    candidate_heights: np.ndarray | None = None,
+    height_power: float = ANNEALING_HEIGHT_POWER,
 ) -> np.ndarray:
     """(N, M) time differences t_m − t_0 predicted by the array that best explains every pair's GCC candidates at once.
 
     Picking one candidate per pair and fitting (``calibrate_array``) from a few spots settles where
     the first picks lead, and wrong picks that agree with each other hold a mic centimetres to
     decimetres off. Here no pick is made: each time difference's likelihood is a mixture over its
-    pair's K candidates, Σ_k exp(−r_k² / 2w²) / K, with a floor ``ANNEALING_FLOOR`` for a pair none
+    pair's K candidates, Σ_k π_k exp(−r_k² / 2w²), with a floor ``ANNEALING_FLOOR`` for a pair none
     of whose candidates is the direct path, and the parameters (in units of their priors, with
     their Gaussian priors) maximise the product over all playbacks. The width w is annealed from
     ms, where every candidate within a few ms pulls and the objective has one broad basin, down to
@@ -441,6 +447,12 @@ def annealed_prediction_s(
     annealing; Rose 1998, Proc. IEEE 86: 2210–2239). L-BFGS-B minimises each step with the model's
     analytic Jacobian. The result is a start for the picks, not a calibration: it has no robust
     timing σ, covariance or residuals.
+
+    The weights π_k are the prior probabilities that candidate k is the direct path: equal (1/K)
+    without ``candidate_heights``, else proportional to the GCC peak's height to ``height_power``.
+    With equal weights, from few spots a set of echoes that agree with each other can explain the
+    candidates as well as the direct paths (a 3-mic array from 5 spots: 10 time differences for 9
+    unknowns); the peaks' heights are the evidence the lags alone lack.
 
     Parameters
     ----------
@@ -452,6 +464,11 @@ def annealed_prediction_s(
         As for ``calibrate_array``.
     widths_s : numpy.ndarray
         The mixture's widths, s, from wide to narrow.
+    candidate_heights : numpy.ndarray, optional
+        (N, P, K) the candidates' GCC peak heights (the ``xcorr`` feature group; NaN or ≤ 0 where
+        unknown, which weighs that pair's candidates equally).
+    height_power : float
+        The power of the heights in the weights (0: equal weights).
     """
     lags = np.asarray(candidate_lags_s, dtype=float)
     usable = np.isfinite(lags)
@@ -460,7 +477,7 @@ def annealed_prediction_s(
     origin = float(np.nanmin(playbacks.time_s)) if np.isfinite(playbacks.time_s).any() else 0.0
     model = _Model(measured, priors, kinds, origin)
     observed = np.where(usable, lags, 0.0)[model.measured]  # (R, K)
-    share = usable[model.measured] / usable[model.measured].sum(axis=1, keepdims=True)
+    share = _candidate_shares(usable, candidate_heights, height_power)[model.measured]
     n_rows = int(model.measured.sum())
 
     def objective(u: np.ndarray, width_s: float) -> tuple[float, np.ndarray]:
@@ -478,6 +495,17 @@ def annealed_prediction_s(
         u = minimize(objective, u, args=(float(width),), jac=True, method="L-BFGS-B", bounds=bounds).x
     arrival = model.arrival_s(u)[0]
     return arrival - arrival[:, :1]
+
+
+def _candidate_shares(usable: np.ndarray, heights: np.ndarray | None, power: float) -> np.ndarray:
+    """(N, P, K) each usable candidate's prior weight in its pair's mixture, summing to 1 over the pair's candidates."""
+    weight = usable.astype(float)
+    if heights is not None:
+        h = np.where(usable, np.asarray(heights, dtype=float), np.nan)
+        known = (np.isfinite(h) & (h > 0)).sum(axis=2, keepdims=True) == usable.sum(axis=2, keepdims=True)
+        weight = np.where(known & usable, np.where(np.isfinite(h) & (h > 0), h, 1.0) ** power, weight)
+    total = weight.sum(axis=2, keepdims=True)
+    return np.divide(weight, total, out=np.zeros_like(weight), where=total > 0)
 
 
 def calibrate_array(

@@ -120,9 +120,18 @@ class CalibrateProtocol:
         """The calibration from every playback."""
         return calibrate_array(playbacks, priors, mic_ids, self.estimate, min_drift_span_s=self.min_drift_span_s)
 
-    def annealed_prediction(self, playbacks: Playbacks, candidate_lags_s: np.ndarray, priors: Priors) -> np.ndarray:
+    def annealed_prediction(
+        self, playbacks: Playbacks, candidate_lags_s: np.ndarray, candidate_heights: np.ndarray | None, priors: Priors
+    ) -> np.ndarray:
         """(N, M) t_m − t_0 of the array that best explains every pair's GCC candidates (``annealed_prediction_s``), s."""
-        return annealed_prediction_s(playbacks, candidate_lags_s, priors, self.estimate, min_drift_span_s=self.min_drift_span_s)
+        return annealed_prediction_s(
+            playbacks,
+            candidate_lags_s,
+            priors,
+            self.estimate,
+            min_drift_span_s=self.min_drift_span_s,
+            candidate_heights=candidate_heights,
+        )
 
     def held_out(
         self, playbacks: Playbacks, priors: Priors, mic_ids: list[str], site: Site, solver: Any
