@@ -91,13 +91,13 @@ def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path, 
     return json.loads((out / "calibration.json").read_text())
 
 
-def true_array(site: str, array_seed: int) -> np.ndarray:
-    """(M, 3) where the impaired array's recorders really stand, m."""
+def true_array(site: str, array_seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3) where the impaired array's recorders really stand, m, and (M,) their clocks' offsets, s."""
     from acoustlab.stages.sites import site_from_config
     from plugins.fields.image_source import ImageSourceField
 
     site_obj = site_from_config(compose_cfg([f"+site={site}"]).site)
-    return ImageSourceField(mic_position_error_m=2.0, clock_offset_max_s=0.001, array_seed=array_seed).true_array(site_obj)[0]
+    return ImageSourceField(mic_position_error_m=2.0, clock_offset_max_s=0.001, array_seed=array_seed).true_array(site_obj)
 
 
 def interval(errors: np.ndarray, groups: np.ndarray, stat) -> tuple[float, float]:
@@ -157,7 +157,9 @@ def main() -> None:
                     pooled.setdefault(f"calibrated, {n_spots} {design} spots", []).append(
                         solver_errors([*calls, *array, *IMPAIRED, f"calibration={path}"])[0]
                     )
-                true_mics = true_array(site, seed)
+                true_mics, true_clocks = true_array(site, seed)
+                # clocks are calibrated relative to mic 0's
+                clock_error = np.asarray(body["clock_offset_s"]) - body["clock_offset_s"][0] - (true_clocks - true_clocks[0])
                 stated_mics = np.asarray(body["stated_mic_positions_m"])
                 recovered.append(
                     {
@@ -167,6 +169,7 @@ def main() -> None:
                         "n_spots": n_spots,
                         "design": design,
                         "temperature_offset_c": body["temperature_offset_c"],
+                        "clock_error_us": np.round(1e6 * clock_error, 1).tolist(),
                         "mic_position_shift_m": body["mic_position_shift_m"],
                         "not_identified": body["not_identified"],
                         "held_out": body.get("held_out"),
@@ -201,7 +204,8 @@ def main() -> None:
             lines.append(
                 f"- {site}, array {c['array_seed']}, {c['n_spots']} {c['design']} spots: median mic error {c['mic_error_stated_m']:.2f} m as stated → "
                 f"{c['mic_error_calibrated_m']:.2f} m calibrated (median σ per axis: posterior {np.median(c['mic_position_sd_m']):.3f} m, "
-                f"jackknife {np.median(jackknife):.3f} m); thermometer offset {c['temperature_offset_c']:+.2f} °C "
+                f"jackknife {np.median(jackknife):.3f} m); clocks off by up to {np.max(np.abs(c['clock_error_us'])):.0f} µs "
+                f"(median {np.median(np.abs(c['clock_error_us'][1:])):.0f} µs); thermometer offset {c['temperature_offset_c']:+.2f} °C "
                 f"(truth −3); not identified: {c['not_identified'] or 'nothing'}; {held_text}"
             )
     name = "field_calibration" if opts.field == "image_source" else f"field_calibration_{opts.field}"
