@@ -71,6 +71,8 @@ ANNEALING_FLOOR = 0.02
 #: Each candidate's share of its pair's mixture grows as its GCC peak height to this power (its energy share):
 #: a peak that stands well above the others is the direct path far more often than not (on the forest's playbacks
 #: of acoustlab's own simulator, a strongest peak ≥ 1.3× the second was the direct path 81–100 % of the time).
+#: Set on both sites' 5-spot playbacks of that simulator among 0, 1, 2 and 4: of two lake arrays that 0 left on
+#: wrong picks, 2 corrected both and 1 one; 4 left one forest mic metres off.
 ANNEALING_HEIGHT_POWER = 2.0
 #: What can be estimated.
 PARAMETER_KINDS = ("temperature", "clocks", "drift", "positions")
