@@ -269,31 +269,33 @@ def _echoed_playbacks(seed: int, n_spots: int, direct_first: float | None):
 def test_picks_are_redone_until_they_hold_and_the_array_is_then_found_to_a_centimetre():
     # in random order, the stated array's lags pick an echo on most pairs, and only repeated
     # calibrate-and-re-pick rounds find every direct path: four rounds (the old limit) leave many wrong
-    from acoustlab.stages.field_calibration import _until_picks_hold, playbacks_from
+    from acoustlab.stages.field_calibration import playbacks_from
+    from acoustlab.toolkit.array_calibration import calibrate_until_picks_hold
 
     site, true, clocks, features, events, direct, priors = _echoed_playbacks(0, 10, None)
     fit = lambda p: calibrate_array(p, priors, list("abcdef"))  # noqa: E731
     first = playbacks_from(features, events, site, 12.0, 70.0)
-    _, after_four = _until_picks_hold(first, features, events, site, fit, 12.0, 70.0, 4)
+    _, after_four = calibrate_until_picks_hold(first, fit, 4)
     assert (np.abs(after_four.tdoa_s - direct) > 1e-4).mean() > 0.1
     cal, picked = calibrate_playbacks(features, events, site, fit)
     assert (np.abs(picked.tdoa_s - direct) > 1e-4).mean() < 0.01
     assert np.hypot(*(cal.mic_positions_m - true)[:, :2].T).max() < 0.02
     np.testing.assert_allclose(cal.clock_offset_s, clocks, atol=3e-5)
-    assert _until_picks_hold(first, features, events, site, fit, 12.0, 70.0, 30)[0].mic_positions_m == pytest.approx(cal.mic_positions_m)
+    assert calibrate_until_picks_hold(first, fit, 30)[0].mic_positions_m == pytest.approx(cal.mic_positions_m)
 
 
 def test_from_few_spots_the_picks_that_fit_tighter_are_kept():
     # 5 spots, the direct path highest in 80 % of the playbacks: from the stated array's lags the rounds can
     # settle on wrong picks that agree with each other (mics metres off); from the highest peaks they do
     # not, and calibrate keeps the calibration with the smaller timing σ
-    from acoustlab.stages.field_calibration import _until_picks_hold, playbacks_from
+    from acoustlab.stages.field_calibration import playbacks_from
+    from acoustlab.toolkit.array_calibration import calibrate_until_picks_hold
 
     stated_start_failed = 0
     for seed in (0, 1, 5, 8):
         site, true, _, features, events, _, priors = _echoed_playbacks(seed, 5, 0.8)
         fit = lambda p, priors=priors: calibrate_array(p, priors, list("abcdef"))  # noqa: E731
-        from_stated, _ = _until_picks_hold(playbacks_from(features, events, site, 12.0, 70.0), features, events, site, fit, 12.0, 70.0, 30)
+        from_stated, _ = calibrate_until_picks_hold(playbacks_from(features, events, site, 12.0, 70.0), fit, 30)
         stated_start_failed += np.hypot(*(from_stated.mic_positions_m - true)[:, :2].T).max() > 0.2
         cal, _ = calibrate_playbacks(features, events, site, fit)
         assert np.hypot(*(cal.mic_positions_m - true)[:, :2].T).max() < 0.1
@@ -393,6 +395,40 @@ def test_the_annealed_search_weighs_each_candidate_by_its_peak_height():
             assert np.array_equal(unknown, annealed_prediction_s(strongest, lags, priors))
     assert min(weighed) >= 0.95, weighed
     assert sum(share < 0.95 for share in equal) >= 2, equal
+
+
+def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
+    """Each calibration without a group of spots re-picks its GCC candidates until they hold, as the full one did, so its
+    jackknife measures the whole estimator; without candidates (picks only) it refits the given picks."""
+    import dataclasses as dc
+
+    from acoustlab.method.protocols.calibrate import CalibrateProtocol, jackknife_sd
+    from acoustlab.toolkit.array_calibration import calibrate_until_picks_hold
+    from plugins.solvers.hyperbolic import HyperbolicSolver
+
+    stated, true = array(6, 11)
+    rng = np.random.default_rng(12)
+    exact = playbacks(true, spots_in(rng, 8), np.zeros(6), 0.0, noise_s=1e-5, per=3)
+    echo = exact.tdoa_s + 4e-4
+    candidates = np.where(
+        rng.random(exact.tdoa_s.shape)[..., None] < 0.5, np.stack([exact.tdoa_s, echo], -1), np.stack([echo, exact.tdoa_s], -1)
+    )
+    wrong = rng.random(exact.tdoa_s.shape) < 0.1  # a tenth of the given picks are the echo
+    pb = dc.replace(exact, tdoa_s=np.where(wrong, echo, exact.tdoa_s), candidates_s=candidates)
+    ids, priors = list("abcdef"), Priors(stated, np.full(6, 2.0))
+    protocol = CalibrateProtocol(held_out_folds=8)
+    site = dataclasses.replace(site3(), mic_positions_m=stated)
+    _, jackknife = protocol.held_out(pb, priors, ids, site, HyperbolicSolver())
+
+    def fit(p):
+        return protocol.calibrate(p, priors, ids)
+
+    folds = [pb.subset(pb.spot != s) for s in np.unique(pb.spot)]
+    repicked = [calibrate_until_picks_hold(f, fit) for f in folds]
+    assert any(np.any(p.tdoa_s != f.tdoa_s) for (_, p), f in zip(repicked, folds, strict=True))  # the rounds moved picks
+    np.testing.assert_allclose(jackknife["mic_position_sd_m"], jackknife_sd([c for c, _ in repicked])["mic_position_sd_m"], rtol=1e-9)
+    _, fixed = protocol.held_out(dc.replace(pb, candidates_s=None), priors, ids, site, HyperbolicSolver())
+    np.testing.assert_allclose(fixed["mic_position_sd_m"], jackknife_sd([fit(f) for f in folds])["mic_position_sd_m"], rtol=1e-9)
 
 
 def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path, caplog):

@@ -44,7 +44,7 @@ from acoustlab.stages.solver_columns import (
     pair_candidate_weights,
     solve_events,
 )
-from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks
+from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks, calibrate_until_picks_hold
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
 from acoustlab.toolkit.physics import speed_of_sound_m_s
@@ -103,16 +103,11 @@ def playbacks_from(
     temperature = ev[col.TEMPERATURE].fillna(temperature_c).to_numpy(float) if col.TEMPERATURE in ev else np.full(len(ev), temperature_c)
     humidity = ev[col.HUMIDITY].fillna(humidity_pct).to_numpy(float) if col.HUMIDITY in ev else np.full(len(ev), humidity_pct)
     playbacks = Playbacks(
-        source, lags[:, :, 0], temperature, humidity, event_time_s(ev), ev[col.POSITION_ID].to_numpy(), list(site.mic_pairs)
+        source, lags[:, :, 0], temperature, humidity, event_time_s(ev), ev[col.POSITION_ID].to_numpy(), list(site.mic_pairs), lags
     )
     if strongest:
         return playbacks
-    expected = playbacks.travel_times_s(site.mic_positions_m) if expected_tdoa_s is None else expected_tdoa_s
-    gap = np.abs(lags - playbacks.pair_differences_s(expected)[:, :, None])
-    gap = np.where(np.isfinite(gap), gap, np.inf)
-    best = np.take_along_axis(lags, np.argmin(gap, axis=2)[:, :, None], axis=2)[:, :, 0]
-    playbacks.tdoa_s = np.where(np.isfinite(gap.min(axis=2)), best, np.nan)
-    return playbacks
+    return playbacks.picked(playbacks.travel_times_s(site.mic_positions_m) if expected_tdoa_s is None else expected_tdoa_s)
 
 
 def calibrate_playbacks(
@@ -127,14 +122,9 @@ def calibrate_playbacks(
 ) -> tuple[ArrayCalibration, Playbacks]:
     """Calibrate, re-pick each pair's GCC candidate with what the calibration predicts, and calibrate again until the picks hold.
 
-    A stated array 2–3 m off predicts lags several ms off, so the first pick takes a ground
-    reflection or another wrong peak for the direct path on most pairs (three in four on the
-    forest's playbacks); each calibration predicts the lags more closely, so each round corrects
-    some picks, and a fit stopped before the picks hold keeps centimetres of error that are not
-    noise (the forest needed up to 10 rounds). The rounds stop when the picks repeat (they hold,
-    or they cycle) or after ``max_rounds``, with a warning.
-
-    From few spots the rounds can settle on picks that are wrong but agree with each other (the
+    The rounds are ``calibrate_until_picks_hold``'s (a stated array 2–3 m off predicts lags so
+    far off that the first picks take an echo on most pairs: three in four on the forest's
+    playbacks). From few spots the rounds can settle on picks that are wrong but agree with each other (the
     forest from 5 spots: 37 % of the picks, the thermometer 3 °C off the truth). So the rounds run
     from the peaks nearest the stated array's lags, from the highest peaks and, with ``anneal``,
     from the peaks nearest the lags of the array that explains all candidates at once
@@ -150,20 +140,13 @@ def calibrate_playbacks(
         "the highest GCC peaks": strongest,
     }
     if anneal is not None:
-        known = features[playback_rows(events)]
-        lags = pair_candidate_lags(known, site)
-        heights = pair_candidate_weights(known, site, lags.shape[2])
+        heights = pair_candidate_weights(features[playback_rows(events)], site, strongest.candidates_s.shape[2])
         if heights is None:
             log.info(
                 "calibrate: the features have no GCC peak heights (the 'xcorr' group); the annealed search weighs each pair's candidates equally"
             )
-        starts["the annealed search over all candidates"] = playbacks_from(
-            features, events, site, temperature_c, humidity_pct, anneal(strongest, lags, heights)
-        )
-    results = {
-        name: _until_picks_hold(first, features, events, site, fit, temperature_c, humidity_pct, max_rounds)
-        for name, first in starts.items()
-    }
+        starts["the annealed search over all candidates"] = strongest.picked(anneal(strongest, strongest.candidates_s, heights))
+    results = {name: calibrate_until_picks_hold(first, fit, max_rounds) for name, first in starts.items()}
     best = min(results, key=lambda name: results[name][0].timing_sigma_s)  # ties: the first (the stated array's)
     log.info(
         "calibrate: kept the picks started from %s (timing sigma %s)",
@@ -171,36 +154,6 @@ def calibrate_playbacks(
         ", ".join(f"{1e6 * cal.timing_sigma_s:.0f} us from {name}" for name, (cal, _) in results.items()),
     )
     return results[best]
-
-
-def _until_picks_hold(
-    playbacks: Playbacks,
-    features: pd.DataFrame,
-    events: pd.DataFrame,
-    site: Site,
-    fit: Callable[[Playbacks], ArrayCalibration],
-    temperature_c: float,
-    humidity_pct: float,
-    max_rounds: int,
-) -> tuple[ArrayCalibration, Playbacks]:
-    """Calibrate from ``playbacks``' picks, re-pick with the calibration, and repeat until the picks repeat (``calibrate_playbacks``)."""
-    calibration = fit(playbacks)
-    seen = {_picks_key(playbacks)}
-    for rounds in range(2, max_rounds + 1):
-        repicked = playbacks_from(features, events, site, temperature_c, humidity_pct, calibration.predicted_tdoa_s(playbacks))
-        if _picks_key(repicked) in seen:
-            log.info("calibrate: the GCC picks held after %d rounds of calibrating and re-picking", rounds - 1)
-            return calibration, playbacks
-        seen.add(_picks_key(repicked))
-        playbacks = repicked
-        calibration = fit(playbacks)
-    log.warning("calibrate: the GCC picks still changed after %d rounds; the calibration may rest on some wrong peaks", max_rounds)
-    return calibration, playbacks
-
-
-def _picks_key(playbacks: Playbacks) -> bytes:
-    """The picked time differences as bytes (NaN included), to tell whether a round changed any pick."""
-    return np.ascontiguousarray(playbacks.tdoa_s).tobytes()
 
 
 def _digest(body: dict[str, Any]) -> str:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -96,6 +97,9 @@ class Playbacks:
         (N,) the spot (position id) of each playback.
     pairs : list of tuple of int
         (P,) the mic pairs (i, j), i < j, of the columns of ``tdoa_s``.
+    candidates_s : numpy.ndarray or None
+        (N, P, K) every pair's GCC candidate lags t_j − t_i, s (NaN where fewer than K), of which
+        ``tdoa_s`` holds one pick per pair; None where only the picks are known.
     """
 
     source_m: np.ndarray
@@ -105,6 +109,7 @@ class Playbacks:
     time_s: np.ndarray
     spot: np.ndarray
     pairs: list[tuple[int, int]]
+    candidates_s: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.pairs = [(int(i), int(j)) for i, j in self.pairs]
@@ -127,7 +132,21 @@ class Playbacks:
             self.time_s[rows],
             self.spot[rows],
             self.pairs,
+            None if self.candidates_s is None else self.candidates_s[rows],
         )
+
+    def picked(self, expected_tdoa_s: np.ndarray) -> Playbacks:
+        """These playbacks with each pair's candidate nearest the lag ``expected_tdoa_s`` ((N, M) t_m − t_0, s) predicts.
+
+        NaN where a pair has no candidate. Needs ``candidates_s``.
+        """
+        if self.candidates_s is None:
+            raise ValueError("Playbacks.picked needs the candidates (candidates_s)")
+        lags = self.candidates_s
+        gap = np.abs(lags - self.pair_differences_s(expected_tdoa_s)[:, :, None])
+        gap = np.where(np.isfinite(gap), gap, np.inf)
+        best = np.take_along_axis(lags, np.argmin(gap, axis=2)[:, :, None], axis=2)[:, :, 0]
+        return dataclasses.replace(self, tdoa_s=np.where(np.isfinite(gap.min(axis=2)), best, np.nan))
 
     def travel_times_s(self, mics_m: np.ndarray, temperature_offset_c: float = 0.0) -> np.ndarray:
         """(N, M) travel time from each playback's spot to each mic at ``mics_m`` ((M, 3), m), s.
@@ -607,6 +626,43 @@ def calibrate_array(
         priors=priors,
         extra={"redundancy": redundancy(playbacks, len(model.names))},
     )
+
+
+def calibrate_until_picks_hold(
+    playbacks: Playbacks, fit: Callable[[Playbacks], ArrayCalibration], max_rounds: int = 30, quiet: bool = False
+) -> tuple[ArrayCalibration, Playbacks]:
+    """Calibrate from ``playbacks``' picks, re-pick each pair's candidate with the calibration, and repeat until the picks repeat.
+
+    A stated array 2–3 m off predicts lags several ms off, so the first picks take a ground
+    reflection or another wrong peak for the direct path on most pairs; each calibration predicts
+    the lags more closely and corrects some picks, and a fit stopped before the picks hold keeps
+    centimetres of error that are not noise (the forest needed up to 10 rounds). The rounds stop
+    when the picks repeat (they hold, or they cycle) or after ``max_rounds``; the log says how many
+    rounds it took, and warns when they did not settle (``quiet``: neither). ``fit`` is the calibration (``calibrate_array`` with its priors); the playbacks need
+    their ``candidates_s``.
+    """
+    calibration = fit(playbacks)
+    seen = {_picks_key(playbacks)}
+    for rounds in range(2, max_rounds + 1):
+        repicked = playbacks.picked(calibration.predicted_tdoa_s(playbacks))
+        if _picks_key(repicked) in seen:
+            log.log(
+                logging.DEBUG if quiet else logging.INFO,
+                "calibrate: the GCC picks held after %d rounds of calibrating and re-picking",
+                rounds - 1,
+            )
+            return calibration, playbacks
+        seen.add(_picks_key(repicked))
+        playbacks = repicked
+        calibration = fit(playbacks)
+    if not quiet:
+        log.warning("calibrate: the GCC picks still changed after %d rounds; the calibration may rest on some wrong peaks", max_rounds)
+    return calibration, playbacks
+
+
+def _picks_key(playbacks: Playbacks) -> bytes:
+    """The picked time differences as bytes (NaN included), to tell whether a round changed any pick."""
+    return np.ascontiguousarray(playbacks.tdoa_s).tobytes()
 
 
 def temperature_from_speed_c(speed_m_s: float, relative_humidity_pct: float) -> float:

@@ -11,7 +11,8 @@ How much the calibration buys at this site is measured on the playbacks themselv
 spot: each spot's playbacks are solved with the array calibrated without that spot, and with the
 stated array, by the configured solver (``held_out`` in ``metrics.json``). The same calibrations
 without a group of spots give each estimate's delete-group jackknife standard deviation
-(``jackknife_sd``): unlike the posterior's, it also holds what the fit's model lacks (multipath
+(``jackknife_sd``); each re-picks its GCC candidates until its picks hold, as the full calibration
+did, so the picks' own uncertainty is in it. Unlike the posterior's, it also holds what the fit's model lacks (multipath
 that biases one spot's peaks, a speed-of-sound formula not the air's), which the posterior, counting
 every playback as independent, leaves out (docs/calibrate.md gives the measured ratio).
 """
@@ -35,6 +36,7 @@ from acoustlab.toolkit.array_calibration import (
     Priors,
     annealed_prediction_s,
     calibrate_array,
+    calibrate_until_picks_hold,
 )
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.physics import speed_of_sound_m_s
@@ -153,10 +155,16 @@ class CalibrateProtocol:
         calibrated = np.full(len(playbacks.spot), np.nan)
         residual = {"stated": np.full(playbacks.tdoa_s.shape, np.nan), "calibrated": np.full(playbacks.tdoa_s.shape, np.nan)}
         without: list[ArrayCalibration] = []
+
+        def fit(p: Playbacks) -> ArrayCalibration:
+            return self.calibrate(p, priors, mic_ids)
+
         for held in folds:
             test = np.isin(playbacks.spot, held)
             tested = playbacks.subset(test)
-            cal = self.calibrate(playbacks.subset(~test), priors, mic_ids)  # the same estimator: a jackknife of another measures that one
+            kept = playbacks.subset(~test)
+            # the same estimator, rounds of re-picking included: a jackknife of another measures that one
+            cal = fit(kept) if kept.candidates_s is None else calibrate_until_picks_hold(kept, fit, quiet=True)[0]
             without.append(cal)
             stated[test] = _solve_errors(tested, site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
             clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(tested.time_s - cal.drift_origin_s)[:, None]
