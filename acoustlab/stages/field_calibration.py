@@ -124,8 +124,8 @@ def calibrate_playbacks(
 
     The rounds are ``calibrate_until_picks_hold``'s (a stated array 2–3 m off predicts lags so
     far off that the first picks take an echo on most pairs: three in four on the forest's
-    playbacks). From few spots the rounds can settle on picks that are wrong but agree with each other (the
-    forest from 5 spots: 37 % of the picks, the thermometer 3 °C off the truth). So the rounds run
+    playbacks). From few spots the rounds can settle on picks that are wrong but agree with each
+    other (the forest from 5 spots: 37 % of the picks, the thermometer 3 °C off the truth). So the rounds run
     from the peaks nearest the stated array's lags, from the highest peaks and, with ``anneal``,
     from the peaks nearest the lags of the array that explains all candidates at once
     (``acoustlab.toolkit.array_calibration.annealed_prediction_s``), and the calibration whose

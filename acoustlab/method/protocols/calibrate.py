@@ -12,9 +12,10 @@ spot: each spot's playbacks are solved with the array calibrated without that sp
 stated array, by the configured solver (``held_out`` in ``metrics.json``). The same calibrations
 without a group of spots give each estimate's delete-group jackknife standard deviation
 (``jackknife_sd``); each re-picks its GCC candidates until its picks hold, as the full calibration
-did, so the picks' own uncertainty is in it. Unlike the posterior's, it also holds what the fit's model lacks (multipath
-that biases one spot's peaks, a speed-of-sound formula not the air's), which the posterior, counting
-every playback as independent, leaves out (docs/calibrate.md gives the measured ratio).
+did, so the picks' own uncertainty is in it. Unlike the posterior's, it also holds what the fit's
+model lacks (multipath that biases one spot's peaks, a speed-of-sound formula not the air's), which
+the posterior, counting every playback as independent, leaves out (docs/calibrate.md gives the
+measured shares of mics beyond 2 σ).
 """
 
 from __future__ import annotations
