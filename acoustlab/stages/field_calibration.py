@@ -80,16 +80,14 @@ def playbacks_from(
     site: Site,
     temperature_c: float,
     humidity_pct: float,
-    expected_tdoa_s: np.ndarray | None = None,
     strongest: bool = False,
 ) -> Playbacks:
-    """The playbacks (events with a known ``x_m, y_m``) and the time differences of every mic pair.
+    """The playbacks (events with a known ``x_m, y_m``), every mic pair's GCC candidates and one pick per pair.
 
-    Per pair, of its GCC candidates the one closest to the expected lag is taken (the strongest
-    peak may be an echo; the spot says where the direct path must be): the lag the stated array
-    predicts from the known spot, or the one from ``expected_tdoa_s`` ((N, M) t_m − t_0, e.g. what
-    a first calibration predicts: ``calibrate_playbacks`` re-picks with it); with ``strongest``
-    the highest GCC peak instead. ``z_m`` where given, else the site's assumed source height.
+    Per pair, of its GCC candidates the one closest to the lag the stated array predicts from the
+    known spot is picked (the strongest peak may be an echo; the spot says where the direct path
+    must be); with ``strongest`` the highest GCC peak instead. Later picks come from
+    ``Playbacks.picked``. ``z_m`` where given, else the site's assumed source height.
     """
     known = playback_rows(events)
     if known.sum() == 0:
@@ -107,7 +105,7 @@ def playbacks_from(
     )
     if strongest:
         return playbacks
-    return playbacks.picked(playbacks.travel_times_s(site.mic_positions_m) if expected_tdoa_s is None else expected_tdoa_s)
+    return playbacks.picked(playbacks.travel_times_s(site.mic_positions_m))
 
 
 def calibrate_playbacks(
