@@ -523,8 +523,9 @@ def _candidate_shares(usable: np.ndarray, heights: np.ndarray | None, power: flo
     weight = usable.astype(float)
     if heights is not None:
         h = np.where(usable, np.asarray(heights, dtype=float), np.nan)
-        known = (np.isfinite(h) & (h > 0)).sum(axis=2, keepdims=True) == usable.sum(axis=2, keepdims=True)
-        weight = np.where(known & usable, np.where(np.isfinite(h) & (h > 0), h, 1.0) ** power, weight)
+        positive = np.isfinite(h) & (h > 0)  # usable candidates with a height
+        known = positive.sum(axis=2, keepdims=True) == usable.sum(axis=2, keepdims=True)  # pairs with every height
+        weight = np.where(known & usable, np.where(positive, h, 1.0) ** power, weight)
     total = weight.sum(axis=2, keepdims=True)
     return np.divide(weight, total, out=np.zeros_like(weight), where=total > 0)
 
