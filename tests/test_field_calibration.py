@@ -367,9 +367,9 @@ def _wall_echo_playbacks(seed: int, n_spots: int):
         heard = np.column_stack([lag, lag + delay[j] - delay[i], lag + delay[j]]) + rng.normal(0, 1e-5, (len(spots), 3))
         height = np.column_stack([rng.uniform(0.7, 1.0, len(spots)), *rng.uniform(0.4, 0.8, (2, len(spots)))])
         rank = np.argsort(-height, axis=1)
+        heard, height = np.take_along_axis(heard, rank, axis=1), np.take_along_axis(height, rank, axis=1)
         for k in range(3):
-            features[col.tdoa_lag(i, j, k + 1)] = np.take_along_axis(heard, rank, axis=1)[:, k]
-            features[col.xcorr_peak(i, j, k + 1)] = np.take_along_axis(height, rank, axis=1)[:, k]
+            features[col.tdoa_lag(i, j, k + 1)], features[col.xcorr_peak(i, j, k + 1)] = heard[:, k], height[:, k]
     events, priors = _playback_table(spots, site)
     return site, pd.DataFrame(features), events, direct.to_numpy(), priors
 
@@ -400,8 +400,6 @@ def test_the_annealed_search_weighs_each_candidate_by_its_peak_height():
 def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
     """Each calibration without a group of spots re-picks its GCC candidates until they hold, as the full one did, so its
     jackknife measures the whole estimator; without candidates (picks only) it refits the given picks."""
-    import dataclasses as dc
-
     from acoustlab.method.protocols.calibrate import CalibrateProtocol, jackknife_sd
     from acoustlab.toolkit.array_calibration import calibrate_until_picks_hold
     from plugins.solvers.hyperbolic import HyperbolicSolver
@@ -414,7 +412,7 @@ def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
         rng.random(exact.tdoa_s.shape)[..., None] < 0.5, np.stack([exact.tdoa_s, echo], -1), np.stack([echo, exact.tdoa_s], -1)
     )
     wrong = rng.random(exact.tdoa_s.shape) < 0.1  # a tenth of the given picks are the echo
-    pb = dc.replace(exact, tdoa_s=np.where(wrong, echo, exact.tdoa_s), candidates_s=candidates)
+    pb = dataclasses.replace(exact, tdoa_s=np.where(wrong, echo, exact.tdoa_s), candidates_s=candidates)
     ids, priors = list("abcdef"), Priors(stated, np.full(6, 2.0))
     protocol = CalibrateProtocol(held_out_folds=8)
     site = dataclasses.replace(site3(), mic_positions_m=stated)
@@ -427,7 +425,7 @@ def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
     repicked = [calibrate_until_picks_hold(f, fit) for f in folds]
     assert any(np.any(p.tdoa_s != f.tdoa_s) for (_, p), f in zip(repicked, folds, strict=True))  # the rounds moved picks
     np.testing.assert_allclose(jackknife["mic_position_sd_m"], jackknife_sd([c for c, _ in repicked])["mic_position_sd_m"], rtol=1e-9)
-    _, fixed = protocol.held_out(dc.replace(pb, candidates_s=None), priors, ids, site, HyperbolicSolver())
+    _, fixed = protocol.held_out(dataclasses.replace(pb, candidates_s=None), priors, ids, site, HyperbolicSolver())
     np.testing.assert_allclose(fixed["mic_position_sd_m"], jackknife_sd([fit(f) for f in folds])["mic_position_sd_m"], rtol=1e-9)
 
 

@@ -639,8 +639,8 @@ def calibrate_until_picks_hold(
     the lags more closely and corrects some picks, and a fit stopped before the picks hold keeps
     centimetres of error that are not noise (the forest needed up to 10 rounds). The rounds stop
     when the picks repeat (they hold, or they cycle) or after ``max_rounds``; the log says how many
-    rounds it took, and warns when they did not settle (``quiet``: neither). ``fit`` is the calibration (``calibrate_array`` with its priors); the playbacks need
-    their ``candidates_s``.
+    rounds it took, and warns when they did not settle (``quiet``: neither). ``fit`` is the
+    calibration (``calibrate_array`` with its priors); the playbacks need their ``candidates_s``.
     """
     calibration = fit(playbacks)
     seen = {_picks_key(playbacks)}
