@@ -399,7 +399,8 @@ def test_the_annealed_search_weighs_each_candidate_by_its_peak_height():
 
 def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
     """Each calibration without a group of spots re-picks its GCC candidates until they hold, as the full one did, so its
-    jackknife measures the whole estimator; without candidates (picks only) it refits the given picks."""
+    jackknife measures the whole estimator, and measures its held-out spot on the peaks it picks there; without candidates
+    (picks only) it refits the given picks."""
     from acoustlab.method.protocols.calibrate import CalibrateProtocol, jackknife_sd
     from acoustlab.toolkit.array_calibration import calibrate_until_picks_hold
     from plugins.solvers.hyperbolic import HyperbolicSolver
@@ -416,7 +417,7 @@ def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
     ids, priors = list("abcdef"), Priors(stated, np.full(6, 2.0))
     protocol = CalibrateProtocol(held_out_folds=8)
     site = dataclasses.replace(site3(), mic_positions_m=stated)
-    _, jackknife = protocol.held_out(pb, priors, ids, site, HyperbolicSolver())
+    held, jackknife = protocol.held_out(pb, priors, ids, site, HyperbolicSolver())
 
     def fit(p):
         return protocol.calibrate(p, priors, ids)
@@ -425,6 +426,16 @@ def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
     repicked = [calibrate_until_picks_hold(f, fit) for f in folds]
     assert any(np.any(p.tdoa_s != f.tdoa_s) for (_, p), f in zip(repicked, folds, strict=True))  # the rounds moved picks
     np.testing.assert_allclose(jackknife["mic_position_sd_m"], jackknife_sd([c for c, _ in repicked])["mic_position_sd_m"], rtol=1e-9)
+    # each held-out spot is measured on the peaks its fold's calibration picks there, not on the given picks
+    residual = {"fold's picks": [], "given picks": []}
+    for spot, (cal, _) in zip(np.unique(pb.spot), repicked, strict=True):
+        tested = pb.subset(pb.spot == spot)
+        predicted = tested.pair_differences_s(cal.predicted_tdoa_s(tested))
+        residual["fold's picks"].append(predicted - tested.picked(cal.predicted_tdoa_s(tested)).tdoa_s)
+        residual["given picks"].append(predicted - tested.tdoa_s)
+    median_ms = {name: 1e3 * np.median(np.abs(np.concatenate(r))) for name, r in residual.items()}
+    assert held["calibrated"]["median_abs_residual_ms"] == pytest.approx(median_ms["fold's picks"], rel=1e-9)
+    assert median_ms["given picks"] > 1.05 * median_ms["fold's picks"]  # the premise: the given picks hold echoes
     _, fixed = protocol.held_out(dataclasses.replace(pb, candidates_s=None), priors, ids, site, HyperbolicSolver())
     np.testing.assert_allclose(fixed["mic_position_sd_m"], jackknife_sd([fit(f) for f in folds])["mic_position_sd_m"], rtol=1e-9)
 

@@ -143,6 +143,11 @@ class CalibrateProtocol:
         and the estimates' jackknife standard deviations over those calibrations (``jackknife_sd``). None, None with fewer
         than 4 spots or ``held_out_folds=0``.
 
+        The calibrated array is measured on the held-out playbacks' GCC peaks nearest the lags it
+        predicts at their spots (where the playbacks carry their candidates), the stated array on the
+        full calibration's picks (the direct paths where that calibration is right: its figure is the
+        stated geometry's error alone, not that of the echoes it would pick).
+
         Beside the fixes' errors, the median |residual| of the held-out playbacks' time differences
         (``median_abs_residual_ms``): what the array predicts at a spot it was not fitted on, free of
         the fix's geometry. A fix outside a 3-mic array magnifies a small error of the array many
@@ -168,9 +173,12 @@ class CalibrateProtocol:
             cal = fit(kept) if kept.candidates_s is None else calibrate_until_picks_hold(kept, fit, quiet=True)[0]
             without.append(cal)
             stated[test] = _solve_errors(tested, site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
+            residual["stated"][test] = tested.pair_differences_s(tested.travel_times_s(site.mic_positions_m)) - tested.tdoa_s
+            # the held-out spot's peaks as this calibration picks them: the full calibration's picks were made knowing that spot
+            if tested.candidates_s is not None:
+                tested = tested.picked(cal.predicted_tdoa_s(tested))
             clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(tested.time_s - cal.drift_origin_s)[:, None]
             calibrated[test] = _solve_errors(tested, cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
-            residual["stated"][test] = tested.pair_differences_s(tested.travel_times_s(site.mic_positions_m)) - tested.tdoa_s
             residual["calibrated"][test] = tested.pair_differences_s(cal.predicted_tdoa_s(tested)) - tested.tdoa_s
 
         def summary(e: np.ndarray, r: np.ndarray) -> dict[str, float | None]:
