@@ -134,7 +134,7 @@ def calibrate_playbacks(
     """
     strongest = playbacks_from(features, events, site, temperature_c, humidity_pct, strongest=True)
     starts = {
-        "the stated array's lags": playbacks_from(features, events, site, temperature_c, humidity_pct),
+        "the stated array's lags": strongest.picked(strongest.travel_times_s(site.mic_positions_m)),
         "the highest GCC peaks": strongest,
     }
     if anneal is not None:
