@@ -470,7 +470,22 @@ def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path, 
         site, calibrated_site(site, loaded).mic_positions_m, source, np.zeros(5), float(fixed[col.SPEED_OF_SOUND].iloc[0])
     )
     np.testing.assert_allclose(tdoa_matrix(features, 5), tdoa_matrix(exact, 5), atol=1e-6)
-    assert loaded.input_uncertainty().temperature_c == pytest.approx(cal.sd("temperature_offset_c"))
+    # what it leaves uncertain reaches the radii with its correlations: the posterior's, at the file's standard deviations
+    carried = loaded.input_uncertainty().covariance  # thermometer, 5 clocks, then each mic's x and y
+    assert carried[0, 0] == pytest.approx(cal.sd("temperature_offset_c") ** 2) and carried[1, 1] == 0.0
+    np.testing.assert_allclose(np.sqrt(np.diag(carried)[1:6]), loaded.clock_offset_sd_s, rtol=1e-9)
+    posterior = {name: k for k, name in enumerate(cal.parameters)}
+
+    def correlation(matrix, i, j):
+        return matrix[i, j] / np.sqrt(matrix[i, i] * matrix[j, j])
+
+    for ours, theirs in (
+        ((2, 8), ("clock_1_s", "mic_1_x_m")),
+        ((0, 3), ("temperature_offset_c", "clock_2_s")),
+        ((6, 7), ("mic_0_x_m", "mic_0_y_m")),
+    ):
+        assert correlation(carried, *ours) == pytest.approx(correlation(cal.covariance, *(posterior[n] for n in theirs)), abs=1e-9)
+    assert abs(correlation(carried, 2, 8)) > 0.1  # the premise: a clock and its mic's position are correlated
     # an edited file, another array, a folder that is not a calibration: one line each
     body = json.loads(path.read_text())
     body["temperature_offset_c"] = 0.0

@@ -425,6 +425,43 @@ def test_input_uncertainty_matches_a_monte_carlo_of_the_solve(stated):
     assert predicted == pytest.approx(monte_carlo, rel=0.15)
 
 
+def test_a_calibrations_correlated_errors_move_the_fix_as_exact_solves_with_them_do():
+    """A calibration's errors drawn from its covariance (a clock that trades off with its mic's position, a thermometer):
+    the first-order σ equals the spread of exact solves (±15 %), the package's Monte Carlo too (±25 %: its 64 fixed
+    draws), and the trade-off, carried
+    as independent errors of the same size, would count far more than the fix moves."""
+    from acoustlab.toolkit.input_uncertainty import CorrelatedInputErrors, monte_carlo_sigma_m, position_sigma_m
+    from acoustlab.toolkit.physics import speed_of_sound_m_s
+
+    rng = np.random.default_rng(3)
+    mics = np.array([[0.0, 0, 1.2], [50, 0, 1.2], [24, 44, 1.2], [45, 40, 1.5]])
+    source = np.array([30.0, 18.0, 1.2])
+    temperature, humidity = 12.0, 60.0
+    c = float(speed_of_sound_m_s(temperature, humidity))
+    # mic 1 is 0.3 m off along its direction to the source, its clock estimated 0.3 m / c late to match (the trade-off
+    # few spots leave in that direction), plus small independent errors and a thermometer 0.5 °C off
+    toward = (source - mics[1])[:2] / np.linalg.norm((source - mics[1])[:2])
+    loading = np.zeros((13, 1))
+    loading[1 + 1, 0], loading[1 + 4 + 2 : 1 + 4 + 4, 0] = 0.3 / c, 0.3 * toward  # clock 1, mic 1's x and y
+    covariance = loading @ loading.T + np.diag(np.r_[0.5**2, 0.0, np.full(3, 2e-5**2), np.full(8, 0.02**2)])
+    errors = []
+    travel_s = np.sqrt(((mics - source) ** 2).sum(axis=1)) / c
+    for e in rng.multivariate_normal(np.zeros(13), covariance, 400):
+        c_used = float(speed_of_sound_m_s(temperature + e[0], humidity))
+        arrival = travel_s - e[1:5]  # a clock estimated late by δ leaves its corrected arrival δ early
+        surveyed = mics + np.column_stack([e[5:].reshape(4, 2), np.zeros(4)])
+        errors.append(_solve_xy(surveyed, c_used * arrival, source[:2], source[2]) - source[:2])
+    exact = np.sqrt(np.mean(np.square(errors)))
+    weather = (np.array([temperature]), np.array([humidity]))
+    stated = CorrelatedInputErrors(covariance)
+    assert position_sigma_m(mics, source[None], *weather, stated)[0] == pytest.approx(exact, rel=0.15)
+    assert monte_carlo_sigma_m(mics, source[None], *weather, stated)[0] == pytest.approx(exact, rel=0.25)
+    independent = CorrelatedInputErrors(np.diag(np.diag(covariance)))
+    assert position_sigma_m(mics, source[None], *weather, independent)[0] > 1.5 * exact
+    with pytest.raises(ValueError, match="a covariance of 4 mics for an array of 3"):
+        position_sigma_m(mics[:3], source[None], *weather, stated)
+
+
 def test_radii_of_field_detections_carry_the_stated_input_errors():
     """Field rows (calibrated on simulation) get radii grown in quadrature; simulated rows keep theirs."""
     from acoustlab.toolkit.input_uncertainty import InputUncertainty

@@ -47,7 +47,7 @@ from acoustlab.stages.solver_columns import pair_candidate_lags
 from acoustlab.toolkit.conformal import conformal_quantile, positions_needed, selective_threshold, selective_threshold_by_position
 from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
 from acoustlab.toolkit.geometry import distance_to_polygon_m, gdop, position_crb_m, source_region
-from acoustlab.toolkit.input_uncertainty import InputUncertainty, allowance_sigma_m, level_factor
+from acoustlab.toolkit.input_uncertainty import InputErrors, InputUncertainty, allowance_sigma_m, level_factor
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
 from acoustlab.toolkit.tdoa import candidate_misfit_m
 
@@ -107,8 +107,8 @@ class Components:
     seed: int = 0
     #: where the point model counts as outside its training support (``acoustlab.method.trust``)
     trust: TrustSettings = field(default_factory=TrustSettings)
-    #: the stated errors of the inputs a user measures, carried into the radii of field detections
-    input_uncertainty: InputUncertainty = field(default_factory=InputUncertainty)
+    #: the stated errors of the inputs a user measures (or a field calibration's), carried into the radii of field detections
+    input_uncertainty: InputErrors = field(default_factory=InputUncertainty)
 
 
 @dataclass

@@ -10,9 +10,12 @@ every playback's residuals before and after. ``calibration=PATH`` in ``localize`
   playbacks measured);
 * every measured time difference loses the recorders' clock offsets (and drifts, at the
   detection's ``time_s``, else its ``start_s``);
-* the calibration's remaining uncertainty becomes the stated input errors of the radii
-  (``conformal.input_uncertainty``: its posterior standard deviations; their correlations are
-  not carried, a first-order allowance like the rest of it).
+* the calibration's remaining uncertainty becomes the input errors of the radii (in place of
+  ``conformal.input_uncertainty``): its posterior covariance, each estimate's variance raised to
+  the jackknife's over spots where that is larger, correlations kept
+  (``acoustlab.toolkit.input_uncertainty.CorrelatedInputErrors``). A recorder's clock and its
+  distance to the spots trade off; carried as independent errors they would count twice what the
+  playbacks tie down. Drift's uncertainty is not carried.
 
 The file is JSON (nothing in it can run code) and carries the SHA-256 of its content, which a run
 records in ``metrics.json`` and ``positions.csv``; a file edited by hand fails the check.
@@ -46,7 +49,7 @@ from acoustlab.stages.solver_columns import (
 )
 from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks, calibrate_until_picks_hold
 from acoustlab.toolkit.event_physics import assumed_source_height_m
-from acoustlab.toolkit.input_uncertainty import InputUncertainty
+from acoustlab.toolkit.input_uncertainty import CorrelatedInputErrors
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 log = logging.getLogger(__name__)
@@ -205,6 +208,9 @@ class FieldCalibration:
     mic_position_sd_m: np.ndarray
     n_spots: int
     not_identified: dict[str, str]
+    #: the estimated parameters' names (``ArrayCalibration.parameters``) and their posterior covariance
+    parameters: tuple[str, ...] = ()
+    covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0)))
     #: ``calibrate``'s count of independent time differences per unknown (``array_calibration.redundancy``); None in older files
     redundancy: dict[str, Any] | None = None
 
@@ -221,14 +227,29 @@ class FieldCalibration:
             "redundancy": self.redundancy,
         }
 
-    def input_uncertainty(self) -> InputUncertainty:
-        """What the calibration leaves uncertain, as the radii's stated input errors (standard deviations, class docstring)."""
-        clocks = self.clock_offset_sd_s[1:]
-        return InputUncertainty(
-            temperature_c=float(self.temperature_offset_sd_c),
-            mic_position_m=float(np.sqrt(np.mean(self.mic_position_sd_m**2))),
-            clock_offset_s=float(np.sqrt(np.mean(clocks**2))) if clocks.size else 0.0,
-        )
+    def input_uncertainty(self) -> CorrelatedInputErrors:
+        """What the calibration leaves uncertain, as the radii's input errors (module docstring).
+
+        The posterior covariance, each row and column scaled so that its standard deviation is the
+        larger of the posterior's and the jackknife's (a mic's x and y by one factor, the jackknife
+        being per mic); parameters not estimated are independent at their prior's.
+        """
+        m = len(self.mic_positions_m)
+        names = ["temperature_offset_c", *(f"clock_{k}_s" for k in range(m)), *(f"mic_{k}_{axis}_m" for k in range(m) for axis in "xy")]
+        index = np.array([self.parameters.index(name) if name in self.parameters else -1 for name in names])
+        estimated = np.flatnonzero(index >= 0)
+        covariance = np.zeros((len(names), len(names)))
+        covariance[np.ix_(estimated, estimated)] = self.covariance[np.ix_(index[estimated], index[estimated])]
+        posterior = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+        per_mic = np.sqrt((posterior[1 + m :: 2] ** 2 + posterior[2 + m :: 2] ** 2) / 2)
+        posterior = np.r_[posterior[: 1 + m], np.repeat(per_mic, 2)]
+        larger = np.r_[self.temperature_offset_sd_c, self.clock_offset_sd_s, np.repeat(self.mic_position_sd_m, 2)]
+        scale = np.divide(larger, posterior, out=np.zeros_like(larger), where=posterior > 0)
+        covariance *= np.outer(scale, scale)
+        loose = posterior <= 0  # not estimated: independent, at the prior's standard deviation
+        covariance[loose, :], covariance[:, loose] = 0.0, 0.0
+        covariance[loose, loose] = larger[loose] ** 2
+        return CorrelatedInputErrors(covariance)
 
 
 def load_calibration(path_text: str, site: Site) -> FieldCalibration:
@@ -269,6 +290,8 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
             mic_position_sd_m=sd("mic_position_sd_m"),
             n_spots=int(body["n_spots"]),
             not_identified=dict(body.get("not_identified", {})),
+            parameters=tuple(str(name) for name in body["parameters"]),
+            covariance=np.asarray(body["covariance"], dtype=float).reshape(len(body["parameters"]), len(body["parameters"])),
             redundancy=dict(body["redundancy"]) if isinstance(body.get("redundancy"), dict) else None,
         )
     except (KeyError, TypeError, ValueError) as exc:

@@ -12,6 +12,12 @@ radius. This module propagates stated standard deviations through the TDOA equat
 * a speed-of-sound error δc scales every travel time: it adds r_i·δc/c to all of them at once
   (fully correlated between mics: the part GDOP alone cannot describe).
 
+A field calibration's errors are correlated (``CorrelatedInputErrors``): from few spots a
+recorder's clock trades off against its distance to them, so −c·δτ_i + u_i·δm_i, not each term,
+is what the playbacks tie down. Σ_r is then G Σ Gᵀ, with Σ the calibration's covariance and G
+each input's loading on each range (r_i·(dc/dT)/c for the thermometer, −c for mic i's clock,
+u_i for its position).
+
 With J the (M × 3) Jacobian of (r_i) in (x, y, c·τ₀) and Σ_r the covariance of those range
 errors, the least-squares estimate's covariance is (JᵀJ)⁻¹ Jᵀ Σ_r J (JᵀJ)⁻¹; its horizontal
 block gives an RMS error σ = √(trace / 2) per axis, and the radius that holds a circular 2-D
@@ -70,12 +76,63 @@ class InputUncertainty:
         return self.temperature_c == 0 and self.mic_position_m == 0 and self.clock_offset_s == 0
 
 
+@dataclass(frozen=True)
+class CorrelatedInputErrors:
+    """The errors a field calibration leaves in the inputs, with their correlations (``FieldCalibration.input_uncertainty``).
+
+    From few spots a recorder's clock and its distance to the spots trade off: each alone may be
+    hundreds of µs or decimetres off while the time differences they predict together hold to tens
+    of µs. Carried as independent errors they would grow every radius by what the playbacks rule
+    out; their covariance carries what the playbacks leave.
+
+    Attributes
+    ----------
+    covariance : numpy.ndarray
+        (1 + 3M, 1 + 3M) covariance of the estimates' errors: the thermometer's offset (°C), the M
+        recorders' clock offsets (s; the reference's is 0), then each mic's x and y (m), in that order.
+    exact_above_m, max_sigma_m : float
+        As for ``InputUncertainty``.
+    """
+
+    covariance: np.ndarray
+    exact_above_m: float = 0.5
+    max_sigma_m: float = 10.0
+
+    @property
+    def is_zero(self) -> bool:
+        """True where the calibration leaves nothing uncertain (no allowance)."""
+        return not np.any(self.covariance)
+
+    def n_mics(self) -> int:
+        return (len(self.covariance) - 1) // 3
+
+
+#: Stated or calibrated input errors.
+InputErrors = InputUncertainty | CorrelatedInputErrors
+
+
+def range_loadings(distance_m: np.ndarray, direction: np.ndarray, speed_m_s: np.ndarray, dc_dt: np.ndarray) -> np.ndarray:
+    """(B, M, 1 + 3M) how far each input's error moves each mic's arrival range, m per °C, s or m (``CorrelatedInputErrors``' order).
+
+    ``distance_m`` (B, M) and ``direction`` (B, M, 2), the horizontal unit vectors mic → source;
+    ``speed_m_s`` and ``dc_dt`` (B,), the speed of sound and its change per °C.
+    """
+    n, m = distance_m.shape
+    mic = np.arange(m)
+    out = np.zeros((n, m, 1 + 3 * m))
+    out[:, :, 0] = distance_m * (dc_dt / speed_m_s)[:, None]
+    out[:, mic, 1 + mic] = -speed_m_s[:, None]  # a clock read late by δ: its corrected arrival is δ early
+    out[:, mic, 1 + m + 2 * mic] = direction[..., 0]
+    out[:, mic, 2 + m + 2 * mic] = direction[..., 1]
+    return out
+
+
 def position_sigma_m(
     mic_positions_m: np.ndarray,
     source_m: np.ndarray,
     temperature_c: np.ndarray,
     relative_humidity_pct: np.ndarray,
-    stated: InputUncertainty,
+    stated: InputErrors,
 ) -> np.ndarray:
     """(B,) per-axis RMS horizontal position error (m) from the stated input errors (module docstring).
 
@@ -87,8 +144,8 @@ def position_sigma_m(
         (B, 3) estimated source positions, m (NaN rows give NaN).
     temperature_c, relative_humidity_pct : numpy.ndarray
         (B,) the events' weather.
-    stated : InputUncertainty
-        The standard deviations.
+    stated : InputUncertainty or CorrelatedInputErrors
+        The standard deviations, or a calibration's covariance.
     """
     mics = np.asarray(mic_positions_m, dtype=float)
     src = np.asarray(source_m, dtype=float)
@@ -97,13 +154,19 @@ def position_sigma_m(
     dc_dt = np.asarray(speed_of_sound_m_s(temperature_c + 0.5, relative_humidity_pct), dtype=float) - np.asarray(
         speed_of_sound_m_s(temperature_c - 0.5, relative_humidity_pct), dtype=float
     )
-    sigma_c = np.abs(dc_dt) * stated.temperature_c
     offset = src[:, None, :] - mics[None, :, :]
     r = np.sqrt((offset**2).sum(-1))  # (B, M)
     u = offset[..., :2] / np.maximum(r, 1e-9)[..., None]  # horizontal unit vectors mic → source
     jac = np.concatenate([u, np.ones((*r.shape, 1))], axis=-1)  # (B, M, 3): d r_i / d (x, y, c τ₀)
-    independent = (c * stated.clock_offset_s) ** 2 + stated.mic_position_m**2  # per mic, per unit-direction projection
-    cov_r = independent[:, None, None] * np.eye(r.shape[1])[None] + ((sigma_c / c) ** 2)[:, None, None] * r[:, :, None] * r[:, None, :]
+    if isinstance(stated, CorrelatedInputErrors):
+        if stated.n_mics() != len(mics):
+            raise ValueError(f"CorrelatedInputErrors: a covariance of {stated.n_mics()} mics for an array of {len(mics)}")
+        loadings = range_loadings(r, u, c, dc_dt)
+        cov_r = loadings @ stated.covariance @ np.swapaxes(loadings, 1, 2)
+    else:
+        sigma_c = np.abs(dc_dt) * stated.temperature_c
+        independent = (c * stated.clock_offset_s) ** 2 + stated.mic_position_m**2  # per mic, per unit-direction projection
+        cov_r = independent[:, None, None] * np.eye(r.shape[1])[None] + ((sigma_c / c) ** 2)[:, None, None] * r[:, :, None] * r[:, None, :]
     ok = np.isfinite(src).all(axis=1)
     out = np.full(len(src), np.nan)
     if ok.any():
@@ -119,7 +182,7 @@ def allowance_sigma_m(
     source_m: np.ndarray,
     temperature_c: np.ndarray,
     relative_humidity_pct: np.ndarray,
-    stated: InputUncertainty,
+    stated: InputErrors,
 ) -> np.ndarray:
     """(B,) the per-axis σ (m) the radii carry: first order, by Monte Carlo where that exceeds ``exact_above_m``, capped at ``max_sigma_m``."""
     sigma = position_sigma_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated)
@@ -145,22 +208,43 @@ def monte_carlo_sigma_m(
     source_m: np.ndarray,
     temperature_c: np.ndarray,
     relative_humidity_pct: np.ndarray,
-    stated: InputUncertainty,
+    stated: InputErrors,
     n_iterations: int = 15,
 ) -> np.ndarray:
     """(B,) per-axis RMS shift (m) of the least-squares fix when the inputs are off by the stated errors, by Monte Carlo.
 
-    The arrival ranges are those of the true geometry; the fix is solved (Gauss–Newton in x, y and
-    c·τ₀ from the true position) with a speed of sound off by the thermometer's error, mics off by
-    the survey error and clocks off by theirs, ``N_DRAWS`` fixed draws (seed 0).
+    ``fix_shift_m`` under ``N_DRAWS`` fixed draws (seed 0) of the errors: a speed of sound off by
+    the thermometer's error, mics off by the survey error and clocks off by theirs; with
+    ``CorrelatedInputErrors``, drawn together from the calibration's covariance.
+    """
+    d_temperature, d_clock, d_mics = _input_draws(stated, len(mic_positions_m))
+    shift = fix_shift_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, d_temperature, d_clock, d_mics, n_iterations)
+    # near a singular geometry some draws have no nearby fix at all: a shift counts at most 3 × max_sigma_m
+    shift = np.clip(np.nan_to_num(shift, nan=np.inf), -3 * stated.max_sigma_m, 3 * stated.max_sigma_m)
+    return np.sqrt(np.mean(shift**2, axis=(1, 2)))
+
+
+def fix_shift_m(
+    mic_positions_m: np.ndarray,
+    source_m: np.ndarray,
+    temperature_c: np.ndarray,
+    relative_humidity_pct: np.ndarray,
+    d_temperature_c: np.ndarray,
+    d_arrival_s: np.ndarray,
+    d_mics_m: np.ndarray,
+    n_iterations: int = 15,
+) -> np.ndarray:
+    """(B, D, 2) how far the least-squares fix of each source moves under each of D sets of input errors, m (NaN: no fix).
+
+    The arrival ranges are those of the true geometry (``mic_positions_m`` (M, 3), ``source_m``
+    (B, 3), the true weather (B,)); the fix is solved by Gauss–Newton in x, y and c·τ₀ from the
+    true position with the thermometer off by ``d_temperature_c`` (D,), °C, the arrival times by
+    ``d_arrival_s`` (D, M), s, and the mics by ``d_mics_m`` (D, M, 2), m.
     """
     mics = np.asarray(mic_positions_m, dtype=float)
     src = np.asarray(source_m, dtype=float)
-    n_mics = len(mics)
-    rng = np.random.default_rng(0)
-    d_temperature = rng.normal(0.0, 1.0, N_DRAWS) * stated.temperature_c
-    d_mics = rng.normal(0.0, 1.0, (N_DRAWS, n_mics, 2)) * stated.mic_position_m
-    d_clock = rng.normal(0.0, 1.0, (N_DRAWS, n_mics)) * stated.clock_offset_s
+    d_temperature, d_clock, d_mics = (np.asarray(v, dtype=float) for v in (d_temperature_c, d_arrival_s, d_mics_m))
+    n_draws, n_mics = d_clock.shape
     c_true = np.asarray(speed_of_sound_m_s(temperature_c, relative_humidity_pct), dtype=float)  # (B,)
     c_used = np.asarray(
         speed_of_sound_m_s(
@@ -170,9 +254,9 @@ def monte_carlo_sigma_m(
     )  # (B, D)
     travel = np.sqrt(((src[:, None, :] - mics[None]) ** 2).sum(-1)) / c_true[:, None]  # (B, M) true travel times, s
     measured = travel[:, None, :] + d_clock[None]  # (B, D, M) arrival times the recorders report
-    used_mics = np.broadcast_to(mics, (N_DRAWS, n_mics, 3)).copy()
+    used_mics = np.broadcast_to(mics, (n_draws, n_mics, 3)).copy()
     used_mics[..., :2] += d_mics
-    p = np.broadcast_to(np.concatenate([src[:, :2], np.zeros((len(src), 1))], axis=1)[:, None, :], (len(src), N_DRAWS, 3)).copy()
+    p = np.broadcast_to(np.concatenate([src[:, :2], np.zeros((len(src), 1))], axis=1)[:, None, :], (len(src), n_draws, 3)).copy()
     target = measured * c_used[..., None]  # (B, D, M) ranges the user computes, m
     for _ in range(n_iterations):
         offset = np.concatenate([p[..., None, :2] - used_mics[None, :, :, :2], (src[:, None, None, 2:3] - used_mics[None, :, :, 2:3])], -1)
@@ -182,6 +266,23 @@ def monte_carlo_sigma_m(
         jtj = np.einsum("bdmi,bdmj->bdij", jac, jac) + 1e-9 * np.eye(3)
         jtr = np.einsum("bdmi,bdm->bdi", jac, residual)
         p = p - np.linalg.solve(jtj, jtr[..., None])[..., 0]
-    # near a singular geometry some draws have no nearby fix at all: a shift counts at most 3 × max_sigma_m
-    shift = np.clip(np.nan_to_num(p[..., :2] - src[:, None, :2], nan=np.inf), -3 * stated.max_sigma_m, 3 * stated.max_sigma_m)
-    return np.sqrt(np.mean(shift**2, axis=(1, 2)))
+    return p[..., :2] - src[:, None, :2]
+
+
+def _input_draws(stated: InputErrors, n_mics: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``N_DRAWS`` fixed draws (seed 0) of the thermometer's error (°C), the clocks' errors in the arrival times (s) and the mics' (m).
+
+    A calibrated clock δ too large leaves the corrected arrival δ early: the draw of a clock
+    estimate's error enters the arrival times with its sign flipped (``range_loadings``).
+    """
+    rng = np.random.default_rng(0)
+    if isinstance(stated, CorrelatedInputErrors):
+        if stated.n_mics() != n_mics:
+            raise ValueError(f"CorrelatedInputErrors: a covariance of {stated.n_mics()} mics for an array of {n_mics}")
+        values, vectors = np.linalg.eigh(stated.covariance)
+        draws = rng.normal(0.0, 1.0, (N_DRAWS, len(values))) @ (vectors * np.sqrt(np.clip(values, 0.0, None))).T
+        return draws[:, 0], -draws[:, 1 : 1 + n_mics], draws[:, 1 + n_mics :].reshape(N_DRAWS, n_mics, 2)
+    d_temperature = rng.normal(0.0, 1.0, N_DRAWS) * stated.temperature_c
+    d_mics = rng.normal(0.0, 1.0, (N_DRAWS, n_mics, 2)) * stated.mic_position_m
+    d_clock = rng.normal(0.0, 1.0, (N_DRAWS, n_mics)) * stated.clock_offset_s
+    return d_temperature, d_clock, d_mics
