@@ -32,6 +32,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 from common import compose_cfg, fmt, machine, write_results
 
 from acoustlab.core import columns as col
@@ -39,6 +40,8 @@ from acoustlab.reporting.metrics import error_summary, share_gross
 
 log = logging.getLogger("experiments.field_calibration")
 IMPAIRED = ["field.mic_position_error_m=2.0", "field.clock_offset_max_s=0.001", "field.temperature_error_c=3.0"]
+#: the thermometer reads 3 °C high: the offset a calibration should find
+TRUE_TEMPERATURE_OFFSET_C = -3.0
 N_BOOT = 1000
 #: the field sources the array's errors are rendered with
 RENDERERS = {"image_source": "Second simulator (pyroomacoustics)", "outdoor": "acoustlab's own outdoor simulator"}
@@ -46,8 +49,8 @@ RENDERERS = {"image_source": "Second simulator (pyroomacoustics)", "outdoor": "a
 SMALL_TRAINING = ["data.n_events=8", "data.events_per_position=1", "data.chunk_size=8"]
 
 
-def solver_errors(overrides: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """(E,) the solver's 2-D errors on the field events of a config, and (E,) their position ids."""
+def solver_errors(overrides: list[str]) -> tuple[np.ndarray, np.ndarray, pd.DataFrame]:
+    """(E,) the solver's 2-D errors on the field events of a config, (E,) their position ids, and the events."""
     from acoustlab.run.app import build_run, prepare_data
 
     cfg = compose_cfg([*overrides, "tracking=none", "plots=false"])
@@ -56,7 +59,41 @@ def solver_errors(overrides: list[str]) -> tuple[np.ndarray, np.ndarray]:
     err = np.hypot(
         f[col.SOLVER_X].to_numpy(float) - e[col.TRUE_X].to_numpy(float), f[col.SOLVER_Y].to_numpy(float) - e[col.TRUE_Y].to_numpy(float)
     )
-    return np.where(np.isfinite(err), err, np.inf), e[col.POSITION_ID].to_numpy()
+    return np.where(np.isfinite(err), err, np.inf), e[col.POSITION_ID].to_numpy(), e
+
+
+def allowance_check(path: Path, site: str, true_mics: np.ndarray, clock_error_s: np.ndarray, calls: pd.DataFrame) -> dict:
+    """Does the input allowance a run carries from this calibration hold what its remaining errors do to the calls' fixes?
+
+    Per call (``calls``: the true array's events, true positions and weather): the exact shift of the
+    least-squares fix solved with the calibrated thermometer, clocks and mics instead of the true ones
+    (``fix_shift_m``), and the per-axis allowance σ with the calibration's covariance (what a run
+    carries) and with its standard deviations as independent errors (an RMS per kind, as before).
+    """
+    from acoustlab.stages.field_calibration import load_calibration
+    from acoustlab.stages.sites import site_from_config
+    from acoustlab.toolkit.input_uncertainty import InputUncertainty, allowance_sigma_m, fix_shift_m
+
+    site_obj = site_from_config(compose_cfg([f"+site={site}"]).site)
+    calibration = load_calibration(str(path), site_obj)
+    source = calls[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float)
+    weather = (calls[col.TEMPERATURE].to_numpy(float), calls[col.HUMIDITY].to_numpy(float))
+    errors = (
+        np.array([calibration.temperature_offset_c - TRUE_TEMPERATURE_OFFSET_C]),
+        -clock_error_s[None, :],  # a clock estimated late leaves its corrected arrivals early
+        (calibration.mic_positions_m - true_mics)[None, :, :2],
+    )
+    shift = np.hypot(*fix_shift_m(true_mics, source, *weather, *errors)[:, 0].T)
+    independent = InputUncertainty(
+        temperature_c=calibration.temperature_offset_sd_c,
+        mic_position_m=float(np.sqrt(np.mean(calibration.mic_position_sd_m**2))),
+        clock_offset_s=float(np.sqrt(np.mean(calibration.clock_offset_sd_s[1:] ** 2))),
+    )
+    return {
+        "shift_m": np.where(np.isfinite(shift), shift, np.inf),
+        "correlated": allowance_sigma_m(calibration.mic_positions_m, source, *weather, calibration.input_uncertainty()),
+        "independent": allowance_sigma_m(calibration.mic_positions_m, source, *weather, independent),
+    }
 
 
 def spot_overrides(site: str, n_spots: int, design: str) -> list[str]:
@@ -98,6 +135,23 @@ def true_array(site: str, array_seed: int) -> tuple[np.ndarray, np.ndarray]:
 
     site_obj = site_from_config(compose_cfg([f"+site={site}"]).site)
     return ImageSourceField(mic_position_error_m=2.0, clock_offset_max_s=0.001, array_seed=array_seed).true_array(site_obj)
+
+
+def allowance_summary(checks: list[dict]) -> dict:
+    """The calls' fix shifts against the 0.5 and 0.95 allowance radii (σ · √(−2 ln(1 − level))), pooled and per calibration."""
+    from acoustlab.toolkit.input_uncertainty import level_factor
+
+    shift = np.concatenate([c["shift_m"] for c in checks])
+    out: dict = {"n_calibrations": len(checks), "n_calls": int(shift.size), "median_shift_m": float(np.median(shift))}
+    for kind in ("correlated", "independent"):
+        sigma = np.concatenate([c[kind] for c in checks])
+        per_calibration = [float(np.mean(c["shift_m"] <= level_factor(0.95) * c[kind])) for c in checks]
+        out[kind] = {
+            "median_sigma_m": float(np.median(sigma)),
+            **{f"within_{level}": float(np.mean(shift <= level_factor(level) * sigma)) for level in (0.5, 0.95)},
+            "within_0.95_range_over_calibrations": [min(per_calibration), max(per_calibration)],
+        }
+    return out
 
 
 def interval(errors: np.ndarray, groups: np.ndarray, stat) -> tuple[float, float]:
@@ -143,10 +197,11 @@ def main() -> None:
         pooled: dict[str, list[np.ndarray]] = {}
         groups_all: list[np.ndarray] = []
         recovered: list[dict] = []
+        allowance: dict[int, list[dict]] = {}
         for a in range(opts.arrays):
             seed = 100 + a
             array = [f"field.array_seed={seed}", f"field.seed={2000 + a}"]
-            truth_err, groups = solver_errors([*calls, *array])
+            truth_err, groups, truth_events = solver_errors([*calls, *array])
             groups_all.append(groups + 10**6 * a)
             pooled.setdefault("true array", []).append(truth_err)
             pooled.setdefault("stated (uncalibrated)", []).append(solver_errors([*calls, *array, *IMPAIRED])[0])
@@ -157,9 +212,10 @@ def main() -> None:
                     pooled.setdefault(f"calibrated, {n_spots} {design} spots", []).append(
                         solver_errors([*calls, *array, *IMPAIRED, f"calibration={path}"])[0]
                     )
-                true_mics, true_clocks = true_array(site, seed)
-                # clocks are calibrated relative to mic 0's
-                clock_error = np.asarray(body["clock_offset_s"]) - body["clock_offset_s"][0] - (true_clocks - true_clocks[0])
+                    true_mics, true_clocks = true_array(site, seed)
+                    # clocks are calibrated relative to mic 0's
+                    clock_error = np.asarray(body["clock_offset_s"]) - body["clock_offset_s"][0] - (true_clocks - true_clocks[0])
+                    allowance.setdefault(n_spots, []).append(allowance_check(path, site, true_mics, clock_error, truth_events))
                 stated_mics = np.asarray(body["stated_mic_positions_m"])
                 mic_errors = np.hypot(*(np.asarray(body["mic_positions_m"]) - true_mics)[:, :2].T)
                 recovered.append(
@@ -184,7 +240,11 @@ def main() -> None:
         stats = {name: np.concatenate(v) for name, v in pooled.items()}
         base50, base95 = (np.quantile(stats["true array"], q) for q in (0.5, 0.95))
         unc95 = float(np.quantile(stats["stated (uncalibrated)"], 0.95))
-        raw[site] = {"calibrations": recovered, "errors": {}}
+        raw[site] = {
+            "calibrations": recovered,
+            "errors": {},
+            "allowance": {n: allowance_summary(checks) for n, checks in allowance.items()},
+        }
         for name, e in stats.items():
             s = error_summary(e)
             ci50, ci95 = interval(e, groups, np.median), interval(e, groups, lambda v: np.quantile(v, 0.95))
@@ -214,6 +274,28 @@ def main() -> None:
             lines.append(
                 f"| {site} | {n_spots} | {err.size} | {100 * np.mean(err > 2 * post):.0f} % | {100 * np.mean(err > 2 * jack):.0f} % | "
                 f"{100 * np.mean(err > 2 * larger):.0f} % | {100 * np.mean(err > 3 * larger):.0f} % |"
+            )
+    lines += [
+        "",
+        "Does the input allowance a run carries from the calibration hold what the calibration's remaining errors do to a fix? "
+        "Per call, the exact shift of the true array's least-squares fix solved with the calibrated thermometer, clocks and "
+        "mics, against the allowance radius at 0.5 and 0.95 (σ per axis × 1.18 and × 2.45), with the calibration's covariance "
+        "(what a run carries) and with its standard deviations as independent errors (before); calls pooled over arrays and "
+        "designs, the range over calibrations in brackets:",
+        "",
+        "| site | spots | calibrations | calls | median shift (m) | covariance: median σ (m) | ≤ 0.5 radius | ≤ 0.95 radius "
+        "| independent: median σ (m) | ≤ 0.5 radius | ≤ 0.95 radius |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for site, r in raw.items():
+        for n_spots, a in r["allowance"].items():
+            cells = []
+            for kind in ("correlated", "independent"):
+                k = a[kind]
+                low, high = k["within_0.95_range_over_calibrations"]
+                cells.append(f"{k['median_sigma_m']:.3f} | {k['within_0.5']:.2f} | {k['within_0.95']:.2f} ({low:.2f}–{high:.2f})")
+            lines.append(
+                f"| {site} | {n_spots} | {a['n_calibrations']} | {a['n_calls']} | {a['median_shift_m']:.3f} | " + " | ".join(cells) + " |"
             )
     lines += ["", "What each calibration said it could not determine (per site, array and number of spots):", ""]
     for site, r in raw.items():
