@@ -67,19 +67,26 @@ def allowance_check(path: Path, site: str, true_mics: np.ndarray, clock_error_s:
 
     Per call (``calls``: the true array's events, true positions and weather): the exact shift of the
     least-squares fix solved with the calibrated thermometer, clocks and mics instead of the true ones
+    (the true air: the temperature at which the renderer's speed of sound is ours)
     (``fix_shift_m``), and the per-axis allowance σ with the calibration's covariance (what a run
     carries) and with its standard deviations as independent errors (an RMS per kind, as before).
     """
     from acoustlab.stages.field_calibration import load_calibration
     from acoustlab.stages.sites import site_from_config
+    from acoustlab.toolkit.array_calibration import temperature_from_speed_c
     from acoustlab.toolkit.input_uncertainty import InputUncertainty, allowance_sigma_m, fix_shift_m
 
     site_obj = site_from_config(compose_cfg([f"+site={site}"]).site)
     calibration = load_calibration(str(path), site_obj)
     source = calls[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float)
-    weather = (calls[col.TEMPERATURE].to_numpy(float), calls[col.HUMIDITY].to_numpy(float))
+    humidity = calls[col.HUMIDITY].to_numpy(float)
+    # the air as the renderer propagated it (pyroomacoustics has its own formula for the speed of sound), and as a run
+    # reads it: the thermometer 3 °C high plus the calibrated offset
+    renderer = [temperature_from_speed_c(c, h) for c, h in zip(calls["simulator_speed_of_sound_m_s"], humidity, strict=True)]
+    used = calls[col.TEMPERATURE].to_numpy(float) - TRUE_TEMPERATURE_OFFSET_C + calibration.temperature_offset_c
+    weather = (np.asarray(renderer), humidity)
     errors = (
-        np.array([calibration.temperature_offset_c - TRUE_TEMPERATURE_OFFSET_C]),
+        (used - weather[0])[:, None],
         -clock_error_s[None, :],  # a clock estimated late leaves its corrected arrivals early
         (calibration.mic_positions_m - true_mics)[None, :, :2],
     )
@@ -91,8 +98,8 @@ def allowance_check(path: Path, site: str, true_mics: np.ndarray, clock_error_s:
     )
     return {
         "shift_m": np.where(np.isfinite(shift), shift, np.inf),
-        "correlated": allowance_sigma_m(calibration.mic_positions_m, source, *weather, calibration.input_uncertainty()),
-        "independent": allowance_sigma_m(calibration.mic_positions_m, source, *weather, independent),
+        "correlated": allowance_sigma_m(calibration.mic_positions_m, source, used, humidity, calibration.input_uncertainty()),
+        "independent": allowance_sigma_m(calibration.mic_positions_m, source, used, humidity, independent),
     }
 
 

@@ -238,7 +238,7 @@ def fix_shift_m(
 
     The arrival ranges are those of the true geometry (``mic_positions_m`` (M, 3), ``source_m``
     (B, 3), the true weather (B,)); the fix is solved by Gauss–Newton in x, y and c·τ₀ from the
-    true position with the thermometer off by ``d_temperature_c`` (D,), °C, the arrival times by
+    true position with the thermometer off by ``d_temperature_c`` ((D,), or (B, D) per source), °C, the arrival times by
     ``d_arrival_s`` (D, M), s, and the mics by ``d_mics_m`` (D, M, 2), m.
     """
     mics = np.asarray(mic_positions_m, dtype=float)
@@ -248,7 +248,7 @@ def fix_shift_m(
     c_true = np.asarray(speed_of_sound_m_s(temperature_c, relative_humidity_pct), dtype=float)  # (B,)
     c_used = np.asarray(
         speed_of_sound_m_s(
-            np.asarray(temperature_c, dtype=float)[:, None] + d_temperature[None, :], np.asarray(relative_humidity_pct)[:, None]
+            np.asarray(temperature_c, dtype=float)[:, None] + np.atleast_2d(d_temperature), np.asarray(relative_humidity_pct)[:, None]
         ),
         dtype=float,
     )  # (B, D)
