@@ -91,6 +91,7 @@ def allowance_check(path: Path, site: str, true_mics: np.ndarray, clock_error_s:
         (calibration.mic_positions_m - true_mics)[None, :, :2],
     )
     shift = np.hypot(*fix_shift_m(true_mics, source, *weather, *errors)[:, 0].T)
+    thermometer = np.hypot(*fix_shift_m(true_mics, source, *weather, errors[0], 0 * errors[1], 0 * errors[2])[:, 0].T)
     independent = InputUncertainty(
         temperature_c=calibration.temperature_offset_sd_c,
         mic_position_m=float(np.sqrt(np.mean(calibration.mic_position_sd_m**2))),
@@ -98,6 +99,8 @@ def allowance_check(path: Path, site: str, true_mics: np.ndarray, clock_error_s:
     )
     return {
         "shift_m": np.where(np.isfinite(shift), shift, np.inf),
+        "thermometer_shift_m": np.where(np.isfinite(thermometer), thermometer, np.inf),
+        "thermometer_error_c": used - weather[0],
         "correlated": allowance_sigma_m(calibration.mic_positions_m, source, used, humidity, calibration.input_uncertainty()),
         "independent": allowance_sigma_m(calibration.mic_positions_m, source, used, humidity, independent),
     }
@@ -149,7 +152,13 @@ def allowance_summary(checks: list[dict]) -> dict:
     from acoustlab.toolkit.input_uncertainty import level_factor
 
     shift = np.concatenate([c["shift_m"] for c in checks])
-    out: dict = {"n_calibrations": len(checks), "n_calls": int(shift.size), "median_shift_m": float(np.median(shift))}
+    out: dict = {
+        "n_calibrations": len(checks),
+        "n_calls": int(shift.size),
+        "median_shift_m": float(np.median(shift)),
+        "median_thermometer_shift_m": float(np.median(np.concatenate([c["thermometer_shift_m"] for c in checks]))),
+        "thermometer_error_c_range": [float(f(np.concatenate([c["thermometer_error_c"] for c in checks]))) for f in (np.min, np.max)],
+    }
     for kind in ("correlated", "independent"):
         sigma = np.concatenate([c[kind] for c in checks])
         per_calibration = [float(np.mean(c["shift_m"] <= level_factor(0.95) * c[kind])) for c in checks]
@@ -286,13 +295,14 @@ def main() -> None:
         "",
         "Does the input allowance a run carries from the calibration hold what the calibration's remaining errors do to a fix? "
         "Per call, the exact shift of the true array's least-squares fix solved with the calibrated thermometer, clocks and "
-        "mics, against the allowance radius at 0.5 and 0.95 (σ per axis × 1.18 and × 2.45), with the calibration's covariance "
+        "mics (and with the thermometer's error alone: the calibrated reading against the air the renderer propagated in), "
+        "against the allowance radius at 0.5 and 0.95 (σ per axis × 1.18 and × 2.45), with the calibration's covariance "
         "(what a run carries) and with its standard deviations as independent errors (before); calls pooled over arrays and "
         "designs, the range over calibrations in brackets:",
         "",
-        "| site | spots | calibrations | calls | median shift (m) | covariance: median σ (m) | ≤ 0.5 radius | ≤ 0.95 radius "
-        "| independent: median σ (m) | ≤ 0.5 radius | ≤ 0.95 radius |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| site | spots | calibrations | calls | median shift (m) | from the thermometer alone (m) | thermometer error (°C) "
+        "| covariance: median σ (m) | ≤ 0.5 radius | ≤ 0.95 radius | independent: median σ (m) | ≤ 0.5 radius | ≤ 0.95 radius |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for site, r in raw.items():
         for n_spots, a in r["allowance"].items():
@@ -301,8 +311,10 @@ def main() -> None:
                 k = a[kind]
                 low, high = k["within_0.95_range_over_calibrations"]
                 cells.append(f"{k['median_sigma_m']:.3f} | {k['within_0.5']:.2f} | {k['within_0.95']:.2f} ({low:.2f}–{high:.2f})")
+            low, high = a["thermometer_error_c_range"]
             lines.append(
-                f"| {site} | {n_spots} | {a['n_calibrations']} | {a['n_calls']} | {a['median_shift_m']:.3f} | " + " | ".join(cells) + " |"
+                f"| {site} | {n_spots} | {a['n_calibrations']} | {a['n_calls']} | {a['median_shift_m']:.3f} | "
+                f"{a['median_thermometer_shift_m']:.3f} | {low:+.2f} to {high:+.2f} | " + " | ".join(cells) + " |"
             )
     lines += ["", "What each calibration said it could not determine (per site, array and number of spots):", ""]
     for site, r in raw.items():
