@@ -103,8 +103,10 @@ class CorrelatedInputErrors:
         """True where the calibration leaves nothing uncertain (no allowance)."""
         return not np.any(self.covariance)
 
-    def n_mics(self) -> int:
-        return (len(self.covariance) - 1) // 3
+    def check_array(self, n_mics: int) -> None:
+        """Raise ValueError unless the covariance is of ``n_mics`` mics (1 + 3 ``n_mics`` rows)."""
+        if self.covariance.shape != (1 + 3 * n_mics,) * 2:
+            raise ValueError(f"CorrelatedInputErrors: a covariance of shape {self.covariance.shape} for an array of {n_mics} mics")
 
 
 #: Stated or calibrated input errors.
@@ -159,8 +161,7 @@ def position_sigma_m(
     u = offset[..., :2] / np.maximum(r, 1e-9)[..., None]  # horizontal unit vectors mic → source
     jac = np.concatenate([u, np.ones((*r.shape, 1))], axis=-1)  # (B, M, 3): d r_i / d (x, y, c τ₀)
     if isinstance(stated, CorrelatedInputErrors):
-        if stated.n_mics() != len(mics):
-            raise ValueError(f"CorrelatedInputErrors: a covariance of {stated.n_mics()} mics for an array of {len(mics)}")
+        stated.check_array(len(mics))
         loadings = range_loadings(r, u, c, dc_dt)
         cov_r = loadings @ stated.covariance @ np.swapaxes(loadings, 1, 2)
     else:
@@ -277,8 +278,7 @@ def _input_draws(stated: InputErrors, n_mics: int) -> tuple[np.ndarray, np.ndarr
     """
     rng = np.random.default_rng(0)
     if isinstance(stated, CorrelatedInputErrors):
-        if stated.n_mics() != n_mics:
-            raise ValueError(f"CorrelatedInputErrors: a covariance of {stated.n_mics()} mics for an array of {n_mics}")
+        stated.check_array(n_mics)
         values, vectors = np.linalg.eigh(stated.covariance)
         draws = rng.normal(0.0, 1.0, (N_DRAWS, len(values))) @ (vectors * np.sqrt(np.clip(values, 0.0, None))).T
         return draws[:, 0], -draws[:, 1 : 1 + n_mics], draws[:, 1 + n_mics :].reshape(N_DRAWS, n_mics, 2)
