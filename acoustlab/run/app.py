@@ -249,7 +249,8 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
             raise ConfigError("calibrate starts from the stated array: drop calibration=… (a calibration is not calibrated again)")
         calibration = load_calibration(str(cfg.calibration), site)
         log.info(
-            "calibration %s (%s…): mics moved up to %.2f m, thermometer offset %+.2f °C, clock offsets up to %.3g ms",
+            "calibration %s (%s…): mics moved up to %.2f m, thermometer offset %+.2f °C, clock offsets up to %.3g ms; its "
+            "covariance is the radii's input allowance in place of conformal.input_uncertainty",
             calibration.path,
             calibration.sha256[:12],
             float(np.abs(calibration.mic_positions_m - site.mic_positions_m).max()),
