@@ -531,12 +531,18 @@ def test_calibrate_recovers_a_rendered_array_and_localize_uses_it(compose_cfg, t
     # the same array heard later: with calibration=PATH the solver's fixes are closer to the truth
     calls = [*common, *small, *impaired, "protocol=field_eval", "field.n_positions=10", "field.seed=12"]
     errors = {}
-    for label, extra in (("stated", []), ("calibrated", [f"calibration={tmp_path / 'cal' / 'calibration.json'}"])):
+    path = tmp_path / "cal" / "calibration.json"
+    for label, extra in (("stated", []), ("calibrated", [f"calibration={path}", "conformal.input_uncertainty.max_sigma_m=3.0"])):
         run = compose_cfg([*calls, *extra])
-        data = prepare_data(run, build_run(run))
+        built = build_run(run)
+        data = prepare_data(run, built)
         f, e = data.field_data.features, data.field_data.events
         errors[label] = np.nanmedian(np.hypot(f[col.SOLVER_X] - e[col.TRUE_X], f[col.SOLVER_Y] - e[col.TRUE_Y]))
     assert errors["calibrated"] < 0.5 * errors["stated"]
+    # its covariance is the radii's input allowance, under the configured limits
+    allowance = built.components.input_uncertainty
+    np.testing.assert_array_equal(allowance.covariance, load_calibration(str(path), site).input_uncertainty().covariance)
+    assert allowance.max_sigma_m == 3.0 and allowance.exact_above_m == 0.5
 
 
 def test_a_calibration_is_not_calibrated_again(compose_cfg, tmp_path: Path):

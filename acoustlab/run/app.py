@@ -250,7 +250,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         calibration = load_calibration(str(cfg.calibration), site)
         log.info(
             "calibration %s (%s…): mics moved up to %.2f m, thermometer offset %+.2f °C, clock offsets up to %.3g ms; its "
-            "covariance is the radii's input allowance in place of conformal.input_uncertainty",
+            "covariance is the radii's input allowance in place of conformal.input_uncertainty's standard deviations",
             calibration.path,
             calibration.sha256[:12],
             float(np.abs(calibration.mic_positions_m - site.mic_positions_m).max()),
@@ -258,7 +258,9 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
             1e3 * float(np.abs(calibration.clock_offset_s).max()),
         )
         stated_site, site = site, calibrated_site(site, calibration)
-        components = dataclasses.replace(components, site=site, input_uncertainty=calibration.input_uncertainty())
+        limits = components.input_uncertainty  # its exact_above_m and max_sigma_m still apply
+        allowance = dataclasses.replace(calibration.input_uncertainty(), exact_above_m=limits.exact_above_m, max_sigma_m=limits.max_sigma_m)
+        components = dataclasses.replace(components, site=site, input_uncertainty=allowance)
     return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration, stated_site)
 
 
