@@ -430,8 +430,9 @@ def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
     residual = {"fold's picks": [], "given picks": []}
     for spot, (cal, _) in zip(np.unique(pb.spot), repicked, strict=True):
         tested = pb.subset(pb.spot == spot)
-        predicted = tested.pair_differences_s(cal.predicted_tdoa_s(tested))
-        residual["fold's picks"].append(predicted - tested.picked(cal.predicted_tdoa_s(tested)).tdoa_s)
+        expected = cal.predicted_tdoa_s(tested)
+        predicted = tested.pair_differences_s(expected)
+        residual["fold's picks"].append(predicted - tested.picked(expected).tdoa_s)
         residual["given picks"].append(predicted - tested.tdoa_s)
     median_ms = {name: 1e3 * np.median(np.abs(np.concatenate(r))) for name, r in residual.items()}
     assert held["calibrated"]["median_abs_residual_ms"] == pytest.approx(median_ms["fold's picks"], rel=1e-9)

@@ -428,8 +428,7 @@ def test_input_uncertainty_matches_a_monte_carlo_of_the_solve(stated):
 def test_a_calibrations_correlated_errors_move_the_fix_as_exact_solves_with_them_do():
     """A calibration's errors drawn from its covariance (a clock that trades off with its mic's position, a thermometer):
     the first-order σ equals the spread of exact solves (±15 %), the package's Monte Carlo too (±25 %: its 64 fixed
-    draws), and the trade-off, carried
-    as independent errors of the same size, would count far more than the fix moves."""
+    draws), and the trade-off, carried as independent errors of the same size, would count far more than the fix moves."""
     from acoustlab.toolkit.input_uncertainty import CorrelatedInputErrors, monte_carlo_sigma_m, position_sigma_m
     from acoustlab.toolkit.physics import speed_of_sound_m_s
 

@@ -174,12 +174,13 @@ class CalibrateProtocol:
             without.append(cal)
             stated[test] = _solve_errors(tested, site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
             residual["stated"][test] = tested.pair_differences_s(tested.travel_times_s(site.mic_positions_m)) - tested.tdoa_s
+            predicted = cal.predicted_tdoa_s(tested)  # of the spots, weather and times: the same whichever peaks are picked
             # the held-out spot's peaks as this calibration picks them: the full calibration's picks were made knowing that spot
             if tested.candidates_s is not None:
-                tested = tested.picked(cal.predicted_tdoa_s(tested))
+                tested = tested.picked(predicted)
             clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(tested.time_s - cal.drift_origin_s)[:, None]
             calibrated[test] = _solve_errors(tested, cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
-            residual["calibrated"][test] = tested.pair_differences_s(cal.predicted_tdoa_s(tested)) - tested.tdoa_s
+            residual["calibrated"][test] = tested.pair_differences_s(predicted) - tested.tdoa_s
 
         def summary(e: np.ndarray, r: np.ndarray) -> dict[str, float | None]:
             e = np.where(np.isfinite(e), e, np.inf)
