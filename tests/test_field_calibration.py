@@ -33,14 +33,14 @@ def playbacks(
     true_mics: np.ndarray,
     spots: np.ndarray,
     clocks_s: np.ndarray,
-    temperature_error_c: float,
+    temperature_error_c: float | np.ndarray,
     noise_s: float = 0.0,
     per: int = 3,
     drift: np.ndarray | None = None,
     span_s: float = 0.0,
     seed: int = 0,
 ) -> Playbacks:
-    """Playbacks from ``spots`` heard by ``true_mics`` with those clocks, read with a thermometer off by ``temperature_error_c``."""
+    """Playbacks from ``spots`` heard by ``true_mics`` with those clocks, read with a thermometer off by ``temperature_error_c`` (one, or (N,) one per playback)."""
     rng = np.random.default_rng(seed)
     source = np.repeat(spots, per, axis=0)
     n = len(source)
@@ -98,6 +98,28 @@ def test_exact_playbacks_recover_the_thermometer_clocks_and_mics(n_mics, seed):
     np.testing.assert_allclose(cal.clock_offset_s, clocks, atol=2e-5)
     np.testing.assert_allclose(cal.mic_positions_m[:, :2], true[:, :2], atol=0.05)
     assert cal.to_json()["residual_median_abs_after_s"] < 1e-5
+
+
+@pytest.mark.parametrize("spread_c", [0.0, 0.3])
+def test_a_thermometer_error_that_varies_from_call_to_call_is_measured_and_carried_into_the_radii(spread_c, tmp_path: Path):
+    """One offset fits the season; what the thermometer's error does from playback to playback beyond the timing
+    noise is measured (DerSimonian–Laird) and added to the thermometer's variance that reaches the radii."""
+    stated, true = array(6, 11)
+    rng = np.random.default_rng(12)
+    per_call = 1.5 + rng.normal(0, spread_c, 60)  # 15 spots × 4 playbacks
+    pb = playbacks(true, spots_in(rng, 15), np.r_[0.0, rng.uniform(-1e-3, 1e-3, 5)], per_call, noise_s=3e-5, per=4, seed=13)
+    cal = calibrate_array(pb, Priors(stated, np.full(6, 2.0)), list("abcdef"))
+    assert cal.temperature_offset_c == pytest.approx(-per_call.mean(), abs=0.1)
+    if spread_c == 0:
+        assert cal.temperature_call_sd_c < 0.05  # 0–0.04 °C over 8 draws of this array: the timing noise leaves a little
+    else:
+        assert 0.2 < cal.temperature_call_sd_c < 0.4
+    site = dataclasses.replace(site3(), mic_positions_m=stated)
+    events = pd.DataFrame({col.EVENT_ID: np.arange(len(pb.spot)), col.POSITION_ID: pb.spot})
+    write_calibration(tmp_path / "calibration.json", cal, site, events)
+    loaded = load_calibration(str(tmp_path / "calibration.json"), site)
+    carried = loaded.input_uncertainty().covariance
+    assert carried[0, 0] == pytest.approx(cal.sd("temperature_offset_c") ** 2 + cal.temperature_call_sd_c**2)
 
 
 def test_noisy_playbacks_land_within_their_stated_uncertainty():
@@ -473,6 +495,7 @@ def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path, 
     np.testing.assert_allclose(tdoa_matrix(features, 5), tdoa_matrix(exact, 5), atol=1e-6)
     # what it leaves uncertain reaches the radii with its correlations: the posterior's, at the file's standard deviations
     carried = loaded.input_uncertainty().covariance  # thermometer, 5 clocks, then each mic's x and y
+    assert cal.temperature_call_sd_c == 0.0  # one thermometer error for all playbacks: nothing varies from call to call
     assert carried[0, 0] == pytest.approx(cal.sd("temperature_offset_c") ** 2) and carried[1, 1] == 0.0
     np.testing.assert_allclose(np.sqrt(np.diag(carried)[1:6]), loaded.clock_offset_sd_s, rtol=1e-9)
     posterior = {name: k for k, name in enumerate(cal.parameters)}

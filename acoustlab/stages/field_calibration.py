@@ -15,7 +15,9 @@ every playback's residuals before and after. ``calibration=PATH`` in ``localize`
   the jackknife's over spots where that is larger, correlations kept
   (``acoustlab.toolkit.input_uncertainty.CorrelatedInputErrors``). A recorder's clock and its
   distance to the spots trade off; carried as independent errors they would count twice what the
-  playbacks tie down. Drift's uncertainty is not carried.
+  playbacks tie down. The thermometer's variance also carries how far its error varied from
+  playback to playback about the one offset (``temperature_call_sd_c``): a season's calls meet the
+  air as the playbacks did, not at one fixed error. Drift's uncertainty is not carried.
 
 The file is JSON (nothing in it can run code) and carries the SHA-256 of its content, which a run
 records in ``metrics.json`` and ``positions.csv``; a file edited by hand fails the check.
@@ -213,6 +215,8 @@ class FieldCalibration:
     covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0)))
     #: ``calibrate``'s count of independent time differences per unknown (``array_calibration.redundancy``); None in older files
     redundancy: dict[str, Any] | None = None
+    #: the thermometer error's spread from playback to playback about its offset, °C (``playback_temperature_spread_c``)
+    temperature_call_sd_c: float = 0.0
 
     def summary(self) -> dict[str, Any]:
         """For metrics.json: where it came from and what it changed."""
@@ -232,7 +236,9 @@ class FieldCalibration:
 
         The posterior covariance, each row and column scaled so that its standard deviation is the
         larger of the posterior's and the jackknife's (a mic's x and y by one factor, the jackknife
-        being per mic); parameters not estimated are independent at their prior's.
+        being per mic); parameters not estimated are independent at their prior's. The
+        thermometer's variance then gains the playbacks' spread about its offset
+        (``temperature_call_sd_c``²): each call's own error, independent of the rest.
         """
         m = len(self.mic_positions_m)
         names = ["temperature_offset_c", *(f"clock_{k}_s" for k in range(m)), *(f"mic_{k}_{axis}_m" for k in range(m) for axis in "xy")]
@@ -249,6 +255,7 @@ class FieldCalibration:
         loose = posterior <= 0  # not estimated: independent, at the prior's standard deviation
         covariance[loose, :], covariance[:, loose] = 0.0, 0.0
         covariance[loose, loose] = larger[loose] ** 2
+        covariance[0, 0] += self.temperature_call_sd_c**2
         return CorrelatedInputErrors(covariance)
 
 
@@ -293,6 +300,7 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
             parameters=tuple(str(name) for name in body["parameters"]),
             covariance=np.asarray(body["covariance"], dtype=float).reshape(len(body["parameters"]), len(body["parameters"])),
             redundancy=dict(body["redundancy"]) if isinstance(body.get("redundancy"), dict) else None,
+            temperature_call_sd_c=float(body["temperature_call_sd_c"]),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{where}: field {exc} is missing or not a number") from None

@@ -221,6 +221,8 @@ class ArrayCalibration:
     spot: np.ndarray
     n_spots: int
     priors: Priors
+    #: how far the thermometer's error moves from playback to playback about its calibrated offset, °C (``playback_temperature_spread_c``)
+    temperature_call_sd_c: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
 
     def sd(self, name: str) -> float:
@@ -257,6 +259,7 @@ class ArrayCalibration:
             "mic_position_sd_m": np.round(self.position_sd_m(), 6).tolist(),
             "temperature_offset_c": self.temperature_offset_c,
             "temperature_offset_sd_c": self.sd("temperature_offset_c"),
+            "temperature_call_sd_c": self.temperature_call_sd_c,
             "clock_offset_s": self.clock_offset_s.tolist(),
             "clock_offset_sd_s": [self.sd(f"clock_{m}_s") for m in range(len(self.mic_ids))],
             "clock_drift_s_per_s": self.clock_drift.tolist(),
@@ -604,7 +607,8 @@ def calibrate_array(
                 f"{', …' if len(weak) > 4 else ''}): more spots, spread around the array, would determine them"
             )
     offset, clocks, drift, mics = model.unpack(u)
-    after = model.predicted_s(u)[0]
+    after, dist, _, speed = model.predicted_s(u)
+    loading = playbacks.pair_differences_s(-dist / speed[:, None] ** 2 * model.dcdt[:, None])
     return ArrayCalibration(
         mic_ids=list(mic_ids),
         mic_positions_m=mics,
@@ -625,8 +629,60 @@ def calibrate_array(
         spot=np.asarray(playbacks.spot),
         n_spots=playbacks.n_spots,
         priors=priors,
+        temperature_call_sd_c=playback_temperature_spread_c(after - playbacks.tdoa_s, loading, model.measured, sigma_t),
         extra={"redundancy": redundancy(playbacks, len(model.names))},
     )
+
+
+def playback_temperature_spread_c(
+    residual_s: np.ndarray, loading_s_per_c: np.ndarray, measured: np.ndarray, timing_sigma_s: float
+) -> float:
+    """How far the thermometer's error varies from playback to playback about the calibrated offset, °C.
+
+    The calibration fits one offset for the season; a thermometer in the sun, or air between the
+    mics warmer than at the logger, is off by a different amount at each call, and the radii must
+    carry that spread too (``FieldCalibration.input_uncertainty``). Each playback n's own offset
+    about the fitted one is the least-squares ΔT_n = −Σ a r / Σ a² over its pairs (r the calibrated
+    residual, a its change per °C), over the pairs within ``OUTLIER_K`` timing-noise units of the
+    fit and again once each playback's own offset is removed (a wrong GCC peak would set it; the
+    fit's robust weights would not do, as they fall with the very residuals a varying thermometer
+    makes, and bias the spread low). Its variance from the timing noise σ_t alone (the MAD of those residuals) is
+    σ_t² / Σ a²; the spread beyond it is the between-playback variance τ² of a random-effects
+    model, by the method of moments of DerSimonian & Laird (1986, Controlled Clinical Trials
+    7:177–188): τ² = max(0, (Q − (K − 1)) / (Σv − Σv² / Σv)), v_n = 1 / var_n,
+    Q = Σ v_n (ΔT_n − ΔT̄)². It is 0 where the playbacks show no spread beyond their timing noise,
+    or fewer than 2 playbacks constrain an offset.
+
+    Parameters
+    ----------
+    residual_s, loading_s_per_c : numpy.ndarray
+        (N, P) each playback's and pair's calibrated residual (predicted − measured, s) and its change
+        per °C of thermometer offset (s/°C).
+    measured : numpy.ndarray
+        (N, P) bool, the pairs measured.
+    timing_sigma_s : float
+        The fit's timing noise, s (its residuals beyond ``OUTLIER_K`` of it are wrong peaks).
+    """
+    a, r = np.where(measured, loading_s_per_c, 0.0), np.where(measured, residual_s, 0.0)
+
+    def offsets(use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        information = (use * a**2).sum(axis=1)
+        return -(use * a * r).sum(axis=1) / np.where(information > 0, information, np.inf), information
+
+    inlier = measured & (np.abs(r) < OUTLIER_K * timing_sigma_s)
+    offset, _ = offsets(inlier)
+    own = r + a * offset[:, None]  # each playback's residuals with its own offset taken out
+    sigma_t = max(1.4826 * float(np.median(np.abs(own[inlier] - np.median(own[inlier])))), 1e-9)
+    inlier &= np.abs(own) < OUTLIER_K * sigma_t
+    offset, information = offsets(inlier)
+    used = information > 0
+    if used.sum() < 2:
+        return 0.0
+    v = information[used] / sigma_t**2
+    offset = offset[used]
+    q = float(np.sum(v * (offset - np.sum(v * offset) / np.sum(v)) ** 2))
+    tau2 = (q - (used.sum() - 1)) / (np.sum(v) - np.sum(v**2) / np.sum(v))
+    return float(np.sqrt(max(tau2, 0.0)))
 
 
 def calibrate_until_picks_hold(
