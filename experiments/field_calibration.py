@@ -93,7 +93,7 @@ def allowance_check(path: Path, site: str, true_mics: np.ndarray, clock_error_s:
     shift = np.hypot(*fix_shift_m(true_mics, source, *weather, *errors)[:, 0].T)
     thermometer = np.hypot(*fix_shift_m(true_mics, source, *weather, errors[0], 0 * errors[1], 0 * errors[2])[:, 0].T)
     independent = InputUncertainty(
-        temperature_c=calibration.temperature_offset_sd_c,
+        temperature_c=float(np.hypot(calibration.temperature_offset_sd_c, calibration.temperature_call_sd_c)),
         mic_position_m=float(np.sqrt(np.mean(calibration.mic_position_sd_m**2))),
         clock_offset_s=float(np.sqrt(np.mean(calibration.clock_offset_sd_s[1:] ** 2))),
     )
@@ -101,6 +101,8 @@ def allowance_check(path: Path, site: str, true_mics: np.ndarray, clock_error_s:
         "shift_m": np.where(np.isfinite(shift), shift, np.inf),
         "thermometer_shift_m": np.where(np.isfinite(thermometer), thermometer, np.inf),
         "thermometer_error_c": used - weather[0],
+        # the thermometer error's spread from call to call about its mean: what the playbacks' spread estimates
+        "call_spread_c": (calibration.temperature_call_sd_c, float(np.std(used - weather[0]))),
         "correlated": allowance_sigma_m(calibration.mic_positions_m, source, used, humidity, calibration.input_uncertainty()),
         "independent": allowance_sigma_m(calibration.mic_positions_m, source, used, humidity, independent),
     }
@@ -158,6 +160,8 @@ def allowance_summary(checks: list[dict]) -> dict:
         "median_shift_m": float(np.median(shift)),
         "median_thermometer_shift_m": float(np.median(np.concatenate([c["thermometer_shift_m"] for c in checks]))),
         "thermometer_error_c_range": [float(f(np.concatenate([c["thermometer_error_c"] for c in checks]))) for f in (np.min, np.max)],
+        "call_spread_c_estimated": [c["call_spread_c"][0] for c in checks],
+        "call_spread_c_true": [c["call_spread_c"][1] for c in checks],
     }
     for kind in ("correlated", "independent"):
         sigma = np.concatenate([c[kind] for c in checks])
@@ -295,14 +299,16 @@ def main() -> None:
         "",
         "Does the input allowance a run carries from the calibration hold what the calibration's remaining errors do to a fix? "
         "Per call, the exact shift of the true array's least-squares fix solved with the calibrated thermometer, clocks and "
-        "mics (and with the thermometer's error alone: the calibrated reading against the air the renderer propagated in), "
+        "mics (and with the thermometer's error alone: the calibrated reading against the air the renderer propagated in; "
+        "its spread over the calls, and the playbacks' estimate of it that the allowance carries, medians over calibrations), "
         "against the allowance radius at 0.5 and 0.95 (σ per axis × 1.18 and × 2.45), with the calibration's covariance "
         "(what a run carries) and with its standard deviations as independent errors (before); calls pooled over arrays and "
         "designs, the range over calibrations in brackets:",
         "",
         "| site | spots | calibrations | calls | median shift (m) | from the thermometer alone (m) | thermometer error (°C) "
+        "| its SD over calls (°C): true | estimated "
         "| covariance: median σ (m) | ≤ 0.5 radius | ≤ 0.95 radius | independent: median σ (m) | ≤ 0.5 radius | ≤ 0.95 radius |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for site, r in raw.items():
         for n_spots, a in r["allowance"].items():
@@ -314,7 +320,8 @@ def main() -> None:
             low, high = a["thermometer_error_c_range"]
             lines.append(
                 f"| {site} | {n_spots} | {a['n_calibrations']} | {a['n_calls']} | {a['median_shift_m']:.3f} | "
-                f"{a['median_thermometer_shift_m']:.3f} | {low:+.2f} to {high:+.2f} | " + " | ".join(cells) + " |"
+                f"{a['median_thermometer_shift_m']:.3f} | {low:+.2f} to {high:+.2f} | {np.median(a['call_spread_c_true']):.2f} | "
+                f"{np.median(a['call_spread_c_estimated']):.2f} | " + " | ".join(cells) + " |"
             )
     lines += ["", "What each calibration said it could not determine (per site, array and number of spots):", ""]
     for site, r in raw.items():
