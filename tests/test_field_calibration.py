@@ -219,6 +219,41 @@ def test_drift_is_estimated_only_from_playbacks_spread_over_time():
     assert "drift" in calibrate_array(short, Priors(stated, np.full(5, 2.0)), list("abcde")).not_identified
 
 
+def test_a_calibrated_drifts_uncertainty_grows_the_radii_with_the_time_since_the_playbacks(tmp_path: Path):
+    """A drift estimated from playbacks two hours apart is extrapolated over the season: the clocks' errors a run
+    carries grow with a call's time since the drift's origin, hold the calibration's real clock errors then, and move
+    the fix as the Monte Carlo of exact solves does."""
+    from acoustlab.toolkit.input_uncertainty import allowance_sigma_m, monte_carlo_sigma_m, position_sigma_m
+
+    stated, true = array(5, 7)
+    rng = np.random.default_rng(8)
+    drift = np.r_[0.0, rng.uniform(-2e-6, 2e-6, 4)]
+    clocks = np.r_[0.0, rng.uniform(-1e-3, 1e-3, 4)]
+    pb = playbacks(true, spots_in(rng, 12), clocks, 0.0, noise_s=3e-5, drift=drift, span_s=7200.0, seed=9)
+    cal = calibrate_array(pb, Priors(stated, np.full(5, 2.0)), list("abcde"))
+    site = dataclasses.replace(site3(), mic_positions_m=stated)
+    write_calibration(tmp_path / "c.json", cal, site, pd.DataFrame({col.EVENT_ID: np.arange(len(pb.spot)), col.POSITION_ID: pb.spot}))
+    loaded = load_calibration(str(tmp_path / "c.json"), site)
+    errors = loaded.input_uncertainty()
+    assert errors.drifts and errors.covariance.shape == (21, 21)  # thermometer, 5 clocks, 5 mics' x and y, 5 drifts
+    week = 7 * 86_400.0
+    times = loaded.drift_origin_s + np.array([0.0, week])
+    clock_sd = np.sqrt(np.diagonal(errors.at(5, times), axis1=1, axis2=2)[:, 1:6])  # (2, 5)
+    np.testing.assert_allclose(clock_sd[0], np.sqrt(np.diag(errors.covariance)[1:6]), rtol=1e-12)  # at the origin: the offsets'
+    assert np.all(clock_sd[1, 1:] > 10 * clock_sd[0, 1:])  # a week on, the drifts' errors dominate
+    # and they hold what the calibration's clocks are really off by then (a clock's error is its offset's and drift's)
+    real = (cal.clock_offset_s - clocks) + (cal.clock_drift - drift) * (times[1] - cal.drift_origin_s)
+    assert np.all(np.abs(real[1:]) < 3 * clock_sd[1, 1:])
+    source = np.array([[40.0, 35.0, 1.5], [40.0, 35.0, 1.5]])
+    weather = (np.full(2, 12.0), np.full(2, 70.0))
+    sigma = allowance_sigma_m(loaded.mic_positions_m, source, *weather, dataclasses.replace(errors, max_sigma_m=1e3), time_s=times)
+    assert sigma[1] > 10 * sigma[0]
+    day = loaded.drift_origin_s + np.array([86_400.0])
+    first_order = position_sigma_m(loaded.mic_positions_m, source[:1], weather[0][:1], weather[1][:1], errors, day)[0]
+    exact = monte_carlo_sigma_m(loaded.mic_positions_m, source[:1], weather[0][:1], weather[1][:1], errors, time_s=day)[0]
+    assert first_order == pytest.approx(exact, rel=0.25)
+
+
 def test_what_the_playbacks_cannot_determine_is_left_at_its_prior_and_said():
     stated, true = array(4, 9)
     one = playbacks(true, np.array([[40.0, 40.0, 1.5]]), np.zeros(4), 2.0)

@@ -378,6 +378,14 @@ def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_pa
     np.testing.assert_allclose(calibration.mic_positions_m[:, :2], true_mics[:, :2], atol=0.05)
     path = tmp_path / "calibration.json"
     digest = write_calibration(path, calibration, site, pd.DataFrame({"event_id": [f"pb{k}" for k in range(len(calibration.spot))]}))
+    # a season reads no thermometer: the allowance keeps the stated thermometer σ for its one assumed temperature
+    from acoustlab.run.app import build_run
+    from acoustlab.stages.field_calibration import load_calibration
+
+    carried = build_run(configure(f"calibration={path}", "conformal.input_uncertainty.temperature_c=1.5")).components.input_uncertainty
+    from_file = load_calibration(str(path), site).input_uncertainty().covariance
+    assert carried.covariance[0, 0] == pytest.approx(from_file[0, 0] + 1.5**2)
+    np.testing.assert_array_equal(carried.covariance[1:, 1:], from_file[1:, 1:])
     errors = {}
     for label, extra in (("stated", ()), ("calibrated", (f"calibration={path}", f"protocol.output_dir={tmp_path / 'out_cal'}"))):
         metrics = run_experiment(configure(*extra), tmp_path / label)

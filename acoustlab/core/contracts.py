@@ -38,6 +38,9 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
     "streams": False,
     # protocols: calibrates the array from playbacks at known spots (protocol=calibrate): writes calibration.json, simulates nothing
     "calibrates": False,
+    # protocols: gives every detection one assumed temperature, not a thermometer's reading (protocol=season): a field
+    # calibration's input allowance keeps conformal.input_uncertainty.temperature_c as that assumption's error
+    "assumes_weather": False,
     # simulators and feature sets: bumped by hand to invalidate cached results of an unchanged module
     "cache_version": "0",
     # trackers: the id of the last run sent and where it went (for the upload marker)

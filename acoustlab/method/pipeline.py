@@ -43,6 +43,7 @@ from acoustlab.method.trust import (
     apply_trust,
     support_cues,
 )
+from acoustlab.stages.field_calibration import event_time_s
 from acoustlab.stages.solver_columns import pair_candidate_lags
 from acoustlab.toolkit.conformal import conformal_quantile, positions_needed, selective_threshold, selective_threshold_by_position
 from acoustlab.toolkit.event_physics import event_speed_of_sound_m_s, source_height_m
@@ -691,7 +692,12 @@ class LocalizationPipeline:
         source = np.column_stack([position_m, source_height_m(features, self.c.site)])
         humidity = events[col.HUMIDITY].to_numpy(float) if col.HUMIDITY in events else np.zeros(len(events))
         sigma[field] = allowance_sigma_m(
-            self.c.site.mic_positions_m, source[field], events[col.TEMPERATURE].to_numpy(float)[field], humidity[field], stated
+            self.c.site.mic_positions_m,
+            source[field],
+            events[col.TEMPERATURE].to_numpy(float)[field],
+            humidity[field],
+            stated,
+            time_s=event_time_s(events)[field],  # a calibration's drift grows its clocks' errors with it
         )
         return sigma
 

@@ -259,7 +259,19 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         )
         stated_site, site = site, calibrated_site(site, calibration)
         limits = components.input_uncertainty  # its exact_above_m and max_sigma_m still apply
-        allowance = dataclasses.replace(calibration.input_uncertainty(), exact_above_m=limits.exact_above_m, max_sigma_m=limits.max_sigma_m)
+        # a season reads no thermometer: its one assumed temperature stays off the air by the stated σ
+        assumed_sd_c = limits.temperature_c if declared(protocol, "assumes_weather") else 0.0
+        allowance = dataclasses.replace(
+            calibration.input_uncertainty(assumed_sd_c), exact_above_m=limits.exact_above_m, max_sigma_m=limits.max_sigma_m
+        )
+        if assumed_sd_c:
+            log.info("the season assumes one temperature for every detection: the allowance keeps its %.2g °C error", assumed_sd_c)
+        if np.any(calibration.clock_drift) and declared(protocol, "streams"):
+            log.warning(
+                "%s corrects clock drift at each detection's start_s, seconds from the season's first file: its playbacks' "
+                "time_s must count from that same instant (docs/calibrate.md)",
+                calibration.path,
+            )
         components = dataclasses.replace(components, site=site, input_uncertainty=allowance)
     return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration, stated_site)
 

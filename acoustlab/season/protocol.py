@@ -77,6 +77,7 @@ class SeasonLocalize:
 
     evaluates = False
     streams = True
+    assumes_weather = True
 
     def __init__(
         self,

@@ -17,7 +17,10 @@ every playback's residuals before and after. ``calibration=PATH`` in ``localize`
   distance to the spots trade off; carried as independent errors they would count twice what the
   playbacks tie down. The thermometer's variance also carries how far its error varied from
   playback to playback about the one offset (``temperature_call_sd_c``): a season's calls meet the
-  air as the playbacks did, not at one fixed error. Drift's uncertainty is not carried.
+  air as the playbacks did, not at one fixed error. Where drift was estimated, its covariance with
+  the rest comes too, and a call's clock errors grow with its time since the drift's origin (a
+  drift from playbacks an hour apart, extrapolated over weeks, can be milliseconds off). Where it
+  was not, the recorders are taken not to drift, and nothing is carried for it.
 
 The file is JSON (nothing in it can run code) and carries the SHA-256 of its content, which a run
 records in ``metrics.json`` and ``positions.csv``; a file edited by hand fails the check.
@@ -207,6 +210,7 @@ class FieldCalibration:
     clock_offset_sd_s: np.ndarray
     clock_drift: np.ndarray
     drift_origin_s: float
+    clock_drift_sd: np.ndarray
     mic_position_sd_m: np.ndarray
     n_spots: int
     not_identified: dict[str, str]
@@ -231,32 +235,42 @@ class FieldCalibration:
             "redundancy": self.redundancy,
         }
 
-    def input_uncertainty(self) -> CorrelatedInputErrors:
+    def input_uncertainty(self, assumed_temperature_sd_c: float = 0.0) -> CorrelatedInputErrors:
         """What the calibration leaves uncertain, as the radii's input errors (module docstring).
 
         The posterior covariance, each row and column scaled so that its standard deviation is the
         larger of the posterior's and the jackknife's (a mic's x and y by one factor, the jackknife
         being per mic); parameters not estimated are independent at their prior's. The
         thermometer's variance then gains the playbacks' spread about its offset
-        (``temperature_call_sd_c``²): each call's own error, independent of the rest.
+        (``temperature_call_sd_c``²): each call's own error, independent of the rest, and
+        ``assumed_temperature_sd_c``² (°C) where the calls' temperature is assumed rather than read
+        (a season). Where drift was estimated, the clocks' drifts follow the mics'
+        (``CorrelatedInputErrors.drifts``).
         """
         m = len(self.mic_positions_m)
         names = ["temperature_offset_c", *(f"clock_{k}_s" for k in range(m)), *(f"mic_{k}_{axis}_m" for k in range(m) for axis in "xy")]
+        drifts = any(name.startswith("drift_") for name in self.parameters)
+        names += [f"drift_{k}" for k in range(m)] if drifts else []
         index = np.array([self.parameters.index(name) if name in self.parameters else -1 for name in names])
         estimated = np.flatnonzero(index >= 0)
         covariance = np.zeros((len(names), len(names)))
         covariance[np.ix_(estimated, estimated)] = self.covariance[np.ix_(index[estimated], index[estimated])]
         posterior = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
-        per_mic = np.sqrt((posterior[1 + m :: 2] ** 2 + posterior[2 + m :: 2] ** 2) / 2)
-        posterior = np.r_[posterior[: 1 + m], np.repeat(per_mic, 2)]
-        larger = np.r_[self.temperature_offset_sd_c, self.clock_offset_sd_s, np.repeat(self.mic_position_sd_m, 2)]
+        per_mic = np.sqrt((posterior[1 + m : 1 + 3 * m : 2] ** 2 + posterior[2 + m : 1 + 3 * m : 2] ** 2) / 2)
+        posterior = np.r_[posterior[: 1 + m], np.repeat(per_mic, 2), posterior[1 + 3 * m :]]
+        larger = np.r_[
+            self.temperature_offset_sd_c,
+            self.clock_offset_sd_s,
+            np.repeat(self.mic_position_sd_m, 2),
+            self.clock_drift_sd if drifts else [],
+        ]
         scale = np.divide(larger, posterior, out=np.zeros_like(larger), where=posterior > 0)
         covariance *= np.outer(scale, scale)
         loose = posterior <= 0  # not estimated: independent, at the prior's standard deviation
         covariance[loose, :], covariance[:, loose] = 0.0, 0.0
         covariance[loose, loose] = larger[loose] ** 2
-        covariance[0, 0] += self.temperature_call_sd_c**2
-        return CorrelatedInputErrors(covariance)
+        covariance[0, 0] += self.temperature_call_sd_c**2 + assumed_temperature_sd_c**2
+        return CorrelatedInputErrors(covariance, drifts=drifts, drift_origin_s=self.drift_origin_s)
 
 
 def load_calibration(path_text: str, site: Site) -> FieldCalibration:
@@ -294,6 +308,7 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
             clock_offset_sd_s=sd("clock_offset_sd_s"),
             clock_drift=np.asarray(body["clock_drift_s_per_s"], dtype=float),
             drift_origin_s=float(body["drift_origin_s"]),
+            clock_drift_sd=sd("clock_drift_sd_s_per_s"),
             mic_position_sd_m=sd("mic_position_sd_m"),
             n_spots=int(body["n_spots"]),
             not_identified=dict(body.get("not_identified", {})),

@@ -263,6 +263,7 @@ class ArrayCalibration:
             "clock_offset_s": self.clock_offset_s.tolist(),
             "clock_offset_sd_s": [self.sd(f"clock_{m}_s") for m in range(len(self.mic_ids))],
             "clock_drift_s_per_s": self.clock_drift.tolist(),
+            "clock_drift_sd_s_per_s": [0.0 if m == 0 else self.sd(f"drift_{m}") for m in range(len(self.mic_ids))],
             "drift_origin_s": self.drift_origin_s,
             "timing_sigma_s": self.timing_sigma_s,
             "parameters": self.parameters,

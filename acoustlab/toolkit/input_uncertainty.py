@@ -16,7 +16,10 @@ A field calibration's errors are correlated (``CorrelatedInputErrors``): from fe
 recorder's clock trades off against its distance to them, so −c·δτ_i + u_i·δm_i, not each term,
 is what the playbacks tie down. Σ_r is then G Σ Gᵀ, with Σ the calibration's covariance and G
 each input's loading on each range (r_i·(dc/dT)/c for the thermometer, −c for mic i's clock,
-u_i for its position).
+u_i for its position). Where the calibration estimated the clocks' drift, the covariance also
+holds the M drifts (s per s), and a clock's error at a call t seconds after the drift's origin is
+its offset's error plus t times its drift's (``CorrelatedInputErrors.at``): a drift estimated from
+playbacks an hour apart, extrapolated over a season, can grow a clock's error by milliseconds.
 
 With J the (M × 3) Jacobian of (r_i) in (x, y, c·τ₀) and Σ_r the covariance of those range
 errors, the least-squares estimate's covariance is (JᵀJ)⁻¹ Jᵀ Σ_r J (JᵀJ)⁻¹; its horizontal
@@ -89,14 +92,21 @@ class CorrelatedInputErrors:
     ----------
     covariance : numpy.ndarray
         (1 + 3M, 1 + 3M) covariance of the estimates' errors: the thermometer's offset (°C), the M
-        recorders' clock offsets (s; the reference's is 0), then each mic's x and y (m), in that order.
+        recorders' clock offsets (s; the reference's is 0), then each mic's x and y (m), in that
+        order; with ``drifts``, (1 + 4M, 1 + 4M), the M clock drifts (s per s) after them.
     exact_above_m, max_sigma_m : float
         As for ``InputUncertainty``.
+    drifts : bool
+        Whether the covariance holds the clocks' drifts.
+    drift_origin_s : float
+        The time the clock offsets hold at (the calibration's ``drift_origin_s``), s.
     """
 
     covariance: np.ndarray
     exact_above_m: float = 0.5
     max_sigma_m: float = 10.0
+    drifts: bool = False
+    drift_origin_s: float = 0.0
 
     @property
     def is_zero(self) -> bool:
@@ -104,9 +114,27 @@ class CorrelatedInputErrors:
         return not np.any(self.covariance)
 
     def check_array(self, n_mics: int) -> None:
-        """Raise ValueError unless the covariance is of ``n_mics`` mics (1 + 3 ``n_mics`` rows)."""
-        if self.covariance.shape != (1 + 3 * n_mics,) * 2:
+        """Raise ValueError unless the covariance is of ``n_mics`` mics (1 + 3 ``n_mics`` rows, 1 + 4 ``n_mics`` with drifts)."""
+        if self.covariance.shape != ((4 if self.drifts else 3) * n_mics + 1,) * 2:
             raise ValueError(f"CorrelatedInputErrors: a covariance of shape {self.covariance.shape} for an array of {n_mics} mics")
+
+    def transfer(self, n_mics: int, time_s: np.ndarray | None) -> np.ndarray:
+        """(B, 1 + 3M, D) or (1 + 3M, D): each call's inputs from the covariance's: a clock's error at time t is its
+        offset's plus (t − ``drift_origin_s``) times its drift's (no time, or no drift: the offset's alone)."""
+        self.check_array(n_mics)
+        base = np.eye(1 + 3 * n_mics, self.covariance.shape[0])
+        if not self.drifts or time_s is None:
+            return base
+        elapsed = np.nan_to_num(np.asarray(time_s, dtype=float) - self.drift_origin_s)  # as the correction applies them
+        out = np.broadcast_to(base, (len(elapsed), *base.shape)).copy()
+        clocks = np.arange(1, 1 + n_mics)
+        out[:, clocks, 1 + 3 * n_mics + np.arange(n_mics)] = elapsed[:, None]
+        return out
+
+    def at(self, n_mics: int, time_s: np.ndarray | None = None) -> np.ndarray:
+        """(B, 1 + 3M, 1 + 3M) the inputs' covariance at each call's ``time_s`` ((B,), s), or (1 + 3M, 1 + 3M) at the origin."""
+        a = self.transfer(n_mics, time_s)
+        return a @ self.covariance @ np.swapaxes(a, -1, -2)
 
 
 #: Stated or calibrated input errors.
@@ -135,6 +163,7 @@ def position_sigma_m(
     temperature_c: np.ndarray,
     relative_humidity_pct: np.ndarray,
     stated: InputErrors,
+    time_s: np.ndarray | None = None,
 ) -> np.ndarray:
     """(B,) per-axis RMS horizontal position error (m) from the stated input errors (module docstring).
 
@@ -148,6 +177,8 @@ def position_sigma_m(
         (B,) the events' weather.
     stated : InputUncertainty or CorrelatedInputErrors
         The standard deviations, or a calibration's covariance.
+    time_s : numpy.ndarray, optional
+        (B,) when each call happened, s (a calibration's drift grows its clocks' errors with time since its origin).
     """
     mics = np.asarray(mic_positions_m, dtype=float)
     src = np.asarray(source_m, dtype=float)
@@ -161,9 +192,8 @@ def position_sigma_m(
     u = offset[..., :2] / np.maximum(r, 1e-9)[..., None]  # horizontal unit vectors mic → source
     jac = np.concatenate([u, np.ones((*r.shape, 1))], axis=-1)  # (B, M, 3): d r_i / d (x, y, c τ₀)
     if isinstance(stated, CorrelatedInputErrors):
-        stated.check_array(len(mics))
         loadings = range_loadings(r, u, c, dc_dt)
-        cov_r = loadings @ stated.covariance @ np.swapaxes(loadings, 1, 2)
+        cov_r = loadings @ stated.at(len(mics), time_s) @ np.swapaxes(loadings, 1, 2)
     else:
         sigma_c = np.abs(dc_dt) * stated.temperature_c
         independent = (c * stated.clock_offset_s) ** 2 + stated.mic_position_m**2  # per mic, per unit-direction projection
@@ -184,13 +214,22 @@ def allowance_sigma_m(
     temperature_c: np.ndarray,
     relative_humidity_pct: np.ndarray,
     stated: InputErrors,
+    time_s: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(B,) the per-axis σ (m) the radii carry: first order, by Monte Carlo where that exceeds ``exact_above_m``, capped at ``max_sigma_m``."""
-    sigma = position_sigma_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated)
+    """(B,) the per-axis σ (m) the radii carry: first order, by Monte Carlo where that exceeds ``exact_above_m``, capped at ``max_sigma_m``.
+
+    ``time_s`` (B,), when each call happened, s: where a calibration estimated drift, its clocks' errors grow with it.
+    """
+    sigma = position_sigma_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated, time_s)
     poor = np.isfinite(sigma) & (sigma > stated.exact_above_m)
     if poor.any():
         sigma[poor] = monte_carlo_sigma_m(
-            mic_positions_m, np.asarray(source_m)[poor], np.asarray(temperature_c)[poor], np.asarray(relative_humidity_pct)[poor], stated
+            mic_positions_m,
+            np.asarray(source_m)[poor],
+            np.asarray(temperature_c)[poor],
+            np.asarray(relative_humidity_pct)[poor],
+            stated,
+            time_s=None if time_s is None else np.asarray(time_s)[poor],
         )
     return np.minimum(sigma, stated.max_sigma_m)
 
@@ -211,14 +250,16 @@ def monte_carlo_sigma_m(
     relative_humidity_pct: np.ndarray,
     stated: InputErrors,
     n_iterations: int = 15,
+    time_s: np.ndarray | None = None,
 ) -> np.ndarray:
     """(B,) per-axis RMS shift (m) of the least-squares fix when the inputs are off by the stated errors, by Monte Carlo.
 
     ``fix_shift_m`` under ``N_DRAWS`` fixed draws (seed 0) of the errors: a speed of sound off by
     the thermometer's error, mics off by the survey error and clocks off by theirs; with
-    ``CorrelatedInputErrors``, drawn together from the calibration's covariance.
+    ``CorrelatedInputErrors``, drawn together from the calibration's covariance (a clock's drift
+    times the call's time since the drift's origin added to its offset, ``time_s`` (B,), s).
     """
-    d_temperature, d_clock, d_mics = _input_draws(stated, len(mic_positions_m))
+    d_temperature, d_clock, d_mics = _input_draws(stated, len(mic_positions_m), time_s)
     shift = fix_shift_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, d_temperature, d_clock, d_mics, n_iterations)
     # near a singular geometry some draws have no nearby fix at all: a shift counts at most 3 × max_sigma_m
     shift = np.clip(np.nan_to_num(shift, nan=np.inf), -3 * stated.max_sigma_m, 3 * stated.max_sigma_m)
@@ -240,12 +281,12 @@ def fix_shift_m(
     The arrival ranges are those of the true geometry (``mic_positions_m`` (M, 3), ``source_m``
     (B, 3), the true weather (B,)); the fix is solved by Gauss–Newton in x, y and c·τ₀ from the
     true position with the thermometer off by ``d_temperature_c`` ((D,), or (B, D) per source), °C, the arrival times by
-    ``d_arrival_s`` (D, M), s, and the mics by ``d_mics_m`` (D, M, 2), m.
+    ``d_arrival_s`` ((D, M), or (B, D, M) per source), s, and the mics by ``d_mics_m`` (D, M, 2), m.
     """
     mics = np.asarray(mic_positions_m, dtype=float)
     src = np.asarray(source_m, dtype=float)
     d_temperature, d_clock, d_mics = (np.asarray(v, dtype=float) for v in (d_temperature_c, d_arrival_s, d_mics_m))
-    n_draws, n_mics = d_clock.shape
+    n_draws, n_mics = d_clock.shape[-2:]
     c_true = np.asarray(speed_of_sound_m_s(temperature_c, relative_humidity_pct), dtype=float)  # (B,)
     c_used = np.asarray(
         speed_of_sound_m_s(
@@ -254,7 +295,7 @@ def fix_shift_m(
         dtype=float,
     )  # (B, D)
     travel = np.sqrt(((src[:, None, :] - mics[None]) ** 2).sum(-1)) / c_true[:, None]  # (B, M) true travel times, s
-    measured = travel[:, None, :] + d_clock[None]  # (B, D, M) arrival times the recorders report
+    measured = travel[:, None, :] + (d_clock if d_clock.ndim == 3 else d_clock[None])  # (B, D, M) arrival times the recorders report
     used_mics = np.broadcast_to(mics, (n_draws, n_mics, 3)).copy()
     used_mics[..., :2] += d_mics
     p = np.broadcast_to(np.concatenate([src[:, :2], np.zeros((len(src), 1))], axis=1)[:, None, :], (len(src), n_draws, 3)).copy()
@@ -270,18 +311,23 @@ def fix_shift_m(
     return p[..., :2] - src[:, None, :2]
 
 
-def _input_draws(stated: InputErrors, n_mics: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _input_draws(stated: InputErrors, n_mics: int, time_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``N_DRAWS`` fixed draws (seed 0) of the thermometer's error (°C), the clocks' errors in the arrival times (s) and the mics' (m).
 
     A calibrated clock δ too large leaves the corrected arrival δ early: the draw of a clock
-    estimate's error enters the arrival times with its sign flipped (``range_loadings``).
+    estimate's error enters the arrival times with its sign flipped (``range_loadings``). With a
+    calibration's drifts and ``time_s`` (B,), the clocks' errors are per call: (B, N_DRAWS, M).
     """
     rng = np.random.default_rng(0)
     if isinstance(stated, CorrelatedInputErrors):
         stated.check_array(n_mics)
-        values, vectors = np.linalg.eigh(stated.covariance)
-        draws = rng.normal(0.0, 1.0, (N_DRAWS, len(values))) @ (vectors * np.sqrt(np.clip(values, 0.0, None))).T
-        return draws[:, 0], -draws[:, 1 : 1 + n_mics], draws[:, 1 + n_mics :].reshape(N_DRAWS, n_mics, 2)
+        # in units of each input's σ: the variances span °C² to (s/s)², and an eigendecomposition's error is relative to the largest
+        scale = np.sqrt(np.clip(np.diag(stated.covariance), 0.0, None))
+        unit = np.divide(stated.covariance, np.outer(scale, scale), out=np.zeros_like(stated.covariance), where=np.outer(scale, scale) > 0)
+        values, vectors = np.linalg.eigh(unit)
+        draws = rng.normal(0.0, 1.0, (N_DRAWS, len(values))) @ (vectors * np.sqrt(np.clip(values, 0.0, None))).T * scale
+        inputs = draws @ np.swapaxes(stated.transfer(n_mics, time_s), -1, -2)  # (N_DRAWS, 1 + 3M) or (B, N_DRAWS, 1 + 3M)
+        return draws[:, 0], -inputs[..., 1 : 1 + n_mics], draws[:, 1 + n_mics : 1 + 3 * n_mics].reshape(N_DRAWS, n_mics, 2)
     d_temperature = rng.normal(0.0, 1.0, N_DRAWS) * stated.temperature_c
     d_mics = rng.normal(0.0, 1.0, (N_DRAWS, n_mics, 2)) * stated.mic_position_m
     d_clock = rng.normal(0.0, 1.0, (N_DRAWS, n_mics)) * stated.clock_offset_s

@@ -218,6 +218,7 @@ def jackknife_sd(without: list[ArrayCalibration]) -> dict[str, Any]:
         "mic_position_sd_m": np.round(np.sqrt((mics**2).mean(axis=1)), 6).tolist(),
         "temperature_offset_sd_c": float(sd(np.array([c.temperature_offset_c for c in without]))),
         "clock_offset_sd_s": sd(np.array([c.clock_offset_s for c in without])).tolist(),
+        "clock_drift_sd_s_per_s": sd(np.array([c.clock_drift for c in without])).tolist(),
     }
 
 
