@@ -20,6 +20,7 @@ from acoustlab import __version__
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import declared, hook
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.types import Site
 from acoustlab.method.pipeline import Components, LocalizationPipeline
 from acoustlab.method.trust import TrustSettings
 from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
@@ -55,7 +56,7 @@ from acoustlab.stages.field_calibration import (
 )
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import add_solver_columns
-from acoustlab.toolkit.input_uncertainty import InputUncertainty
+from acoustlab.toolkit.input_uncertainty import CorrelatedInputErrors, InputUncertainty
 from acoustlab.toolkit.quality import QUALITY_REASONS
 
 log = logging.getLogger(__name__)
@@ -248,32 +249,40 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         if declared(protocol, "calibrates"):
             raise ConfigError("calibrate starts from the stated array: drop calibration=… (a calibration is not calibrated again)")
         calibration = load_calibration(str(cfg.calibration), site)
-        log.info(
-            "calibration %s (%s…): mics moved up to %.2f m, thermometer offset %+.2f °C, clock offsets up to %.3g ms; its "
-            "covariance is the radii's input allowance in place of conformal.input_uncertainty's standard deviations",
-            calibration.path,
-            calibration.sha256[:12],
-            float(np.abs(calibration.mic_positions_m - site.mic_positions_m).max()),
-            calibration.temperature_offset_c,
-            1e3 * float(np.abs(calibration.clock_offset_s).max()),
-        )
         stated_site, site = site, calibrated_site(site, calibration)
-        limits = components.input_uncertainty  # its exact_above_m and max_sigma_m still apply
-        # a season reads no thermometer: its one assumed temperature stays off the air by the stated σ
-        assumed_sd_c = limits.temperature_c if declared(protocol, "assumes_weather") else 0.0
-        allowance = dataclasses.replace(
-            calibration.input_uncertainty(assumed_sd_c), exact_above_m=limits.exact_above_m, max_sigma_m=limits.max_sigma_m
-        )
-        if assumed_sd_c:
-            log.info("the season assumes one temperature for every detection: the allowance keeps its %.2g °C error", assumed_sd_c)
-        if np.any(calibration.clock_drift) and declared(protocol, "streams"):
-            log.warning(
-                "%s corrects clock drift at each detection's start_s, seconds from the season's first file: its playbacks' "
-                "time_s must count from that same instant (docs/calibrate.md)",
-                calibration.path,
-            )
+        allowance = calibrated_allowance(calibration, stated_site, components.input_uncertainty, protocol)
         components = dataclasses.replace(components, site=site, input_uncertainty=allowance)
     return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration, stated_site)
+
+
+def calibrated_allowance(
+    calibration: FieldCalibration, stated_site: Site, stated: InputUncertainty, protocol: Any
+) -> CorrelatedInputErrors:
+    """The radii's input allowance under ``calibration=PATH``: its covariance, with ``stated``'s limits (and thermometer σ where
+    ``protocol`` assumes the weather); logs what the calibration changes."""
+    log.info(
+        "calibration %s (%s…): mics moved up to %.2f m, thermometer offset %+.2f °C, clock offsets up to %.3g ms; its "
+        "covariance is the radii's input allowance in place of conformal.input_uncertainty's standard deviations",
+        calibration.path,
+        calibration.sha256[:12],
+        float(np.abs(calibration.mic_positions_m - stated_site.mic_positions_m).max()),
+        calibration.temperature_offset_c,
+        1e3 * float(np.abs(calibration.clock_offset_s).max()),
+    )
+    # a season reads no thermometer: its one assumed temperature stays off the air by the stated σ
+    assumed_sd_c = stated.temperature_c if declared(protocol, "assumes_weather") else 0.0
+    if assumed_sd_c:
+        log.info("the season assumes one temperature for every detection: the allowance keeps its %.2g °C error", assumed_sd_c)
+    if np.any(calibration.clock_drift) and declared(protocol, "streams"):
+        log.warning(
+            "%s corrects clock drift at each detection's start_s, seconds from the season's first file: its playbacks' "
+            "time_s must count from that same instant (docs/calibrate.md)",
+            calibration.path,
+        )
+    # the stated exact_above_m and max_sigma_m still apply
+    return dataclasses.replace(
+        calibration.input_uncertainty(assumed_sd_c), exact_above_m=stated.exact_above_m, max_sigma_m=stated.max_sigma_m
+    )
 
 
 @dataclass
