@@ -346,7 +346,7 @@ def test_the_season_defaults_are_the_fast_settings_with_the_full_sets_solver_fix
     assert saved.feature_sets["tdoa"].search == "fine"
 
 
-def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_path):
+def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_path, caplog):
     """The recorders stand 1.5–2 m off their stated positions; a calibration from 8 spots of exact playbacks moves them back, and
     the season run with ``calibration=PATH`` places the calls several times closer, recording the file's digest on every row."""
     import dataclasses
@@ -386,6 +386,10 @@ def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_pa
     from_file = load_calibration(str(path), site).input_uncertainty().covariance
     assert carried.covariance[0, 0] == pytest.approx(from_file[0, 0] + 1.5**2)
     np.testing.assert_array_equal(carried.covariance[1:, 1:], from_file[1:, 1:])
+    assert "protocol.temperature_c is not given" in caplog.text  # the offset needs a thermometer's reading to correct
+    caplog.clear()
+    build_run(configure(f"calibration={path}", "protocol.temperature_c=11.0"))
+    assert "protocol.temperature_c is not given" not in caplog.text
     errors = {}
     for label, extra in (("stated", ()), ("calibrated", (f"calibration={path}", f"protocol.output_dir={tmp_path / 'out_cal'}"))):
         metrics = run_experiment(configure(*extra), tmp_path / label)

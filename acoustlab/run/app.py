@@ -273,6 +273,12 @@ def calibrated_allowance(
     assumed_sd_c = stated.temperature_c if declared(protocol, "assumes_weather") else 0.0
     if assumed_sd_c:
         log.info("the season assumes one temperature for every detection: the allowance keeps its %.2g °C error", assumed_sd_c)
+    if declared(protocol, "assumes_weather") and getattr(protocol, "temperature_c", None) is None:
+        log.warning(
+            "protocol.temperature_c is not given: the calibration's thermometer offset (%+.2f °C) is added to the middle of the "
+            "site's temperature range; give your thermometer's typical reading as protocol.temperature_c",
+            calibration.temperature_offset_c,
+        )
     if np.any(calibration.clock_drift) and declared(protocol, "streams"):
         log.warning(
             "%s corrects clock drift at each detection's start_s, seconds from the season's first file: its playbacks' "
