@@ -250,16 +250,19 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
             raise ConfigError("calibrate starts from the stated array: drop calibration=… (a calibration is not calibrated again)")
         calibration = load_calibration(str(cfg.calibration), site)
         stated_site, site = site, calibrated_site(site, calibration)
-        allowance = calibrated_allowance(calibration, stated_site, components.input_uncertainty, protocol)
+        # a season assumes one temperature: protocol.temperature_c where given (its yaml has the key), else the site's middle
+        given = not declared(protocol, "assumes_weather") or cfg.protocol.temperature_c is not None
+        allowance = calibrated_allowance(calibration, stated_site, components.input_uncertainty, protocol, given)
         components = dataclasses.replace(components, site=site, input_uncertainty=allowance)
     return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration, stated_site)
 
 
 def calibrated_allowance(
-    calibration: FieldCalibration, stated_site: Site, stated: InputUncertainty, protocol: Any
+    calibration: FieldCalibration, stated_site: Site, stated: InputUncertainty, protocol: Any, temperature_given: bool = True
 ) -> CorrelatedInputErrors:
     """The radii's input allowance under ``calibration=PATH``: its covariance, with ``stated``'s limits (and thermometer σ where
-    ``protocol`` assumes the weather); logs what the calibration changes."""
+    ``protocol`` assumes the weather); logs what the calibration changes, and warns where a season's assumed temperature
+    was not given (``temperature_given``: the offset then lands on the middle of the site's range)."""
     log.info(
         "calibration %s (%s…): mics moved up to %.2f m, thermometer offset %+.2f °C, clock offsets up to %.3g ms; its "
         "covariance is the radii's input allowance in place of conformal.input_uncertainty's standard deviations",
@@ -273,7 +276,7 @@ def calibrated_allowance(
     assumed_sd_c = stated.temperature_c if declared(protocol, "assumes_weather") else 0.0
     if assumed_sd_c:
         log.info("the season assumes one temperature for every detection: the allowance keeps its %.2g °C error", assumed_sd_c)
-    if declared(protocol, "assumes_weather") and getattr(protocol, "temperature_c", None) is None:
+    if not temperature_given:
         log.warning(
             "protocol.temperature_c is not given: the calibration's thermometer offset (%+.2f °C) is added to the middle of the "
             "site's temperature range; give your thermometer's typical reading as protocol.temperature_c",
