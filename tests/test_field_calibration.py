@@ -122,6 +122,26 @@ def test_a_thermometer_error_that_varies_from_call_to_call_is_measured_and_carri
     assert carried[0, 0] == pytest.approx(cal.sd("temperature_offset_c") ** 2 + cal.temperature_call_sd_c**2)
 
 
+def test_the_call_spread_is_measured_within_spots_where_a_spot_has_several_playbacks():
+    """Offsets that differ only between spots (what the fit's mics and clocks partly absorb, a spot's own multipath) are
+    not a thermometer varying from call to call: with the spots given the spread is the within-spot one."""
+    from acoustlab.toolkit.array_calibration import playback_temperature_spread_c
+
+    rng = np.random.default_rng(5)
+    spot = np.repeat(np.arange(10), 3)
+    loading = rng.uniform(1e-4, 3e-4, (30, 6)) * rng.choice([-1, 1], (30, 6))  # s per °C, per pair
+    between = np.repeat(rng.normal(0, 0.5, 10), 3)  # °C, shared by a spot's playbacks
+    within = rng.normal(0, 0.2, 30)
+    noise = rng.normal(0, 1e-5, (30, 6))
+    measured = np.ones((30, 6), dtype=bool)
+    residual = -loading * (between + within)[:, None] + noise  # predicted − measured for a playback's own offset
+    pooled = playback_temperature_spread_c(residual, loading, measured, 1e-4)
+    by_spot = playback_temperature_spread_c(residual, loading, measured, 1e-4, spot)
+    assert pooled > 0.4 and 0.12 < by_spot < 0.3
+    # one playback per spot: nothing to measure within a spot, so across the playbacks
+    assert playback_temperature_spread_c(residual, loading, measured, 1e-4, np.arange(30)) == pooled
+
+
 def test_noisy_playbacks_land_within_their_stated_uncertainty():
     stated, true = array(6, 3)
     rng = np.random.default_rng(4)

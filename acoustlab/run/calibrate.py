@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from acoustlab.core import columns as col
 from acoustlab.core.contracts import hook
 from acoustlab.method.protocols.calibrate import residual_rows
 from acoustlab.run.registry import build_feature_sets, to_plain
@@ -61,6 +62,11 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
         else [str(m) for m in range(site.n_mics)]
     )
     log.info("calibrating %d mics from %d playbacks", site.n_mics, len(playback_events))
+    if len(playback_events) and playback_events[col.POSITION_ID].value_counts().max() < 2:
+        log.warning(
+            "calibrate: one playback per spot: how far the thermometer's error varies from call to call (temperature_call_sd_c) "
+            "is then measured across spots, where the fit absorbs part of it, and may be too small; play back 2-3 times per spot"
+        )
     # the field sources fill each event's weather (their defaults where a table has none)
     calibration, playbacks = calibrate_playbacks(
         field.features,
