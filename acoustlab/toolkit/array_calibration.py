@@ -653,9 +653,8 @@ def playback_temperature_spread_c(
     7:177–188): τ² = max(0, (Q − (K − 1)) / (Σv − Σv² / Σv)), v_n = 1 / var_n,
     Q = Σ v_n (ΔT_n − ΔT̄)². Where a spot has several playbacks, the moments are taken within
     spots (ΔT̄ each spot's mean, K − 1 summed over spots): the fit's mics and clocks absorb part of
-    what differs between spots, so across spots the spread comes out low (the second simulator's
-    lake, 10 spots × 2: 0.15–0.17 °C across, 0.20–0.21 within, the calls' 0.22;
-    ``experiments/call_spread_per_spot.py`` for one per spot). It is 0 where the playbacks show no
+    what differs between spots, so across spots the spread comes out low
+    (``experiments/call_spread_per_spot.py``: one playback per spot). It is 0 where the playbacks show no
     spread beyond their timing noise, or fewer than 2 playbacks constrain an offset.
 
     Parameters
