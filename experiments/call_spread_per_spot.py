@@ -13,14 +13,13 @@ each ``calibration.json``. Writes experiments/results/call_spread_per_spot.md.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import tempfile
 from pathlib import Path
 
 import numpy as np
-from common import compose_cfg, machine, write_results
-from field_calibration import IMPAIRED, spot_overrides
+from common import machine, write_results
+from field_calibration import calibrate
 
 log = logging.getLogger("experiments.call_spread_per_spot")
 PLAYBACKS_PER_SPOT = (1, 3)
@@ -28,25 +27,8 @@ PLAYBACKS_PER_SPOT = (1, 3)
 
 def call_spread_c(site: str, array_seed: int, n_spots: int, per_spot: int) -> float:
     """``temperature_call_sd_c`` of a calibration from ``n_spots`` planned spots × ``per_spot`` playbacks, °C."""
-    from acoustlab.run.app import run_experiment
-
-    cfg = compose_cfg(
-        [
-            f"+site={site}",
-            "protocol=calibrate",
-            "field=image_source",
-            *spot_overrides(site, n_spots, "planned"),
-            f"field.events_per_position={per_spot}",
-            f"field.array_seed={array_seed}",
-            f"field.seed={9000 + array_seed}",
-            *IMPAIRED,
-            "tracking=none",
-            "plots=false",
-        ]
-    )
     with tempfile.TemporaryDirectory() as tmp:
-        run_experiment(cfg, Path(tmp), {})
-        return float(json.loads((Path(tmp) / "calibration.json").read_text())["temperature_call_sd_c"])
+        return float(calibrate(site, array_seed, n_spots, "planned", Path(tmp) / "run", per_spot=per_spot)["temperature_call_sd_c"])
 
 
 def main() -> None:

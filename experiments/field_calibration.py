@@ -118,8 +118,8 @@ def spot_overrides(site: str, n_spots: int, design: str) -> list[str]:
     return ["field.positions_m=[" + ",".join(f"[{x:.3f},{y:.3f},{z:.3f}]" for x, y, z in spots) + "]"]
 
 
-def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path, field: str = "image_source") -> dict:
-    """Run ``calibrate`` on ``n_spots`` playback spots (``design``) of the impaired array; return its calibration.json."""
+def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path, field: str = "image_source", per_spot: int = 3) -> dict:
+    """Run ``calibrate`` on ``n_spots`` playback spots (``design``, ``per_spot`` playbacks each) of the impaired array; return its calibration.json."""
     from acoustlab.run.app import run_experiment
 
     cfg = compose_cfg(
@@ -128,7 +128,7 @@ def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path, 
             "protocol=calibrate",
             f"field={field}",
             *spot_overrides(site, n_spots, design),
-            "field.events_per_position=3",
+            f"field.events_per_position={per_spot}",
             f"field.array_seed={array_seed}",
             f"field.seed={9000 + array_seed}",
             *IMPAIRED,
