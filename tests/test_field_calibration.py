@@ -239,6 +239,24 @@ def test_drift_is_estimated_only_from_playbacks_spread_over_time():
     assert "drift" in calibrate_array(short, Priors(stated, np.full(5, 2.0)), list("abcde")).not_identified
 
 
+def test_a_calls_clocks_are_the_offsets_plus_the_drift_since_the_origin_and_the_offsets_without_a_time():
+    from acoustlab.toolkit.recorder_clocks import clock_errors_s
+
+    offset, drift = np.array([0.0, 1e-3, -2e-3]), np.array([0.0, 1e-6, 2e-6])
+    clocks = clock_errors_s(offset, drift, 100.0, np.array([100.0, 3700.0, np.nan]))
+    np.testing.assert_allclose(clocks, [offset, offset + 3600.0 * drift, offset], rtol=0, atol=1e-15)
+
+
+def test_calibrate_warns_only_where_no_spot_has_two_playbacks(caplog):
+    from acoustlab.run.calibrate import warn_if_one_playback_per_spot
+
+    with caplog.at_level("WARNING", logger="acoustlab.run.calibrate"):
+        warn_if_one_playback_per_spot(pd.DataFrame({col.POSITION_ID: [0, 1, 1, 2]}))
+        assert "one playback per spot" not in caplog.text
+        warn_if_one_playback_per_spot(pd.DataFrame({col.POSITION_ID: [0, 1, 2]}))
+    assert "one playback per spot" in caplog.text and "play back 2-3 times per spot" in caplog.text
+
+
 def test_a_calibrated_drifts_uncertainty_grows_the_radii_with_the_time_since_the_playbacks(tmp_path: Path):
     """A drift estimated from playbacks two hours apart is extrapolated over the season: the clocks' errors a run
     carries grow with a call's time since the drift's origin, hold the calibration's real clock errors then, and move

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from acoustlab.core import columns as col
@@ -46,6 +47,15 @@ def _lag_window_for(cfg: DictConfig, priors: Any) -> DictConfig:
     return OmegaConf.merge(cfg, {"features": {"gcc": {"max_lag_margin_s": needed}}})
 
 
+def warn_if_one_playback_per_spot(playback_events: pd.DataFrame) -> None:
+    """Warn where no spot has two playbacks: the call-to-call spread of the thermometer's error is then measured too small."""
+    if len(playback_events) and playback_events[col.POSITION_ID].value_counts().max() < 2:
+        log.warning(
+            "calibrate: one playback per spot: how far the thermometer's error varies from call to call (temperature_call_sd_c) "
+            "is then measured across spots, where the fit absorbs part of it, and may be too small; play back 2-3 times per spot"
+        )
+
+
 def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[str, str]) -> dict[str, Any]:
     """Calibrate the array from the field events with known positions; write the calibration and its summary."""
     site, protocol, source = built.site, built.protocol, built.field_source
@@ -62,11 +72,7 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
         else [str(m) for m in range(site.n_mics)]
     )
     log.info("calibrating %d mics from %d playbacks", site.n_mics, len(playback_events))
-    if len(playback_events) and playback_events[col.POSITION_ID].value_counts().max() < 2:
-        log.warning(
-            "calibrate: one playback per spot: how far the thermometer's error varies from call to call (temperature_call_sd_c) "
-            "is then measured across spots, where the fit absorbs part of it, and may be too small; play back 2-3 times per spot"
-        )
+    warn_if_one_playback_per_spot(playback_events)
     # the field sources fill each event's weather (their defaults where a table has none)
     calibration, playbacks = calibrate_playbacks(
         field.features,

@@ -56,6 +56,7 @@ from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks, cal
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.input_uncertainty import CorrelatedInputErrors
 from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.recorder_clocks import clock_errors_s
 
 log = logging.getLogger(__name__)
 
@@ -380,8 +381,7 @@ def apply_calibration(
             features[col.ENV_TEMPERATURE] = events[col.TEMPERATURE].to_numpy(float)
         if col.ENV_SPEED_OF_SOUND in features:
             features[col.ENV_SPEED_OF_SOUND] = speed
-    elapsed = np.nan_to_num(event_time_s(events) - calibration.drift_origin_s)
-    clock = calibration.clock_offset_s[None, :] + calibration.clock_drift[None, :] * elapsed[:, None]  # (E, M)
+    clock = clock_errors_s(calibration.clock_offset_s, calibration.clock_drift, calibration.drift_origin_s, event_time_s(events))
     for i, j in site.mic_pairs:
         k = 1
         while col.tdoa_lag(i, j, k) in features:

@@ -43,6 +43,7 @@ from scipy.optimize import brentq, least_squares, minimize
 
 from acoustlab.core.errors import DataError
 from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.recorder_clocks import clock_errors_s, seconds_since_origin
 
 log = logging.getLogger(__name__)
 
@@ -239,7 +240,7 @@ class ArrayCalibration:
 
     def predicted_tdoa_s(self, playbacks: Playbacks) -> np.ndarray:
         """(N, M) the time differences t_m − t_0 this calibrated array predicts for the playbacks, s (a pair (i, j): column j − column i)."""
-        clock = self.clock_offset_s[None, :] + self.clock_drift[None, :] * np.nan_to_num(playbacks.time_s - self.drift_origin_s)[:, None]
+        clock = clock_errors_s(self.clock_offset_s, self.clock_drift, self.drift_origin_s, playbacks.time_s)
         arrival = playbacks.travel_times_s(self.mic_positions_m, self.temperature_offset_c) + clock
         return arrival - arrival[:, :1]
 
@@ -362,7 +363,7 @@ class _Model:
         # take the air below absolute zero (the speed-of-sound formula refuses it) on the way to a fit
         limit = np.where(np.array([n == "temperature_offset_c" for n in names], dtype=bool), MAX_TEMPERATURE_PRIORS, np.inf)
         self.bounds = (-limit, limit)
-        self.t = np.nan_to_num(playbacks.time_s - drift_origin_s)
+        self.t = seconds_since_origin(playbacks.time_s, drift_origin_s)
         self.measured = np.isfinite(playbacks.tdoa_s)
         self.dcdt = speed_of_sound_slope(playbacks.temperature_c, playbacks.relative_humidity_pct)
 

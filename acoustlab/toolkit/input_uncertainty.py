@@ -35,6 +35,7 @@ import numpy as np
 
 from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.recorder_clocks import seconds_since_origin
 
 
 @dataclass
@@ -125,7 +126,7 @@ class CorrelatedInputErrors:
         base = np.eye(1 + 3 * n_mics, self.covariance.shape[0])
         if not self.drifts or time_s is None:
             return base
-        elapsed = np.nan_to_num(np.asarray(time_s, dtype=float) - self.drift_origin_s)  # as the correction applies them
+        elapsed = seconds_since_origin(time_s, self.drift_origin_s)  # as the correction applies them
         out = np.broadcast_to(base, (len(elapsed), *base.shape)).copy()
         clocks = np.arange(1, 1 + n_mics)
         out[:, clocks, 1 + 3 * n_mics + np.arange(n_mics)] = elapsed[:, None]

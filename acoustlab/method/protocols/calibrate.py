@@ -41,6 +41,7 @@ from acoustlab.toolkit.array_calibration import (
 )
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.recorder_clocks import clock_errors_s
 
 log = logging.getLogger(__name__)
 
@@ -178,7 +179,7 @@ class CalibrateProtocol:
             # the held-out spot's peaks as this calibration picks them: the full calibration's picks were made knowing that spot
             if tested.candidates_s is not None:
                 tested = tested.picked(predicted)
-            clock = cal.clock_offset_s + cal.clock_drift * np.nan_to_num(tested.time_s - cal.drift_origin_s)[:, None]
+            clock = clock_errors_s(cal.clock_offset_s, cal.clock_drift, cal.drift_origin_s, tested.time_s)
             calibrated[test] = _solve_errors(tested, cal.mic_positions_m, clock, cal.temperature_offset_c, site, solver)
             residual["calibrated"][test] = tested.pair_differences_s(predicted) - tested.tdoa_s
 
