@@ -31,6 +31,7 @@ import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
+from acoustlab.toolkit.playback_signal import write_playback_sweep as write_playback_sweep  # what to play back (docs/calibrate.md)
 
 
 def overrides_from(settings: Mapping[str, Any], prefix: str = "") -> list[str]:

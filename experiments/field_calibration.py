@@ -1,7 +1,7 @@
 """Does ``acoustlab calibrate`` recover the array? Playbacks at known spots, then calls localized with and without it.
 
 Usage: python experiments/field_calibration.py [--sites frozen_lake forest] [--arrays 3] [--spots 5 10] [--n-positions 60]
-[--designs random planned] [--field image_source]
+[--designs random planned] [--signals calls sweep] [--field image_source]
 
 Per site and per array draw (``field.array_seed``), recordings rendered by the second simulator
 (pyroomacoustics' image-source method, ``field=image_source``; or with ``--field outdoor`` by
@@ -12,7 +12,8 @@ are off by up to ±1 ms, the thermometer reads 3 °C high. Then:
 * **playbacks**: ``--spots`` spots, 3 playbacks each (their own seed), calibrate from them
   (``protocol=calibrate``, defaults); the spots either drawn at random inside the array
   (``random``) or where ``acoustlab.api.plan_playbacks`` puts them for the stated array
-  (``planned``);
+  (``planned``); the speaker plays either bird calls drawn from the site's pool (``calls``) or the
+  playback sweep ``calibrate`` asks for (``sweep``, ``field.signal=sweep``);
 * **calls**: ``--n-positions`` × 3 other events, in and around the array (30 % outside), localized
   by the configured solver (consistent set) with the array as stated (uncalibrated), with each
   calibration (``calibration=PATH``), and with the true array known exactly (the same sources,
@@ -44,6 +45,8 @@ IMPAIRED = ["field.mic_position_error_m=2.0", "field.clock_offset_max_s=0.001", 
 TRUE_TEMPERATURE_OFFSET_C = -3.0
 N_BOOT = 1000
 #: the field sources the array's errors are rendered with
+#: what the speaker plays back (``field.signal``)
+SIGNALS = {"calls": "calls", "sweep": "a sweep"}
 RENDERERS = {"image_source": "Second simulator (pyroomacoustics)", "outdoor": "acoustlab's own outdoor simulator"}
 #: only the field recordings' solver fixes are measured: the method's training simulation is kept tiny
 SMALL_TRAINING = ["data.n_events=8", "data.events_per_position=1", "data.chunk_size=8"]
@@ -118,8 +121,11 @@ def spot_overrides(site: str, n_spots: int, design: str) -> list[str]:
     return ["field.positions_m=[" + ",".join(f"[{x:.3f},{y:.3f},{z:.3f}]" for x, y, z in spots) + "]"]
 
 
-def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path, field: str = "image_source", per_spot: int = 3) -> dict:
-    """Run ``calibrate`` on ``n_spots`` playback spots (``design``, ``per_spot`` playbacks each) of the impaired array; return its calibration.json."""
+def calibrate(
+    site: str, array_seed: int, n_spots: int, design: str, out: Path, field: str = "image_source", per_spot: int = 3, signal: str = "calls"
+) -> dict:
+    """Run ``calibrate`` on ``n_spots`` playback spots (``design``, ``per_spot`` playbacks each of ``signal``) of the impaired
+    array; return its calibration.json."""
     from acoustlab.run.app import run_experiment
 
     cfg = compose_cfg(
@@ -129,6 +135,7 @@ def calibrate(site: str, array_seed: int, n_spots: int, design: str, out: Path, 
             f"field={field}",
             *spot_overrides(site, n_spots, design),
             f"field.events_per_position={per_spot}",
+            f"field.signal={signal}",
             f"field.array_seed={array_seed}",
             f"field.seed={9000 + array_seed}",
             *IMPAIRED,
@@ -190,6 +197,7 @@ def main() -> None:
     parser.add_argument("--spots", nargs="+", type=int, default=[5, 10])
     parser.add_argument("--n-positions", type=int, default=60)
     parser.add_argument("--designs", nargs="+", choices=["random", "planned"], default=["random", "planned"])
+    parser.add_argument("--signals", nargs="+", choices=list(SIGNALS), default=list(SIGNALS))
     parser.add_argument("--field", choices=list(RENDERERS), default="image_source")
     opts = parser.parse_args()
     raw: dict[str, dict] = {}
@@ -197,9 +205,9 @@ def main() -> None:
         f"# Field calibration: playbacks at known spots recover the array ({RENDERERS[opts.field]})",
         "",
         f"`python experiments/field_calibration.py --sites {' '.join(opts.sites)} --arrays {opts.arrays} --spots "
-        f"{' '.join(map(str, opts.spots))} --n-positions {opts.n_positions} --designs {' '.join(opts.designs)} --field {opts.field}`. "
-        f"{RENDERERS[opts.field]}, mics 2 m off "
-        "per axis (σ), clocks within ±1 ms, thermometer 3 °C high; solver (consistent set) errors of calls at "
+        f"{' '.join(map(str, opts.spots))} --n-positions {opts.n_positions} --designs {' '.join(opts.designs)} "
+        f"--signals {' '.join(opts.signals)} --field {opts.field}`. {RENDERERS[opts.field]}, mics 2 m off "
+        "per axis (σ), clocks within ±1 ms, thermometer 3 °C high; playbacks of bird calls or of the 1–8 kHz sweep; solver (consistent set) errors of calls at "
         f"{opts.n_positions} positions × 3 per array, pooled over {opts.arrays} arrays; failures infinite; 95 % position-bootstrap intervals.",
         "",
         "| site | array as | p50 (m) (95 % CI) | p95 (m) (95 % CI) | > 5 m % | p50 ÷ true | p95 ÷ true | p95 ÷ uncalibrated |",
@@ -217,7 +225,7 @@ def main() -> None:
         pooled: dict[str, list[np.ndarray]] = {}
         groups_all: list[np.ndarray] = []
         recovered: list[dict] = []
-        allowance: dict[int, list[dict]] = {}
+        allowance: dict[str, list[dict]] = {}
         for a in range(opts.arrays):
             seed = 100 + a
             array = [f"field.array_seed={seed}", f"field.seed={2000 + a}"]
@@ -225,17 +233,19 @@ def main() -> None:
             groups_all.append(groups + 10**6 * a)
             pooled.setdefault("true array", []).append(truth_err)
             pooled.setdefault("stated (uncalibrated)", []).append(solver_errors([*calls, *array, *IMPAIRED])[0])
-            for n_spots, design in ((n, d) for d in opts.designs for n in opts.spots):
+            for signal, n_spots, design in ((s, n, d) for s in opts.signals for d in opts.designs for n in opts.spots):
                 with tempfile.TemporaryDirectory() as tmp:
-                    body = calibrate(site, seed, n_spots, design, Path(tmp) / "run", opts.field)
+                    body = calibrate(site, seed, n_spots, design, Path(tmp) / "run", opts.field, signal=signal)
                     path = Path(tmp) / "run" / "calibration.json"
-                    pooled.setdefault(f"calibrated, {n_spots} {design} spots", []).append(
+                    pooled.setdefault(f"calibrated from {SIGNALS[signal]}, {n_spots} {design} spots", []).append(
                         solver_errors([*calls, *array, *IMPAIRED, f"calibration={path}"])[0]
                     )
                     true_mics, true_clocks = true_array(site, seed)
                     # clocks are calibrated relative to mic 0's
                     clock_error = np.asarray(body["clock_offset_s"]) - body["clock_offset_s"][0] - (true_clocks - true_clocks[0])
-                    allowance.setdefault(n_spots, []).append(allowance_check(path, site, true_mics, clock_error, truth_events))
+                    allowance.setdefault(f"{n_spots} ({signal})", []).append(
+                        allowance_check(path, site, true_mics, clock_error, truth_events)
+                    )
                 stated_mics = np.asarray(body["stated_mic_positions_m"])
                 mic_errors = np.hypot(*(np.asarray(body["mic_positions_m"]) - true_mics)[:, :2].T)
                 recovered.append(
@@ -246,6 +256,7 @@ def main() -> None:
                         "array_seed": seed,
                         "n_spots": n_spots,
                         "design": design,
+                        "signal": signal,
                         "temperature_offset_c": body["temperature_offset_c"],
                         "clock_error_us": np.round(1e6 * clock_error, 1).tolist(),
                         "mic_position_shift_m": body["mic_position_shift_m"],
@@ -279,12 +290,12 @@ def main() -> None:
         "pooled over arrays and designs (a 2-D Gaussian exceeds them 13.5 % and 1.1 % of the time); a run carries the larger "
         "of the posterior and the jackknife σ into the radii:",
         "",
-        "| site | spots | mics | > 2 σ posterior | > 2 σ jackknife | > 2 σ larger | > 3 σ larger |",
-        "|---|---|---|---|---|---|---|",
+        "| site | playbacks | spots | mics | > 2 σ posterior | > 2 σ jackknife | > 2 σ larger | > 3 σ larger |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for site, r in raw.items():
-        for n_spots in opts.spots:
-            rows = [c for c in r["calibrations"] if c["n_spots"] == n_spots and c["jackknife_sd"]]
+        for signal, n_spots in ((s, n) for s in opts.signals for n in opts.spots):
+            rows = [c for c in r["calibrations"] if c["n_spots"] == n_spots and c["signal"] == signal and c["jackknife_sd"]]
             if not rows:
                 continue
             err = np.concatenate([c["mic_errors_m"] for c in rows])
@@ -292,7 +303,7 @@ def main() -> None:
             jack = np.concatenate([c["jackknife_sd"]["mic_position_sd_m"] for c in rows])
             larger = np.maximum(post, jack)
             lines.append(
-                f"| {site} | {n_spots} | {err.size} | {100 * np.mean(err > 2 * post):.0f} % | {100 * np.mean(err > 2 * jack):.0f} % | "
+                f"| {site} | {signal} | {n_spots} | {err.size} | {100 * np.mean(err > 2 * post):.0f} % | {100 * np.mean(err > 2 * jack):.0f} % | "
                 f"{100 * np.mean(err > 2 * larger):.0f} % | {100 * np.mean(err > 3 * larger):.0f} % |"
             )
     lines += [
@@ -334,7 +345,7 @@ def main() -> None:
             )
             jackknife = c["jackknife_sd"]["mic_position_sd_m"] if c["jackknife_sd"] else [float("nan")]
             lines.append(
-                f"- {site}, array {c['array_seed']}, {c['n_spots']} {c['design']} spots: median mic error {c['mic_error_stated_m']:.2f} m as stated → "
+                f"- {site}, array {c['array_seed']}, {c['n_spots']} {c['design']} spots, {c['signal']}: median mic error {c['mic_error_stated_m']:.2f} m as stated → "
                 f"{c['mic_error_calibrated_m']:.2f} m calibrated (median σ per axis: posterior {np.median(c['mic_position_sd_m']):.3f} m, "
                 f"jackknife {np.median(jackknife):.3f} m); clocks off by up to {np.max(np.abs(c['clock_error_us'])):.0f} µs "
                 f"(median {np.median(np.abs(c['clock_error_us'][1:])):.0f} µs); thermometer offset {c['temperature_offset_c']:+.2f} °C "

@@ -38,11 +38,14 @@ from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.calls import CallPool
 from acoustlab.toolkit.geometry import distance_to_polygon_m, sample_in_expanded_hull, source_region
 from acoustlab.toolkit.physics import speed_of_sound_m_s
+from acoustlab.toolkit.playback_signal import SweepPool
 from acoustlab.toolkit.scene_sampling import draw_weather, noise_matrix, noise_std_for_snr
 
 log = logging.getLogger(__name__)
 
 _POSITIONS_STREAM, _EVENT_STREAM, _ARRAY_STREAM = 20, 21, 22
+#: What a field's events may emit (``signal``).
+SIGNALS = ("calls", "sweep")
 #: Metres of fully absorbing room around every mic and source (walls never reflect; this keeps them away).
 _ROOM_MARGIN_M = 5.0
 
@@ -87,6 +90,9 @@ class ImageSourceField:
     positions_m : list of [x, y] or [x, y, z], optional
         The positions themselves, m (e.g. a playback plan's spots): they replace ``n_positions``
         drawn ones; heights are drawn from the site's range where not given.
+    signal : str
+        What every event emits: ``calls`` (drawn from the site's species and synthetic calls) or
+        ``sweep`` (the playback sweep ``calibrate`` asks for: ``acoustlab.toolkit.playback_signal``).
     """
 
     #: The events' ``source`` column: which renderer made them.
@@ -111,7 +117,11 @@ class ImageSourceField:
         array_seed: int | None = None,
         seed: int = 2000,
         positions_m: Sequence[Sequence[float]] | None = None,
+        signal: str = "calls",
     ) -> None:
+        if signal not in SIGNALS:
+            raise ConfigError(f"field.signal must be one of {list(SIGNALS)}; got {signal!r}")
+        self.signal = signal
         given = None if positions_m is None else np.asarray(positions_m, dtype=float)
         if given is not None:
             if given.ndim != 2 or given.shape[1] not in (2, 3) or len(given) < 2 or not np.isfinite(given).all():
@@ -238,7 +248,11 @@ class ImageSourceField:
     def load(self, site: Site) -> RecordingBatch:
         """Every event: positions × ``events_per_position``, each with its own call, weather, noise and SNR."""
         self.validate(site)
-        pool = CallPool(site.species_pool, self.sample_rate_hz, self.include_share_alike)
+        pool = (
+            SweepPool(self.sample_rate_hz)
+            if self.signal == "sweep"
+            else CallPool(site.species_pool, self.sample_rate_hz, self.include_share_alike)
+        )
         positions = self.source_positions(site)
         polygon, buffer_m = source_region(site.mic_positions_m, site.hull_expansion)
         outside_site = distance_to_polygon_m(positions[:, :2], polygon) > buffer_m
