@@ -61,23 +61,30 @@ def test_a_field_emits_the_sweep_when_asked_and_refuses_an_unknown_signal():
     assert pool.draw(np.random.default_rng(0)).label == SWEEP_LABEL and pool.max_duration_s == pytest.approx(0.3)
 
 
-def test_from_five_spots_a_sweep_recovers_the_3_mic_lake_where_calls_trade_the_thermometer_for_the_arrays_scale(compose_cfg, tmp_path):
+def test_from_five_spots_a_sweep_recovers_the_3_mic_lake_where_calls_trade_the_thermometer_for_the_arrays_scale(
+    compose_cfg, tmp_path, caplog
+):
     """acoustlab's own lake (3 mics, ground reflection), mics 2 m off, clocks ±1 ms, thermometer 3 °C high, 5 planned
-    spots × 2 playbacks: the calls' GCC peaks repeat at their period and the calibration takes wrong ones; the sweep's do not."""
+    spots × 2 playbacks: the calls' GCC peaks repeat at their period and the calibration takes wrong ones; the sweep's do
+    not. ``calibrate`` tells the calls by their second GCC peak and warns."""
     from acoustlab.api import plan_playbacks
     from acoustlab.run.app import run_experiment
+    from acoustlab.run.calibrate import TONAL_PEAK_RATIO
     from acoustlab.stages.sites import site_from_config
     from plugins.fields.image_source import ImageSourceField
 
     spots = plan_playbacks("frozen_lake", 5)[["x_m", "y_m", "z_m"]].to_numpy()
     positions = "[" + ",".join(f"[{x:.3f},{y:.3f},{z:.3f}]" for x, y, z in spots) + "]"
     impaired = ["field.mic_position_error_m=2.0", "field.clock_offset_max_s=0.001", "field.temperature_error_c=3.0", "field.array_seed=100"]
-    errors = {}
+    errors, ratio, warned = {}, {}, {}
     for signal in ("calls", "sweep"):
         overrides = ["+site=frozen_lake", "protocol=calibrate", "field=outdoor", f"field.positions_m={positions}", "field.seed=9100"]
         overrides += [*impaired, "field.events_per_position=2", f"field.signal={signal}", f"paths.outputs_dir={tmp_path}"]
         cfg = compose_cfg([*overrides, "tracking=none", "plots=false", "cache.enabled=false"])
-        run_experiment(cfg, tmp_path / signal, {})
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="acoustlab.run.calibrate"):
+            ratio[signal] = run_experiment(cfg, tmp_path / signal, {})["calibration"]["second_peak_ratio"]
+        warned[signal] = "the signal played back is tonal" in caplog.text
         body = json.loads((tmp_path / signal / "calibration.json").read_text())
         true_mics = ImageSourceField(mic_position_error_m=2.0, clock_offset_max_s=0.001, array_seed=100).true_array(
             site_from_config(cfg.site)
@@ -85,3 +92,13 @@ def test_from_five_spots_a_sweep_recovers_the_3_mic_lake_where_calls_trade_the_t
         errors[signal] = (np.hypot(*(np.asarray(body["mic_positions_m"]) - true_mics)[:, :2].T).max(), body["temperature_offset_c"])
     assert errors["sweep"][0] < 0.03 and abs(errors["sweep"][1] + 3.0) < 0.3
     assert errors["calls"][0] > 2 * errors["sweep"][0]  # premise: from calls the same spots leave the mics further off
+    assert ratio["calls"] >= TONAL_PEAK_RATIO > ratio["sweep"] and warned == {"calls": True, "sweep": False}
+
+
+def test_no_tonal_warning_without_peak_heights(caplog):
+    from acoustlab.run.calibrate import warn_if_tonal
+
+    with caplog.at_level("WARNING", logger="acoustlab.run.calibrate"):
+        warn_if_tonal(None)
+        warn_if_tonal(0.5)
+    assert not caplog.text

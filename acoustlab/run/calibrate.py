@@ -21,7 +21,7 @@ from acoustlab.method.protocols.calibrate import residual_rows
 from acoustlab.run.registry import build_feature_sets, to_plain
 from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import load_or_build_field
-from acoustlab.stages.field_calibration import calibrate_playbacks, playback_rows, write_calibration
+from acoustlab.stages.field_calibration import calibrate_playbacks, playback_rows, second_peak_ratio, write_calibration
 from acoustlab.toolkit.array_calibration import MIN_REDUNDANCY, lag_margin_needed_s
 
 log = logging.getLogger(__name__)
@@ -45,6 +45,22 @@ def _lag_window_for(cfg: DictConfig, priors: Any) -> DictConfig:
         1e3 * needed,
     )
     return OmegaConf.merge(cfg, {"features": {"gcc": {"max_lag_margin_s": needed}}})
+
+
+#: A median second-to-first GCC peak ratio above this says the playbacks were tonal (``second_peak_ratio``).
+TONAL_PEAK_RATIO = 0.75
+
+
+def warn_if_tonal(ratio: float | None) -> None:
+    """Warn where the playbacks' cross-correlations have a second peak nearly as high as the first on most pairs."""
+    if ratio is not None and ratio >= TONAL_PEAK_RATIO:
+        log.warning(
+            "calibrate: on most mic pairs the playbacks' cross-correlation has a second peak nearly as high as the first "
+            "(median ratio %.2f; a sweep's is about 0.4-0.7): the signal played back is tonal (a song?) and its peaks repeat at its "
+            "period, or echoes are strong; from few spots the fit can take a neighbouring peak. If it was a song, play back the "
+            "sweep (acoustlab.api.write_playback_sweep; docs/calibrate.md)",
+            ratio,
+        )
 
 
 def warn_if_one_playback_per_spot(playback_events: pd.DataFrame) -> None:
@@ -73,6 +89,8 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
     )
     log.info("calibrating %d mics from %d playbacks", site.n_mics, len(playback_events))
     warn_if_one_playback_per_spot(playback_events)
+    peak_ratio = second_peak_ratio(field.features, field.events, site)
+    warn_if_tonal(peak_ratio)
     # the field sources fill each event's weather (their defaults where a table has none)
     calibration, playbacks = calibrate_playbacks(
         field.features,
@@ -105,6 +123,7 @@ def run_calibration(cfg: DictConfig, run_dir: Path, built: Any, choices: dict[st
             },
             "clock_offset_ms": [round(1e3 * v, 4) for v in summary["clock_offset_s"]],
             "mic_position_shift_m": summary["mic_position_shift_m"],
+            "second_peak_ratio": peak_ratio,
         },
         "site": site.name,
         "choices": choices,
