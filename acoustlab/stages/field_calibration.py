@@ -122,9 +122,9 @@ def second_peak_ratio(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
     the ``xcorr`` group's heights).
 
     A tonal playback (a song) correlates with itself one period apart, so most pairs have a second
-    peak almost as high as the first (0.78–0.92 on both simulators); the sweep's second peak is a
-    reflection or an echo (0.36–0.68). From few spots the fit can take the neighbouring peaks
-    (``acoustlab.toolkit.playback_signal``).
+    peak almost as high as the first; the sweep's second peak is a reflection or an echo, lower
+    (the measured ranges: docs/calibrate.md). From few spots the fit can take the neighbouring
+    peaks (``acoustlab.toolkit.playback_signal``).
     """
     known = playback_rows(events)
     lags = pair_candidate_lags(features[known], site)

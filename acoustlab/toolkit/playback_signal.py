@@ -2,14 +2,12 @@
 
 A calibration measures each mic pair's time difference as the lag of a GCC peak. A bird's song is
 tonal or harmonic: its cross-correlation repeats at the song's period, so each pair has several
-peaks of almost equal height one period apart (on acoustlab's own 3-mic lake, 11–16 % of the
-picks from five spots were such a neighbour, 130–450 µs off), and with few spots a set of wrong
-picks fits as tightly as the right one: the calibration then trades the thermometer against the
-array's scale (mics 0.1–0.15 m off, the thermometer up to 2.4 °C). A linear sweep covers every
-frequency of its band once, so its correlation has a single peak as narrow as the band allows
-(1–8 kHz: about 0.14 ms wide): the same five spots then pick the direct path on every pair and put
-the mics within 1 cm (``experiments/field_calibration.py``; docs/calibrate.md). Swept sines are
-the standard measurement signal of room and outdoor acoustics for the same reason.
+peaks of almost equal height one period apart, and from few spots a set of such neighbouring
+picks fits as tightly as the right one, the calibration trading the thermometer against the
+array's scale. A linear sweep passes every frequency of its band once, so its correlation has a
+single peak as narrow as the band allows (1/7 ms for 1–8 kHz). What that buys is measured in
+``experiments/field_calibration.py`` (docs/calibrate.md, "What to play back"). Swept sines are the
+standard measurement signal of room and outdoor acoustics for the same reason.
 
 The sweep is tapered (a Tukey window over 20 % of it) so that a speaker does not click.
 """
