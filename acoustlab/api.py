@@ -198,6 +198,9 @@ def plan_playbacks(
 ) -> pd.DataFrame:
     """Where to play back for ``calibrate``: ``n_spots`` spots chosen for the stated array (docs/calibrate.md).
 
+    What to play there: the sweep ``write_playback_sweep`` writes (a song's cross-correlation has
+    near-equal peaks one period apart, and from few spots the calibration can take wrong ones).
+
     Parameters
     ----------
     site : str
