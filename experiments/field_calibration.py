@@ -44,9 +44,9 @@ IMPAIRED = ["field.mic_position_error_m=2.0", "field.clock_offset_max_s=0.001", 
 #: the thermometer reads 3 °C high: the offset a calibration should find
 TRUE_TEMPERATURE_OFFSET_C = -3.0
 N_BOOT = 1000
-#: the field sources the array's errors are rendered with
 #: what the speaker plays back (``field.signal``)
 SIGNALS = {"calls": "calls", "sweep": "a sweep"}
+#: the field sources the array's errors are rendered with
 RENDERERS = {"image_source": "Second simulator (pyroomacoustics)", "outdoor": "acoustlab's own outdoor simulator"}
 #: only the field recordings' solver fixes are measured: the method's training simulation is kept tiny
 SMALL_TRAINING = ["data.n_events=8", "data.events_per_position=1", "data.chunk_size=8"]
