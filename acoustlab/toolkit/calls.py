@@ -124,6 +124,30 @@ def _segments(file: str, sample_rate_hz: float, band: tuple[float, float]) -> tu
     return tuple(segment_calls(rec, sample_rate_hz, band))
 
 
+def tapered_chirp(f_start_hz: float, f_end_hz: float, duration_s: float, sample_rate_hz: float, method: str = "linear") -> np.ndarray:
+    """A frequency-modulated sweep with 20 % Tukey tapers (peak at most 1): the free-field simulator's calls, the playback sweep.
+
+    Parameters
+    ----------
+    f_start_hz, f_end_hz : float
+        Start and end frequencies in Hz.
+    duration_s : float
+        Duration in s.
+    sample_rate_hz : float
+        Sampling rate in Hz.
+    method : str
+        Any method of ``scipy.signal.chirp`` (``linear``, ``logarithmic``, ``quadratic``…).
+
+    Returns
+    -------
+    numpy.ndarray
+        (round(duration_s × sample_rate_hz),) float64 samples.
+    """
+    t = np.arange(int(round(duration_s * sample_rate_hz))) / sample_rate_hz
+    sweep = ss.chirp(t, f0=f_start_hz, t1=duration_s, f1=f_end_hz, method=method)
+    return sweep * ss.windows.tukey(t.size, alpha=0.2)
+
+
 def synthetic_call(rng: np.random.Generator, sample_rate_hz: float, kind: str | None = None) -> tuple[str, np.ndarray]:
     """A parametric synthetic call: FM sweep, trill or harmonic stack, with random parameters.
 

@@ -17,11 +17,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import scipy.signal as ss
 import soundfile as sf
 
 from acoustlab.core.errors import ConfigError
-from acoustlab.toolkit.calls import Call
+from acoustlab.toolkit.calls import Call, tapered_chirp
 
 #: The recommended sweep: 1–8 kHz (most birds' band, and what a field speaker reproduces), 0.3 s.
 SWEEP_START_HZ, SWEEP_END_HZ, SWEEP_DURATION_S = 1000.0, 8000.0, 0.3
@@ -49,8 +48,7 @@ def playback_sweep(
         )
     if duration_s < 0.01:
         raise ConfigError(f"playback sweep: duration_s must be >= 0.01 s; got {duration_s}")
-    t = np.arange(int(round(duration_s * rate))) / rate
-    x = ss.chirp(t, f0=float(f_start_hz), t1=float(duration_s), f1=float(f_end_hz), method="linear") * ss.windows.tukey(t.size, alpha=0.2)
+    x = tapered_chirp(float(f_start_hz), float(f_end_hz), float(duration_s), rate)
     return x / np.max(np.abs(x))
 
 

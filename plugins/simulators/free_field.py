@@ -12,11 +12,11 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import scipy.signal as ss
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import RecordingBatch, Site, require_range
+from acoustlab.toolkit.calls import tapered_chirp as synthetic_chirp
 from acoustlab.toolkit.dsp import delay_and_scale
 from acoustlab.toolkit.geometry import sample_in_expanded_hull, source_region
 from acoustlab.toolkit.physics import speed_of_sound_m_s
@@ -27,30 +27,6 @@ log = logging.getLogger(__name__)
 #: Stream tags for per-event random generators (positions and events draw from separate streams).
 _POSITION_STREAM = 0
 _EVENT_STREAM = 1
-
-
-def synthetic_chirp(f_start_hz: float, f_end_hz: float, duration_s: float, sample_rate_hz: float, method: str = "linear") -> np.ndarray:
-    """A frequency-modulated sweep with 20 % Tukey tapers, unit peak amplitude (synthetic call).
-
-    Parameters
-    ----------
-    f_start_hz, f_end_hz : float
-        Start and end frequencies in Hz.
-    duration_s : float
-        Duration in s.
-    sample_rate_hz : float
-        Sampling rate in Hz.
-    method : str
-        Any method of ``scipy.signal.chirp`` (``linear``, ``logarithmic``, ``quadratic``…).
-
-    Returns
-    -------
-    numpy.ndarray
-        (round(duration_s × sample_rate_hz),) float64 samples.
-    """
-    t = np.arange(int(round(duration_s * sample_rate_hz))) / sample_rate_hz
-    sweep = ss.chirp(t, f0=f_start_hz, t1=duration_s, f1=f_end_hz, method=method)
-    return sweep * ss.windows.tukey(t.size, alpha=0.2)
 
 
 #: The synthetic call pool: two linear FM sweeps and a logarithmic whistle (ranges sampled per event).
