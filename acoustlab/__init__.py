@@ -20,7 +20,7 @@ __version__ = "0.1.0"
 #: The notebook API (``acoustlab.api``): ``import acoustlab; acoustlab.localize(...)``; imported on first use,
 #: so ``import acoustlab`` stays cheap for the CLI. ``acoustlab.season`` is the season subpackage: its function is
 #: ``acoustlab.api.season``.
-_API = ("localize", "calibrate", "plan_playbacks", "write_playback_sweep", "solve", "metrics", "overrides_from", "load_site")
+_API = ("localize", "place", "calibrate", "plan_playbacks", "write_playback_sweep", "solve", "metrics", "overrides_from", "load_site")
 
 
 def __getattr__(name: str):

@@ -19,12 +19,12 @@ folder under ``outputs/api/``).
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -32,6 +32,9 @@ import pandas as pd
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.playback_signal import write_playback_sweep as write_playback_sweep  # what to play back (docs/calibrate.md)
+
+if TYPE_CHECKING:
+    from acoustlab.method.localizer import FittedLocalizer
 
 
 def overrides_from(settings: Mapping[str, Any], prefix: str = "") -> list[str]:
@@ -84,53 +87,44 @@ def _run(
     return folder, built, given
 
 
-@dataclass
-class FittedLocalizer:
-    """The method one ``localize`` call fitted, to place more recordings of the same array without fitting again.
+def place(method: FittedLocalizer, *, overrides: Sequence[str] = (), **settings: Any) -> pd.DataFrame:
+    """Place other recordings of the same array with a method ``localize(..., return_method=True)`` fitted; no fit again.
 
-    Everything but the recordings stays as fitted: site, calibration, features, solver, models, gate and
-    radii. ``method.localize(field={"events_csv": "night2.csv"})`` changes only ``field`` settings (the
-    rest of ``field`` as first given) and returns the positions table ``localize`` would write, row for row.
-    It lives in this Python session; nothing is written to disk that could later run code.
+    Everything but the recordings stays as fitted: site, calibration, features, solver, models, gate
+    and radii. Only ``field`` settings may change (the rest of ``field`` as first given), e.g.
+    ``place(method, field={"events_csv": "night2.csv"})``; the answer is the positions table
+    ``localize`` would write for those detections, row for row (the same ``FittedLocalizer.place``).
+    Rows with a known ``x_m, y_m`` are playbacks and are skipped. Nothing is written to disk.
+
+    Parameters
+    ----------
+    method : FittedLocalizer
+        What ``localize(..., return_method=True)`` returned.
+    overrides : sequence of str, optional
+        ``field.*`` overrides as on the command line.
+    **settings
+        Only ``field={...}``.
+
+    Raises
+    ------
+    ConfigError
+        For a setting outside ``field``, or recordings with nothing to place.
     """
+    from acoustlab.method.localizer import unknown_position_rows
+    from acoustlab.run.app import build_run, prepare_field
+    from acoustlab.run.plugin_checks import compose_config
 
-    given: list[str]
-    fitted: Any
-
-    def localize(self, *, overrides: Sequence[str] = (), **settings: Any) -> pd.DataFrame:
-        """Positions of other recordings' detections (rows with a known ``x_m, y_m`` are playbacks and are skipped).
-
-        Parameters
-        ----------
-        overrides : sequence of str, optional
-            ``field.*`` overrides as on the command line.
-        **settings
-            Only ``field={...}``.
-
-        Raises
-        ------
-        ConfigError
-            For a setting outside ``field``, or recordings with nothing to place.
-        """
-        from acoustlab.method.protocols.field import field_events
-        from acoustlab.method.protocols.localize import without_truth
-        from acoustlab.run.app import build_run, localization_table, prepare_field
-        from acoustlab.run.plugin_checks import compose_config
-
-        changed = [*overrides_from(settings), *overrides]
-        outside = [o for o in changed if not o.startswith("field.")]
-        if outside:
-            raise ConfigError(f"a fitted method places other recordings: only field.* settings may change; got {outside[0]!r}")
-        cfg = compose_config([*self.given, *changed])
-        built = build_run(cfg)
-        data = prepare_field(cfg, built)
-        events = field_events(data.events)
-        rows = np.flatnonzero(~np.isfinite(events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1))
-        if rows.size == 0:
-            raise ConfigError("every detection of these recordings has a known position (x_m, y_m): there is nothing to place")
-        predictions, _ = self.fitted.predict(data.features.iloc[rows], events.iloc[rows])
-        placed = without_truth(predictions, data.features.iloc[rows], data.events.iloc[rows])
-        return localization_table(placed, built.components, built.calibration, built.field_source)
+    changed = [*overrides_from(settings), *overrides]
+    outside = [o for o in changed if not o.startswith("field.")]
+    if outside:
+        raise ConfigError(f"a fitted method places other recordings: only field.* settings may change; got {outside[0]!r}")
+    cfg = compose_config([*method.recipe, *changed])
+    built = build_run(cfg)
+    data = prepare_field(cfg, built)
+    rows = unknown_position_rows(data.events)
+    if rows.size == 0:
+        raise ConfigError("every detection of these recordings has a known position (x_m, y_m): there is nothing to place")
+    return method.place_solved(data.features.iloc[rows], data.events.iloc[rows]).positions
 
 
 def localize(
@@ -147,8 +141,8 @@ def localize(
     run_dir : str or Path, optional
         The run folder (default: a new one under ``outputs/api/``).
     return_method : bool
-        Also return the fitted method (``FittedLocalizer``): ``method.localize(field={...})`` places
-        more recordings of the same array without fitting again.
+        Also return the fitted method (``acoustlab.method.localizer.FittedLocalizer``):
+        ``place(method, field={...})`` places more recordings of the same array without fitting again.
     **settings
         Config groups as nested dicts: ``field={"mics_csv": ..., "events_csv": ..., "audio_dir": ...}``,
         ``solver={"dimensions": 3}``; ``field`` defaults to ``recordings``; ``calibration="…/calibration.json"``
@@ -164,7 +158,7 @@ def localize(
     overrides = ["field=recordings", *overrides] if not any(o.startswith("field=") for o in overrides) else list(overrides)
     folder, built, given = _run("localize", site, overrides, run_dir, settings)
     positions = pd.read_parquet(folder / "positions.parquet")
-    return (positions, FittedLocalizer(given, built.protocol.fitted)) if return_method else positions
+    return (positions, dataclasses.replace(built.protocol.fitted, recipe=tuple(given))) if return_method else positions
 
 
 def calibrate(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> dict[str, Any]:
@@ -236,7 +230,7 @@ def plan_playbacks(
     )
     if sigma.shape != (built.n_mics,) or not np.isfinite(sigma).all() or (sigma < 0).any():
         raise ConfigError(f"plan_playbacks: position_sigma_m must be one number >= 0 or {built.n_mics} of them (m); got {position_sigma_m}")
-    priors = replace(CalibrateProtocol().priors(built, None), position_sigma_m=sigma.copy())
+    priors = dataclasses.replace(CalibrateProtocol().priors(built, None), position_sigma_m=sigma.copy())
     height = assumed_source_height_m(built) if source_height_m is None else float(source_height_m)
     result = plan(priors, n_spots, candidates_xy_m=candidates_xy_m, source_height_m=height, min_mic_distance_m=min_mic_distance_m)
     return pd.DataFrame(

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from acoustlab.api import localize, metrics, overrides_from, solve
+from acoustlab.api import localize, metrics, overrides_from, place, solve
 from acoustlab.core.errors import ConfigError
 
 
@@ -82,8 +82,8 @@ def test_the_fitted_method_localize_returns_places_more_recordings_as_one_run_wo
     table, method = localize("frozen_lake", overrides=[*folder_overrides[1:], *quick], run_dir=tmp_path / "api", return_method=True)
     events = pd.read_csv(tmp_path / "recordings" / "events.csv")
     events.iloc[2:].to_csv(tmp_path / "recordings" / "later.csv", index=False)
-    again = method.localize(field={"events_csv": tmp_path / "recordings" / "later.csv"})
+    again = place(method, field={"events_csv": tmp_path / "recordings" / "later.csv"})
     assert {"easting_m", "northing_m", "crs"} <= set(again.columns)
     pd.testing.assert_frame_equal(again, table.iloc[2:].reset_index(drop=True))
     with pytest.raises(ConfigError, match="only field.. settings may change; got 'solver.dimensions=3'"):
-        method.localize(solver={"dimensions": 3})
+        place(method, solver={"dimensions": 3})

@@ -33,6 +33,7 @@ from acoustlab.core.contracts import (
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
 from acoustlab.core.types import Site
+from acoustlab.method.placement_rules import PlacementRules
 from acoustlab.method.splits import cap_rows
 from acoustlab.method.trust import (
     REASON_MIC_DROPPED,
@@ -110,6 +111,8 @@ class Components:
     trust: TrustSettings = field(default_factory=TrustSettings)
     #: the stated errors of the inputs a user measures (or a field calibration's), carried into the radii of field detections
     input_uncertainty: InputErrors = field(default_factory=InputUncertainty)
+    #: how field detections are solved and reported (``acoustlab.method.localizer``)
+    placement: PlacementRules = field(default_factory=PlacementRules)
 
 
 @dataclass
@@ -127,6 +130,8 @@ class MethodResult:
 
     predictions: pd.DataFrame
     split_diagnostics: list[dict[str, Any]]
+    #: a localization's positions table (``acoustlab.method.localizer.FittedLocalizer.place``); None where there is truth
+    positions: pd.DataFrame | None = None
 
     @staticmethod
     def concat(parts: list[MethodResult]) -> MethodResult:
@@ -440,12 +445,6 @@ class LocalizationPipeline:
             (m), GDOP, predicted error (m), substitution flag and ``radius__<scorer>__<level>`` (m);
             ``split_diagnostics``: ``[{"gate": ..., "trust": ..., "calibration": ...}]``.
         """
-        return self.fit_predict_keeping(features, events, train, test)[0]
-
-    def fit_predict_keeping(
-        self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray, test: np.ndarray
-    ) -> tuple[MethodResult, FittedMethod]:
-        """``fit_predict``, also returning the fitted method (``localize`` hands it back for more recordings)."""
         groups = events[col.POSITION_ID].to_numpy()
         if np.intersect1d(groups[train], groups[test]).size:
             raise DataError("a source position appears in both training and test rows")
@@ -454,7 +453,7 @@ class LocalizationPipeline:
         info = fitted.split_info(trust)
         if fitted.held_out_calibration is not None:  # a table, summarised by the protocol that reports it (localize)
             info["held_out_calibration"] = fitted.held_out_calibration
-        return MethodResult(out, [info]), fitted
+        return MethodResult(out, [info])
 
     def fit(self, features: pd.DataFrame, events: pd.DataFrame, train: np.ndarray) -> FittedMethod:
         """Fit every learned part of the method on rows ``train`` of the tables.

@@ -21,7 +21,9 @@ from acoustlab.core import columns as col
 from acoustlab.core.contracts import declared, hook
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
+from acoustlab.method.localizer import solve_detections
 from acoustlab.method.pipeline import Components, LocalizationPipeline
+from acoustlab.method.placement_rules import MapProjection, PlacementRules
 from acoustlab.method.trust import TrustSettings
 from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
 from acoustlab.reporting.metrics import (
@@ -31,7 +33,7 @@ from acoustlab.reporting.metrics import (
     summary_text,
 )
 from acoustlab.reporting.paper import paper_comparison
-from acoustlab.reporting.positions import localization_summary, positions_table
+from acoustlab.reporting.positions import localization_summary
 from acoustlab.run.registry import (
     PLUGIN_GROUPS,
     build,
@@ -48,10 +50,8 @@ from acoustlab.stages.dataset import (
     load_or_build_simulated,
 )
 from acoustlab.stages.field_calibration import (
-    CALIBRATION_COLUMN,
     FieldCalibration,
     calibrated_site,
-    field_solver_columns,
     load_calibration,
 )
 from acoustlab.stages.sites import site_from_config
@@ -254,7 +254,21 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         given = not declared(protocol, "assumes_weather") or cfg.protocol.temperature_c is not None
         allowance = calibrated_allowance(calibration, stated_site, components.input_uncertainty, protocol, given)
         components = dataclasses.replace(components, site=site, input_uncertainty=allowance)
+    components = dataclasses.replace(components, placement=placement_rules(cfg, field_source, calibration))
     return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration, stated_site)
+
+
+def placement_rules(cfg: DictConfig, field_source: Any, calibration: FieldCalibration | None) -> PlacementRules:
+    """How the run's field detections are solved and reported: the plausible-region bound, the weak-recorder rule, the
+    calibration and the field source's map projection (``acoustlab.method.localizer``)."""
+    project = hook(field_source, "projection") if field_source is not None else None
+    projection = project() if project is not None else None
+    return PlacementRules(
+        plausible_margin_fraction=cfg.pipeline.plausible_margin_fraction,
+        calibration=calibration,
+        min_gcc_peak=OmegaConf.select(cfg, "features.gcc.min_peak", default=None),
+        projection=None if projection is None else MapProjection(*projection),
+    )
 
 
 def calibrated_allowance(
@@ -342,15 +356,7 @@ def prepare_field(cfg: DictConfig, built: BuiltRun) -> Any:
         built.cache,
         stated_site=built.stated_site,
     )
-    field_data.features, field_data.events = field_solver_columns(
-        field_data.features,
-        field_data.events,
-        built.site,
-        built.components.solver,
-        cfg.pipeline.plausible_margin_fraction,
-        built.calibration,
-        OmegaConf.select(cfg, "features.gcc.min_peak", default=None),
-    )
+    field_data.features, field_data.events = solve_detections(built.components, field_data.features, field_data.events)
     return field_data
 
 
@@ -436,7 +442,6 @@ def run_experiment(
             tracker,
             parent_run_id,
             run_name,
-            built.field_source,
             built.calibration,
         )
     summary_rows = predictions[col.IN_SUMMARY].to_numpy(bool) if col.IN_SUMMARY in predictions else np.ones(len(predictions), bool)
@@ -584,26 +589,6 @@ def plot_and_time(
     )
 
 
-def localization_table(
-    predictions: pd.DataFrame, components: Components, calibration: FieldCalibration | None, field_source: Any
-) -> pd.DataFrame:
-    """The positions table of placed field detections: ``positions_table``, the calibration each was placed with, and
-    the positions in the mics table's projected coordinates where it has them."""
-    table = positions_table(predictions, components.levels, list(components.scorers))
-    if calibration is not None:  # which field calibration placed each detection
-        table[CALIBRATION_COLUMN] = calibration.sha256
-    project = hook(field_source, "projection")
-    projection = project() if project is not None else None
-    if projection is not None:  # also in the mics table's projected coordinates
-        rotation, translation, crs = projection
-        projected = table[[col.TRUE_X, col.TRUE_Y]].to_numpy(float) @ rotation.T + translation
-        at = table.columns.get_loc(col.TRUE_Y) + 1
-        table.insert(at, "easting_m", projected[:, 0])
-        table.insert(at + 1, "northing_m", projected[:, 1])
-        table.insert(at + 2, "crs", crs)
-    return table
-
-
 def _write_localization(
     cfg: DictConfig,
     run_dir: Path,
@@ -619,11 +604,10 @@ def _write_localization(
     tracker: Any,
     parent_run_id: str | None,
     run_name: str | None = None,
-    field_source: Any = None,
     calibration: FieldCalibration | None = None,
 ) -> dict:
     """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
-    table = localization_table(predictions, components, calibration, field_source)
+    table = result.positions
     atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
     atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
     metrics: dict[str, Any] = {col.METRICS_LOCALIZATION: localization_summary(table, components.levels, list(components.scorers))}

@@ -40,6 +40,7 @@ from acoustlab.core import columns as col
 from acoustlab.core.cores import free_cores
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
+from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.pipeline import LocalizationPipeline
 from acoustlab.method.saved import save_method, saved_info
 from acoustlab.method.splits import cap_rows
@@ -50,7 +51,6 @@ from acoustlab.season.recorder_files import RecorderFiles
 from acoustlab.season.stream import (
     FILES,
     ChunkPlan,
-    FittedSeasonMethod,
     check_manifest,
     localize_chunks,
     localize_shard,
@@ -70,6 +70,8 @@ from acoustlab.toolkit.quality import QualityThresholds
 log = logging.getLogger(__name__)
 
 STAGES = ("all", "fit", "localize", "merge")
+#: What a saved method is (part of its key): a folder holding a method saved as something else is fitted again
+SAVED_METHOD_FORMAT = "acoustlab.method.localizer.FittedLocalizer"
 
 
 class SeasonLocalize:
@@ -252,6 +254,7 @@ class SeasonLocalize:
             plain.pop(name, None)
         protocol = plain.get("protocol", {})  # of the season's own settings, only these shape the fitted method
         plain["protocol"] = {name: protocol.get(name) for name in ("_target_", "max_train_rows", "seed")}
+        plain["saved_as"] = SAVED_METHOD_FORMAT
         return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()
 
     def fit(self, cfg: DictConfig, built: Any, prepare: Any, folder: Path) -> None:
@@ -280,15 +283,7 @@ class SeasonLocalize:
             train = np.sort(cap_rows(np.arange(len(dataset.events)), groups, self.max_train_rows, np.random.default_rng([self.seed, 1])))
             log.info("season: fitting the method on %d simulated events (once; every chunk and shard reuses it)", train.size)
             method = LocalizationPipeline(built.components).fit(dataset.features, dataset.events, train)
-            fitted = FittedSeasonMethod(
-                method,
-                float(cfg.simulator.sample_rate_hz),
-                cfg.pipeline.plausible_margin_fraction,
-                list(built.components.levels),
-                list(built.components.scorers),
-                built.calibration,
-                OmegaConf.select(cfg, "features.gcc.min_peak", default=None),
-            )
+            fitted = FittedLocalizer(method, float(cfg.simulator.sample_rate_hz))
             digest = save_method(fitted, folder, key)
         write_manifest(folder, season_manifest(events, digest, self.plan(site), order, radii, recordings))
         log.info(

@@ -42,14 +42,11 @@ from acoustlab.core.digests import frame_sha256
 from acoustlab.core.errors import DataError
 from acoustlab.core.heap import keep_freed_memory
 from acoustlab.core.types import RecordingBatch
-from acoustlab.method.protocols.field import FIELD_POSITION_OFFSET
-from acoustlab.method.protocols.localize import without_truth
+from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.saved import load_method
-from acoustlab.reporting.positions import positions_table
 from acoustlab.season.recorder_files import RecorderFiles
 from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import extract_features
-from acoustlab.stages.field_calibration import CALIBRATION_COLUMN, field_solver_columns
 from acoustlab.toolkit.dsp import next_fast_len
 from acoustlab.toolkit.quality import QualityThresholds, clip_quality, mics_to_drop
 
@@ -60,22 +57,6 @@ FILES, EVENTS, MANIFEST, PARTS = "files.parquet", "events.parquet", "season.json
 SEASON_FIELDS = ("time", "label", "n_recorders", "recorders", "score", col.BAND_LOW, col.BAND_HIGH, "detections")
 #: Length of the stand-in clip of an event too long to read, s (it is flagged and not placed).
 TOO_LONG_STAND_IN_S = 0.1
-
-
-@dataclass
-class FittedSeasonMethod:
-    """What every chunk needs besides its audio: the fitted method and the run's solver bound and radii names."""
-
-    method: Any
-    #: the simulator's sample rate, Hz: clips are resampled to it
-    sample_rate_hz: float
-    plausible_margin_fraction: float | None
-    levels: list[float]
-    scorers: list[str]
-    #: the field calibration (``calibration=PATH``) every chunk's time differences and temperatures are corrected with
-    calibration: Any = None
-    #: ``features.gcc.min_peak``: a recorder without a GCC peak that high with another is left out of the event's solve
-    min_gcc_peak: float | None = None
 
 
 @dataclass
@@ -248,7 +229,7 @@ def read_batch(
     rows = pd.DataFrame(
         {
             col.EVENT_ID: events[col.EVENT_ID].to_numpy(np.int64),
-            col.POSITION_ID: events[col.EVENT_ID].to_numpy(np.int64) + FIELD_POSITION_OFFSET,
+            col.POSITION_ID: events[col.EVENT_ID].to_numpy(np.int64),
             col.TRUE_X: np.nan,
             col.TRUE_Y: np.nan,
             col.TRUE_Z: np.nan,
@@ -260,7 +241,6 @@ def read_batch(
             "quality_ok": usable,
             col.MICS_DROPPED: dropped,
             col.HARDWARE_FAILURE: False,
-            "is_field": True,
             # each clip is computed at its own padded length (extract_features), never its batch-mates': an event's answer
             # depends on the event alone, whatever the batch and chunk sizes
             col.CLIP_SAMPLES: padded,
@@ -273,7 +253,7 @@ def read_batch(
 
 
 def localize_events(
-    fitted: FittedSeasonMethod,
+    fitted: FittedLocalizer,
     recordings: RecorderFiles,
     events: pd.DataFrame,
     recorders: list[str],
@@ -285,27 +265,17 @@ def localize_events(
 
     ``on_batch(n)`` is called after each batch with the number of its events (progress).
     """
-    c = fitted.method.pipeline.c
     features, rows = [], []
     for first in range(0, len(events), plan.batch_events):  # peak memory: one batch's audio and its transforms
         batch = read_batch(recordings, events.iloc[first : first + plan.batch_events], recorders, float(fitted.sample_rate_hz), plan)
-        features.append(extract_features(batch, c.site, c.feature_sets))
+        features.append(extract_features(batch, fitted.site, fitted.feature_sets))
         rows.append(batch.events)
         if on_batch is not None:
             on_batch(batch.n_events)
-    table_features, detections = pd.concat(features, ignore_index=True), pd.concat(rows, ignore_index=True)
-    table_features, detections = field_solver_columns(
-        table_features, detections, c.site, c.solver, fitted.plausible_margin_fraction, fitted.calibration, fitted.min_gcc_peak
-    )
-    predictions, _ = fitted.method.predict(table_features, detections)
-    detections = detections.drop(columns=["is_field"]).assign(label=events["label"].to_numpy())
-    table = positions_table(without_truth(predictions, table_features, detections), fitted.levels, fitted.scorers)
-    table.insert(1, "time", (origin + pd.to_timedelta(events[col.START].to_numpy(float), unit="s")).strftime("%Y-%m-%dT%H:%M:%S.%f"))
-    for name in SEASON_FIELDS[2:]:
-        table[name] = events[name].to_numpy()
-    if fitted.calibration is not None:  # which field calibration placed each detection (as localize's positions.csv)
-        table[CALIBRATION_COLUMN] = fitted.calibration.sha256
-    return table
+    detections = pd.concat(rows, ignore_index=True).assign(label=events["label"].to_numpy())
+    times = (origin + pd.to_timedelta(events[col.START].to_numpy(float), unit="s")).strftime("%Y-%m-%dT%H:%M:%S.%f")
+    season_fields = pd.DataFrame({"time": times, **{name: events[name].to_numpy() for name in SEASON_FIELDS[2:]}})
+    return fitted.place(pd.concat(features, ignore_index=True), detections, season_fields).positions
 
 
 def chunk_event_ids(directory: Path, chunk_events: int) -> list[np.ndarray]:
@@ -340,7 +310,7 @@ def read_part(directory: Path, k: int, event_ids: np.ndarray, columns: list[str]
 def localize_chunks(
     directory: Path,
     chunks: Iterable[int],
-    fitted: FittedSeasonMethod | None = None,
+    fitted: FittedLocalizer | None = None,
     progress_every_s: float = 5.0,
     label: str = "season",
     parent_pid: int | None = None,

@@ -16,28 +16,12 @@ import pandas as pd
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.progress import progress
+from acoustlab.method.localizer import FIELD_POSITION_OFFSET, as_field_events
 from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
 from acoustlab.method.splits import cap_rows
 from acoustlab.stages.dataset import Dataset
 
 log = logging.getLogger(__name__)
-
-#: Added to field position ids so they never equal a simulated position id.
-FIELD_POSITION_OFFSET = 10**9
-
-
-def field_events(events: pd.DataFrame) -> pd.DataFrame:
-    """Field events as the method sees them beside simulated ones: truth columns (NaN where unknown), position ids
-    offset past every simulated one (each detection its own where none is given), ``is_field``."""
-    fev = events.copy()
-    for name in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z):
-        if name not in fev:
-            fev[name] = np.nan
-    if col.POSITION_ID not in fev or fev[col.POSITION_ID].isna().any():
-        fev[col.POSITION_ID] = np.arange(len(fev))  # unknown positions: every detection its own group
-    fev[col.POSITION_ID] = fev[col.POSITION_ID].astype(np.int64) + FIELD_POSITION_OFFSET
-    fev["is_field"] = True
-    return fev
 
 
 def combine(sim: Dataset, field_recordings: Dataset, need_truth: bool = True) -> tuple[pd.DataFrame, pd.DataFrame, np.ndarray, np.ndarray]:
@@ -49,7 +33,7 @@ def combine(sim: Dataset, field_recordings: Dataset, need_truth: bool = True) ->
     missing = set(sim.features.columns) ^ set(field_recordings.features.columns)
     if missing:
         raise DataError(f"simulated and field feature tables differ in columns {sorted(missing)[:5]}")
-    fev = field_events(field_recordings.events)
+    fev = as_field_events(field_recordings.events)
     if need_truth and fev[[col.TRUE_X, col.TRUE_Y]].isna().any().any():
         raise DataError(
             "field evaluation needs true positions for every field event (x_m, y_m); to localize recordings "

@@ -10,34 +10,18 @@ field recordings. Nothing here needs a true position; the run writes ``positions
 from __future__ import annotations
 
 import logging
-import re
 
 import numpy as np
-import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
-from acoustlab.method.pipeline import FittedMethod, LocalizationPipeline, MethodResult
+from acoustlab.method.localizer import FittedLocalizer
+from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
 from acoustlab.method.protocols.field import combine
 from acoustlab.method.splits import cap_rows
 from acoustlab.stages.dataset import Dataset
 
 log = logging.getLogger(__name__)
-
-#: The rank-1 lag columns of the pairs (0, j): t_j − t_0 in s.
-TDOA_TO_MIC0 = re.compile(r"tdoa__lag_0_(\d+)_s")
-
-#: Solver-stage columns copied into the positions table as quality flags.
-QUALITY_COLUMNS = (
-    col.SOLVER_FAILURE,
-    col.SOLVER_SOURCE_HEIGHT,
-    col.SOLVER_HEIGHT_GDOP,
-    col.SOLVER_HEIGHT_AMBIGUOUS,
-    col.SOLVER_RESIDUAL,
-    col.SOLVER_CONSISTENCY,
-    col.SOLVER_N_MICS_USED,
-    col.SOLVER_GDOP,
-)
 
 
 class LocalizeProtocol:
@@ -64,7 +48,7 @@ class LocalizeProtocol:
         self.seed = int(seed)
         self.calibration_fraction = float(calibration_fraction)
         #: the method the last ``run`` fitted (``acoustlab.api.localize(..., return_method=True)`` reuses it)
-        self.fitted: FittedMethod | None = None
+        self.fitted: FittedLocalizer | None = None
 
     def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
         """Positions of every field detection (error columns are NaN: there is no truth)."""
@@ -90,48 +74,11 @@ class LocalizeProtocol:
             f" and {calibration.size} calibration playbacks with known positions" if calibration.size else "",
             field_rows.size,
         )
-        result, self.fitted = pipeline.fit_predict_keeping(features, events, np.sort(train), field_rows)
-        result.split_diagnostics[0]["training"] = {
-            "n_simulated": int(train.size - calibration.size),
-            "n_calibration_playbacks": int(calibration.size),
-        }
-        placed_events = field_recordings.events.iloc[field_rows - sim_rows.size]
-        predictions = without_truth(result.predictions, features.iloc[field_rows], placed_events)
-        return MethodResult(predictions, result.split_diagnostics)
-
-
-def without_truth(predictions: pd.DataFrame, features: pd.DataFrame, detections: pd.DataFrame) -> pd.DataFrame:
-    """Predictions of field detections as a localization reports them (rows of the three tables alike).
-
-    Error and oracle columns are blanked (there is no truth), the solver stage's quality columns
-    and the detections' own fields (file, times, label, …) are added, and a detection whose clip
-    was flagged (``quality_ok`` false) is not placed, its ``abstain_reason`` naming the flags.
-    """
-    predictions = predictions.copy()
-    for method in col.methods_in(predictions.columns):  # no truth, no errors
-        predictions[col.error_m(method)] = np.nan
-    for name in col.estimate_xy("oracle"):
-        predictions[name] = np.nan
-    for name in QUALITY_COLUMNS:  # why a fix may be weak, from the solver stage
-        if name in features:
-            predictions[name] = features[name].to_numpy()
-    for name in features.columns:  # the measured time differences to mic 0 (the strongest GCC peak; clocks corrected)
-        match = TDOA_TO_MIC0.fullmatch(name)
-        if match:
-            predictions[f"tdoa_0_{match.group(1)}_s"] = features[name].to_numpy(float)
-    keep = [c for c in detections.columns if c not in predictions.columns and c not in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z)]
-    for name in keep:  # the detection's own fields (file, start time, …)
-        predictions[name] = detections[name].to_numpy()
-    if "quality_ok" in predictions:  # a clip out of its file, dead, truncated, …: no position, and why
-        has_fix = (
-            predictions[col.PLACED].to_numpy(bool)
-            if col.PLACED in predictions
-            else np.isfinite(predictions[list(col.estimate_xy("gate"))].to_numpy(float)).all(1)
-        )
-        good = predictions["quality_ok"].to_numpy(bool)
-        reason = (
-            predictions[col.ABSTAIN_REASON].to_numpy(object) if col.ABSTAIN_REASON in predictions else np.where(has_fix, "", "no estimate")
-        )
-        predictions[col.PLACED] = has_fix & good
-        predictions[col.ABSTAIN_REASON] = np.where(good, reason, "quality: " + predictions[col.QUALITY_FLAGS].astype(str))
-    return predictions
+        self.fitted = FittedLocalizer(pipeline.fit(features, events, np.sort(train)))
+        # the field rows were solved before the fit (the playbacks among them train): placed as solved
+        placement = self.fitted.place_solved(features.iloc[field_rows], field_recordings.events.iloc[field_rows - sim_rows.size])
+        info = self.fitted.method.split_info(placement.trust)
+        if self.fitted.method.held_out_calibration is not None:  # a table, summarised by the localize job
+            info["held_out_calibration"] = self.fitted.method.held_out_calibration
+        info["training"] = {"n_simulated": int(train.size - calibration.size), "n_calibration_playbacks": int(calibration.size)}
+        return MethodResult(placement.predictions, [info], positions=placement.positions)

@@ -1,0 +1,211 @@
+"""Placing field detections with a fitted method: the one path from features to a positions table.
+
+``localize``, every chunk of a ``season`` and ``acoustlab.api`` place detections through
+``FittedLocalizer.place`` (or ``place_solved`` where the solver stage already ran, as for the
+recordings ``localize`` also trains on), so what a positions row holds is defined here once:
+
+1. the solver stage (``PlacementRules.solve``): weak recorders left out, the field calibration's
+   thermometer and clocks applied, the solver's columns under the plausible-region bound;
+2. the fitted method's predictions (``FittedMethod.predict``);
+3. the predictions as a localization reports them (``without_truth``: no errors, the detections'
+   own fields, flagged clips not placed);
+4. the positions table (``acoustlab.reporting.positions.positions_table``), the calibration each
+   row was placed with, the detections' extra fields, and the positions in the mics table's
+   projected coordinates where it has them.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.core import columns as col
+from acoustlab.core.contracts import FeatureSet
+from acoustlab.core.types import Site
+from acoustlab.method.pipeline import Components, FittedMethod
+from acoustlab.reporting.positions import positions_table
+from acoustlab.stages.field_calibration import CALIBRATION_COLUMN, FieldCalibration, field_solver_columns
+
+#: The rank-1 lag columns of the pairs (0, j): t_j − t_0 in s.
+TDOA_TO_MIC0 = re.compile(r"tdoa__lag_0_(\d+)_s")
+#: Added to a field detection's position id so it never shares a group with a simulated position.
+FIELD_POSITION_OFFSET = 10**9
+
+#: Solver-stage columns copied into the positions table as quality flags.
+QUALITY_COLUMNS = (
+    col.SOLVER_FAILURE,
+    col.SOLVER_SOURCE_HEIGHT,
+    col.SOLVER_HEIGHT_GDOP,
+    col.SOLVER_HEIGHT_AMBIGUOUS,
+    col.SOLVER_RESIDUAL,
+    col.SOLVER_CONSISTENCY,
+    col.SOLVER_N_MICS_USED,
+    col.SOLVER_GDOP,
+)
+
+
+def solve_detections(components: Components, features: pd.DataFrame, detections: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The solver stage of field detections under ``components.placement``: features with the solver's columns, detections
+    with ``mics_used``."""
+    rules = components.placement
+    return field_solver_columns(
+        features,
+        detections,
+        components.site,
+        components.solver,
+        rules.plausible_margin_fraction,
+        rules.calibration,
+        rules.min_gcc_peak,
+    )
+
+
+@dataclass
+class Placement:
+    """What placing detections gives: the method's full predictions (``predictions.parquet``), the positions table
+    (``positions.csv``) and the trust check's summary."""
+
+    predictions: pd.DataFrame
+    positions: pd.DataFrame
+    trust: dict[str, Any]
+
+
+@dataclass
+class FittedLocalizer:
+    """A fitted method that places field detections; any number of them, in any chunks.
+
+    A row's position depends on this object and that row alone, so a season placed chunk by chunk
+    (or shard by shard), ``localize`` and ``acoustlab.api`` give the same row for the same clip.
+    Its site, feature groups, solver, radii and placement rules are the ones it was fitted with
+    (``FittedMethod.pipeline``'s components).
+
+    Attributes
+    ----------
+    method : FittedMethod
+        The point model, gate, error model and conformal scorers fitted on the site's simulation (and playbacks).
+    sample_rate_hz : float, optional
+        The rate the method's features were computed at, Hz (a season resamples its clips to it).
+    recipe : tuple of str
+        The command-line overrides the method was fitted from (``acoustlab.api.place`` reads other recordings with them).
+    """
+
+    method: FittedMethod
+    sample_rate_hz: float | None = None
+    recipe: tuple[str, ...] = ()
+
+    @property
+    def components(self) -> Components:
+        """The configured plugins and settings the method was fitted with."""
+        return self.method.pipeline.c
+
+    @property
+    def site(self) -> Site:
+        """The array the method places detections of."""
+        return self.components.site
+
+    @property
+    def feature_sets(self) -> dict[str, FeatureSet]:
+        """The feature groups a detection's clips must be turned into before ``place``."""
+        return self.components.feature_sets
+
+    @property
+    def calibration(self) -> FieldCalibration | None:
+        """The field calibration the detections are corrected with (``calibration=PATH``), or None."""
+        return self.components.placement.calibration
+
+    def place(self, features: pd.DataFrame, detections: pd.DataFrame, extra_fields: pd.DataFrame | None = None) -> Placement:
+        """Positions of field detections from their features (the solver stage not yet run).
+
+        Parameters
+        ----------
+        features : pandas.DataFrame
+            One row per detection: the configured feature groups.
+        detections : pandas.DataFrame
+            The same rows: the detections' own fields (``event_id``, times, weather, quality flags, …).
+        extra_fields : pandas.DataFrame, optional
+            The same rows: columns put in the positions table as they are, after ``event_id`` (a season's ``time``,
+            ``recorders``, …).
+
+        Returns
+        -------
+        Placement
+        """
+        solved_features, solved_detections = solve_detections(self.components, features, detections)
+        return self.place_solved(solved_features, solved_detections, extra_fields)
+
+    def place_solved(self, features: pd.DataFrame, detections: pd.DataFrame, extra_fields: pd.DataFrame | None = None) -> Placement:
+        """``place`` for features that already carry the solver's columns (``solve_detections``)."""
+        c = self.components
+        predictions, trust = self.method.predict(features, as_field_events(detections))
+        predictions = without_truth(predictions, features, detections)
+        table = positions_table(predictions, c.levels, list(c.scorers))
+        if extra_fields is not None:  # after event_id, in place of a column of the same name
+            table = table.drop(columns=[name for name in extra_fields.columns if name in table])
+            for at, name in enumerate(extra_fields.columns, start=1):
+                table.insert(at, name, extra_fields[name].to_numpy())
+        if c.placement.calibration is not None:  # which field calibration placed each detection
+            table[CALIBRATION_COLUMN] = c.placement.calibration.sha256
+        if c.placement.projection is not None:
+            table = c.placement.projection.add_columns(table)
+        return Placement(predictions, table, trust)
+
+
+def as_field_events(detections: pd.DataFrame) -> pd.DataFrame:
+    """Field detections as the method sees them beside simulated events: truth columns (NaN where unknown), position ids
+    offset past every simulated one (each detection its own where none is given), ``is_field``."""
+    events = detections.copy()
+    for name in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z):
+        if name not in events:
+            events[name] = np.nan
+    if col.POSITION_ID not in events or events[col.POSITION_ID].isna().any():
+        events[col.POSITION_ID] = np.arange(len(events))  # unknown positions: every detection its own group
+    events[col.POSITION_ID] = events[col.POSITION_ID].astype(np.int64) + FIELD_POSITION_OFFSET
+    events["is_field"] = True
+    return events
+
+
+def without_truth(predictions: pd.DataFrame, features: pd.DataFrame, detections: pd.DataFrame) -> pd.DataFrame:
+    """Predictions of field detections as a localization reports them.
+
+    Error and oracle columns are blanked (there is no truth), the solver stage's quality columns
+    and the detections' own fields (file, times, label, …) are added, and a detection whose clip
+    was flagged (``quality_ok`` false) is not placed, its ``abstain_reason`` naming the flags.
+    """
+    predictions = predictions.copy()
+    for method in col.methods_in(predictions.columns):  # no truth, no errors
+        predictions[col.error_m(method)] = np.nan
+    for name in col.estimate_xy("oracle"):
+        predictions[name] = np.nan
+    for name in QUALITY_COLUMNS:  # why a fix may be weak, from the solver stage
+        if name in features:
+            predictions[name] = features[name].to_numpy()
+    for name in features.columns:  # the measured time differences to mic 0 (the strongest GCC peak; clocks corrected)
+        match = TDOA_TO_MIC0.fullmatch(name)
+        if match:
+            predictions[f"tdoa_0_{match.group(1)}_s"] = features[name].to_numpy(float)
+    keep = [c for c in detections.columns if c not in predictions.columns and c not in (col.TRUE_X, col.TRUE_Y, col.TRUE_Z, "is_field")]
+    for name in keep:  # the detection's own fields (file, start time, …)
+        predictions[name] = detections[name].to_numpy()
+    if "quality_ok" in predictions:  # a clip out of its file, dead, truncated, …: no position, and why
+        has_fix = (
+            predictions[col.PLACED].to_numpy(bool)
+            if col.PLACED in predictions
+            else np.isfinite(predictions[list(col.estimate_xy("gate"))].to_numpy(float)).all(1)
+        )
+        good = predictions["quality_ok"].to_numpy(bool)
+        reason = (
+            predictions[col.ABSTAIN_REASON].to_numpy(object) if col.ABSTAIN_REASON in predictions else np.where(has_fix, "", "no estimate")
+        )
+        predictions[col.PLACED] = has_fix & good
+        predictions[col.ABSTAIN_REASON] = np.where(good, reason, "quality: " + predictions[col.QUALITY_FLAGS].astype(str))
+    return predictions
+
+
+def unknown_position_rows(detections: pd.DataFrame) -> np.ndarray:
+    """Rows of field detections without a known ``x_m, y_m`` (the ones to place; the others are playbacks)."""
+    if not {col.TRUE_X, col.TRUE_Y} <= set(detections.columns):
+        return np.arange(len(detections))
+    return np.flatnonzero(~np.isfinite(detections[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)).all(axis=1))
