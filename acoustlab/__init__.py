@@ -5,9 +5,11 @@ The package is layered; each subpackage imports only from the ones listed before
 
 - ``core``: typed data model, plugin contracts (``typing.Protocol``), errors, column names, resources;
 - ``toolkit``: physics, propagation, DSP, geometry, TDOA and conformal maths (pure functions);
-- ``stages``: the cached data stages (sites, simulation, features), the cache, the solver stage;
-- ``method``: the localization pipeline and the evaluation protocols;
-- ``reporting``: metrics, plots, the sweep report, experiment logging (MLflow);
+- ``reporting``: metrics, plots, the sweep report, the run folder's files, experiment logging (MLflow);
+- ``stages``: the cached data stages (sites, simulation, features), the cache, the solver stage, field calibrations;
+- ``method``: the localization pipeline, placing field detections (``FittedLocalizer``), the run context, the
+  evaluation protocols and the ``localize`` and ``calibrate`` jobs;
+- ``season``: the ``season`` job (streaming, resumable, sharded);
 - ``run``: the Hydra app, typed config schema, registry, preflight, sweep callback, upload, plugin checks.
 
 Plugins live in the top-level ``plugins`` package and are selected through Hydra config

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import shutil
 import sys
@@ -38,6 +39,15 @@ def run_name_of(overrides: list[str]) -> str:
     return " ".join([site, *rest]).strip() or "acoustlab"
 
 
+def record_failure(run_dir: Path, overrides: list[str], error: str) -> None:
+    """A sweep job's ``failed.json`` (its overrides and the error's first line), so the sweep's report lists it."""
+    from acoustlab.reporting.report import FAILED_FILE
+
+    with contextlib.suppress(OSError):  # the job's own error is what matters; a folder that cannot be written loses only this
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / FAILED_FILE).write_text(json.dumps({"overrides": overrides, "error": (error.splitlines() or [""])[0][:500]}))
+
+
 def _remove_if_empty(run_dir: Path) -> None:
     """Remove a run directory that holds only Hydra's own files (a run stopped by its preflight leaves no empty folder)."""
     own = {".hydra", f"{HydraConfig.get().job.name}.log"}
@@ -61,12 +71,14 @@ def _hydra_main(cfg: DictConfig) -> None:
     except AcoustlabError as exc:
         if hc.mode == RunMode.MULTIRUN:  # let Hydra record the failed job and run the others
             log.error("job %s failed: %s", hc.job.num, exc)
+            record_failure(Path(hc.runtime.output_dir), list(hc.overrides.task), str(exc))
             raise
         _remove_if_empty(Path(hc.runtime.output_dir))
         _fail(exc)
     except MemoryError as exc:
         if hc.mode == RunMode.MULTIRUN:
             log.error("job %s ran out of memory: %s", hc.job.num, exc)
+            record_failure(Path(hc.runtime.output_dir), list(hc.overrides.task), f"ran out of memory: {exc}")
             raise
         _fail(
             AcoustlabError(
@@ -74,9 +86,10 @@ def _hydra_main(cfg: DictConfig) -> None:
                 "per run (split the events table), or for a season lower protocol.batch_events"
             )
         )
-    except Exception:
+    except Exception as exc:
         if hc.mode == RunMode.MULTIRUN:  # Hydra re-raises only the first failed job's exception: log every one
             log.exception("job %s failed", hc.job.num)
+            record_failure(Path(hc.runtime.output_dir), list(hc.overrides.task), f"{type(exc).__name__}: {exc}")
         raise
 
 

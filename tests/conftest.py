@@ -11,11 +11,43 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
+from hypothesis import settings as hypothesis_settings
 
 from acoustlab.run.registry import CONF_DIR, build
 from acoustlab.stages.sites import site_from_config
 
 REPO = Path(__file__).resolve().parent.parent
+
+# Hypothesis: ``dev`` (the default) tries few examples per property, ``ci`` (HYPOTHESIS_PROFILE=ci, set by .ci/run) the
+# count each test states; no deadline either way (a loaded machine is not a failure).
+hypothesis_settings.register_profile("dev", max_examples=10, deadline=None)
+hypothesis_settings.register_profile("ci", deadline=None, print_blob=True)
+hypothesis_settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "dev"))
+
+
+def examples(n: int) -> int:
+    """A property test's example count: ``n`` under the ``ci`` profile, at most 10 under ``dev``."""
+    return n if os.environ.get("HYPOTHESIS_PROFILE") == "ci" else min(n, 10)
+
+
+#: An unmarked test whose call takes longer than this is reported at the end of the run (the marks stay honest).
+UNMARKED_CALL_LIMIT_S = 5.0
+_unmarked_slow: list[tuple[str, float]] = []
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if report.when == "call" and report.duration > UNMARKED_CALL_LIMIT_S and "slow" not in report.keywords:
+        _unmarked_slow.append((report.nodeid, report.duration))
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    if _unmarked_slow:
+        terminalreporter.section("unmarked slow tests")
+        for nodeid, duration in sorted(_unmarked_slow, key=lambda x: -x[1]):
+            terminalreporter.write_line(
+                f"{nodeid} took {duration:.1f} s (> {UNMARKED_CALL_LIMIT_S:g} s): mark it @pytest.mark.slow if it runs a whole job, "
+                "a subprocess or a launcher, else make it cheaper"
+            )
 
 
 def _compose(overrides: list[str]):

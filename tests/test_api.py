@@ -52,6 +52,7 @@ def test_localize_from_python_equals_the_command_line_s_positions(tmp_path, comp
     pd.testing.assert_frame_equal(table, pd.read_parquet(tmp_path / "cli" / "positions.parquet"))
 
 
+@pytest.mark.slow
 def test_import_acoustlab_gives_the_notebook_functions_and_calibrate_feeds_localize(tmp_path):
     import acoustlab
     import acoustlab.season  # the subpackage keeps its name; its function is acoustlab.api.season

@@ -10,7 +10,7 @@ from acoustlab.core.imports import internal_imports
 
 PACKAGE = Path(__file__).resolve().parent.parent / "acoustlab"
 #: Layers from the bottom up; a module may import only from its own layer or the ones before it.
-LAYERS = ("core", "toolkit", "stages", "method", "reporting", "season", "run")
+LAYERS = ("core", "toolkit", "reporting", "stages", "method", "season", "run")
 #: Entry points at the top (``python -m acoustlab``, ``acoustlab.report``, ``acoustlab.upload``, ``acoustlab.catalog``,
 #: ``acoustlab.synthetic_season``).
 ENTRY = "entry"
@@ -88,6 +88,120 @@ def test_the_layer_test_sees_imports():
     assert "acoustlab.stages.solver_columns" in internal_imports("acoustlab.run.app")
     assert layer_of("acoustlab.run.app") == "run" and layer_of("acoustlab.report") == ENTRY
     assert "acoustlab.toolkit.tdoa" in internal_imports("plugins.solvers.consistent_set")  # plugins are walked too
+
+
+def _functions(path: Path):
+    import ast
+
+    return [n for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
+
+
+def _module_of(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def test_no_layer_below_run_receives_the_config_or_the_built_run():
+    """Jobs get a typed ``RunContext``: below ``run/`` no function takes a ``DictConfig``, a ``built`` run or a ``prepare``
+    callback, and no ``context`` parameter is untyped (``core.contracts`` states the contracts loosely, below every type)."""
+    import ast
+
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if layer_of(_module_of(path)) in ("run", ENTRY):
+            continue
+        for fn in _functions(path):
+            for arg in [*fn.args.args, *fn.args.kwonlyargs]:
+                note = ast.unparse(arg.annotation) if arg.annotation is not None else ""
+                where = f"{path.relative_to(PACKAGE.parent)}:{fn.lineno} {fn.name}({arg.arg}: {note})"
+                if "DictConfig" in note or arg.arg in ("built", "prepare"):
+                    found.append(where)
+                if arg.arg == "context" and note in ("", "Any") and layer_of(_module_of(path)) != "core":
+                    found.append(where)
+    assert not found, "below run/: " + ", ".join(found)
+
+
+def _callbacks_up(path: Path) -> list[str]:
+    """Lambdas and nested functions of ``path`` passed to a function of a lower layer whose bodies use a name imported from
+    a layer above that function's (a callback up a layer)."""
+    import ast
+
+    tree = ast.parse(path.read_text())
+    imported: dict[str, str] = {}  # local name -> module it comes from
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in ("acoustlab", "plugins"):
+            for alias in node.names:
+                imported[alias.asname or alias.name] = node.module
+    nested = {n.name: n for fn in _functions(path) for n in ast.walk(fn) if n is not fn and isinstance(n, ast.FunctionDef)}
+    rank = {name: i for i, name in enumerate(LAYERS)}
+    found = []
+    for call in (n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id in imported):
+        callee = layer_of(imported[call.func.id])
+        for arg in [*call.args, *(k.value for k in call.keywords)]:
+            body = arg if isinstance(arg, ast.Lambda) else nested.get(arg.id) if isinstance(arg, ast.Name) else None
+            if body is None or callee not in rank:
+                continue
+            used = {n.id for n in ast.walk(body) if isinstance(n, ast.Name)} | {
+                n.value.id for n in ast.walk(body) if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name)
+            }
+            above = sorted(u for u in used if u in imported and rank.get(layer_of(imported[u]), len(LAYERS)) > rank[callee])
+            if above or (isinstance(arg, ast.Lambda) and {"self", "protocol", "built", "cfg"} & used and rank[callee] < rank["method"]):
+                found.append(f"{path.name}:{call.lineno} {call.func.id}(…) gets a callback using {above or 'a higher object'}")
+    return found
+
+
+def test_no_callback_goes_up_a_layer():
+    """A lower layer never calls back into a higher one through a lambda or a nested function it was handed."""
+    found = [f for path in sorted(PACKAGE.rglob("*.py")) for f in _callbacks_up(path)]
+    assert not found, ", ".join(found)
+
+
+def test_the_callback_scan_sees_a_callback_up(tmp_path):
+    """The scan is not blind: a run-layer module handing a stage a lambda that calls the app is found."""
+    module = tmp_path / "app.py"
+    module.write_text(
+        "from acoustlab.stages.dataset import load\nfrom acoustlab.run.app import prepare_data\n"
+        "def go(cfg):\n    return load(lambda: prepare_data(cfg))\n"
+    )
+    assert _callbacks_up(module) and "prepare_data" in _callbacks_up(module)[0]
+
+
+def test_no_protocol_implements_a_contract_by_raising():
+    """Every protocol and job method ``run`` / ``run_job`` does its work: none is a bare ``raise``."""
+    import ast
+
+    stubs = []
+    for path in [*sorted((PACKAGE / "method" / "protocols").glob("*.py")), *sorted((PACKAGE / "season").glob("*.py"))]:
+        for fn in _functions(path):
+            body = [n for n in fn.body if not (isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant))]
+            if fn.name in ("run", "run_job") and len(body) == 1 and isinstance(body[0], ast.Raise):
+                stubs.append(f"{path.name}:{fn.lineno}")
+    assert not stubs, "contract methods that only raise: " + ", ".join(stubs)
+
+
+def test_the_app_dispatches_once_on_the_kind_of_job():
+    """``run_experiment`` tells a job from an evaluation once, by its contract; ``run/app.py`` reads no other property
+    of the protocol than what it needs before the context is built (recordings, an assumed weather)."""
+    text = (PACKAGE / "run" / "app.py").read_text()
+    assert text.count("isinstance(protocol, Job)") == 1
+    assert sorted(set(__import__("re").findall(r'declared\(protocol, "(\w+)"\)', text))) == ["assumes_weather", "needs_field"]
+
+
+def test_positions_are_made_in_one_place():
+    """What a positions row holds is defined once: only ``acoustlab.method.localizer`` turns predictions into positions."""
+    import ast
+
+    makers = {"positions_table", "without_truth"}
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.relative_to(PACKAGE).as_posix() in ("method/localizer.py", "reporting/positions.py"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call):
+                name = node.func.id if isinstance(node.func, ast.Name) else node.func.attr if isinstance(node.func, ast.Attribute) else ""
+                if name in makers:
+                    found.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} {name}")
+    assert not found, "positions made outside acoustlab/method/localizer.py: " + ", ".join(found)
 
 
 def test_package_root_imports_nothing():

@@ -6,9 +6,8 @@ import pytest
 
 from acoustlab.run.registry import ALL_GROUPS, group_options
 
-pytestmark = pytest.mark.slow
 
-
+@pytest.mark.slow
 def test_help_lists_every_option_of_every_group(run_cli):
     proc = run_cli("--help")
     assert proc.returncode == 0, proc.stderr
@@ -25,6 +24,7 @@ def test_help_lists_every_option_of_every_group(run_cli):
         assert sorted(listed[group]) == group_options(group)
 
 
+@pytest.mark.slow
 def test_multirun_over_two_sites_runs_two_jobs(run_cli, tmp_path):
     out = tmp_path / "outputs"
     proc = run_cli("-m", "+site=frozen_lake,forest", "+experiment=smoke", "tracking=none", outputs=out)

@@ -65,6 +65,7 @@ def test_the_season_fast_preset_is_the_lean_set_with_the_coarse_search(compose_c
     assert mine.solver._target_.endswith(".ConsistentSetSolver") and mine.features.gcc.search == "fine"
 
 
+@pytest.mark.slow
 def test_the_season_defaults_to_the_season_fast_settings_and_nothing_else_does(compose_cfg):
     """``protocol=season`` (``python -m acoustlab season``) composes the lean set, the coarse GCC search and the consistent-set solver,
     exactly ``+experiment=season_fast``'s features and solver; a features or solver given on the command line wins, and the
@@ -104,8 +105,9 @@ def test_every_option_composes_and_instantiates_to_its_contract(compose_cfg, gro
     if group == "field" and obj is None:
         return  # 'none': no field data
     if group == "protocol":
-        assert isinstance(obj, interfaces.EvaluationProtocol)
-        assert isinstance(interfaces.declared(obj, "needs_field"), bool) and isinstance(interfaces.declared(obj, "evaluates"), bool)
+        # exactly one contract: an evaluation protocol (run) or a job (run_job), never both, never a stub of the other
+        assert isinstance(obj, interfaces.EvaluationProtocol) != isinstance(obj, interfaces.Job), f"protocol={option}"
+        assert isinstance(interfaces.declared(obj, "needs_field"), bool)
         return
     assert isinstance(obj, CONTRACTS[group]), f"{group}={option} does not satisfy {CONTRACTS[group].__name__}"
     if group in ("model", "error_model"):
@@ -177,6 +179,7 @@ def test_physics_lean_is_physics_without_the_waveform_groups(compose_cfg):
         assert lean["groups"][name] == physics["groups"][name], name
 
 
+@pytest.mark.slow
 def test_physics_lean_features_are_physics_features_minus_the_waveform_columns(compose_cfg):
     """On the same audio the lean set gives exactly the full set's GCC and context columns (so the solver's fixes are the same)."""
     from acoustlab.core.types import RecordingBatch
@@ -311,7 +314,7 @@ def test_no_plugin_attribute_is_read_that_no_contract_declares():
 def test_declared_refuses_an_undeclared_name():
     with pytest.raises(KeyError, match="not an optional plugin property"):
         interfaces.declared(object(), "needs_simulation")
-    assert interfaces.declared(object(), "evaluates") is True and interfaces.hook(object(), "preflight") is None
+    assert interfaces.declared(object(), "needs_field") is False and interfaces.hook(object(), "preflight") is None
 
 
 def test_srp_phat_cross_correlates_in_the_shared_gcc_band(compose_cfg):
@@ -458,6 +461,7 @@ def test_long_experiments_say_what_they_cost_before_starting(compose_cfg, experi
     assert "min" in cfg.expected_duration and "2 cores" in cfg.expected_duration
 
 
+@pytest.mark.slow
 def test_running_out_of_memory_is_one_line_not_a_traceback(tmp_path):
     """A MemoryError deep in a run (numpy's ``_ArrayMemoryError``) ends the command with one line saying what to lower."""
     import subprocess

@@ -12,6 +12,7 @@ from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
 from acoustlab.toolkit.conformal import conformal_quantile, grouped_conformal_quantile
 from plugins.conformal.split import SplitConformal
+from tests.conftest import examples
 
 
 def test_quantile_rank_is_ceil_n_plus_1_times_level():
@@ -28,7 +29,7 @@ def test_bad_scores_are_refused():
         conformal_quantile(np.array([1.0]), 1.0)
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=examples(20), deadline=None)
 @given(
     seed=st.integers(0, 2**31),
     n=st.integers(20, 200),
@@ -166,6 +167,7 @@ def test_a_failed_event_is_never_inside_its_ellipse_and_raises_no_warning():
     np.testing.assert_array_equal(inside, [True, False, False, False])
 
 
+@pytest.mark.slow
 def test_selective_threshold_controls_the_gross_share_among_placed_events():
     """Learn then Test: over many exchangeable draws, the share of gross errors among the placed test events
     exceeds δ in at most about ε of them; a stricter δ places fewer events."""
@@ -407,6 +409,7 @@ def _clustered_calls(rng: np.random.Generator, n_positions: int, per: int = 5) -
     return difficulty[groups] + rng.normal(0, 0.15, groups.size), bad[groups], groups
 
 
+@pytest.mark.slow
 def test_the_position_level_certificate_holds_when_gross_errors_cluster_by_position():
     """δ = 5 %, ε = 0.1: counting calls as independent fails the guarantee ~20 % of the time; by position it never does here."""
     from acoustlab.toolkit.conformal import selective_threshold, selective_threshold_by_position

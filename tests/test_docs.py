@@ -70,6 +70,7 @@ def _overrides(args: list[str]) -> list[str]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("page,command", COMMANDS, ids=[f"{p}:{c[:60]}" for p, c in COMMANDS])
 def test_every_documented_command_is_valid(page, command, compose_cfg):
     """Main-job commands pass the command-line checks and the preflight (every plugin built and checked, nothing simulated);
@@ -99,6 +100,7 @@ def test_every_documented_command_is_valid(page, command, compose_cfg):
     build_run(cfg)
 
 
+@pytest.mark.slow
 def test_the_site_builds_strictly(tmp_path):
     pytest.importorskip("mkdocs", reason='the docs extra: pip install -e ".[docs]"')
     pytest.importorskip("mkdocstrings")

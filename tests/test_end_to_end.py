@@ -10,8 +10,6 @@ import pytest
 from acoustlab.core.errors import ConfigError
 from acoustlab.run.app import run_experiment
 
-pytestmark = pytest.mark.slow
-
 
 def smoke(compose_cfg, tmp_path, *overrides, site="frozen_lake"):
     """The smoke experiment with outputs under ``tmp_path`` and no tracking."""
@@ -35,6 +33,7 @@ def check_metrics(metrics: dict, n_test_max: int) -> None:
     assert len(metrics["dataset_hash"]) == 64
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("site", ["frozen_lake", "forest"])
 def test_smoke_run_writes_complete_metrics(compose_cfg, tmp_path, site):
     cfg = smoke(compose_cfg, tmp_path, site=site)
@@ -50,6 +49,7 @@ def test_smoke_run_writes_complete_metrics(compose_cfg, tmp_path, site):
     assert (preds["radius__fixed__0.5"] <= preds["radius__fixed__0.8"]).all()
 
 
+@pytest.mark.slow
 def test_changing_only_the_model_reuses_simulation_and_features(compose_cfg, tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="acoustlab")
     first = run_experiment(smoke(compose_cfg, tmp_path), tmp_path / "a")
@@ -63,6 +63,7 @@ def test_changing_only_the_model_reuses_simulation_and_features(compose_cfg, tmp
     assert first["errors"]["model"] != second["errors"]["model"]
 
 
+@pytest.mark.slow
 def test_same_config_same_data_bit_for_bit_without_cache(compose_cfg, tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="acoustlab")
     a = run_experiment(smoke(compose_cfg, tmp_path, "cache.enabled=false"), tmp_path / "a")
@@ -75,6 +76,7 @@ def test_same_config_same_data_bit_for_bit_without_cache(compose_cfg, tmp_path, 
     assert c["dataset_hash"] != a["dataset_hash"]
 
 
+@pytest.mark.slow
 def test_interrupted_simulation_resumes_from_finished_chunks(compose_cfg, tmp_path, monkeypatch, caplog):
     from plugins.simulators.outdoor import OutdoorSimulator as FreeFieldSimulator
 
@@ -118,6 +120,7 @@ def test_missing_site_in_a_composed_config(compose_cfg, tmp_path):
         run_experiment(cfg, tmp_path / "run")
 
 
+@pytest.mark.slow
 def test_mlflow_store_holds_the_run(compose_cfg, tmp_path):
     import mlflow
 
@@ -137,6 +140,7 @@ def test_mlflow_store_holds_the_run(compose_cfg, tmp_path):
     assert {"tables/errors.json", "tables/coverage.json"} <= tables
 
 
+@pytest.mark.slow
 def test_parallel_and_sharded_generation_give_the_same_data(compose_cfg, tmp_path):
     serial = run_experiment(smoke(compose_cfg, tmp_path / "serial"), tmp_path / "a")
     parallel = run_experiment(smoke(compose_cfg, tmp_path / "parallel", "data.n_jobs=2"), tmp_path / "b")
@@ -152,6 +156,7 @@ def test_parallel_and_sharded_generation_give_the_same_data(compose_cfg, tmp_pat
     assert final["dataset_hash"] == serial["dataset_hash"]
 
 
+@pytest.mark.slow
 def test_leave_one_position_out_calibration(compose_cfg, tmp_path):
     metrics = run_experiment(smoke(compose_cfg, tmp_path, "conformal.calibration_folds=-1", "model.n_estimators=10"), tmp_path / "a")
     assert all(0 <= v <= 1 for v in metrics["coverage"]["fixed"].values())

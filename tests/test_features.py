@@ -88,6 +88,7 @@ def test_swapping_two_mics_negates_their_lag(clean_batches):
     np.testing.assert_allclose(b["tdoa__lag_1_2_s"], a["tdoa__lag_0_2_s"], atol=1e-9)
 
 
+@pytest.mark.slow
 def test_feature_catalog_doc_is_current():
     assert DOCS.read_text() == render(), "docs/features.md is stale: run python -m acoustlab.catalog"
 
@@ -256,6 +257,7 @@ def test_an_event_s_features_do_not_depend_on_the_longer_events_beside_it(clean_
     pd.testing.assert_frame_equal(together.iloc[[0]].reset_index(drop=True), first_alone)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("features", ["physics", "physics_lean_coarse", "physics_srp"])
 def test_an_event_s_features_do_not_depend_on_the_events_computed_with_it(compose_cfg, features):
     """Every feature of an event computed alone is bit for bit the one it gets among 11 others of the same clip length (no

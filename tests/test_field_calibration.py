@@ -16,9 +16,9 @@ from hypothesis import strategies as st
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.method.protocols.calibrate import calibrate_playbacks
 from acoustlab.stages.field_calibration import (
     apply_calibration,
-    calibrate_playbacks,
     calibrated_site,
     load_calibration,
     write_calibration,
@@ -26,6 +26,7 @@ from acoustlab.stages.field_calibration import (
 from acoustlab.stages.solver_columns import tdoa_matrix
 from acoustlab.toolkit.array_calibration import Playbacks, Priors, calibrate_array
 from acoustlab.toolkit.physics import speed_of_sound_m_s
+from tests.conftest import examples
 from tests.test_pipeline_calibration import site3
 
 
@@ -86,7 +87,7 @@ def test_playbacks_predict_each_pairs_time_difference_from_where_the_mics_stand(
         assert differences[1, 2] == pytest.approx(travel[1, 2] - travel[1, 1])
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=examples(12), deadline=None)
 @given(st.integers(4, 8), st.integers(0, 10_000))
 def test_exact_playbacks_recover_the_thermometer_clocks_and_mics(n_mics, seed):
     stated, true = array(n_mics, seed)
@@ -213,19 +214,25 @@ def test_time_differences_no_air_could_give_leave_the_thermometer_within_its_bou
 
 
 def test_a_calibration_searches_lags_as_far_as_the_stated_array_may_be_off(compose_cfg):
-    from acoustlab.run.calibrate import _lag_window_for
+    from omegaconf import OmegaConf
+
+    from acoustlab.method.protocols.calibrate import CalibrateProtocol
+    from acoustlab.stages.sites import site_from_config
     from acoustlab.toolkit.array_calibration import lag_margin_needed_s
 
     priors = Priors(np.zeros((3, 3)), np.array([2.0, 1.0, 0.0]), clock_sigma_s=0.002)
     needed = 3 * np.sqrt(2) * (2.0 / 343.0 + 0.002)  # 3 sigma of a pair's time difference: mics (GPS) and clocks
     assert lag_margin_needed_s(priors) == pytest.approx(needed)
     cfg = compose_cfg(["+site=frozen_lake", "protocol=calibrate"])
-    widened = _lag_window_for(cfg, priors)
-    assert widened.features.gcc.max_lag_margin_s == pytest.approx(needed)
-    assert widened.features.groups.tdoa.gcc.max_lag_margin_s == pytest.approx(needed)  # the groups read it through ${features.gcc}
+    site, protocol = site_from_config(cfg.site), CalibrateProtocol(position_sigma_m=2.0, clock_sigma_s=0.002)
+    stated_needed = lag_margin_needed_s(protocol.priors(site, None))
+    patch = protocol.config_patch(site, None, OmegaConf.to_container(cfg, resolve=True))
+    assert patch == {"features": {"gcc": {"max_lag_margin_s": pytest.approx(stated_needed)}}}
+    widened = OmegaConf.merge(cfg, patch)
+    assert widened.features.groups.tdoa.gcc.max_lag_margin_s == pytest.approx(stated_needed)  # the groups read it through ${features.gcc}
     assert cfg.features.gcc.max_lag_margin_s == 0.002  # the run's own config is untouched
     wide = compose_cfg(["+site=frozen_lake", "protocol=calibrate", "features.gcc.max_lag_margin_s=0.05"])
-    assert _lag_window_for(wide, priors) is wide  # never narrowed
+    assert protocol.config_patch(site, None, OmegaConf.to_container(wide, resolve=True)) is None  # never narrowed
 
 
 def test_drift_is_estimated_only_from_playbacks_spread_over_time():
@@ -248,9 +255,9 @@ def test_a_calls_clocks_are_the_offsets_plus_the_drift_since_the_origin_and_the_
 
 
 def test_calibrate_warns_only_where_no_spot_has_two_playbacks(caplog):
-    from acoustlab.run.calibrate import warn_if_one_playback_per_spot
+    from acoustlab.method.protocols.calibration_report import warn_if_one_playback_per_spot
 
-    with caplog.at_level("WARNING", logger="acoustlab.run.calibrate"):
+    with caplog.at_level("WARNING", logger="acoustlab.method.protocols.calibration_report"):
         warn_if_one_playback_per_spot(pd.DataFrame({col.POSITION_ID: [0, 1, 1, 2]}))
         assert "one playback per spot" not in caplog.text
         warn_if_one_playback_per_spot(pd.DataFrame({col.POSITION_ID: [0, 1, 2]}))
@@ -379,6 +386,7 @@ def test_picks_are_redone_until_they_hold_and_the_array_is_then_found_to_a_centi
     assert calibrate_until_picks_hold(first, fit, 30)[0].mic_positions_m == pytest.approx(cal.mic_positions_m)
 
 
+@pytest.mark.slow
 def test_from_few_spots_the_picks_that_fit_tighter_are_kept():
     # 5 spots, the direct path highest in 80 % of the playbacks: from the stated array's lags the rounds can
     # settle on wrong picks that agree with each other (mics metres off); from the highest peaks they do
@@ -416,6 +424,7 @@ def _late_echo_playbacks(seed: int, n_spots: int):
     return site, pd.DataFrame(features), events, direct.to_numpy(), priors
 
 
+@pytest.mark.slow
 def test_the_annealed_search_finds_the_direct_paths_among_late_echoes_from_ms_off(caplog):
     # 5 spots, reflections 0.1–0.5 ms late: the stated array predicts lags ms off, so its nearest peaks are
     # mostly echoes; the mixture over all candidates, annealed from ms to tens of µs, predicts the direct paths
@@ -434,7 +443,7 @@ def test_the_annealed_search_finds_the_direct_paths_among_late_echoes_from_ms_of
         assert np.mean(np.abs(stated.tdoa_s - direct) < 5e-5) < 0.6
         found.append(np.mean(np.abs(strongest.pair_differences_s(predicted) - direct) < 3e-5))
     assert sum(share >= 0.95 for share in found) >= 3, found
-    with caplog.at_level("INFO", logger="acoustlab.stages.field_calibration"):
+    with caplog.at_level("INFO", logger="acoustlab.method.protocols.calibrate"):
         calibrate_playbacks(
             features,
             events,
@@ -469,6 +478,7 @@ def _wall_echo_playbacks(seed: int, n_spots: int):
     return site, pd.DataFrame(features), events, direct.to_numpy(), priors
 
 
+@pytest.mark.slow
 def test_the_annealed_search_weighs_each_candidate_by_its_peak_height():
     # a constant echo per recorder fits the lags as well as the direct paths (the clocks absorb it);
     # the heights are what tells them apart, and without heights the candidates weigh equally
@@ -596,6 +606,7 @@ def test_a_written_calibration_is_read_back_checked_and_applied(tmp_path: Path, 
         load_calibration(str(tmp_path / "other.json"), site)
 
 
+@pytest.mark.slow
 def test_calibrate_recovers_a_rendered_array_and_localize_uses_it(compose_cfg, tmp_path: Path):
     """End to end on the second simulator: mics 2 m off, clocks ±1 ms, thermometer 3 °C high; 8 spots × 2 playbacks."""
     from acoustlab.run.app import build_run, prepare_data, run_experiment

@@ -113,6 +113,7 @@ def test_field_protocols_end_to_end(compose_cfg, tmp_path, protocol):
         assert all(5 < len(d["tau_grid"]) <= 20 for d in by_split)  # quantiles of the training energy residuals
 
 
+@pytest.mark.slow
 def test_field_eval_with_calibration_spots_tests_on_the_other_positions(compose_cfg, tmp_path):
     """protocol.calibration_positions=K: K field positions join training and calibrate (position-level); the rest are the test."""
     from acoustlab.run.app import build_run, prepare_data

@@ -14,6 +14,7 @@ from acoustlab.stages.solver_columns import FAILURE_IMPLAUSIBLE, FAILURE_NO_FIX,
 from plugins.solvers.consistent_set import ConsistentSetSolver
 from plugins.solvers.hyperbolic import HyperbolicSolver
 from plugins.solvers.per_reference_mic import PerReferenceMicSolver
+from tests.conftest import examples
 
 C = 340.0
 TRIANGLE = np.array([[0.0, 0.0, 1.2], [50.0, 0.0, 1.2], [24.0, 44.0, 1.2]])
@@ -92,7 +93,7 @@ def test_a_mic_with_no_consistent_peak_is_left_out():
     assert np.linalg.norm(result.position_m - xy, axis=1).max() < 1e-3
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(order=st.permutations(range(6)), x=st.floats(0, 80), y=st.floats(0, 70), reflected=st.integers(0, 14))
 def test_selection_does_not_depend_on_mic_order(order, x, y, reflected):
     xy = np.array([[x, y]])
@@ -269,7 +270,7 @@ def brute_force_selection(cands, weights, tol):
     return np.array(out)
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=examples(15), deadline=None)
 @given(seed=st.integers(0, 2**31), n_mics=st.sampled_from([3, 4, 5]))
 def test_pruned_search_equals_the_exhaustive_definition(seed, n_mics):
     """The table-and-sparse-product scoring with its bounded top-hypothesis search picks what visiting every
@@ -295,7 +296,7 @@ def assert_same_selection(cands, weights, prior=None, **settings):
         np.testing.assert_array_equal(pruned[key], exhaustive[key], err_msg=key)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(
     seed=st.integers(0, 2**31),
     n_mics=st.sampled_from([3, 4, 5, 6]),
@@ -311,6 +312,7 @@ def test_branch_and_bound_equals_the_exhaustive_search(seed, n_mics, k, missing,
     assert_same_selection(cands, weights, prior, prior_weight=0.05 if with_prior else 0.0)
 
 
+@pytest.mark.slow
 def test_branch_and_bound_keeps_every_candidate_on_larger_arrays():
     """8 and 10 mics with 3 candidates per pair (17,496 and 196,830 hypotheses per event): the pruned search
     gives the exhaustive choice; with 12 mics (2.1 million, beyond the exhaustive search) the default still

@@ -10,9 +10,8 @@ from acoustlab.method.pipeline import LocalizationPipeline
 from acoustlab.method.saved import load_method, save_method
 from acoustlab.run.app import build_run, prepare_data
 
-pytestmark = pytest.mark.slow
 
-
+@pytest.mark.slow
 def test_predicting_in_chunks_equals_predicting_at_once_with_every_optional_output(compose_cfg, tmp_path, monkeypatch):
     """CQR, ellipses, selective localization and an extra gate: every output is a function of the fitted method and the row."""
     cfg = compose_cfg(
@@ -51,6 +50,7 @@ def test_predicting_in_chunks_equals_predicting_at_once_with_every_optional_outp
     pd.testing.assert_frame_equal(chunked, together)
 
 
+@pytest.mark.slow
 def test_a_position_on_both_sides_is_refused(compose_cfg, tmp_path):
     cfg = compose_cfg(["+site=frozen_lake", "+experiment=smoke", f"paths.outputs_dir={tmp_path}", "tracking=none"])
     built = build_run(cfg)

@@ -120,6 +120,7 @@ def test_tau_is_chosen_against_the_box_gated_solver():
     assert len(gate.tau_grid_) > 5 and gate.tau_grid_["tau_db"].is_monotonic_increasing  # a grid from the data
 
 
+@pytest.mark.slow
 def test_learned_gate_reaches_the_oracle_on_an_informative_diagnostic():
     from plugins.gates.learned import LearnedGate
 
@@ -157,6 +158,7 @@ def test_learned_gate_never_trains_on_a_held_out_position(monkeypatch):
     assert set().union(*held) >= set(np.unique(groups[np.isfinite(solver).all(1) & (np.abs(solver) < 1e4).all(1)]))
 
 
+@pytest.mark.slow
 def test_learned_gate_survives_a_cue_missing_in_a_whole_fold():
     """A diagnostic present for only a few positions (e.g. a 3-D height GDOP) must not break the out-of-fold fits."""
     from plugins.gates.learned import LearnedGate

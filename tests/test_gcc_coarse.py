@@ -16,6 +16,7 @@ from acoustlab.toolkit.gcc_candidates import lag_windows_s, pair_candidates
 from acoustlab.toolkit.gcc_coarse import half_sample_kernel, half_samples
 from acoustlab.toolkit.window_peaks import window_peaks
 from plugins.features.gcc_groups import TdoaCandidates
+from tests.conftest import examples
 
 UPSTREAM_LOCA_TDOA_S = [0.0, 0.0325, -0.002, 0.0316, -0.0086, 0.024]  # as tests/test_recordings.py
 
@@ -30,6 +31,7 @@ def _fresh(batch):
     return RecordingBatch(batch.audio, batch.sample_rate_hz, batch.events)
 
 
+@pytest.mark.slow
 def test_half_sample_interpolation_matches_the_exact_finer_grid(batches):
     """The band-limited interpolation of the 1/fs grid gives the 1/(2 fs) grid's odd samples to 1e-4 of the peak."""
     site, batch = batches["forest"]
@@ -45,6 +47,7 @@ def test_half_sample_interpolation_matches_the_exact_finer_grid(batches):
         assert np.abs(halves - fine[:, p, 2 * index + 1]).max() < 1e-4 * np.abs(fine[:, p]).max()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("site_name", ["frozen_lake", "forest"])
 def test_coarse_search_gives_the_default_peaks(batches, site_name):
     site, batch = batches[site_name]
@@ -145,7 +148,7 @@ def test_window_peaks_equal_the_sorted_masked_maxima_with_ties_and_plateaus(dtyp
         _assert_same_peaks(values, m, min(m_sum, max(n - 1, 0)))
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(
     st.lists(st.lists(st.floats(-4, 4, width=32), min_size=4, max_size=60), min_size=1, max_size=4).filter(
         lambda rows: len({len(r) for r in rows}) == 1

@@ -17,10 +17,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from acoustlab.core.errors import AcoustlabError, ConfigError, DataError
+from acoustlab.core.files import StorageError, atomic_save_npy, atomic_write_bytes
 from acoustlab.core.resources import PACKAGE_DATA
 from acoustlab.run.app import build_run, run_experiment
 from acoustlab.run.registry import build, build_feature_sets, to_plain
-from acoustlab.stages.cache import StageCache, StorageError, atomic_save_npy, atomic_write_bytes
+from acoustlab.stages.cache import StageCache
 from acoustlab.stages.dataset import SimulationPlan, load_or_build_field, load_or_build_simulated
 from acoustlab.stages.sites import site_from_config
 from acoustlab.toolkit.quality import QualityThresholds, clip_quality

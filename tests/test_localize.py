@@ -10,8 +10,6 @@ import soundfile as sf
 from acoustlab.core.errors import DataError
 from acoustlab.run.app import run_experiment
 
-pytestmark = pytest.mark.slow
-
 LEVELS = ["0.5", "0.8", "0.95"]
 
 
@@ -39,6 +37,7 @@ def check_radii(table):
         assert np.isfinite(radii).all() and (np.diff(radii, axis=1) >= 0).all(), scorer
 
 
+@pytest.mark.slow
 def test_localize_the_shipped_loca_example(compose_cfg, tmp_path):
     table, metrics, run_dir = localize(compose_cfg, tmp_path, "+site=loca2021", "features.gcc.band_hz=[6000,10500]", "solver.dimensions=3")
     assert len(table) == 1 and {
@@ -124,6 +123,7 @@ def simulated_folder(compose_cfg, folder, n_events, known=0, rotation_deg=None, 
     return batch, overrides
 
 
+@pytest.mark.slow
 def test_localize_a_folder_of_recordings_without_truth(compose_cfg, tmp_path):
     """Simulated frozen-lake events written as files with a mics and an events table but no positions: every detection
     gets a row, and (the truth being known here) the positions are where the sources were."""
@@ -136,6 +136,7 @@ def test_localize_a_folder_of_recordings_without_truth(compose_cfg, tmp_path):
     assert placed.mean() >= 0.75 and np.median(err) < 2.0
 
 
+@pytest.mark.slow
 def test_calibration_playbacks_join_training_and_positions_are_projected(compose_cfg, tmp_path):
     """Events with known positions (calibration playbacks) are added to the training rows, not localized; the others are
     placed and also written in the mics table's projected coordinates."""
@@ -151,6 +152,7 @@ def test_calibration_playbacks_join_training_and_positions_are_projected(compose
     assert (table["crs"] == "EPSG:32617").all()
 
 
+@pytest.mark.slow
 def test_playbacks_that_calibrate_the_radii_also_test_them_held_out_by_spot(compose_cfg, tmp_path):
     """20 playback spots calibrate the radii on the field: metrics.json gives their coverage with each spot's radii calibrated
     on the other 19, per scorer and by GDOP / hull-distance bin."""
@@ -165,6 +167,7 @@ def test_playbacks_that_calibrate_the_radii_also_test_them_held_out_by_spot(comp
     assert sum(entry["n"] for entry in held["by_condition"]["hull_distance"]) == 20
 
 
+@pytest.mark.slow
 def test_a_dead_recorder_costs_that_recorder_not_the_event(compose_cfg, tmp_path):
     """On the 6-mic forest a silent channel is left out of that event's solve (placed from the other mics, near the truth,
     the solver's fix kept); with four silent channels too few remain and the event is not placed."""
@@ -189,6 +192,7 @@ def test_a_dead_recorder_costs_that_recorder_not_the_event(compose_cfg, tmp_path
     assert by_event.loc[0, "mics_dropped"] == ""
 
 
+@pytest.mark.slow
 def test_a_recorder_without_a_gcc_peak_is_left_out_when_min_peak_is_set(compose_cfg, tmp_path):
     """``features.gcc.min_peak``: a channel of pure noise (no peak with any mic, about 0.01 against 0.05–0.3 for the
     call) is dropped from its event's solve and flagged ``weak_gcc``; four such channels leave too few mics and the event is
@@ -208,6 +212,7 @@ def test_a_recorder_without_a_gcc_peak_is_left_out_when_min_peak_is_set(compose_
     assert (pd.read_parquet(default_run / "positions.parquet")["mics_dropped"] == "").all()
 
 
+@pytest.mark.slow
 def test_text_event_ids_come_back_as_given(compose_cfg, tmp_path):
     """An events table whose ids are text (``call00``, …) is read, and positions.csv names each row by its own id; two rows
     with one id stop the run naming it."""
@@ -223,6 +228,7 @@ def test_text_event_ids_come_back_as_given(compose_cfg, tmp_path):
         localize(compose_cfg, tmp_path / "again", *overrides)
 
 
+@pytest.mark.slow
 def test_your_own_array_from_the_recordings_mics_table_alone(compose_cfg, tmp_path):
     """``+site=recordings`` takes the simulation's mics from ``field.mics_csv``: one CSV describes the array, and the calls are
     placed where they were."""
@@ -239,6 +245,7 @@ def test_your_own_array_from_the_recordings_mics_table_alone(compose_cfg, tmp_pa
     assert placed.mean() >= 0.5 and np.median(err) < 2.0
 
 
+@pytest.mark.slow
 def test_localize_streams_the_recordings_and_the_answer_does_not_depend_on_the_chunks(compose_cfg, tmp_path):
     """``field.chunk_events``: the recordings are read and turned into features a few events at a time (peak memory: one
     chunk's audio); two events at a time gives every column of every row the whole table gives, bit for bit."""

@@ -106,6 +106,7 @@ def test_too_few_receivers_for_any_window_is_one_clear_line(tmp_path, compose_cf
         )
 
 
+@pytest.mark.slow
 def test_a_switching_users_three_tables_localize_without_editing(tmp_path, compose_cfg):
     """The peer's coordinates table (file as pandas' unnamed index), its detections with per-file absolute start times (one
     recorder started 0.1 s late) and a seventh receiver whose file is too short: localize places the call from the six

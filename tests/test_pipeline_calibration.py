@@ -126,6 +126,7 @@ def test_calibration_gates_never_decide_on_a_position_they_were_fitted_on():
     assert decided == set(train)  # every training event got exactly its out-of-fold decision
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_gate_context_lets_the_error_model_rank_gross_fixes(seed):
     """Where only solver–model disagreement reveals a gross fix, the gate's context raises the error model's ρ."""

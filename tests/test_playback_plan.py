@@ -36,6 +36,7 @@ def mic_errors(n_spots: int, n_arrays: int = 20) -> dict[str, np.ndarray]:
     return {k: np.asarray(v) for k, v in out.items()}
 
 
+@pytest.mark.slow
 def test_planned_spots_calibrate_better_than_random_ones_under_per_spot_multipath():
     # 5 spots, 20 arrays of 6 mics 2 m off, clocks ±1 ms, a 3 °C thermometer error, 0.1 ms of bias per spot and pair
     errors = mic_errors(5)
@@ -43,6 +44,7 @@ def test_planned_spots_calibrate_better_than_random_ones_under_per_spot_multipat
     assert np.quantile(errors["planned"], 0.9) < 0.5 * np.quantile(errors["random"], 0.9)  # measured 0.038 vs 0.20 m
 
 
+@pytest.mark.slow
 def test_a_plan_keeps_away_from_where_a_stated_mic_may_really_be():
     # 3-mic arrays, 5 spots: spots 3 m from the stated mics let the fit of one array of 30 run 2 m off
     # (measured 2.17 m); at the default distance (5 GPS errors) the worst is 0.25 m

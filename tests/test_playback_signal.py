@@ -61,6 +61,7 @@ def test_a_field_emits_the_sweep_when_asked_and_refuses_an_unknown_signal():
     assert pool.draw(np.random.default_rng(0)).label == SWEEP_LABEL and pool.max_duration_s == pytest.approx(0.3)
 
 
+@pytest.mark.slow
 def test_from_five_spots_a_sweep_recovers_the_3_mic_lake_where_calls_trade_the_thermometer_for_the_arrays_scale(
     compose_cfg, tmp_path, caplog
 ):
@@ -68,8 +69,8 @@ def test_from_five_spots_a_sweep_recovers_the_3_mic_lake_where_calls_trade_the_t
     spots × 2 playbacks: the calls' GCC peaks repeat at their period and the calibration takes wrong ones; the sweep's do
     not. ``calibrate`` tells the calls by their second GCC peak and warns."""
     from acoustlab.api import plan_playbacks
+    from acoustlab.method.protocols.calibration_report import TONAL_PEAK_RATIO
     from acoustlab.run.app import run_experiment
-    from acoustlab.run.calibrate import TONAL_PEAK_RATIO
     from acoustlab.stages.sites import site_from_config
     from plugins.fields.image_source import ImageSourceField
 
@@ -82,7 +83,7 @@ def test_from_five_spots_a_sweep_recovers_the_3_mic_lake_where_calls_trade_the_t
         overrides += [*impaired, "field.events_per_position=2", f"field.signal={signal}", f"paths.outputs_dir={tmp_path}"]
         cfg = compose_cfg([*overrides, "tracking=none", "plots=false", "cache.enabled=false"])
         caplog.clear()
-        with caplog.at_level("WARNING", logger="acoustlab.run.calibrate"):
+        with caplog.at_level("WARNING", logger="acoustlab.method.protocols.calibration_report"):
             ratio[signal] = run_experiment(cfg, tmp_path / signal, {})["calibration"]["second_peak_ratio"]
         warned[signal] = "the signal played back is tonal" in caplog.text
         body = json.loads((tmp_path / signal / "calibration.json").read_text())
@@ -96,9 +97,9 @@ def test_from_five_spots_a_sweep_recovers_the_3_mic_lake_where_calls_trade_the_t
 
 
 def test_no_tonal_warning_without_peak_heights(caplog):
-    from acoustlab.run.calibrate import warn_if_tonal
+    from acoustlab.method.protocols.calibration_report import warn_if_tonal
 
-    with caplog.at_level("WARNING", logger="acoustlab.run.calibrate"):
+    with caplog.at_level("WARNING", logger="acoustlab.method.protocols.calibration_report"):
         warn_if_tonal(None)
         warn_if_tonal(0.5)
     assert not caplog.text

@@ -12,6 +12,7 @@ from acoustlab.run.registry import group_options
 ALL = list(plugin_checks())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("group,option,name,check", ALL, ids=[f"{g}={o}:{n}" for g, o, n, _ in ALL])
 def test_plugin_behaves(group, option, name, check):
     try:

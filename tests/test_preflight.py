@@ -156,6 +156,7 @@ def test_sweep_jobs_follow_hydra_a_command_line_key_replaces_the_sweep_params():
     assert all("gate=learned" in job for job in jobs)
 
 
+@pytest.mark.slow
 def test_a_mistyped_key_gets_the_closest_existing_one(run_cli, compose_cfg):
     """Typed nodes are checked before Hydra composes; plugin settings when the plugin is built; both say "did you mean"."""
     from acoustlab.run.preflight import check_argv

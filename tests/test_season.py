@@ -22,8 +22,6 @@ from acoustlab.season.stream import localize_chunks, merge_parts, part_path, rea
 from acoustlab.season.synthetic import SyntheticSeason, write_season
 from acoustlab.stages.sites import site_from_config
 
-pytestmark = pytest.mark.slow
-
 N_CALLS = 24
 
 
@@ -67,6 +65,7 @@ def season(tmp_path_factory):
     return root, truth, metrics, cfg
 
 
+@pytest.mark.slow
 def test_a_season_is_localized_from_raven_tables_near_the_truth(season):
     root, truth, metrics, _ = season
     table = pd.read_parquet(root / "run" / "positions.parquet")
@@ -113,6 +112,7 @@ def whole_season(season):
     return events, _placed(season, events, 64)
 
 
+@pytest.mark.slow
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(batch=st.integers(1, 30), cuts=st.lists(st.integers(1, N_CALLS - 1), max_size=3, unique=True), repeat=st.integers(0, N_CALLS - 1))
 def test_a_season_s_answer_does_not_depend_on_how_it_is_cut(season, whole_season, batch, cuts, repeat):
@@ -130,6 +130,7 @@ def test_a_season_s_answer_does_not_depend_on_how_it_is_cut(season, whole_season
     pd.testing.assert_frame_equal(again.iloc[3:].iloc[::-1].reset_index(drop=True), whole, check_exact=True)
 
 
+@pytest.mark.slow
 def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path):
     root, _, _, _ = season
     unsharded = pd.read_parquet(root / "run" / "positions.parquet")
@@ -157,6 +158,7 @@ def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path
     pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "local_run" / "positions.parquet"), unsharded, check_exact=True)
 
 
+@pytest.mark.slow
 def test_a_killed_run_resumes_without_redoing_finished_chunks(season, tmp_path):
     root, _, _, _ = season
     folder = tmp_path / "killed"
@@ -178,6 +180,7 @@ def test_a_killed_run_resumes_without_redoing_finished_chunks(season, tmp_path):
     pd.testing.assert_frame_equal(merge_parts(folder), pd.read_parquet(root / "run" / "positions.parquet"))
 
 
+@pytest.mark.slow
 def test_a_local_worker_stops_when_its_parent_is_killed(season, tmp_path):
     """A worker started by a run (as joblib's local workers are) stops before its next chunk once that run is killed."""
     root, _, _, _ = season
@@ -217,6 +220,7 @@ def test_a_local_worker_stops_when_its_parent_is_killed(season, tmp_path):
     assert sum(part_path(folder, k).is_file() for k in range(5)) < 5
 
 
+@pytest.mark.slow
 def test_a_changed_method_file_is_refused_and_other_inputs_never_mix(season, compose_cfg, tmp_path):
     root, _, _, _ = season
     folder = tmp_path / "tampered"
@@ -234,6 +238,7 @@ def test_a_changed_method_file_is_refused_and_other_inputs_never_mix(season, com
     assert {p.name: p.read_bytes() for p in other.iterdir() if p.is_file()} == before  # refused before anything was rewritten
 
 
+@pytest.mark.slow
 def test_damaged_foreign_or_orphan_parts_are_recomputed_or_refused_in_one_line(season, tmp_path):
     """An empty or damaged part is computed again; a part of other events, or parts without the season's manifest, stop."""
     from acoustlab.season.stream import MANIFEST, check_manifest
@@ -258,6 +263,7 @@ def test_damaged_foreign_or_orphan_parts_are_recomputed_or_refused_in_one_line(s
         check_manifest(folder, read_manifest(root / "out"))
 
 
+@pytest.mark.slow
 def test_a_recording_changed_since_the_fit_is_refused(season, tmp_path):
     """A file rewritten between a kill and its resume would mix two recordings into one season: the localize stage and a
     new fit over old parts both stop, naming it."""
@@ -291,6 +297,7 @@ def test_a_recording_changed_since_the_fit_is_refused(season, tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_shards_as_a_hydra_multirun_then_merge(season, run_cli, tmp_path):
     """The command-line path a SLURM array takes (here Hydra's basic launcher): one job per shard, then the merge stage."""
     root, _, _, _ = season
@@ -315,6 +322,7 @@ def test_shards_as_a_hydra_multirun_then_merge(season, run_cli, tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_the_season_defaults_are_the_fast_settings_with_the_full_sets_solver_fixes(season, compose_cfg, tmp_path):
     """The season's defaults (lean features, the coarse GCC search: the fixture's run) place the season as
     the full set with the default search does (``features=physics solver=consistent_set``): near the
@@ -346,6 +354,7 @@ def test_the_season_defaults_are_the_fast_settings_with_the_full_sets_solver_fix
     assert saved.feature_sets["tdoa"].search == "fine"
 
 
+@pytest.mark.slow
 def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_path, caplog):
     """The recorders stand 1.5–2 m off their stated positions; a calibration from 8 spots of exact playbacks moves them back, and
     the season run with ``calibration=PATH`` places the calls several times closer, recording the file's digest on every row."""
@@ -386,9 +395,9 @@ def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_pa
     from_file = load_calibration(str(path), site).input_uncertainty().covariance
     assert carried.covariance[0, 0] == pytest.approx(from_file[0, 0] + 1.5**2)
     np.testing.assert_array_equal(carried.covariance[1:, 1:], from_file[1:, 1:])
-    assert "protocol.temperature_c is not given" in caplog.text  # the offset needs a thermometer's reading to correct
+    given = build_run(configure(f"calibration={path}", "protocol.temperature_c=11.0")).protocol
     caplog.clear()
-    build_run(configure(f"calibration={path}", "protocol.temperature_c=11.0"))
+    given.warn_about_calibration(load_calibration(str(path), site))
     assert "protocol.temperature_c is not given" not in caplog.text
     errors = {}
     for label, extra in (("stated", ()), ("calibrated", (f"calibration={path}", f"protocol.output_dir={tmp_path / 'out_cal'}"))):
@@ -396,11 +405,13 @@ def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_pa
         table = pd.read_parquet(tmp_path / label / "positions.parquet")
         errors[label] = float(np.median(np.hypot(table["x_m"] - truth["x_m"], table["y_m"] - truth["y_m"])))
     GlobalHydra.instance().clear()
+    assert "protocol.temperature_c is not given" in caplog.text  # the offset needs a thermometer's reading to correct
     assert errors["calibrated"] < 0.4 * errors["stated"], errors
     assert (table["calibration_sha256"] == digest).all()
     assert metrics["field_calibration"]["sha256"] == digest
 
 
+@pytest.mark.slow
 def test_the_same_season_command_resumes_in_the_same_folder(season, tmp_path):
     """Without protocol.output_dir the season's folder is named by its inputs under paths.outputs_dir: running the command
     again finds it, reuses the fitted method and computes no chunk twice; another chunking gets a folder of its own."""
@@ -426,6 +437,7 @@ def test_the_same_season_command_resumes_in_the_same_folder(season, tmp_path):
     assert run("other", "protocol.chunk_events=7")["output_dir"] != first["output_dir"]
 
 
+@pytest.mark.slow
 def test_the_detector_tables_are_read_once_and_kept_compact(season, tmp_path, monkeypatch):
     """The preflight's read of the tables is the one the fit uses (not read twice); repeated strings are categories."""
     from hydra import compose, initialize_config_dir
@@ -453,6 +465,7 @@ def test_the_detector_tables_are_read_once_and_kept_compact(season, tmp_path, mo
     assert all(str(reads[0][c].dtype) == "category" for c in ("recorder_id", "label", "source"))
 
 
+@pytest.mark.slow
 def test_a_season_folder_with_an_attacker_s_method_runs_no_code(season, compose_cfg, tmp_path):
     """A received or tampered season folder whose method is replaced by a pickle that would create a file, with every digest
     beside it (method.sha256.json, season.json) updated to match: the season stops in one line and the file is never made

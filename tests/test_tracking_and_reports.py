@@ -24,7 +24,6 @@ from acoustlab.reporting.experiment_log import PENDING_FILE
 from acoustlab.run import upload
 from acoustlab.run.app import run_experiment
 
-pytestmark = pytest.mark.slow
 SMALL = ["+site=frozen_lake", "+experiment=smoke", "model.n_estimators=20"]
 
 
@@ -34,6 +33,7 @@ def runs_in(store: Path) -> list:
     return [] if experiment is None else client.search_runs([experiment.experiment_id])
 
 
+@pytest.mark.slow
 def test_parallel_sweep_on_a_cold_cache_has_a_parent_run_children_and_a_report(run_cli, tmp_path):
     out = tmp_path / "outputs"
     proc = run_cli("-m", "hydra/launcher=local_parallel", *SMALL, "model=xgboost,random_forest", outputs=out)
@@ -64,6 +64,7 @@ def test_parallel_sweep_on_a_cold_cache_has_a_parent_run_children_and_a_report(r
     assert (sweep_dir / "report" / "report.html").read_text().count("data:image/png;base64,") >= 2 + 2 * 4
 
 
+@pytest.mark.slow
 def test_a_failed_job_keeps_the_others_and_marks_the_parent_failed(run_cli, tmp_path):
     out = tmp_path / "outputs"
     proc = run_cli("-m", *SMALL, "conformal.levels=[1.5],[0.8]", "hydra.callbacks.sweep_tracking.preflight=false", outputs=out)
@@ -73,9 +74,12 @@ def test_a_failed_job_keeps_the_others_and_marks_the_parent_failed(run_cli, tmp_
     assert [p.parent.name for p in finished] == ["1"]  # the valid job after the failed one ran and kept its results
     parent = next(r for r in runs_in(out / "mlflow.db") if r.data.tags.get("acoustlab.sweep") == "parent")
     assert parent.info.status == "FAILED"
-    assert (finished[0].parent.parent / "report" / "report.md").exists()
+    report = (finished[0].parent.parent / "report" / "report.md").read_text()
+    assert "(1 of 2 jobs failed)" in report and "1 run(s), 1 failed" in report  # every requested job is accounted for
+    assert "## Failed jobs" in report and "conformal.levels=[1.5]" in report and "must lie in (0, 1); got 1.5" in report
 
 
+@pytest.mark.slow
 def test_sweep_preflight_stops_before_any_job_and_names_the_failing_ones(run_cli, tmp_path):
     out = tmp_path / "outputs"
     proc = run_cli("-m", *SMALL, "pipeline.model_target=absolute,sideways", "conformal.levels=[0.8],[0.8,1.5]", outputs=out)
@@ -92,6 +96,7 @@ def test_sweep_preflight_stops_before_any_job_and_names_the_failing_ones(run_cli
     assert not list(out.glob("multirun/*/*/*/metrics.json")) and not (out / "mlflow.db").exists()
 
 
+@pytest.mark.slow
 def test_a_shard_sweep_fills_the_cache_for_one_final_run(run_cli, tmp_path):
     out = tmp_path / "outputs"
     proc = run_cli("-m", *SMALL, "tracking=none", "data.shard_count=2", "data.shard_index=range(0,2)", outputs=out)
@@ -104,6 +109,7 @@ def test_a_shard_sweep_fills_the_cache_for_one_final_run(run_cli, tmp_path):
     assert "resuming simulation: 4 of 4 chunks already rendered" in final.stdout + final.stderr
 
 
+@pytest.mark.slow
 def test_unreachable_server_loses_nothing_and_the_run_uploads_later(compose_cfg, tmp_path, caplog):
     cfg = compose_cfg([*SMALL, f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking.tracking_uri=http://127.0.0.1:9"])
     caplog.set_level(logging.WARNING)
@@ -130,6 +136,7 @@ def test_upload_of_a_folder_without_runs_is_a_clear_error(tmp_path, capsys):
     assert "no run directories" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_report_tables_match_the_runs(compose_cfg, tmp_path):
     base = [*SMALL, f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking=none"]
     m1 = run_experiment(compose_cfg(base), tmp_path / "runs" / "a")
@@ -178,6 +185,7 @@ def test_report_of_a_missing_path_is_a_clear_error(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_submitit_local_launcher_runs_the_sweep(run_cli, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     out = tmp_path / "outputs"
@@ -211,6 +219,7 @@ def _rest(base: str, endpoint: str, body: dict | None = None, **query: str) -> d
         return json.loads(response.read())
 
 
+@pytest.mark.slow
 @pytest.mark.mlflow_server
 def test_real_mlflow_server_receives_params_metrics_tables_and_artifacts(run_cli, tmp_path):
     if shutil.which("mlflow") is None and not Path(sys.executable).with_name("mlflow").exists():
@@ -330,6 +339,7 @@ def test_upload_never_runs_code_named_in_a_received_folder(tmp_path, monkeypatch
     assert tracker.experiment_name == "acoustlab"  # the interpolated name was not resolved
 
 
+@pytest.mark.slow
 def test_mlflow_artifacts_live_beside_the_store_not_in_the_working_directory(compose_cfg, tmp_path, monkeypatch):
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
@@ -375,6 +385,7 @@ def _received_run(tmp_path: Path) -> Path:
     return run_dir
 
 
+@pytest.mark.slow
 def test_upload_sends_only_regular_files_inside_the_folder_to_the_uploaders_store(tmp_path, caplog):
     run_dir = _received_run(tmp_path)
     caplog.set_level(logging.WARNING)
@@ -410,7 +421,7 @@ def test_a_malformed_received_metrics_json_is_refused_in_one_line(tmp_path, caps
 def test_result_files_are_readable_by_the_group_as_a_plain_open_would_make_them(tmp_path):
     import os
 
-    from acoustlab.stages.cache import atomic_write_bytes
+    from acoustlab.core.files import atomic_write_bytes
 
     atomic_write_bytes(tmp_path / "metrics.json", b"{}")
     umask = os.umask(0)
@@ -508,6 +519,7 @@ def test_a_stopped_sweep_closes_its_parent_run_killed(tmp_path, monkeypatch):
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
+@pytest.mark.slow
 def test_a_run_logged_after_it_ended_keeps_its_own_start_and_duration(compose_cfg, tmp_path):
     cfg = compose_cfg([*SMALL, f"paths.outputs_dir={tmp_path / 'outputs'}", "tracking=none", "plots=false"])
     metrics = run_experiment(cfg, tmp_path / "run")

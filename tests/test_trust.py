@@ -89,6 +89,7 @@ def test_consistent_solver_fix_outside_the_training_region_is_kept():
     assert plain["substituted"].all() and plain[col.error_m("gate")].min() > 10
 
 
+@pytest.mark.slow
 def test_inside_the_training_region_the_gate_decides_as_before():
     """On events like the training ones the trust check overrides almost nothing."""
     features, events = scene(seed=1)

@@ -6,10 +6,10 @@ import pytest
 
 from acoustlab.core.resources import PROJECT_ROOT
 
-pytestmark = pytest.mark.slow
 TUTORIAL = PROJECT_ROOT / "docs" / "tutorial.md"
 
 
+@pytest.mark.slow
 def test_the_notebook_tutorial_runs_as_written(tmp_path, monkeypatch):
     blocks = re.findall(r"```python\n(.*?)```", TUTORIAL.read_text(), flags=re.S)
     assert len(blocks) >= 4

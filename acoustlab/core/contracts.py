@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -30,15 +31,9 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
     "calibration_unit": None,
     # conformal scorers: fit and radius take ``hull_distance`` (the estimate's distance outside the mics' hull, array extents)
     "needs_hull_distance": False,
-    # evaluation protocols: needs field recordings (checked in the preflight)
+    # protocols and jobs: needs field recordings (checked in the preflight)
     "needs_field": False,
-    # evaluation protocols: has ground truth and writes error metrics (False: positions only, protocol=localize)
-    "evaluates": True,
-    # protocols: runs on its own from the recordings, chunk by chunk (protocol=season), not on in-memory tables
-    "streams": False,
-    # protocols: calibrates the array from playbacks at known spots (protocol=calibrate): writes calibration.json, simulates nothing
-    "calibrates": False,
-    # protocols: gives every detection one assumed temperature, not a thermometer's reading (protocol=season): a field
+    # jobs: gives every detection one assumed temperature, not a thermometer's reading (protocol=season): a field
     # calibration's input allowance keeps conformal.input_uncertainty.temperature_c as that assumption's error
     "assumes_weather": False,
     # simulators and feature sets: bumped by hand to invalidate cached results of an unchanged module
@@ -51,8 +46,11 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
 #: ``preflight()`` (models: check what must exist before anything is simulated, e.g. weights), ``validate(site)``
 #: (field sources and protocol=season: check tables and headers), ``input_files()`` (field sources: the files whose contents key the
 #: cache), ``projection()`` (field sources: the rigid map to projected coordinates, or None), ``fit_quantiles(x, error, levels)``
-#: (conformal scorers with ``needs_quantiles``: fit the final quantile model once, applied by their ``predict_quantiles``).
-OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection", "fit_quantiles", "tables", "load_chunks")
+#: (conformal scorers with ``needs_quantiles``: fit the final quantile model once, applied by their ``predict_quantiles``),
+#: ``config_patch(site, field_source, config)`` (protocols and jobs: config changes the job needs, given the resolved config
+#: as a plain dict, returned as a plain nested dict merged into it before the context is built, e.g. calibrate's wider GCC
+#: lag window; None for none).
+OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection", "fit_quantiles", "tables", "load_chunks", "config_patch")
 
 
 def declared(plugin: Any, name: str) -> Any:
@@ -313,15 +311,30 @@ class ConformalScorer(Protocol):
 
 @runtime_checkable
 class EvaluationProtocol(Protocol):
-    """Decides which events train, calibrate and test, and runs the localization pipeline on them.
+    """Decides which events train, calibrate and test, and runs the localization pipeline on them (sim_only, cross_fit,
+    field_eval, lopo): the run has ground truth, and the app writes error and coverage metrics.
 
-    May declare ``needs_field`` and ``evaluates`` (``OPTIONAL_PROPERTIES``). ``dataset`` and
-    ``field_recordings`` are ``acoustlab.stages.dataset.Dataset`` s, ``pipeline`` a
-    ``acoustlab.method.pipeline.LocalizationPipeline`` (typed loosely: this layer is below both).
+    May declare ``needs_field`` (``OPTIONAL_PROPERTIES``). ``dataset`` and ``field_recordings`` are
+    ``acoustlab.stages.dataset.Dataset`` s, ``pipeline`` a ``acoustlab.method.pipeline.LocalizationPipeline``
+    (typed loosely: this layer is below both).
     """
 
     def run(self, dataset: Any, pipeline: Any, field_recordings: Any = None) -> Any:
         """Fit and predict; returns a ``acoustlab.method.pipeline.MethodResult``."""
+
+
+@runtime_checkable
+class Job(Protocol):
+    """A kind of run that is not an evaluation (localize, season, calibrate): it gets its data from the run's context and
+    writes its own results into the run folder.
+
+    ``context`` is an ``acoustlab.method.run_context.RunContext`` (typed loosely: this layer is below it): the site,
+    the configured plugins, the cache, the field source, the calibration and plain settings. May declare
+    ``needs_field`` and ``assumes_weather`` and define the hooks ``validate(site)`` and ``config_patch(site, field_source, config)``.
+    """
+
+    def run_job(self, context: Any, run_dir: Path) -> dict[str, Any]:
+        """Run the job; returns what ``metrics.json`` in ``run_dir`` holds (the job writes it)."""
 
 
 @runtime_checkable

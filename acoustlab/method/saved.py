@@ -25,7 +25,7 @@ import joblib
 
 from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import DataError
-from acoustlab.stages.cache import atomic_write_bytes
+from acoustlab.core.files import atomic_write_bytes
 
 METHOD_FILE = "method.joblib"
 DIGEST_FILE = "method.sha256.json"

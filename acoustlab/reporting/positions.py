@@ -119,3 +119,24 @@ def localization_summary(table: pd.DataFrame, levels: list[float], scorers: list
         "share_from_model": float((table["source"] == "model").mean()) if len(table) else float("nan"),
         "radius_m": radii,
     }
+
+
+def positions_summary_text(table: pd.DataFrame, levels: list[float], scorers: list[str]) -> str:
+    """The console's view of positions: event id, x, y, the height only where a 3-D fix determined it (``—`` where it was
+    assumed, ambiguous or the model's), the source, and the first scorer's radius at the highest level, m."""
+    shown = pd.DataFrame({name: table[name] for name in (col.EVENT_ID, col.TRUE_X, col.TRUE_Y) if name in table})
+    if col.TRUE_Z in table:
+        determined = (
+            np.isfinite(table[col.SOLVER_HEIGHT_GDOP].to_numpy(float)) if col.SOLVER_HEIGHT_GDOP in table else np.zeros(len(table), bool)
+        )
+        if col.SOLVER_HEIGHT_AMBIGUOUS in table:
+            determined &= table[col.SOLVER_HEIGHT_AMBIGUOUS].to_numpy(float) != 1
+        z = table[col.TRUE_Z].to_numpy(float)
+        shown[col.TRUE_Z] = np.where(determined & np.isfinite(z), np.char.mod("%.2f", np.nan_to_num(z)), "—")
+    shown["source"] = table["source"].to_numpy()
+    if scorers and levels:
+        name = f"radius_{scorers[0]}_{col.level_key(max(levels))}_m"
+        if name in table:
+            shown[name] = table[name].to_numpy(float)
+    shown[col.PLACED] = table[col.PLACED].to_numpy(bool)
+    return shown.to_string(index=False, float_format=lambda v: f"{v:.2f}")

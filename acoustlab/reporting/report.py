@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import base64
 import html
+import json
 import logging
 import shutil
 import sys
@@ -128,6 +129,44 @@ def collect_runs(paths: list[Path]) -> list[RunResult]:
         r.settings = {k: r.overrides.get(k, "—") for k in varying}
         r.label = ", ".join(f"{k}={v}" for k, v in r.settings.items()) or f"{r.metrics.get('site', '')} {r.run_dir.name}".strip()
     return runs
+
+
+#: What a sweep job that failed leaves in its folder: its overrides and the error's first line (``acoustlab.__main__``).
+FAILED_FILE = "failed.json"
+
+
+@dataclass
+class FailedJob:
+    """A sweep job that wrote no results: its folder, what it varied and why it failed (one line)."""
+
+    run_dir: Path
+    overrides: dict[str, str]
+    error: str
+
+    @property
+    def label(self) -> str:
+        return ", ".join(f"{k}={v}" for k, v in self.overrides.items() if k != "paths.outputs_dir") or self.run_dir.name
+
+
+def collect_failed(paths: list[Path]) -> list[FailedJob]:
+    """The jobs under ``paths`` that failed (a ``failed.json`` and no ``metrics.json``), in job order."""
+    failed = []
+    for path in map(Path, paths):
+        for marker in sorted(path.rglob(FAILED_FILE), key=lambda p: _job_order(p.parent)):
+            if (marker.parent / "metrics.json").exists():
+                continue  # run again since, and finished
+            try:
+                record = json.loads(marker.read_text())
+                overrides = dict(str(o).lstrip("+~").partition("=")[::2] for o in record.get("overrides", []))
+                failed.append(FailedJob(marker.parent, overrides, str(record.get("error", ""))))
+            except (OSError, ValueError, AttributeError, TypeError) as exc:
+                failed.append(FailedJob(marker.parent, {}, f"its {FAILED_FILE} is unreadable ({type(exc).__name__})"))
+    return failed
+
+
+def failed_rows(failed: list[FailedJob]) -> pd.DataFrame:
+    """One row per failed job: its settings and its one-line reason."""
+    return pd.DataFrame([{"job": f.run_dir.name, "settings": f.label, "error": f.error} for f in failed])
 
 
 def error_rows(runs: list[RunResult]) -> pd.DataFrame:
@@ -426,7 +465,22 @@ def _img_tag(path: Path, alt: str) -> str:
     return f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(alt)}"><figcaption>{html.escape(alt)}</figcaption></figure>'
 
 
-def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None) -> Path:
+def _copy_run_plots(runs: list[RunResult], out_dir: Path) -> list[tuple[str, list[Path]]]:
+    """Each run's plots copied to ``out_dir/runs/<i>/``, with the run's label."""
+    per_run = []
+    for i, r in enumerate(runs):
+        plots = sorted((r.run_dir / "plots").glob("*.png")) if (r.run_dir / "plots").exists() else []
+        copied = []
+        for p in plots:
+            target = out_dir / "runs" / str(i) / p.name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(p, target)
+            copied.append(target)
+        per_run.append((r.label, copied))
+    return per_run
+
+
+def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None, failed: list[FailedJob] | None = None) -> Path:
     """Write ``report.md`` (with images beside it) and a self-contained ``report.html``.
 
     Parameters
@@ -437,38 +491,35 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
         Output directory (created).
     title : str, optional
         The report's heading (default: the site(s) and the options that vary, ``default_title``).
+    failed : list of FailedJob, optional
+        The sweep's jobs that failed (``collect_failed``): counted in the heading and listed with their reasons.
 
     Returns
     -------
     pathlib.Path
         The path of ``report.md``.
     """
-    if not runs:
+    failed = list(failed or [])
+    if not runs and not failed:
         raise ValueError("no runs to report")
     out_dir.mkdir(parents=True, exist_ok=True)
-    tables = [(heading, build(runs)) for heading, build in _SECTIONS]
-    comparison = _comparison_plots(runs, out_dir)
-    per_run: list[tuple[str, list[Path]]] = []
-    for i, r in enumerate(runs):
-        plots = sorted((r.run_dir / "plots").glob("*.png")) if (r.run_dir / "plots").exists() else []
-        copied = []
-        for p in plots:
-            target = out_dir / "runs" / str(i) / p.name
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(p, target)
-            copied.append(target)
-        per_run.append((r.label, copied))
+    tables = [(heading, build(runs)) for heading, build in _SECTIONS] if runs else []
+    comparison = _comparison_plots(runs, out_dir) if runs else []
+    per_run = _copy_run_plots(runs, out_dir)
 
-    title = title or default_title(runs)
-    summary = conclusion(runs)
-    warning = too_few_warning(runs)
+    counted = f"{len(runs)} run(s)" + (f", {len(failed)} failed" if failed else "")
+    title = title or (default_title(runs) if runs else "acoustlab") + (
+        f" ({len(failed)} of {len(runs) + len(failed)} jobs failed)" if failed else ""
+    )
+    summary = conclusion(runs) if runs else "no job finished"
+    warning = too_few_warning(runs) if runs else None
     md = [
         f"# {title}",
         "",
         f"**{summary}**",
         "",
         *([f"> {warning}", ""] if warning else []),
-        f"{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
+        f"{counted}. Errors are 2-D (m) over the detections in each run's summary; "
         f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.",
         "",
     ]
@@ -476,9 +527,11 @@ def write_report(runs: list[RunResult], out_dir: Path, title: str | None = None)
         f"<h1>{html.escape(title)}</h1>",
         f"<p><strong>{html.escape(summary)}</strong></p>",
         *([f"<p><em>{html.escape(warning)}</em></p>"] if warning else []),
-        f"<p>{len(runs)} run(s). Errors are 2-D (m) over the detections in each run's summary; "
+        f"<p>{counted}. Errors are 2-D (m) over the detections in each run's summary; "
         f"gross = error above {GROSS_ERROR_M:g} m; — = not applicable to that run.</p>",
     ]
+    if failed:
+        tables = [("Failed jobs", failed_rows(failed)), *tables]
     for heading, table in tables:
         if table.empty:
             continue
@@ -526,14 +579,15 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         print(f"acoustlab.report: error: {exc}", file=sys.stderr)
         return 2
-    if not runs:
+    failed = collect_failed(args.paths)
+    if not runs and not failed:
         print(
             f"acoustlab.report: error: no finished runs (metrics.json with results) under {', '.join(map(str, args.paths))}",
             file=sys.stderr,
         )
         return 2
     out = args.out or args.paths[0] / "report"
-    path = write_report(runs, out, title=args.title)
+    path = write_report(runs, out, title=args.title, failed=failed)
     print(path)
     print(path.with_suffix(".html"))
     return 0

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
-import subprocess
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,24 +13,23 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
-from acoustlab import __version__
 from acoustlab.core import columns as col
-from acoustlab.core.contracts import declared, hook
+from acoustlab.core.contracts import EvaluationProtocol, Job, declared, hook
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.files import atomic_write_bytes
 from acoustlab.core.types import Site
-from acoustlab.method.localizer import solve_detections
 from acoustlab.method.pipeline import Components, LocalizationPipeline
 from acoustlab.method.placement_rules import MapProjection, PlacementRules
+from acoustlab.method.run_context import RunContext, RunSettings, field_dataset, simulated_dataset
 from acoustlab.method.trust import TrustSettings
-from acoustlab.reporting.experiment_log import PENDING_FILE, log_run_dir
+from acoustlab.reporting.experiment_log import log_run_dir
 from acoustlab.reporting.metrics import (
-    held_out_calibration_summary,
     split_diagnostics_summary,
     summarise,
     summary_text,
 )
 from acoustlab.reporting.paper import paper_comparison
-from acoustlab.reporting.positions import localization_summary
+from acoustlab.reporting.run_files import code_version, plot_and_time, quality_flag_counts, write_results
 from acoustlab.run.registry import (
     PLUGIN_GROUPS,
     build,
@@ -43,11 +39,9 @@ from acoustlab.run.registry import (
     to_plain,
 )
 from acoustlab.run.schema import CalibrateOn, ModelTarget, UnsupportedLevels
-from acoustlab.stages.cache import StageCache, atomic_write_bytes
+from acoustlab.stages.cache import StageCache
 from acoustlab.stages.dataset import (
     SimulationPlan,
-    load_or_build_field,
-    load_or_build_simulated,
 )
 from acoustlab.stages.field_calibration import (
     FieldCalibration,
@@ -57,28 +51,8 @@ from acoustlab.stages.field_calibration import (
 from acoustlab.stages.sites import site_from_config
 from acoustlab.stages.solver_columns import add_solver_columns
 from acoustlab.toolkit.input_uncertainty import CorrelatedInputErrors, InputUncertainty
-from acoustlab.toolkit.quality import QUALITY_REASONS
 
 log = logging.getLogger(__name__)
-
-
-def code_version() -> str:
-    try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent, timeout=5
-        ).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        sha = ""
-    return f"{__version__}+{sha}" if sha else __version__
-
-
-def quality_flag_counts(predictions: pd.DataFrame) -> dict[str, int]:
-    """How many detections were flagged, in all and per reason (``dead``, ``truncated``, …), for metrics.json."""
-    flags = predictions[col.QUALITY_FLAGS].fillna("").astype(str)
-    counts = {"flagged": int((flags != "").sum())}
-    for reason in QUALITY_REASONS:
-        counts[reason] = int(flags.str.contains(rf"\b{reason}\b").sum())
-    return counts
 
 
 def require_site(cfg: DictConfig) -> None:
@@ -90,21 +64,57 @@ def require_site(cfg: DictConfig) -> None:
 
 @dataclass
 class BuiltRun:
-    """Everything a run needs, built and checked from its config (see ``build_run``)."""
+    """Everything a run needs, built and checked from its config (see ``build_run``): the job's typed context, the
+    protocol that runs on it, and the tracker."""
 
-    site: Any
-    simulator: Any
-    feature_sets: dict
-    components: Components
-    protocol: Any
+    context: RunContext
+    protocol: EvaluationProtocol | Job
     tracker: Any
-    cache: StageCache
-    plan: SimulationPlan
-    field_source: Any = None
-    #: ``calibration=PATH``: the field calibration applied to the site and the recordings (``acoustlab.stages.field_calibration``)
-    calibration: FieldCalibration | None = None
-    #: the site as the config states it, where ``site`` is its calibration (the recordings are read for it)
-    stated_site: Any = None
+
+    @property
+    def site(self) -> Site:
+        """The array the method is trained for (the calibrated one under ``calibration=PATH``)."""
+        return self.context.site
+
+    @property
+    def components(self) -> Components:
+        """The configured plugins and the method's settings."""
+        return self.context.components
+
+    @property
+    def feature_sets(self) -> dict[str, Any]:
+        """The configured feature groups."""
+        return self.context.feature_sets
+
+    @property
+    def simulator(self) -> Any:
+        """The site's simulator."""
+        return self.context.simulator
+
+    @property
+    def cache(self) -> StageCache:
+        """The stage cache."""
+        return self.context.cache
+
+    @property
+    def plan(self) -> SimulationPlan:
+        """Which events to simulate."""
+        return self.context.plan
+
+    @property
+    def field_source(self) -> Any:
+        """The field recordings, or None."""
+        return self.context.field_source
+
+    @property
+    def calibration(self) -> FieldCalibration | None:
+        """``calibration=PATH``, or None."""
+        return self.context.calibration
+
+    @property
+    def stated_site(self) -> Site | None:
+        """The site as stated, where ``site`` is its calibration."""
+        return self.context.stated_site
 
 
 def check_feature_requirements(feature_sets: dict[str, Any], **plugins: Any) -> None:
@@ -181,6 +191,37 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
     site = site_from_config(cfg.site)
     simulator = build(cfg.simulator, "simulator")
     simulator.validate(site)
+    components = build_components(cfg, site)
+    protocol = build(cfg.protocol, "protocol")
+    field_source = build_field_source(cfg, protocol, site, choices)
+    validate_protocol = hook(protocol, "validate")
+    if validate_protocol is not None:  # e.g. a season's recordings and detector tables, before any simulation
+        validate_protocol(site)
+    patch = hook(protocol, "config_patch")
+    changes = patch(site, field_source, OmegaConf.to_container(cfg, resolve=True)) if patch is not None else None
+    if changes:  # e.g. calibrate: the GCC lag window widened to what the stated array may be off
+        cfg = OmegaConf.merge(cfg, changes)  # the caller's config is untouched
+        components = dataclasses.replace(components, feature_sets=build_feature_sets(cfg.features))
+    tracker = build(cfg.tracking, "tracking")
+
+    cache = StageCache(cfg.cache.dir, enabled=cfg.cache.enabled, file_mode=cfg.cache.file_mode)
+    if cfg.data.shard_count > 1 and not cache.enabled:
+        raise ConfigError("data.shard_count > 1 fills the cache shard by shard; it needs cache.enabled=true")
+    plan = SimulationPlan(seed=cfg.seed, **OmegaConf.to_container(cfg.data, resolve=True))
+    calibration, stated_site = None, None
+    if cfg.get("calibration"):  # after the recordings were checked against the stated array
+        calibration = load_calibration(str(cfg.calibration), site)
+        stated_site, site = site, calibrated_site(site, calibration)
+        allowance = calibrated_allowance(calibration, stated_site, components.input_uncertainty, declared(protocol, "assumes_weather"))
+        components = dataclasses.replace(components, site=site, input_uncertainty=allowance)
+    components = dataclasses.replace(components, placement=placement_rules(cfg, field_source, calibration))
+    settings = run_settings(cfg, site, choices)
+    context = RunContext(site, components, simulator, cache, plan, settings, field_source, calibration, stated_site)
+    return BuiltRun(context, protocol, tracker)
+
+
+def build_components(cfg: DictConfig, site: Site) -> Components:
+    """The method's configured plugins and settings, checked against each other (feature groups, levels, weights)."""
     feature_sets = build_feature_sets(cfg.features)
     components = Components(
         site=site,
@@ -225,37 +266,36 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         preflight = hook(learned, "preflight")
         if preflight is not None:  # e.g. TabPFN: weights must exist before anything is simulated
             preflight()
-    protocol = build(cfg.protocol, "protocol")
-    field_source = None
-    if declared(protocol, "needs_field"):  # recordings are checked now, not after the training simulation
-        field_source = build(cfg.field, "field")
-        if field_source is None:
-            protocol_name = (choices or {}).get("protocol") or type(protocol).__name__
-            raise ConfigError(f"protocol={protocol_name} needs field recordings: choose field=playback_standin or field=recordings")
-        validate = hook(field_source, "validate")
-        if validate is not None:
-            validate(site)
-    validate_protocol = hook(protocol, "validate")
-    if validate_protocol is not None:  # e.g. a season's recordings and detector tables, before any simulation
-        validate_protocol(site)
-    tracker = build(cfg.tracking, "tracking")
+    return components
 
-    cache = StageCache(cfg.cache.dir, enabled=cfg.cache.enabled, file_mode=cfg.cache.file_mode)
-    if cfg.data.shard_count > 1 and not cache.enabled:
-        raise ConfigError("data.shard_count > 1 fills the cache shard by shard; it needs cache.enabled=true")
-    plan = SimulationPlan(seed=cfg.seed, **OmegaConf.to_container(cfg.data, resolve=True))
-    calibration, stated_site = None, None
-    if cfg.get("calibration"):  # after the recordings were checked against the stated array
-        if declared(protocol, "calibrates"):
-            raise ConfigError("calibrate starts from the stated array: drop calibration=… (a calibration is not calibrated again)")
-        calibration = load_calibration(str(cfg.calibration), site)
-        stated_site, site = site, calibrated_site(site, calibration)
-        # a season assumes one temperature: protocol.temperature_c where given (its yaml has the key), else the site's middle
-        given = not declared(protocol, "assumes_weather") or cfg.protocol.temperature_c is not None
-        allowance = calibrated_allowance(calibration, stated_site, components.input_uncertainty, protocol, given)
-        components = dataclasses.replace(components, site=site, input_uncertainty=allowance)
-    components = dataclasses.replace(components, placement=placement_rules(cfg, field_source, calibration))
-    return BuiltRun(site, simulator, feature_sets, components, protocol, tracker, cache, plan, field_source, calibration, stated_site)
+
+def build_field_source(cfg: DictConfig, protocol: EvaluationProtocol | Job, site: Site, choices: dict[str, str] | None) -> Any:
+    """The field recordings a protocol needs, built and checked against the site now (not after the training simulation);
+    None for one that needs none."""
+    if not declared(protocol, "needs_field"):
+        return None
+    field_source = build(cfg.field, "field")
+    if field_source is None:
+        protocol_name = (choices or {}).get("protocol") or type(protocol).__name__
+        raise ConfigError(f"protocol={protocol_name} needs field recordings: choose field=playback_standin or field=recordings")
+    validate = hook(field_source, "validate")
+    if validate is not None:
+        validate(site)
+    return field_source
+
+
+def run_settings(cfg: DictConfig, site: Site, choices: dict[str, str] | None) -> RunSettings:
+    """The run's settings as plain values for the job (``acoustlab.method.run_context.RunSettings``)."""
+    return RunSettings(
+        simulator=to_plain(cfg.simulator),
+        feature_groups=to_plain(cfg.features.groups),
+        field=to_plain(cfg.field) if cfg.get("field") is not None else {},
+        config=OmegaConf.to_container(cfg, resolve=True, enum_to_str=True),
+        sample_rate_hz=float(cfg.simulator.sample_rate_hz),
+        outputs_dir=Path(str(cfg.paths.outputs_dir)),
+        plots=bool(cfg.get("plots", True)),
+        record={"site": site.name, "choices": dict(choices or {})},
+    )
 
 
 def placement_rules(cfg: DictConfig, field_source: Any, calibration: FieldCalibration | None) -> PlacementRules:
@@ -272,11 +312,10 @@ def placement_rules(cfg: DictConfig, field_source: Any, calibration: FieldCalibr
 
 
 def calibrated_allowance(
-    calibration: FieldCalibration, stated_site: Site, stated: InputUncertainty, protocol: Any, temperature_given: bool = True
+    calibration: FieldCalibration, stated_site: Site, stated: InputUncertainty, assumes_weather: bool = False
 ) -> CorrelatedInputErrors:
     """The radii's input allowance under ``calibration=PATH``: its covariance, with ``stated``'s limits (and thermometer σ where
-    ``protocol`` assumes the weather); logs what the calibration changes, and warns where a season's assumed temperature
-    was not given (``temperature_given``: the offset then lands on the middle of the site's range)."""
+    the job assumes the weather, ``assumes_weather``); logs what the calibration changes."""
     log.info(
         "calibration %s (%s…): mics moved up to %.2f m, thermometer offset %+.2f °C, clock offsets up to %.3g ms; its "
         "covariance is the radii's input allowance in place of conformal.input_uncertainty's standard deviations",
@@ -287,21 +326,9 @@ def calibrated_allowance(
         1e3 * float(np.abs(calibration.clock_offset_s).max()),
     )
     # a season reads no thermometer: its one assumed temperature stays off the air by the stated σ
-    assumed_sd_c = stated.temperature_c if declared(protocol, "assumes_weather") else 0.0
+    assumed_sd_c = stated.temperature_c if assumes_weather else 0.0
     if assumed_sd_c:
         log.info("the season assumes one temperature for every detection: the allowance keeps its %.2g °C error", assumed_sd_c)
-    if not temperature_given:
-        log.warning(
-            "protocol.temperature_c is not given: the calibration's thermometer offset (%+.2f °C) is added to the middle of the "
-            "site's temperature range; give your thermometer's typical reading as protocol.temperature_c",
-            calibration.temperature_offset_c,
-        )
-    if np.any(calibration.clock_drift) and declared(protocol, "streams"):
-        log.warning(
-            "%s corrects clock drift at each detection's start_s, seconds from the season's first file: its playbacks' "
-            "time_s must count from that same instant (docs/calibrate.md)",
-            calibration.path,
-        )
     # the stated exact_above_m and max_sigma_m still apply
     return dataclasses.replace(
         calibration.input_uncertainty(assumed_sd_c), exact_above_m=stated.exact_above_m, max_sigma_m=stated.max_sigma_m
@@ -336,28 +363,15 @@ def prepare_data(cfg: DictConfig, built: BuiltRun | None = None) -> RunData | No
         None for a sharded simulation run (``data.shard_count > 1``) that filled its shard of the cache.
     """
     built = built if built is not None else build_run(cfg)
-    dataset = load_or_build_simulated(
-        built.site, built.simulator, to_plain(cfg.simulator), built.feature_sets, to_plain(cfg.features.groups), built.plan, built.cache
-    )
+    dataset = simulated_dataset(built.context)
     if dataset is None:
         return None
-    dataset.features = solver_features(cfg, dataset.features, dataset.events, built.site, built.components.solver)
-    return RunData(dataset, prepare_field(cfg, built) if built.field_source is not None else None)
+    return RunData(dataset, field_dataset(built.context) if built.field_source is not None else None)
 
 
 def prepare_field(cfg: DictConfig, built: BuiltRun) -> Any:
     """The field recordings' features and events (cached), the calibration applied, with the solver's columns."""
-    field_data = load_or_build_field(
-        built.site,
-        built.field_source,
-        to_plain(cfg.field),
-        built.feature_sets,
-        to_plain(cfg.features.groups),
-        built.cache,
-        stated_site=built.stated_site,
-    )
-    field_data.features, field_data.events = solve_detections(built.components, field_data.features, field_data.events)
-    return field_data
+    return field_dataset(built.context)
 
 
 def solver_features(cfg: DictConfig, features: pd.DataFrame, events: pd.DataFrame, site: Any, solver: Any) -> pd.DataFrame:
@@ -402,63 +416,50 @@ def run_experiment(
     built = built if built is not None else build_run(cfg, choices)
     if cfg.get("expected_duration"):
         log.info("this experiment takes %s", cfg.expected_duration)
-    site, components, protocol, tracker, plan = built.site, built.components, built.protocol, built.tracker, built.plan
-    timings: dict[str, float] = {"preflight_s": time.perf_counter() - started}
-    if declared(protocol, "streams"):  # a season: fitted once, then chunk by chunk from the recordings (acoustlab.season)
-        return _run_streaming(cfg, run_dir, built, choices, tracker, parent_run_id, run_name)
-    if declared(protocol, "calibrates"):  # playbacks at known spots: calibration.json, nothing simulated
-        from acoustlab.run.calibrate import run_calibration
+    context, protocol = built.context, built.protocol
+    record = {"site": context.site.name, "choices": choices, "code_version": code_version(), **({"run_name": run_name} if run_name else {})}
+    if context.calibration is not None:
+        record["field_calibration"] = context.calibration.summary()
+    context = dataclasses.replace(context, settings=dataclasses.replace(context.settings, record=record))
+    if isinstance(protocol, Job):  # localize, season, calibrate: the job writes its own results
+        metrics = protocol.run_job(context, run_dir)
+    else:
+        metrics = _evaluate(cfg, run_dir, context, protocol, started)
+    if "shard" not in metrics:
+        log.info("run directory: %s", run_dir)
+        log_run_dir(built.tracker, run_dir, parent_run_id=parent_run_id)
+    return metrics
 
-        return run_calibration(cfg, run_dir, built, choices)
+
+def _evaluate(cfg: DictConfig, run_dir: Path, context: RunContext, protocol: EvaluationProtocol, started: float) -> dict:
+    """An evaluation protocol's run: data, the protocol's splits, error and coverage metrics, plots."""
+    timings: dict[str, float] = {"preflight_s": time.perf_counter() - started}
     stage_start = time.perf_counter()
-    data = prepare_data(cfg, built)
-    if data is None:
+    dataset = simulated_dataset(context)
+    if dataset is None:
         log.info(
             "sharded simulation run: shard %d of %d is in the cache; run without data.shard_count to finish",
-            plan.shard_index + 1,
-            plan.shard_count,
+            context.plan.shard_index + 1,
+            context.plan.shard_count,
         )
-        return {"shard": {"index": plan.shard_index, "count": plan.shard_count}}
-    dataset, field_data = data.dataset, data.field_data
+        return {"shard": {"index": context.plan.shard_index, "count": context.plan.shard_count}}
+    field_data = field_dataset(context) if context.field_source is not None else None
     timings["data_s"] = time.perf_counter() - stage_start
     stage_start = time.perf_counter()
+    components, record = context.components, context.settings.record
     result = protocol.run(dataset, LocalizationPipeline(components), field_recordings=field_data)
     predictions = result.predictions
     timings["models_s"] = time.perf_counter() - stage_start
-
-    if not declared(protocol, "evaluates"):
-        return _write_localization(
-            cfg,
-            run_dir,
-            predictions,
-            result,
-            components,
-            site,
-            dataset,
-            field_data,
-            choices,
-            timings,
-            started,
-            tracker,
-            parent_run_id,
-            run_name,
-            built.calibration,
-        )
     summary_rows = predictions[col.IN_SUMMARY].to_numpy(bool) if col.IN_SUMMARY in predictions else np.ones(len(predictions), bool)
-    metrics = _evaluation_metrics(
-        run_dir, predictions, summary_rows, result, components, dataset, field_data, choices.get("gate") or type(components.gate).__name__
-    )
-    metrics.update({"site": site.name, "choices": choices, **({"run_name": run_name} if run_name else {})})
-    if built.calibration is not None:
-        metrics["field_calibration"] = built.calibration.summary()
+    gate_name = record["choices"].get("gate") or type(components.gate).__name__
+    metrics = _evaluation_metrics(run_dir, predictions, summary_rows, result, components, dataset, field_data, gate_name)
+    metrics.update(record)
 
     # Results land in the run dir first (metrics before any optional artefact), so neither a tracker
     # nor a plotting failure loses them; the pending marker stays until the tracker has them.
-    write_results(run_dir, cfg, predictions, metrics)
+    write_results(run_dir, context.settings.config, predictions, metrics)
     if cfg.get("paper_reference"):
-        rows, lines = paper_comparison(
-            OmegaConf.to_container(cfg.paper_reference, resolve=True), metrics, OmegaConf.to_container(cfg, resolve=True)
-        )
+        rows, lines = paper_comparison(OmegaConf.to_container(cfg.paper_reference, resolve=True), metrics, context.settings.config)
         metrics["paper_comparison"] = rows
         atomic_write_bytes(run_dir / "paper_comparison.md", ("\n".join(lines) + "\n").encode())
 
@@ -467,43 +468,12 @@ def run_experiment(
             write_run_plots,  # matplotlib only when plotting
         )
 
-        write_run_plots(predictions[summary_rows], metrics, site, run_dir / "plots")
+        write_run_plots(predictions[summary_rows], metrics, context.site, run_dir / "plots")
 
-    plot_and_time(cfg, run_dir, metrics, timings, started, "plots", plot)
+    plot_and_time(context.settings.plots, run_dir, metrics, timings, started, "plots", plot)
     log.info("%s test detections; errors (m) and conformal coverage:\n%s", metrics[col.METRICS_ERRORS]["gate"]["n"], summary_text(metrics))
     log.info("timings (s): %s", ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in metrics["timings_s"].items()))
-    log.info("run directory: %s", run_dir)
-    log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
     return metrics
-
-
-def _run_streaming(
-    cfg: DictConfig, run_dir: Path, built: BuiltRun, choices: dict[str, str], tracker: Any, parent_run_id: str | None, run_name: str | None
-) -> dict:
-    """A streaming protocol (``protocol=season``): its stages write the positions; metrics.json gets its summary."""
-    metrics = built.protocol.run_season(cfg, built, run_dir, prepare=lambda: prepare_data(cfg, built))
-    metrics.update(
-        {"site": built.site.name, "choices": choices, "code_version": code_version(), **({"run_name": run_name} if run_name else {})}
-    )
-    if built.calibration is not None:
-        metrics["field_calibration"] = built.calibration.summary()
-    atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2, default=str).encode())
-    log.info("run directory: %s", run_dir)
-    log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
-    return metrics
-
-
-def _log_held_out(summary: dict[str, Any]) -> None:
-    """One line per scorer: the radii's coverage on the calibration playbacks, each spot held out."""
-    for scorer, by_level in summary[col.METRICS_COVERAGE].items():
-        cells = ", ".join(f"{level}: {'—' if c is None else format(c['detections'], '.2f')}" for level, c in by_level.items())
-        log.info(
-            "radii (%s) on the %d calibration playbacks at %d spots, each spot held out: coverage %s",
-            scorer,
-            summary["n_playbacks"],
-            summary["n_spots"],
-            cells,
-        )
 
 
 def _evaluation_metrics(
@@ -547,112 +517,4 @@ def _evaluation_metrics(
             "code_version": code_version(),
         }
     )
-    return metrics
-
-
-def write_results(run_dir: Path, cfg: DictConfig, predictions: pd.DataFrame, metrics: dict) -> None:
-    """The results a run must never lose, each written atomically: predictions, resolved config, metrics, and the pending marker.
-
-    Raises
-    ------
-    StorageError
-        Naming the file and the free space, when the run directory cannot be written.
-    """
-    atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
-    atomic_write_bytes(run_dir / "config_resolved.yaml", OmegaConf.to_yaml(cfg, resolve=True).encode())
-    atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode())
-    atomic_write_bytes(run_dir / PENDING_FILE, json.dumps({"destination": None, "error": "not yet sent to the tracker"}).encode())
-
-
-def optional_artefact(what: str, write: Callable[[], Any]) -> None:
-    """Write an artefact the results do not depend on (plots, …); a failure is a warning, never a lost run."""
-    try:
-        write()
-    except Exception as exc:
-        log.warning("%s not written (%s: %s); the metrics and predictions are saved", what, type(exc).__name__, exc)
-
-
-def plot_and_time(
-    cfg: DictConfig, run_dir: Path, metrics: dict, timings: dict[str, float], started: float, what: str, plot: Callable[[], None]
-) -> None:
-    """After the results are safe: the optional plots (``plots=true``), then the run's timings added to metrics.json."""
-    stage_start = time.perf_counter()
-    if bool(cfg.get("plots", True)):
-        optional_artefact(what, plot)
-    timings["plots_s"] = time.perf_counter() - stage_start
-    timings["total_before_tracking_s"] = time.perf_counter() - started
-    metrics["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    now = time.time()  # wall clock, so a tracker shows the job's own start and duration even when it is uploaded later
-    metrics["run_time"] = {"started_epoch_ms": int(1000 * (now - timings["total_before_tracking_s"])), "finished_epoch_ms": int(1000 * now)}
-    optional_artefact(
-        "timings in metrics.json", lambda: atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2).encode())
-    )
-
-
-def _write_localization(
-    cfg: DictConfig,
-    run_dir: Path,
-    predictions: pd.DataFrame,
-    result: Any,
-    components: Components,
-    site: Any,
-    dataset: Any,
-    field_data: Any,
-    choices: dict[str, str],
-    timings: dict[str, float],
-    started: float,
-    tracker: Any,
-    parent_run_id: str | None,
-    run_name: str | None = None,
-    calibration: FieldCalibration | None = None,
-) -> dict:
-    """A run without ground truth (protocol=localize): positions.csv / .parquet, a map, and a summary instead of error metrics."""
-    table = result.positions
-    atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
-    atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
-    metrics: dict[str, Any] = {col.METRICS_LOCALIZATION: localization_summary(table, components.levels, list(components.scorers))}
-    for split in result.split_diagnostics:
-        if "training" in split:  # simulated events and calibration playbacks the method was fitted on
-            metrics["training"] = split["training"]
-        held_out = split.pop("held_out_calibration", None)
-        if held_out is not None:  # the radii tested on the calibration playbacks, each spot held out
-            metrics["held_out_calibration"] = held_out_calibration_summary(held_out, components.levels, list(components.scorers))
-            _log_held_out(metrics["held_out_calibration"])
-    if col.QUALITY_FLAGS in predictions:
-        metrics[col.QUALITY_FLAGS] = quality_flag_counts(predictions)
-    metrics.update(split_diagnostics_summary(result.split_diagnostics, choices.get("gate") or type(components.gate).__name__))
-    metrics.update(
-        {
-            "dataset_hash": dataset.dataset_hash,
-            "field_dataset_hash": field_data.dataset_hash,
-            "site": site.name,
-            "choices": choices,
-            "n_features": int(len(dataset.features.columns)),
-            "code_version": code_version(),
-        }
-    )
-    if run_name:
-        metrics["run_name"] = run_name
-    if calibration is not None:
-        metrics["field_calibration"] = calibration.summary()
-    write_results(run_dir, cfg, predictions, metrics)
-
-    def plot() -> None:
-        from acoustlab.reporting.plots import (
-            write_positions_map,  # matplotlib only when plotting
-        )
-
-        write_positions_map(table, site, components.levels, list(components.scorers), run_dir / "plots")
-
-    plot_and_time(cfg, run_dir, metrics, timings, started, "the positions map", plot)
-    shown = table[[col.TRUE_X, col.TRUE_Y, *([col.TRUE_Z] if col.TRUE_Z in table else []), "source", col.PLACED]].head(20)
-    log.info(
-        "positions (first %d of %d detections; all in %s):\n%s",
-        len(shown),
-        len(table),
-        run_dir / "positions.csv",
-        shown.to_string(float_format=lambda v: f"{v:.2f}"),
-    )
-    log.info("run directory: %s", run_dir)
-    log_run_dir(tracker, run_dir, parent_run_id=parent_run_id)
     return metrics

@@ -109,7 +109,7 @@ class SweepTrackingCallback(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Preflight every job, then open the parent run (a tracker failure only costs the grouping)."""
-        from acoustlab.run.app import code_version
+        from acoustlab.reporting.run_files import code_version
 
         if self.preflight:
             jobs = sweep_jobs(config)
@@ -180,13 +180,13 @@ class SweepTrackingCallback(Callback):
         report_dir = None
         tables = {}
         try:
-            from acoustlab.reporting.report import collect_runs, error_rows, write_report
+            from acoustlab.reporting.report import collect_failed, collect_runs, error_rows, write_report
 
-            runs = collect_runs([sweep_dir])
+            runs, failed = collect_runs([sweep_dir]), collect_failed([sweep_dir])
             if runs:
                 tables["tables/sweep_errors.json"] = error_rows(runs)
-                if self.report:
-                    report_dir = write_report(runs, sweep_dir / "report").parent
+            if (runs or failed) and self.report:
+                report_dir = write_report(runs, sweep_dir / "report", failed=failed).parent
         except Exception as exc:  # noqa: BLE001 - the runs themselves are already written
             log.warning("could not write the sweep report (%s: %s); run python -m acoustlab.report %s", type(exc).__name__, exc, sweep_dir)
         if run_id is None:

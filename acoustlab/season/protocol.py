@@ -23,6 +23,7 @@ named by the season's inputs, so the same command resumes it).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -34,17 +35,19 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from omegaconf import DictConfig, OmegaConf
 
 from acoustlab.core import columns as col
 from acoustlab.core.cores import free_cores
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.files import atomic_write_bytes
 from acoustlab.core.types import Site
 from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.pipeline import LocalizationPipeline
+from acoustlab.method.run_context import RunContext, simulated_dataset
 from acoustlab.method.saved import save_method, saved_info
 from acoustlab.method.splits import cap_rows
 from acoustlab.reporting.positions import localization_summary
+from acoustlab.reporting.run_files import write_metrics
 from acoustlab.season.detections import FORMATS, read_detections
 from acoustlab.season.events import group_detections
 from acoustlab.season.recorder_files import RecorderFiles
@@ -63,7 +66,7 @@ from acoustlab.season.stream import (
     write_events,
     write_manifest,
 )
-from acoustlab.stages.cache import atomic_write_bytes
+from acoustlab.stages.field_calibration import FieldCalibration
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 from acoustlab.toolkit.quality import QualityThresholds
 
@@ -77,8 +80,6 @@ SAVED_METHOD_FORMAT = "acoustlab.method.localizer.FittedLocalizer"
 class SeasonLocalize:
     """Localize a season (see the module docstring); settings as in ``conf/protocol/season.yaml``."""
 
-    evaluates = False
-    streams = True
     assumes_weather = True
 
     def __init__(
@@ -202,12 +203,8 @@ class SeasonLocalize:
         recordings = self.recordings()
         return recordings, self.events(recordings, site)
 
-    def run(self, *args: Any, **kwargs: Any) -> Any:
-        """Not an in-memory protocol: the app runs ``run_season``."""
-        raise ConfigError("protocol=season streams its results; run it with python -m acoustlab season +site=NAME ...")
-
     # -- stages -----------------------------------------------------------------------------------
-    def folder(self, run_dir: Path, cfg: DictConfig | None = None) -> Path:
+    def folder(self, run_dir: Path, context: RunContext | None = None) -> Path:
         """The season's output folder, shared by every stage and shard: ``protocol.output_dir``, else one named by its inputs.
 
         The default, ``<paths.outputs_dir>/seasons/<site>-<key>``, is the same for the same command
@@ -216,7 +213,7 @@ class SeasonLocalize:
         """
         if self.output_dir:
             return Path(self.output_dir)
-        if cfg is None:
+        if context is None:
             return run_dir / "season"
         inputs = {
             "recordings": self.recordings_cfg,
@@ -225,10 +222,10 @@ class SeasonLocalize:
             "chunk": [self.chunk_events, self.batch_events],
             "weather": [self.temperature_c, self.relative_humidity_pct],
             "quality": dataclasses.asdict(self.quality),
-            "method": self.method_key(cfg),
+            "method": self.method_key(context.settings.config),
         }
         key = hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()[:12]
-        return Path(str(cfg.paths.outputs_dir)) / "seasons" / f"{cfg.site.name}-{key}"
+        return context.settings.outputs_dir / "seasons" / f"{context.settings.config['site']['name']}-{key}"
 
     def plan(self, site: Site) -> ChunkPlan:
         """Chunking and the weather assumed for every detection (the middle of the site's ranges unless given)."""
@@ -246,9 +243,9 @@ class SeasonLocalize:
             self.margin_s(site),
         )
 
-    def method_key(self, cfg: DictConfig) -> str:
-        """What the fitted method depends on: the whole config except the season's inputs and how it is run."""
-        plain = OmegaConf.to_container(cfg, resolve=True)
+    def method_key(self, config: dict[str, Any]) -> str:
+        """What the fitted method depends on: the whole (resolved) config except the season's inputs and how it is run."""
+        plain = copy.deepcopy(config)
         plain.pop("hydra", None)
         for name in ("paths", "tracking", "plots", "cache"):
             plain.pop(name, None)
@@ -257,33 +254,34 @@ class SeasonLocalize:
         plain["saved_as"] = SAVED_METHOD_FORMAT
         return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()
 
-    def fit(self, cfg: DictConfig, built: Any, prepare: Any, folder: Path) -> None:
+    def fit(self, context: RunContext, folder: Path) -> None:
         """Index, events, and the method fitted once (reused when the folder holds one fitted from the same config)."""
-        site = built.site
+        site, components = context.site, context.components
         recordings, events = self._inputs(site)
         order = self.recorder_order(recordings, site)
-        radii = {"levels": list(built.components.levels), "scorers": list(built.components.scorers)}
+        radii = {"levels": list(components.levels), "scorers": list(components.scorers)}
         check_manifest(
             folder, season_manifest(events, None, self.plan(site), order, radii, recordings), unknown=("method_sha256",)
         )  # before writing
         folder.mkdir(parents=True, exist_ok=True)
         recordings.save(folder / FILES)
         write_events(folder, events, self.chunk_events)
-        key = self.method_key(cfg)
-        if built.calibration is not None:  # a calibration file rewritten at the same path is another method
-            key = hashlib.sha256(f"{key}:{built.calibration.sha256}".encode()).hexdigest()
+        key = self.method_key(context.settings.config)
+        if context.calibration is not None:  # a calibration file rewritten at the same path is another method
+            key = hashlib.sha256(f"{key}:{context.calibration.sha256}".encode()).hexdigest()
         saved = saved_info(folder)
         if saved is not None and saved["key"] == key:
             log.info("season: reusing the method fitted earlier in %s", folder)
             digest = saved["sha256"]
         else:
-            data = prepare()
-            dataset = data.dataset
+            dataset = simulated_dataset(context)
+            if dataset is None:
+                raise ConfigError("protocol=season does not shard its simulation: run it without data.shard_count")
             groups = dataset.events[col.POSITION_ID].to_numpy()
             train = np.sort(cap_rows(np.arange(len(dataset.events)), groups, self.max_train_rows, np.random.default_rng([self.seed, 1])))
             log.info("season: fitting the method on %d simulated events (once; every chunk and shard reuses it)", train.size)
-            method = LocalizationPipeline(built.components).fit(dataset.features, dataset.events, train)
-            fitted = FittedLocalizer(method, float(cfg.simulator.sample_rate_hz))
+            method = LocalizationPipeline(components).fit(dataset.features, dataset.events, train)
+            fitted = FittedLocalizer(method, context.settings.sample_rate_hz)
             digest = save_method(fitted, folder, key)
         write_manifest(folder, season_manifest(events, digest, self.plan(site), order, radii, recordings))
         log.info(
@@ -317,14 +315,16 @@ class SeasonLocalize:
         )
         return int(sum(done))
 
-    def run_season(self, cfg: DictConfig, built: Any, run_dir: Path, prepare: Any) -> dict[str, Any]:
-        """Run the configured stage(s); returns the run's metrics (positions summary after a merge)."""
-        folder = self.folder(run_dir, cfg)
+    def run_job(self, context: RunContext, run_dir: Path) -> dict[str, Any]:
+        """Run the configured stage(s); writes and returns the run's metrics (positions summary after a merge)."""
+        folder = self.folder(run_dir, context)
         log.info("season folder: %s (the same command resumes it; protocol.output_dir=… chooses another)", folder)
+        if context.calibration is not None:
+            self.warn_about_calibration(context.calibration)
         started = time.perf_counter()
         metrics: dict[str, Any] = {"season": {"output_dir": str(folder), "stage": self.stage}}
         if self.stage in ("fit", "all"):
-            self.fit(cfg, built, prepare, folder)
+            self.fit(context, folder)
         if self.stage in ("localize", "all"):
             computed = self.localize(folder)
             metrics["season"]["chunks_computed"] = computed
@@ -346,4 +346,22 @@ class SeasonLocalize:
             metrics["dataset_hash"] = manifest["events_sha256"]  # what the positions were computed from: the events and the method
             metrics["season"].update({"n_events": manifest["n_events"], "method_sha256": manifest["method_sha256"]})
         metrics["season"]["seconds"] = time.perf_counter() - started
+        metrics.update(context.settings.record)
+        write_metrics(run_dir, metrics)
         return metrics
+
+    def warn_about_calibration(self, calibration: FieldCalibration) -> None:
+        """What a season must know of a field calibration: its offset lands on one assumed temperature, and drift is counted
+        from the season's first file."""
+        if self.temperature_c is None:
+            log.warning(
+                "protocol.temperature_c is not given: the calibration's thermometer offset (%+.2f °C) is added to the middle of the "
+                "site's temperature range; give your thermometer's typical reading as protocol.temperature_c",
+                calibration.temperature_offset_c,
+            )
+        if np.any(calibration.clock_drift):
+            log.warning(
+                "%s corrects clock drift at each detection's start_s, seconds from the season's first file: its playbacks' "
+                "time_s must count from that same instant (docs/calibrate.md)",
+                calibration.path,
+            )

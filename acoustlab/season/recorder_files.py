@@ -32,7 +32,7 @@ import soundfile as sf
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError, show
-from acoustlab.stages.cache import atomic_write_bytes
+from acoustlab.core.files import atomic_write_bytes
 from acoustlab.toolkit.file_start import start_from_metadata, timestamp_from_name
 
 log = logging.getLogger(__name__)

@@ -40,12 +40,12 @@ import scipy.signal as ss
 from acoustlab.core import columns as col
 from acoustlab.core.digests import frame_sha256
 from acoustlab.core.errors import DataError
+from acoustlab.core.files import atomic_write_bytes
 from acoustlab.core.heap import keep_freed_memory
 from acoustlab.core.types import RecordingBatch
 from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.saved import load_method
 from acoustlab.season.recorder_files import RecorderFiles
-from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.dataset import extract_features
 from acoustlab.toolkit.dsp import next_fast_len
 from acoustlab.toolkit.quality import QualityThresholds, clip_quality, mics_to_drop

@@ -25,13 +25,12 @@ from acoustlab.core import columns as col
 from acoustlab.core.contracts import FeatureSet, Simulator, hook
 from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.files import atomic_save_npy, atomic_write_bytes
 from acoustlab.core.progress import progress
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.stages.cache import (
     MANIFEST,
     StageCache,
-    atomic_save_npy,
-    atomic_write_bytes,
     code_digest,
     plugin_version,
     write_manifest,

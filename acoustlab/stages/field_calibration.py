@@ -32,7 +32,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +40,8 @@ import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError
+from acoustlab.core.files import atomic_write_bytes
 from acoustlab.core.types import Site
-from acoustlab.stages.cache import atomic_write_bytes
 from acoustlab.stages.solver_columns import (
     add_solver_columns,
     drop_weakly_correlated_mics,
@@ -52,7 +51,7 @@ from acoustlab.stages.solver_columns import (
     pair_candidate_weights,
     solve_events,
 )
-from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks, calibrate_until_picks_hold
+from acoustlab.toolkit.array_calibration import ArrayCalibration, Playbacks
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.input_uncertainty import CorrelatedInputErrors
 from acoustlab.toolkit.physics import speed_of_sound_m_s
@@ -135,52 +134,6 @@ def second_peak_ratio(features: pd.DataFrame, events: pd.DataFrame, site: Site) 
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = ranked[:, :, 1] / ranked[:, :, 0]
     return float(np.nanmedian(ratio)) if np.isfinite(ratio).any() else None
-
-
-def calibrate_playbacks(
-    features: pd.DataFrame,
-    events: pd.DataFrame,
-    site: Site,
-    fit: Callable[[Playbacks], ArrayCalibration],
-    temperature_c: float = 15.0,
-    humidity_pct: float = 60.0,
-    max_rounds: int = 30,
-    anneal: Callable[[Playbacks, np.ndarray, np.ndarray | None], np.ndarray] | None = None,
-) -> tuple[ArrayCalibration, Playbacks]:
-    """Calibrate, re-pick each pair's GCC candidate with what the calibration predicts, and calibrate again until the picks hold.
-
-    The rounds are ``calibrate_until_picks_hold``'s (a stated array 2–3 m off predicts lags so
-    far off that the first picks take an echo on most pairs: three in four on the forest's
-    playbacks). From few spots the rounds can settle on picks that are wrong but agree with each
-    other (the forest from 5 spots: 37 % of the picks, the thermometer 3 °C off the truth). So the rounds run
-    from the peaks nearest the stated array's lags, from the highest peaks and, with ``anneal``,
-    from the peaks nearest the lags of the array that explains all candidates at once
-    (``acoustlab.toolkit.array_calibration.annealed_prediction_s``), and the calibration whose
-    time differences fit their picks more tightly (smaller robust timing σ) is kept. ``fit`` is the
-    calibration (``CalibrateProtocol.calibrate``), ``anneal`` that search
-    (``CalibrateProtocol.annealed_prediction``: playbacks, their (N, P, K) candidate lags and the
-    candidates' GCC peak heights, None without the ``xcorr`` feature group).
-    """
-    strongest = playbacks_from(features, events, site, temperature_c, humidity_pct, strongest=True)
-    starts = {
-        "the stated array's lags": strongest.picked(strongest.travel_times_s(site.mic_positions_m)),
-        "the highest GCC peaks": strongest,
-    }
-    if anneal is not None:
-        heights = pair_candidate_weights(features[playback_rows(events)], site, strongest.candidates_s.shape[2])
-        if heights is None:
-            log.info(
-                "calibrate: the features have no GCC peak heights (the 'xcorr' group); the annealed search weighs each pair's candidates equally"
-            )
-        starts["the annealed search over all candidates"] = strongest.picked(anneal(strongest, strongest.candidates_s, heights))
-    results = {name: calibrate_until_picks_hold(first, fit, max_rounds) for name, first in starts.items()}
-    best = min(results, key=lambda name: results[name][0].timing_sigma_s)  # ties: the first (the stated array's)
-    log.info(
-        "calibrate: kept the picks started from %s (timing sigma %s)",
-        best,
-        ", ".join(f"{1e6 * cal.timing_sigma_s:.0f} us from {name}" for name, (cal, _) in results.items()),
-    )
-    return results[best]
 
 
 def _digest(body: dict[str, Any]) -> str:

@@ -21,15 +21,22 @@ measured shares of mics beyond 2 σ).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from acoustlab.core import columns as col
-from acoustlab.core.contracts import SolverInputs
+from acoustlab.core.contracts import FieldSource, SolverInputs, hook
 from acoustlab.core.errors import ConfigError, show
 from acoustlab.core.types import Site
+from acoustlab.method.protocols.calibration_report import calibration_metrics, log_calibration, warn_if_one_playback_per_spot, warn_if_tonal
+from acoustlab.method.run_context import RunContext, field_dataset
+from acoustlab.reporting.run_files import write_metrics
+from acoustlab.stages.field_calibration import playback_rows, playbacks_from, second_peak_ratio, write_calibration
+from acoustlab.stages.solver_columns import pair_candidate_weights
 from acoustlab.toolkit.array_calibration import (
     PARAMETER_KINDS,
     ArrayCalibration,
@@ -38,6 +45,7 @@ from acoustlab.toolkit.array_calibration import (
     annealed_prediction_s,
     calibrate_array,
     calibrate_until_picks_hold,
+    lag_margin_needed_s,
 )
 from acoustlab.toolkit.event_physics import assumed_source_height_m
 from acoustlab.toolkit.physics import speed_of_sound_m_s
@@ -68,7 +76,6 @@ class CalibrateProtocol:
     """
 
     needs_field = True
-    calibrates = True
 
     def __init__(
         self,
@@ -101,9 +108,73 @@ class CalibrateProtocol:
         self.min_drift_span_s = float(min_drift_span_s)
         self.held_out_folds = int(held_out_folds)
 
-    def run(self, *args: Any, **kwargs: Any) -> Any:
-        """Not an in-memory protocol: the app runs ``acoustlab.run.calibrate.run_calibration``."""
-        raise ConfigError("protocol=calibrate runs from the command line: python -m acoustlab calibrate +site=NAME field=recordings …")
+    def config_patch(self, site: Site, field_source: FieldSource | None, config: dict[str, Any]) -> dict[str, Any] | None:
+        """The GCC lag window's margin widened to what the stated mics and clocks may be off, where the config's is narrower.
+
+        A localization run's margin (2 ms by default) is for an array known to centimetres; before
+        calibration the mics may be metres off, and a playback near a pair's endfire then has its
+        direct path outside the window (``lag_margin_needed_s``). Only widened, never narrowed. A config
+        with ``calibration=PATH`` is refused here, in the preflight: calibrate starts from the stated array.
+        """
+        if config.get("calibration"):
+            raise ConfigError("calibrate starts from the stated array: drop calibration=… (a calibration is not calibrated again)")
+        gcc = (config.get("features") or {}).get("gcc")
+        needed = lag_margin_needed_s(self.priors(site, mics_table_of(field_source)))
+        if not gcc or "max_lag_margin_s" not in gcc or float(gcc["max_lag_margin_s"]) >= needed:
+            return None
+        log.info(
+            "calibrate: the GCC lag window's margin is widened from %.1f to %.1f ms, what the stated mics (GPS error) and clocks may "
+            "shift a pair's time difference by (3 sigma)",
+            1e3 * float(gcc["max_lag_margin_s"]),
+            1e3 * needed,
+        )
+        return {"features": {"gcc": {"max_lag_margin_s": needed}}}
+
+    def run_job(self, context: RunContext, run_dir: Path) -> dict[str, Any]:
+        """The ``calibrate`` job: calibrate the array from the field events with known positions; write ``calibration.json``,
+        ``metrics.json`` and ``calibration.png``; returns the metrics."""
+        site = context.site
+        mics_table = mics_table_of(context.field_source)
+        priors = self.priors(site, mics_table)
+        field = field_dataset(context, solved=False)
+        playback_events = field.events[playback_rows(field.events)].reset_index(drop=True)
+        mic_ids = (
+            mics_table["mic_id"].astype(str).tolist()
+            if mics_table is not None and "mic_id" in mics_table and len(mics_table) == site.n_mics
+            else [str(m) for m in range(site.n_mics)]
+        )
+        log.info("calibrating %d mics from %d playbacks", site.n_mics, len(playback_events))
+        warn_if_one_playback_per_spot(playback_events)
+        peak_ratio = second_peak_ratio(field.features, field.events, site)
+        warn_if_tonal(peak_ratio)
+        # the field sources fill each event's weather (their defaults where a table has none)
+        calibration, playbacks = calibrate_playbacks(
+            field.features,
+            field.events,
+            site,
+            lambda p: self.calibrate(p, priors, mic_ids),
+            anneal=lambda p, lags, heights: self.annealed_prediction(p, lags, heights, priors),
+        )
+        calibration.extra["held_out"], calibration.extra["jackknife_sd"] = self.held_out(
+            playbacks, priors, mic_ids, site, context.components.solver
+        )
+        digest = write_calibration(run_dir / "calibration.json", calibration, site, playback_events)
+        metrics = {
+            "calibration": calibration_metrics(calibration, run_dir / "calibration.json", digest, peak_ratio),
+            **context.settings.record,
+        }
+        write_metrics(run_dir, metrics)
+        log_calibration(calibration)
+        if context.settings.plots:
+            from acoustlab.reporting.plots import write_calibration_plot  # matplotlib only when plotting
+
+            write_calibration_plot(
+                calibration, residual_rows(calibration, playback_events), playbacks.source_m, site, run_dir / "calibration.png"
+            )
+        log.info(
+            "calibration written to %s (use it: localize … calibration=%s)", run_dir / "calibration.json", run_dir / "calibration.json"
+        )
+        return metrics
 
     def priors(self, site: Site, mics_table: pd.DataFrame | None) -> Priors:
         """The stated array: the site's mics, their GPS error from the mics table's ``position_sigma_m`` where given."""
@@ -250,3 +321,54 @@ def residual_rows(calibration: ArrayCalibration, events: pd.DataFrame) -> pd.Dat
         for p, name in enumerate(names):
             rows.append((eid, spot, name, calibration.residual_before_s[k, p], calibration.residual_after_s[k, p]))
     return pd.DataFrame(rows, columns=[col.EVENT_ID, col.POSITION_ID, "mic_pair", "residual_before_s", "residual_after_s"])
+
+
+def mics_table_of(field_source: FieldSource | None) -> pd.DataFrame | None:
+    """The field source's mics table (``tables()[0]``), or None where it has none."""
+    tables = hook(field_source, "tables") if field_source is not None else None
+    return tables()[0] if tables is not None else None
+
+
+def calibrate_playbacks(
+    features: pd.DataFrame,
+    events: pd.DataFrame,
+    site: Site,
+    fit: Callable[[Playbacks], ArrayCalibration],
+    temperature_c: float = 15.0,
+    humidity_pct: float = 60.0,
+    max_rounds: int = 30,
+    anneal: Callable[[Playbacks, np.ndarray, np.ndarray | None], np.ndarray] | None = None,
+) -> tuple[ArrayCalibration, Playbacks]:
+    """Calibrate, re-pick each pair's GCC candidate with what the calibration predicts, and calibrate again until the picks hold.
+
+    The rounds are ``calibrate_until_picks_hold``'s: a stated array metres off predicts lags far
+    enough off that the first picks take an echo on most pairs. From few spots the rounds can
+    settle on picks that are wrong but agree with each other, so they run from three starts — the
+    peaks nearest the stated array's lags, the highest peaks and, with ``anneal``, the peaks
+    nearest the lags of the array that explains all candidates at once
+    (``acoustlab.toolkit.array_calibration.annealed_prediction_s``) — and the calibration whose
+    time differences fit their picks more tightly (smaller robust timing σ) is kept. ``fit`` is the
+    calibration (``CalibrateProtocol.calibrate``), ``anneal`` that search
+    (``CalibrateProtocol.annealed_prediction``: playbacks, their (N, P, K) candidate lags and the
+    candidates' GCC peak heights, None without the ``xcorr`` feature group).
+    """
+    strongest = playbacks_from(features, events, site, temperature_c, humidity_pct, strongest=True)
+    starts = {
+        "the stated array's lags": strongest.picked(strongest.travel_times_s(site.mic_positions_m)),
+        "the highest GCC peaks": strongest,
+    }
+    if anneal is not None:
+        heights = pair_candidate_weights(features[playback_rows(events)], site, strongest.candidates_s.shape[2])
+        if heights is None:
+            log.info(
+                "calibrate: the features have no GCC peak heights (the 'xcorr' group); the annealed search weighs each pair's candidates equally"
+            )
+        starts["the annealed search over all candidates"] = strongest.picked(anneal(strongest, strongest.candidates_s, heights))
+    results = {name: calibrate_until_picks_hold(first, fit, max_rounds) for name, first in starts.items()}
+    best = min(results, key=lambda name: results[name][0].timing_sigma_s)  # ties: the first (the stated array's)
+    log.info(
+        "calibrate: kept the picks started from %s (timing sigma %s)",
+        best,
+        ", ".join(f"{1e6 * cal.timing_sigma_s:.0f} us from {name}" for name, (cal, _) in results.items()),
+    )
+    return results[best]

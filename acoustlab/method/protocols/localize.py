@@ -10,15 +10,23 @@ field recordings. Nothing here needs a true position; the run writes ``positions
 from __future__ import annotations
 
 import logging
+import time
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
+from acoustlab.core.files import atomic_write_bytes
 from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
 from acoustlab.method.protocols.field import combine
+from acoustlab.method.run_context import RunContext, field_dataset, simulated_dataset
 from acoustlab.method.splits import cap_rows
+from acoustlab.reporting.metrics import held_out_calibration_summary, split_diagnostics_summary
+from acoustlab.reporting.positions import localization_summary, positions_summary_text
+from acoustlab.reporting.run_files import plot_and_time, quality_flag_counts, write_results
 from acoustlab.stages.dataset import Dataset
 
 log = logging.getLogger(__name__)
@@ -36,8 +44,6 @@ class LocalizeProtocol:
     """
 
     needs_field = True
-    #: no ground truth: the app writes positions, not error metrics
-    evaluates = False
 
     def __init__(self, max_train_rows: int = 1000, seed: int = 0, calibration_fraction: float = 0.2) -> None:
         if max_train_rows < 2:
@@ -50,8 +56,26 @@ class LocalizeProtocol:
         #: the method the last ``run`` fitted (``acoustlab.api.localize(..., return_method=True)`` reuses it)
         self.fitted: FittedLocalizer | None = None
 
-    def run(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
-        """Positions of every field detection (error columns are NaN: there is no truth)."""
+    def run_job(self, context: RunContext, run_dir: Path) -> dict[str, Any]:
+        """The ``localize`` job: fit, place every field detection, write ``positions.csv`` / ``.parquet``, the
+        predictions, ``metrics.json`` and the positions map; returns the metrics."""
+        started = time.perf_counter()
+        dataset = simulated_dataset(context)
+        if dataset is None:
+            raise ConfigError("protocol=localize does not shard its simulation: run it without data.shard_count")
+        field_data = field_dataset(context)
+        timings = {"data_s": time.perf_counter() - started}
+        stage_start = time.perf_counter()
+        result = self.fit_and_place(dataset, LocalizationPipeline(context.components), field_data)
+        timings["models_s"] = time.perf_counter() - stage_start
+        return write_localization(context, run_dir, result, dataset, field_data, timings, started)
+
+    def fit_and_place(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
+        """Fit on the simulation (and the playbacks with known positions); place every field detection without one.
+
+        Error columns are NaN (there is no truth); ``positions`` is the positions table. The fitted
+        method is kept as ``self.fitted`` (``acoustlab.api.place`` reuses it).
+        """
         if field_recordings is None:
             raise ConfigError("protocol=localize needs recordings: choose field=recordings (see docs/localize.md)")
         features, events, sim_rows, all_field_rows = combine(dataset, field_recordings, need_truth=False)
@@ -82,3 +106,69 @@ class LocalizeProtocol:
             info["held_out_calibration"] = self.fitted.method.held_out_calibration
         info["training"] = {"n_simulated": int(train.size - calibration.size), "n_calibration_playbacks": int(calibration.size)}
         return MethodResult(placement.predictions, [info], positions=placement.positions)
+
+
+def write_localization(
+    context: RunContext,
+    run_dir: Path,
+    result: MethodResult,
+    dataset: Dataset,
+    field_data: Dataset,
+    timings: dict[str, float],
+    started: float,
+) -> dict[str, Any]:
+    """A run without ground truth: positions.csv / .parquet, predictions, metrics.json (a summary instead of error metrics),
+    and a map; returns the metrics."""
+    table, predictions, c = result.positions, result.predictions, context.components
+    levels, scorers = c.levels, list(c.scorers)
+    atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
+    atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
+    metrics: dict[str, Any] = {col.METRICS_LOCALIZATION: localization_summary(table, levels, scorers)}
+    for split in result.split_diagnostics:
+        if "training" in split:  # simulated events and calibration playbacks the method was fitted on
+            metrics["training"] = split["training"]
+        held_out = split.pop("held_out_calibration", None)
+        if held_out is not None:  # the radii tested on the calibration playbacks, each spot held out
+            metrics["held_out_calibration"] = held_out_calibration_summary(held_out, levels, scorers)
+            _log_held_out(metrics["held_out_calibration"])
+    if col.QUALITY_FLAGS in predictions:
+        metrics[col.QUALITY_FLAGS] = quality_flag_counts(predictions)
+    record = context.settings.record
+    metrics.update(split_diagnostics_summary(result.split_diagnostics, record.get("choices", {}).get("gate") or type(c.gate).__name__))
+    metrics.update(
+        {
+            "dataset_hash": dataset.dataset_hash,
+            "field_dataset_hash": field_data.dataset_hash,
+            "n_features": int(len(dataset.features.columns)),
+            **record,
+        }
+    )
+    write_results(run_dir, context.settings.config, predictions, metrics)
+
+    def plot() -> None:
+        from acoustlab.reporting.plots import write_positions_map  # matplotlib only when plotting
+
+        write_positions_map(table, context.site, levels, scorers, run_dir / "plots")
+
+    plot_and_time(context.settings.plots, run_dir, metrics, timings, started, "the positions map", plot)
+    log.info(
+        "positions (first %d of %d detections; all in %s):\n%s",
+        min(len(table), 20),
+        len(table),
+        run_dir / "positions.csv",
+        positions_summary_text(table.head(20), levels, scorers),
+    )
+    return metrics
+
+
+def _log_held_out(summary: dict[str, Any]) -> None:
+    """One line per scorer: the radii's coverage on the calibration playbacks, each spot held out."""
+    for scorer, by_level in summary[col.METRICS_COVERAGE].items():
+        cells = ", ".join(f"{level}: {'—' if c is None else format(c['detections'], '.2f')}" for level, c in by_level.items())
+        log.info(
+            "radii (%s) on the %d calibration playbacks at %d spots, each spot held out: coverage %s",
+            scorer,
+            summary["n_playbacks"],
+            summary["n_spots"],
+            cells,
+        )

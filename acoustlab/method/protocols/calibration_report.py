@@ -1,0 +1,110 @@
+"""What the ``calibrate`` job tells its user: warnings about the playbacks, the calibration's summary in ``metrics.json``
+and its log lines."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.core import columns as col
+from acoustlab.toolkit.array_calibration import MIN_REDUNDANCY, ArrayCalibration
+
+log = logging.getLogger(__name__)
+
+#: A median second-to-first GCC peak ratio above this says the playbacks were tonal (``second_peak_ratio``).
+TONAL_PEAK_RATIO = 0.75
+#: The calibration's summary keys copied into ``metrics.json`` as they are.
+SUMMARY_KEYS = (
+    "n_playbacks",
+    "n_spots",
+    "temperature_offset_c",
+    "temperature_offset_sd_c",
+    "timing_sigma_s",
+    "residual_median_abs_before_s",
+    "residual_median_abs_after_s",
+    "n_outliers",
+    "not_identified",
+    "redundancy",
+    "held_out",
+    "jackknife_sd",
+)
+
+
+def warn_if_tonal(ratio: float | None) -> None:
+    """Warn where the playbacks' cross-correlations have a second peak nearly as high as the first on most pairs."""
+    if ratio is not None and ratio >= TONAL_PEAK_RATIO:
+        log.warning(
+            "calibrate: on most mic pairs the playbacks' cross-correlation has a second peak nearly as high as the first "
+            "(median ratio %.2f; a sweep's is about 0.4-0.7): the signal played back is tonal (a song?) and its peaks repeat at its "
+            "period, or echoes are strong; from few spots the fit can take a neighbouring peak. If it was a song, play back the "
+            "sweep (acoustlab.api.write_playback_sweep; docs/calibrate.md)",
+            ratio,
+        )
+
+
+def warn_if_one_playback_per_spot(playback_events: pd.DataFrame) -> None:
+    """Warn where no spot has two playbacks: the call-to-call spread of the thermometer's error is then measured too small."""
+    if len(playback_events) and playback_events[col.POSITION_ID].value_counts().max() < 2:
+        log.warning(
+            "calibrate: one playback per spot: how far the thermometer's error varies from call to call (temperature_call_sd_c) "
+            "is then measured across spots, where the fit absorbs part of it, and may be too small; play back 2-3 times per spot"
+        )
+
+
+def calibration_metrics(calibration: ArrayCalibration, path: Path, digest: str, peak_ratio: float | None) -> dict[str, Any]:
+    """The ``calibration`` entry of ``metrics.json``: the file, its digest and the calibration's summary."""
+    summary = calibration.to_json()
+    return {
+        "file": str(path),
+        "sha256": digest,
+        **{k: summary[k] for k in SUMMARY_KEYS},
+        "clock_offset_ms": [round(1e3 * v, 4) for v in summary["clock_offset_s"]],
+        "mic_position_shift_m": summary["mic_position_shift_m"],
+        "second_peak_ratio": peak_ratio,
+    }
+
+
+def log_calibration(calibration: ArrayCalibration) -> None:
+    """What could not be estimated, whether the spots were enough, the estimates, and the held-out spots' errors."""
+    summary = calibration.to_json()
+    for kind, why in calibration.not_identified.items():
+        log.warning("calibrate: %s not estimated: %s", kind, why)
+    enough = summary["redundancy"]
+    if not enough["enough"]:
+        log.warning(
+            "calibrate: %d spots give %d independent time differences for %d unknowns (%.1f each); with fewer than %.0f each a "
+            "set of wrong GCC peaks can fit as tightly as the right one: plan %s spots or more (docs/calibrate.md)",
+            calibration.n_spots,
+            enough["independent_time_differences"],
+            enough["unknowns"],
+            enough["per_unknown"],
+            MIN_REDUNDANCY,
+            enough["spots_needed"],
+        )
+    log.info(
+        "thermometer offset %+.2f ± %.2f °C; clock offsets (ms) %s; mic shifts (m) %s; median time-difference residual %.3g → %.3g ms",
+        calibration.temperature_offset_c,
+        calibration.sd("temperature_offset_c"),
+        np.round(1e3 * calibration.clock_offset_s, 3).tolist(),
+        np.round(np.hypot(*calibration.mic_position_shift_m[:, :2].T), 2).tolist(),
+        1e3 * (summary["residual_median_abs_before_s"] or np.nan),
+        1e3 * (summary["residual_median_abs_after_s"] or np.nan),
+    )
+    held = calibration.extra["held_out"]
+    if held is not None:
+        log.info(
+            "held-out spots (%d playbacks): median time-difference residual %.3g ms with the stated array, %.3g ms calibrated; "
+            "median error of their fixes %.2f m stated, %.2f m calibrated (p95 %.2f → %.2f m; outside the array a fix magnifies "
+            "the array's error)",
+            held["n_playbacks"],
+            held["stated"]["median_abs_residual_ms"] or np.nan,
+            held["calibrated"]["median_abs_residual_ms"] or np.nan,
+            held["stated"]["p50_m"],
+            held["calibrated"]["p50_m"],
+            held["stated"]["p95_m"],
+            held["calibrated"]["p95_m"],
+        )
