@@ -19,10 +19,13 @@ folder under ``outputs/api/``).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
 import json
-from collections.abc import Mapping, Sequence
+import logging
+import sys
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -70,8 +73,40 @@ def _value(value: Any) -> str:
     raise ConfigError(f"a setting must be a number, string, path, bool, None or list; got {type(value).__name__} {value!r}")
 
 
+#: The loggers a call's progress is shown from (acoustlab's stages and the plugins').
+_PROGRESS_LOGGERS = ("acoustlab", "plugins")
+
+
+@contextlib.contextmanager
+def progress_shown(verbose: bool = True) -> Iterator[None]:
+    """Show acoustlab's progress lines (INFO) on stderr for the duration of a call, as the command line does.
+
+    Where the caller configured logging (a handler on the root or acoustlab logger), that is left
+    alone. ``verbose=False`` keeps only warnings and errors.
+    """
+    loggers = [logging.getLogger(name) for name in _PROGRESS_LOGGERS]
+    levels = [lg.level for lg in loggers]
+    handler = None
+    if not verbose:
+        for lg in loggers:
+            lg.setLevel(logging.WARNING)
+    elif not logging.getLogger().handlers and not any(lg.handlers for lg in loggers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S"))
+        for lg in loggers:
+            lg.addHandler(handler)
+            lg.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
+            if handler is not None:
+                lg.removeHandler(handler)
+
+
 def _run(
-    protocol: str, site: str, overrides: Sequence[str], run_dir: str | Path | None, settings: Mapping[str, Any]
+    protocol: str, site: str, overrides: Sequence[str], run_dir: str | Path | None, settings: Mapping[str, Any], verbose: bool = True
 ) -> tuple[Path, Any, list[str]]:
     """Compose the config as the command line would, run the job; its run folder, its built plugins and the overrides."""
     from acoustlab.run.app import build_run, run_experiment
@@ -82,12 +117,13 @@ def _run(
     check_argv(given)
     cfg = compose_config(given)
     folder = Path(run_dir) if run_dir is not None else Path("outputs") / "api" / datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S-%f")
-    built = build_run(cfg)
-    run_experiment(cfg, folder, built=built)
+    with progress_shown(verbose):
+        built = build_run(cfg)
+        run_experiment(cfg, folder, built=built)
     return folder, built, given
 
 
-def place(method: FittedLocalizer, *, overrides: Sequence[str] = (), **settings: Any) -> pd.DataFrame:
+def place(method: FittedLocalizer, *, overrides: Sequence[str] = (), verbose: bool = True, **settings: Any) -> pd.DataFrame:
     """Place other recordings of the same array with a method ``localize(..., return_method=True)`` fitted; no fit again.
 
     Everything but the recordings stays as fitted: site, calibration, features, solver, models, gate
@@ -102,6 +138,8 @@ def place(method: FittedLocalizer, *, overrides: Sequence[str] = (), **settings:
         What ``localize(..., return_method=True)`` returned.
     overrides : sequence of str, optional
         ``field.*`` overrides as on the command line.
+    verbose : bool
+        Show progress lines (default); ``False`` shows only warnings.
     **settings
         Only ``field={...}``.
 
@@ -119,16 +157,23 @@ def place(method: FittedLocalizer, *, overrides: Sequence[str] = (), **settings:
     if outside:
         raise ConfigError(f"a fitted method places other recordings: only field.* settings may change; got {outside[0]!r}")
     cfg = compose_config([*method.recipe, *changed])
-    built = build_run(cfg)
-    data = prepare_field(cfg, built)
-    rows = unknown_position_rows(data.events)
-    if rows.size == 0:
-        raise ConfigError("every detection of these recordings has a known position (x_m, y_m): there is nothing to place")
-    return method.place_solved(data.features.iloc[rows], data.events.iloc[rows]).positions
+    with progress_shown(verbose):
+        built = build_run(cfg)
+        data = prepare_field(cfg, built)
+        rows = unknown_position_rows(data.events)
+        if rows.size == 0:
+            raise ConfigError("every detection of these recordings has a known position (x_m, y_m): there is nothing to place")
+        return method.place_solved(data.features.iloc[rows], data.events.iloc[rows]).positions
 
 
 def localize(
-    site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, return_method: bool = False, **settings: Any
+    site: str,
+    *,
+    overrides: Sequence[str] = (),
+    run_dir: str | Path | None = None,
+    return_method: bool = False,
+    verbose: bool = True,
+    **settings: Any,
 ) -> pd.DataFrame | tuple[pd.DataFrame, FittedLocalizer]:
     """Place every detection of your recordings, as ``python -m acoustlab localize``; the positions table.
 
@@ -143,6 +188,9 @@ def localize(
     return_method : bool
         Also return the fitted method (``acoustlab.method.localizer.FittedLocalizer``):
         ``place(method, field={...})`` places more recordings of the same array without fitting again.
+    verbose : bool
+        Show the run's progress lines on stderr, as the command line does (default; where you configured
+        logging yourself it is left alone); ``False`` shows only warnings and errors.
     **settings
         Config groups as nested dicts: ``field={"mics_csv": ..., "events_csv": ..., "audio_dir": ...}``,
         ``solver={"dimensions": 3}``; ``field`` defaults to ``recordings``; ``calibration="…/calibration.json"``
@@ -156,12 +204,14 @@ def localize(
         with ``return_method``, ``(positions, method)``.
     """
     overrides = ["field=recordings", *overrides] if not any(o.startswith("field=") for o in overrides) else list(overrides)
-    folder, built, given = _run("localize", site, overrides, run_dir, settings)
+    folder, built, given = _run("localize", site, overrides, run_dir, settings, verbose)
     positions = pd.read_parquet(folder / "positions.parquet")
     return (positions, dataclasses.replace(built.protocol.fitted, recipe=tuple(given))) if return_method else positions
 
 
-def calibrate(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> dict[str, Any]:
+def calibrate(
+    site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, verbose: bool = True, **settings: Any
+) -> dict[str, Any]:
     """Calibrate the array from playbacks at known spots, as ``python -m acoustlab calibrate``; the calibration.
 
     The recordings' events with ``x_m, y_m`` are the playbacks (docs/calibrate.md); the other
@@ -175,7 +225,7 @@ def calibrate(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path |
         with ``path``, the file.
     """
     overrides = ["field=recordings", *overrides] if not any(o.startswith("field=") for o in overrides) else list(overrides)
-    folder, _, _ = _run("calibrate", site, overrides, run_dir, settings)
+    folder, _, _ = _run("calibrate", site, overrides, run_dir, settings, verbose)
     return {**json.loads((folder / "calibration.json").read_text()), "path": str(folder / "calibration.json")}
 
 
@@ -244,13 +294,15 @@ def plan_playbacks(
     )
 
 
-def season(site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, **settings: Any) -> pd.DataFrame:
+def season(
+    site: str, *, overrides: Sequence[str] = (), run_dir: str | Path | None = None, verbose: bool = True, **settings: Any
+) -> pd.DataFrame:
     """Localize a season of long recordings from detector tables, as ``python -m acoustlab season``; the positions table.
 
     ``protocol={"recordings": {"audio_dir": ...}, "detections": {"paths": [...], "format": "raven"}}`` names
     the inputs (docs/season.md); the other parameters are ``localize``'s.
     """
-    folder, _, _ = _run("season", site, list(overrides), run_dir, settings)
+    folder, _, _ = _run("season", site, list(overrides), run_dir, settings, verbose)
     return pd.read_parquet(folder / "positions.parquet")
 
 

@@ -88,3 +88,28 @@ def test_the_fitted_method_localize_returns_places_more_recordings_as_one_run_wo
     pd.testing.assert_frame_equal(again, table.iloc[2:].reset_index(drop=True))
     with pytest.raises(ConfigError, match="only field.. settings may change; got 'solver.dimensions=3'"):
         place(method, solver={"dimensions": 3})
+
+
+def test_the_api_shows_progress_on_stderr_unless_told_not_to(monkeypatch, capsys):
+    """A notebook configures no logging: ``localize`` and the other calls show the run's INFO lines as the command line
+    does; ``verbose=False`` keeps warnings only; a caller's own logging setup is left alone."""
+    import logging
+
+    from acoustlab.api import progress_shown
+
+    root = logging.getLogger()
+    monkeypatch.setattr(root, "handlers", [])  # as in a fresh notebook (pytest's capture handler set aside)
+    stage = logging.getLogger("acoustlab.stages.dataset")
+    with progress_shown():
+        stage.info("simulating 1100 events")
+    with progress_shown(verbose=False):
+        stage.info("not shown")
+        stage.warning("a warning still is")
+    err = capsys.readouterr().err
+    assert "INFO acoustlab.stages.dataset: simulating 1100 events" in err
+    assert "not shown" not in err and "a warning still is" in err
+    assert not logging.getLogger("acoustlab").handlers and logging.getLogger("acoustlab").level == logging.NOTSET  # restored
+    mine = logging.StreamHandler()
+    monkeypatch.setattr(root, "handlers", [mine])
+    with progress_shown():
+        assert not logging.getLogger("acoustlab").handlers  # the caller's setup is theirs

@@ -562,3 +562,22 @@ def test_oversized_or_fake_parquet_artifacts_are_not_uploaded(tmp_path, caplog, 
     (run_dir / "metrics.json").write_text(json.dumps({"site": "forest", "dataset_hash": "abc", "code_version": "x"}))
     assert "metrics.json" not in [p.name for p in experiment_log.artifact_paths(run_dir)]
     assert any("over the 10-byte artifact limit" in r.message for r in caplog.records)
+
+
+def test_the_console_summary_keeps_its_columns_and_says_what_each_method_is():
+    from acoustlab.reporting.metrics import summary_text
+
+    row = {"p50": 0.2, "p95": 3.1, "p99": float("inf"), "share_gt_5m": 0.012, "n_failed": 2}
+    methods = ("solver", "model", "gate", "oracle", "gate_without_trust")
+    metrics = {
+        "errors": dict.fromkeys(methods, row),
+        "coverage": {"gdop_scaled": {"0.5": 0.51, "0.8": 0.79}},
+        "interval_width": {"gdop_scaled": {"0.8": {"median_m": 2.5}}},
+    }
+    lines = summary_text(metrics).splitlines()
+    table = lines[: 1 + len(methods)]
+    assert len({len(line) for line in table}) == 1, table  # every row as wide as the header: the columns line up
+    assert table[-1].startswith("gate_without_trust ") and table[-1].endswith("2")
+    legend = [line for line in lines if line.startswith("  ")]
+    assert [line.split(":")[0].strip() for line in legend] == list(methods)
+    assert any("threshold inf" in line for line in legend)

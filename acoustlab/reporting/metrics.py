@@ -472,24 +472,41 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
     return {k: float(v) for k, v in flat.items() if np.isfinite(v)}
 
 
+#: One line per method of the console's error table: what the row is.
+METHOD_LEGEND = {
+    "solver": "solver: the closed-form TDOA fix alone",
+    "model": "model: the learned point model's estimate alone",
+    "gate": "gate: the reported position (the solver's fix unless the gate and the hand-over check give the model's)",
+    "oracle": "oracle: per detection the better of solver and model (needs the truth: the bound a perfect gate would reach)",
+    f"gate_{col.GATE_WITHOUT_TRUST}": (
+        f"gate_{col.GATE_WITHOUT_TRUST}: the gate's own choice before the hand-over check (what that check changes); a learned "
+        "gate's threshold inf means it never hands over (it fell back to the solver's fix)"
+    ),
+}
+
+
 def summary_text(metrics: dict) -> str:
     """A compact, human-readable end-of-run summary: errors by method, coverage and median radius by scorer and level."""
 
     def num(v: float) -> str:
         return "inf" if v == float("inf") else "-" if np.isnan(v) else f"{v:.2f}" if abs(v) < 10 else f"{v:.0f}"
 
-    lines = [f"{'method':<14}{'p50 m':>8}{'p95 m':>8}{'p99 m':>8}{'> 5 m':>8}{'failed':>8}"]
-    for method, e in metrics[col.METRICS_ERRORS].items():
+    errors = metrics[col.METRICS_ERRORS]
+    w = max([len("method"), *(len(m) for m in errors)]) + 2  # the widest method name sets the first column
+    lines = [f"{'method':<{w}}{'p50 m':>8}{'p95 m':>8}{'p99 m':>8}{'> 5 m':>8}{'failed':>8}"]
+    for method, e in errors.items():
         lines.append(
-            f"{method:<14}{num(e['p50']):>8}{num(e['p95']):>8}{num(e['p99']):>8}{100 * e.get('share_gt_5m', float('nan')):>7.1f}%"
+            f"{method:<{w}}{num(e['p50']):>8}{num(e['p95']):>8}{num(e['p99']):>8}{100 * e.get('share_gt_5m', float('nan')):>7.1f}%"
             f"{e['n_failed']:>8}"
         )
+    lines += [f"  {line}" for name, line in METHOD_LEGEND.items() if name in errors]
     levels = sorted({lv for by in metrics[col.METRICS_COVERAGE].values() for lv in by}, key=float)
     lines.append("")
+    ws = max([len(col.METRICS_COVERAGE), *(len(sc) for sc in metrics[col.METRICS_COVERAGE])]) + 2
     lines.append(
-        f"{col.METRICS_COVERAGE:<14}" + "".join(f"{'@' + lv:>10}" for lv in levels) + f"{'radius@' + levels[-1]:>14}" if levels else ""
+        f"{col.METRICS_COVERAGE:<{ws}}" + "".join(f"{'@' + lv:>10}" for lv in levels) + f"{'radius@' + levels[-1]:>14}" if levels else ""
     )
     for scorer, by in metrics[col.METRICS_COVERAGE].items():
         width = metrics[col.METRICS_WIDTH][scorer][levels[-1]]["median_m"]
-        lines.append(f"{scorer:<14}" + "".join(f"{by[lv]:>10.3f}" for lv in levels) + f"{num(width) + ' m':>14}")
+        lines.append(f"{scorer:<{ws}}" + "".join(f"{by[lv]:>10.3f}" for lv in levels) + f"{num(width) + ' m':>14}")
     return "\n".join(lines)

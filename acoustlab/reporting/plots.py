@@ -188,7 +188,8 @@ def site_map(ax: plt.Axes, site: Site, predictions: pd.DataFrame, radius_column:
     ax.set_ylabel("y (m)")
     if radius_column is not None:  # after the limits: the inset goes to the corner that hides no mic
         _zoom_inset(ax, shown, radius, floor, mics[:, :2])
-    title = f"{site.name}: first {len(shown)} test events"
+    n_positions = shown[[true_x, true_y]].round(6).drop_duplicates().shape[0]  # events at one position overlap on the map
+    title = f"{site.name}: first {len(shown)} test events at {n_positions} source positions"
     if radius_column is not None:
         scorer, level = col.parse_radius(radius_column)
         title += f"; circles: {scorer} conformal, {float(level):.0%}"
