@@ -17,7 +17,7 @@ groups; ``acoustlab`` never imports ``plugins``. Entry points: ``python -m acous
 ``python -m acoustlab.report``, ``python -m acoustlab.upload``, ``python -m acoustlab.catalog``.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 #: The notebook API (``acoustlab.api``): ``import acoustlab; acoustlab.localize(...)``; imported on first use,
 #: so ``import acoustlab`` stays cheap for the CLI. ``acoustlab.season`` is the season subpackage: its function is

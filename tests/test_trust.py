@@ -363,7 +363,7 @@ def test_a_rescaled_radius_with_nothing_to_scale_by_is_unbounded_not_nan():
     Mondrian bin) or the field's is 0, the 0.95 radius is infinite or finite, never NaN."""
     from types import SimpleNamespace
 
-    from acoustlab.method.pipeline import FittedMethod
+    from acoustlab.method.fitted import FittedMethod
 
     class Fixed:  # the simulation's radii, row by row
         def radius(self, predicted, gdop):

@@ -26,7 +26,8 @@ import pandas as pd
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import FeatureSet
 from acoustlab.core.types import Site
-from acoustlab.method.pipeline import Components, FittedMethod
+from acoustlab.method.fitted import FittedMethod
+from acoustlab.method.pipeline import Components
 from acoustlab.reporting.positions import positions_table
 from acoustlab.stages.field_calibration import CALIBRATION_COLUMN, FieldCalibration, field_solver_columns
 

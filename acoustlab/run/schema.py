@@ -21,6 +21,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
 from acoustlab.core.cores import free_cores
+from acoustlab.core.resources import CONF_DIR
 from acoustlab.method.trust import TrustSettings
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
 
@@ -185,8 +186,6 @@ AcoustlabConfig = make_dataclass("AcoustlabConfig", [(g, Any, None) for g in FRE
 
 def option_descriptions(width: int = 110) -> str:
     """Every option of every config group with a one-line description: the first comment line of its YAML (for ``--help``)."""
-    from acoustlab.run.registry import CONF_DIR
-
     lines = []
     for group in sorted(p for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra"):
         lines.append(f"{group.name}:")
