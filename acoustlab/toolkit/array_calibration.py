@@ -54,8 +54,7 @@ HUBER_K = 2.5
 #: Cauchy's scale, in units of the timing noise (95 % efficiency under Gaussian noise).
 CAUCHY_K = 2.385
 #: A calibration should rest on at least this many independent time differences per unknown: with fewer, a set of
-#: wrong GCC peaks can fit as tightly as the right one (measured: 3-mic lake and 6-mic forest from 5 spots, 1.1 and
-#: 1.4 per unknown, missed 1.2× the true array's median error on acoustlab's own simulator; from 10 spots, 2.2 and 2.8, held).
+#: wrong GCC peaks can fit as tightly as the right one (the measurements behind it: docs/calibrate_results.md).
 MIN_REDUNDANCY = 2.0
 #: The reweighting stops when no estimate moves by more than this fraction of its prior standard deviation in a pass.
 CONVERGED_PRIORS = 1e-4
@@ -64,17 +63,14 @@ OUTLIER_K = 5.0
 #: The thermometer's offset is bounded to this many prior standard deviations (±30 °C for the default 3 °C).
 MAX_TEMPERATURE_PRIORS = 10.0
 #: The annealed search's mixture widths, s: from where every candidate within a few ms pulls (the stated array's
-#: GPS error moves a pair's lag by ms) down to a clean peak's timing noise (tens of µs); set on the forest's 5-spot
-#: playbacks of acoustlab's own simulator (docs/calibrate.md).
+#: GPS error moves a pair's lag by ms) down to a clean peak's timing noise (tens of µs).
 ANNEALING_WIDTHS_S = np.geomspace(2e-3, 3e-5, 10)
 #: The likelihood floor of a time difference none of whose candidates is the direct path (relative to one candidate
 #: at zero residual among K = 1): about what a residual of 2.8 widths costs.
 ANNEALING_FLOOR = 0.02
-#: Each candidate's share of its pair's mixture grows as its GCC peak height to this power (its energy share):
-#: a peak that stands well above the others is the direct path far more often than not (on the forest's playbacks
-#: of acoustlab's own simulator, a strongest peak ≥ 1.3× the second was the direct path 81–100 % of the time).
-#: Set on both sites' 5-spot playbacks of that simulator among 0, 1, 2 and 4: of two lake arrays that 0 left on
-#: wrong picks, 2 corrected both and 1 one; 4 left one forest mic metres off.
+#: Each candidate's share of its pair's mixture grows as its GCC peak height to this power (its energy share): a peak
+#: that stands well above the others is the direct path far more often than not, yet a lower one must keep some pull
+#: (a higher power lets one strong echo decide; docs/calibrate_results.md gives the comparison of powers).
 ANNEALING_HEIGHT_POWER = 2.0
 #: What can be estimated.
 PARAMETER_KINDS = ("temperature", "clocks", "drift", "positions")
