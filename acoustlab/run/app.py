@@ -71,50 +71,12 @@ class BuiltRun:
     protocol: EvaluationProtocol | Job
     tracker: Any
 
-    @property
-    def site(self) -> Site:
-        """The array the method is trained for (the calibrated one under ``calibration=PATH``)."""
-        return self.context.site
-
-    @property
-    def components(self) -> Components:
-        """The configured plugins and the method's settings."""
-        return self.context.components
-
-    @property
-    def feature_sets(self) -> dict[str, Any]:
-        """The configured feature groups."""
-        return self.context.feature_sets
-
-    @property
-    def simulator(self) -> Any:
-        """The site's simulator."""
-        return self.context.simulator
-
-    @property
-    def cache(self) -> StageCache:
-        """The stage cache."""
-        return self.context.cache
-
-    @property
-    def plan(self) -> SimulationPlan:
-        """Which events to simulate."""
-        return self.context.plan
-
-    @property
-    def field_source(self) -> Any:
-        """The field recordings, or None."""
-        return self.context.field_source
-
-    @property
-    def calibration(self) -> FieldCalibration | None:
-        """``calibration=PATH``, or None."""
-        return self.context.calibration
-
-    @property
-    def stated_site(self) -> Site | None:
-        """The site as stated, where ``site`` is its calibration."""
-        return self.context.stated_site
+    def __getattr__(self, name: str) -> Any:
+        """The context's fields as the run's own: ``site``, ``components``, ``feature_sets``, ``simulator``, ``cache``,
+        ``plan``, ``field_source``, ``calibration``, ``stated_site`` (``acoustlab.method.run_context.RunContext``)."""
+        if name == "context":  # not yet set (e.g. while copying): never recurse
+            raise AttributeError(name)
+        return getattr(self.context, name)
 
 
 def check_feature_requirements(feature_sets: dict[str, Any], **plugins: Any) -> None:

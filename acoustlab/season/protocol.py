@@ -77,6 +77,19 @@ STAGES = ("all", "fit", "localize", "merge")
 SAVED_METHOD_FORMAT = "acoustlab.method.localizer.FittedLocalizer"
 
 
+#: Config keys that size thread pools and worker processes (``${threads:}``): they never change a result.
+THREAD_KEYS = ("n_jobs", "n_threads", "nthread")
+
+
+def without_thread_counts(node: Any) -> Any:
+    """A plain config without its thread and worker counts, at any depth."""
+    if isinstance(node, dict):
+        return {k: without_thread_counts(v) for k, v in node.items() if k not in THREAD_KEYS}
+    if isinstance(node, list):
+        return [without_thread_counts(v) for v in node]
+    return node
+
+
 class SeasonLocalize:
     """Localize a season (see the module docstring); settings as in ``conf/protocol/season.yaml``."""
 
@@ -245,7 +258,7 @@ class SeasonLocalize:
 
     def method_key(self, config: dict[str, Any]) -> str:
         """What the fitted method depends on: the whole (resolved) config except the season's inputs and how it is run."""
-        plain = copy.deepcopy(config)
+        plain = without_thread_counts(copy.deepcopy(config))  # threads change how fast, never what: not part of the key
         plain.pop("hydra", None)
         for name in ("paths", "tracking", "plots", "cache"):
             plain.pop(name, None)
