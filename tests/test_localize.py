@@ -257,3 +257,29 @@ def test_localize_streams_the_recordings_and_the_answer_does_not_depend_on_the_c
     )
     with pytest.raises(DataError, match="lower field.chunk_events"):  # one chunk too large for memory: said before any work
         localize(compose_cfg, tmp_path / "huge", *overrides, "field.chunk_events=100000", "field.max_event_s=100000", "field.pad_s=40000")
+
+
+def test_the_console_positions_summary_names_events_gives_a_radius_and_only_determined_heights():
+    """The log's view of positions: the event id, x, y, a radius, and ``z_m`` only where a 3-D fix determined the height
+    (a flat array's, an ambiguous mirror's or the model's estimate shows ``—``)."""
+    from acoustlab.reporting.positions import positions_summary_text
+
+    table = pd.DataFrame(
+        {
+            "event_id": ["call00", "call01", "call02", "call03"],
+            "x_m": [1.0, 2.0, 3.0, np.nan],
+            "y_m": [4.0, 5.0, 6.0, np.nan],
+            "z_m": [1.5, 7.25, np.nan, np.nan],
+            "source": ["solver", "solver", "model", "none"],
+            "radius_gdop_scaled_0.5_m": [0.4, 0.5, 0.6, np.nan],
+            "radius_gdop_scaled_0.95_m": [2.0, 3.0, 4.0, np.nan],
+            "placed": [True, True, True, False],
+            "solver__height_gdop": [3.0, 2.0, np.nan, np.nan],
+            "solver__height_ambiguous": [0.0, 1.0, np.nan, np.nan],
+        }
+    )
+    lines = positions_summary_text(table, [0.5, 0.95], ["gdop_scaled"]).splitlines()
+    assert lines[0].split() == ["event_id", "x_m", "y_m", "z_m", "source", "radius_gdop_scaled_0.95_m", "placed"]
+    assert lines[1].split() == ["call00", "1.00", "4.00", "1.50", "solver", "2.00", "True"]
+    assert lines[2].split()[3] == "—" and lines[3].split()[3] == "—"  # ambiguous mirror; the model's estimate has no height
+    assert lines[4].split()[0] == "call03" and lines[4].split()[-1] == "False"
