@@ -283,3 +283,44 @@ def test_the_console_positions_summary_names_events_gives_a_radius_and_only_dete
     assert lines[1].split() == ["call00", "1.00", "4.00", "1.50", "solver", "2.00", "True"]
     assert lines[2].split()[3] == "—" and lines[3].split()[3] == "—"  # ambiguous mirror; the model's estimate has no height
     assert lines[4].split()[0] == "call03" and lines[4].split()[-1] == "False"
+
+
+def test_an_uncalibrated_array_s_radii_carry_the_mics_table_s_survey_error(caplog):
+    """Without a calibration the mics table's ``position_sigma_m`` becomes the radii's mic allowance (the largest mic's);
+    a table without it leaves the positions exact and says so; a stated ``mic_position_m`` and a simulated field win."""
+    from acoustlab.core.errors import ConfigError
+    from acoustlab.stages.mic_survey import survey_allowance
+    from acoustlab.toolkit.input_uncertainty import InputUncertainty
+
+    stated = InputUncertainty()
+    mics = pd.DataFrame({"x_m": [0.0, 30.0, 0.0], "y_m": [0.0, 0.0, 30.0], "z_m": [1.0, 1.0, 1.0]})
+    surveyed = mics.assign(position_sigma_m=[0.0, 0.0, 0.0])
+    gps = mics.assign(position_sigma_m=[1.5, 2.5, 2.0])
+    with caplog.at_level("INFO", logger="acoustlab.stages.mic_survey"):
+        assert survey_allowance(stated, gps, 3).mic_position_m == 2.5
+        assert "up to 2.50 m" in caplog.text
+        caplog.clear()
+        assert survey_allowance(stated, surveyed, 3) == stated  # surveyed mics keep today's radii
+        assert survey_allowance(stated, mics, 3) == stated and "taken as exact" in caplog.text
+        caplog.clear()
+        assert survey_allowance(stated, None, 3) == stated and not caplog.text  # a simulated field has no table
+    given = InputUncertainty(mic_position_m=0.3)
+    assert survey_allowance(given, gps, 3) == given  # the config's own statement is kept
+    with pytest.raises(ConfigError, match=r"line 3, column 'position_sigma_m': .* is not a number >= 0"):
+        survey_allowance(stated, mics.assign(position_sigma_m=[1.0, -2.0, 1.0]), 3)
+
+
+@pytest.mark.slow
+def test_localize_on_gps_surveyed_mics_widens_the_radii_and_records_the_allowance(compose_cfg, tmp_path):
+    _, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 6)
+    exact, exact_metrics, _ = localize(compose_cfg, tmp_path / "exact", *overrides)
+    mics_csv = next(o.split("=", 1)[1] for o in overrides if o.startswith("field.mics_csv="))
+    table = pd.read_csv(mics_csv)
+    table.assign(position_sigma_m=2.0).to_csv(tmp_path / "gps_mics.csv", index=False)
+    gps_overrides = [f"field.mics_csv={tmp_path / 'gps_mics.csv'}" if o.startswith("field.mics_csv=") else o for o in overrides]
+    gps, gps_metrics, _ = localize(compose_cfg, tmp_path / "gps", *gps_overrides)
+    assert exact_metrics["input_allowance"]["mic_position_m"] == 0.0 and gps_metrics["input_allowance"]["mic_position_m"] == 2.0
+    placed = exact["placed"].to_numpy(bool) & gps["placed"].to_numpy(bool)
+    radius = "radius_gdop_scaled_0.95_m"
+    assert placed.any() and (gps[radius][placed] > exact[radius][placed]).all()
+    pd.testing.assert_series_equal(gps["x_m"], exact["x_m"])  # the positions themselves do not move

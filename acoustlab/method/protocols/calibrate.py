@@ -29,13 +29,14 @@ import numpy as np
 import pandas as pd
 
 from acoustlab.core import columns as col
-from acoustlab.core.contracts import FieldSource, SolverInputs, hook
-from acoustlab.core.errors import ConfigError, show
+from acoustlab.core.contracts import FieldSource, SolverInputs
+from acoustlab.core.errors import ConfigError
 from acoustlab.core.types import Site
 from acoustlab.method.protocols.calibration_report import calibration_metrics, log_calibration, warn_if_one_playback_per_spot, warn_if_tonal
 from acoustlab.method.run_context import RunContext, field_dataset
 from acoustlab.reporting.run_files import write_metrics
 from acoustlab.stages.field_calibration import playback_rows, playbacks_from, second_peak_ratio, write_calibration
+from acoustlab.stages.mic_survey import mic_position_sigmas, mics_table_of
 from acoustlab.stages.solver_columns import pair_candidate_weights
 from acoustlab.toolkit.array_calibration import (
     PARAMETER_KINDS,
@@ -178,17 +179,8 @@ class CalibrateProtocol:
 
     def priors(self, site: Site, mics_table: pd.DataFrame | None) -> Priors:
         """The stated array: the site's mics, their GPS error from the mics table's ``position_sigma_m`` where given."""
-        sigma = np.full(site.n_mics, self.position_sigma_m)
-        if mics_table is not None and "position_sigma_m" in mics_table and len(mics_table) == site.n_mics:
-            given = pd.to_numeric(mics_table["position_sigma_m"], errors="coerce").to_numpy(float)
-            bad = ~np.isfinite(given) | (given < 0)
-            if bad.any():
-                i = int(np.flatnonzero(bad)[0])
-                raise ConfigError(
-                    f"field.mics_csv, line {i + 2}, column 'position_sigma_m': {show(mics_table['position_sigma_m'].iloc[i])} "
-                    "is not a number >= 0 (m; 0 for a surveyed mic)"
-                )
-            sigma = given
+        given = mic_position_sigmas(mics_table, site.n_mics)
+        sigma = np.full(site.n_mics, self.position_sigma_m) if given is None else given
         return Priors(site.mic_positions_m, sigma, self.temperature_sigma_c, self.clock_sigma_s, self.drift_sigma)
 
     def calibrate(self, playbacks: Playbacks, priors: Priors, mic_ids: list[str]) -> ArrayCalibration:
@@ -321,12 +313,6 @@ def residual_rows(calibration: ArrayCalibration, events: pd.DataFrame) -> pd.Dat
         for p, name in enumerate(names):
             rows.append((eid, spot, name, calibration.residual_before_s[k, p], calibration.residual_after_s[k, p]))
     return pd.DataFrame(rows, columns=[col.EVENT_ID, col.POSITION_ID, "mic_pair", "residual_before_s", "residual_after_s"])
-
-
-def mics_table_of(field_source: FieldSource | None) -> pd.DataFrame | None:
-    """The field source's mics table (``tables()[0]``), or None where it has none."""
-    tables = hook(field_source, "tables") if field_source is not None else None
-    return tables()[0] if tables is not None else None
 
 
 def calibrate_playbacks(

@@ -9,6 +9,7 @@ field recordings. Nothing here needs a true position; the run writes ``positions
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -28,6 +29,7 @@ from acoustlab.reporting.metrics import held_out_calibration_summary, split_diag
 from acoustlab.reporting.positions import localization_summary, positions_summary_text
 from acoustlab.reporting.run_files import plot_and_time, quality_flag_counts, write_results
 from acoustlab.stages.dataset import Dataset
+from acoustlab.stages.mic_survey import mics_table_of, survey_allowance
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +68,14 @@ class LocalizeProtocol:
         field_data = field_dataset(context)
         timings = {"data_s": time.perf_counter() - started}
         stage_start = time.perf_counter()
-        result = self.fit_and_place(dataset, LocalizationPipeline(context.components), field_data)
+        components = context.components
+        if context.calibration is None:  # the radii carry the mics table's stated survey error (a calibration's replaces it)
+            allowance = survey_allowance(components.input_uncertainty, mics_table_of(context.field_source), context.site.n_mics)
+            components = dataclasses.replace(components, input_uncertainty=allowance)
+        result = self.fit_and_place(dataset, LocalizationPipeline(components), field_data)
         timings["models_s"] = time.perf_counter() - stage_start
+        if context.calibration is None:  # what the radii assume of the inputs (a calibration's summary says it otherwise)
+            result.split_diagnostics[0]["input_allowance"] = dataclasses.asdict(components.input_uncertainty)
         return write_localization(context, run_dir, result, dataset, field_data, timings, started)
 
     def fit_and_place(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
@@ -127,6 +135,8 @@ def write_localization(
     for split in result.split_diagnostics:
         if "training" in split:  # simulated events and calibration playbacks the method was fitted on
             metrics["training"] = split["training"]
+        if "input_allowance" in split:  # the stated input errors the radii carry (m, °C, s)
+            metrics["input_allowance"] = split.pop("input_allowance")
         held_out = split.pop("held_out_calibration", None)
         if held_out is not None:  # the radii tested on the calibration playbacks, each spot held out
             metrics["held_out_calibration"] = held_out_calibration_summary(held_out, levels, scorers)

@@ -1,0 +1,83 @@
+"""What a mics table says about how well its positions are known (``position_sigma_m``), read and checked once.
+
+``calibrate`` takes it as each mic's prior; without a calibration it becomes the radii's mic-position
+allowance (``conformal.input_uncertainty.mic_position_m``), so a GPS-surveyed array's radii carry
+the survey's error instead of taking the positions as exact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import pandas as pd
+
+from acoustlab.core.contracts import FieldSource, hook
+from acoustlab.core.errors import ConfigError, show
+from acoustlab.toolkit.input_uncertainty import InputUncertainty
+
+log = logging.getLogger(__name__)
+
+#: The mics table's column: each mic's horizontal position error per axis, m (0 for a surveyed mic).
+SIGMA_COLUMN = "position_sigma_m"
+
+
+def mic_position_sigmas(mics_table: pd.DataFrame | None, n_mics: int) -> np.ndarray | None:
+    """(M,) each mic's stated horizontal error per axis from the mics table, m; None where it states none.
+
+    Raises
+    ------
+    ConfigError
+        Naming the line and the value, for a value that is not a number ≥ 0.
+    """
+    if mics_table is None or SIGMA_COLUMN not in mics_table or len(mics_table) != n_mics:
+        return None
+    given = pd.to_numeric(mics_table[SIGMA_COLUMN], errors="coerce").to_numpy(float)
+    bad = ~np.isfinite(given) | (given < 0)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ConfigError(
+            f"field.mics_csv, line {i + 2}, column '{SIGMA_COLUMN}': {show(mics_table[SIGMA_COLUMN].iloc[i])} "
+            "is not a number >= 0 (m; 0 for a surveyed mic)"
+        )
+    return given
+
+
+def mics_table_of(field_source: FieldSource | None) -> pd.DataFrame | None:
+    """The field source's mics table (``tables()[0]``), or None where it has none (a simulated field)."""
+    tables = hook(field_source, "tables") if field_source is not None else None
+    return tables()[0] if tables is not None else None
+
+
+def survey_allowance(stated: InputUncertainty, mics_table: pd.DataFrame | None, n_mics: int) -> InputUncertainty:
+    """The radii's input allowance of an uncalibrated array: the mics table's survey error where the config states none.
+
+    ``conformal.input_uncertainty.mic_position_m`` given (> 0) is kept; else the largest of the
+    table's ``position_sigma_m`` (a mic's error moves every fix that uses it; the largest is the one
+    a radius must carry). A table without the column leaves the positions exact and says so in one
+    line: a consumer GPS is metres off, and radii that take its positions as exact are too small.
+    Without a mics table (a simulated field) nothing changes.
+    """
+    if stated.mic_position_m > 0 or mics_table is None:
+        return stated
+    sigmas_m = mic_position_sigmas(mics_table, n_mics)
+    if sigmas_m is None:
+        log.warning(
+            "the mics' positions are taken as exact (no %s in the mics table, conformal.input_uncertainty.mic_position_m=0): "
+            "if they come from a GPS (metres off), the radii are too small; give each mic's %s, or calibrate "
+            "the array with playbacks (docs/calibrate.md)",
+            SIGMA_COLUMN,
+            SIGMA_COLUMN,
+        )
+        return stated
+    largest = float(np.max(sigmas_m)) if sigmas_m.size else 0.0
+    if largest > 0:
+        log.info(
+            "no calibration: the radii carry the mics table's survey error, %s up to %.2f m per axis "
+            "(conformal.input_uncertainty.mic_position_m=%.2f; calibrate the array with playbacks to shrink it)",
+            SIGMA_COLUMN,
+            largest,
+            largest,
+        )
+    return dataclasses.replace(stated, mic_position_m=largest)
