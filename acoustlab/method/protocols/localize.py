@@ -55,7 +55,7 @@ class LocalizeProtocol:
         self.max_train_rows = int(max_train_rows)
         self.seed = int(seed)
         self.calibration_fraction = float(calibration_fraction)
-        #: the method the last ``run`` fitted (``acoustlab.api.localize(..., return_method=True)`` reuses it)
+        #: the method the last ``fit_and_place`` fitted (``acoustlab.api.localize(..., return_method=True)`` returns it)
         self.fitted: FittedLocalizer | None = None
 
     def run_job(self, context: RunContext, run_dir: Path) -> dict[str, Any]:
