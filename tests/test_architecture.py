@@ -180,11 +180,11 @@ def test_no_protocol_implements_a_contract_by_raising():
 
 
 def test_the_app_dispatches_once_on_the_kind_of_job():
-    """``run_experiment`` tells a job from an evaluation once, by its contract; ``run/app.py`` reads no other property
-    of the protocol than what it needs before the context is built (recordings, an assumed weather)."""
+    """``run_experiment`` tells a job from an evaluation once, by its contract; ``run/app.py`` reads one other property
+    of the protocol, before the context is built: whether it needs recordings (two branches on the kind of job in all)."""
     text = (PACKAGE / "run" / "app.py").read_text()
     assert text.count("isinstance(protocol, Job)") == 1
-    assert sorted(set(__import__("re").findall(r'declared\(protocol, "(\w+)"\)', text))) == ["assumes_weather", "needs_field"]
+    assert __import__("re").findall(r'declared\(protocol, "(\w+)"\)', text) == ["needs_field"]
 
 
 def test_positions_are_made_in_one_place():

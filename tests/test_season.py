@@ -391,7 +391,8 @@ def test_a_season_with_calibration_places_calls_with_the_calibrated_array(tmp_pa
     from acoustlab.run.app import build_run
     from acoustlab.stages.field_calibration import load_calibration
 
-    carried = build_run(configure(f"calibration={path}", "conformal.input_uncertainty.temperature_c=1.5")).components.input_uncertainty
+    built = build_run(configure(f"calibration={path}", "conformal.input_uncertainty.temperature_c=1.5"))
+    carried = built.protocol.with_assumed_weather(built.context).components.input_uncertainty
     from_file = load_calibration(str(path), site).input_uncertainty().covariance
     assert carried.covariance[0, 0] == pytest.approx(from_file[0, 0] + 1.5**2)
     np.testing.assert_array_equal(carried.covariance[1:, 1:], from_file[1:, 1:])

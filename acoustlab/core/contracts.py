@@ -33,9 +33,6 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
     "needs_hull_distance": False,
     # protocols and jobs: needs field recordings (checked in the preflight)
     "needs_field": False,
-    # jobs: gives every detection one assumed temperature, not a thermometer's reading (protocol=season): a field
-    # calibration's input allowance keeps conformal.input_uncertainty.temperature_c as that assumption's error
-    "assumes_weather": False,
     # simulators and feature sets: bumped by hand to invalidate cached results of an unchanged module
     "cache_version": "0",
     # trackers: the id of the last run sent and where it went (for the upload marker)
@@ -330,7 +327,7 @@ class Job(Protocol):
 
     ``context`` is an ``acoustlab.method.run_context.RunContext`` (typed loosely: this layer is below it): the site,
     the configured plugins, the cache, the field source, the calibration and plain settings. May declare
-    ``needs_field`` and ``assumes_weather`` and define the hooks ``validate(site)`` and ``config_patch(site, field_source, config)``.
+    ``needs_field`` and define the hooks ``validate(site)`` and ``config_patch(site, field_source, config)``.
     """
 
     def run_job(self, context: Any, run_dir: Path) -> dict[str, Any]:

@@ -174,7 +174,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
     if cfg.get("calibration"):  # after the recordings were checked against the stated array
         calibration = load_calibration(str(cfg.calibration), site)
         stated_site, site = site, calibrated_site(site, calibration)
-        allowance = calibrated_allowance(calibration, stated_site, components.input_uncertainty, declared(protocol, "assumes_weather"))
+        allowance = calibrated_allowance(calibration, stated_site, components.input_uncertainty)
         components = dataclasses.replace(components, site=site, input_uncertainty=allowance)
     components = dataclasses.replace(components, placement=placement_rules(cfg, field_source, calibration))
     settings = run_settings(cfg, site, choices)
@@ -273,11 +273,9 @@ def placement_rules(cfg: DictConfig, field_source: Any, calibration: FieldCalibr
     )
 
 
-def calibrated_allowance(
-    calibration: FieldCalibration, stated_site: Site, stated: InputUncertainty, assumes_weather: bool = False
-) -> CorrelatedInputErrors:
-    """The radii's input allowance under ``calibration=PATH``: its covariance, with ``stated``'s limits (and thermometer σ where
-    the job assumes the weather, ``assumes_weather``); logs what the calibration changes."""
+def calibrated_allowance(calibration: FieldCalibration, stated_site: Site, stated: InputUncertainty) -> CorrelatedInputErrors:
+    """The radii's input allowance under ``calibration=PATH``: its covariance, with ``stated``'s limits; logs what the
+    calibration changes. A job that assumes the weather adds its thermometer σ itself (the season)."""
     log.info(
         "calibration %s (%s…): mics moved up to %.2f m, thermometer offset %+.2f °C, clock offsets up to %.3g ms; its "
         "covariance is the radii's input allowance in place of conformal.input_uncertainty's standard deviations",
@@ -287,14 +285,8 @@ def calibrated_allowance(
         calibration.temperature_offset_c,
         1e3 * float(np.abs(calibration.clock_offset_s).max()),
     )
-    # a season reads no thermometer: its one assumed temperature stays off the air by the stated σ
-    assumed_sd_c = stated.temperature_c if assumes_weather else 0.0
-    if assumed_sd_c:
-        log.info("the season assumes one temperature for every detection: the allowance keeps its %.2g °C error", assumed_sd_c)
     # the stated exact_above_m and max_sigma_m still apply
-    return dataclasses.replace(
-        calibration.input_uncertainty(assumed_sd_c), exact_above_m=stated.exact_above_m, max_sigma_m=stated.max_sigma_m
-    )
+    return dataclasses.replace(calibration.input_uncertainty(0.0), exact_above_m=stated.exact_above_m, max_sigma_m=stated.max_sigma_m)
 
 
 @dataclass

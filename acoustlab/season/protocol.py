@@ -93,8 +93,6 @@ def without_thread_counts(node: Any) -> Any:
 class SeasonLocalize:
     """Localize a season (see the module docstring); settings as in ``conf/protocol/season.yaml``."""
 
-    assumes_weather = True
-
     def __init__(
         self,
         recordings: dict[str, Any],
@@ -334,6 +332,7 @@ class SeasonLocalize:
         log.info("season folder: %s (the same command resumes it; protocol.output_dir=… chooses another)", folder)
         if context.calibration is not None:
             self.warn_about_calibration(context.calibration)
+            context = self.with_assumed_weather(context)
         started = time.perf_counter()
         metrics: dict[str, Any] = {"season": {"output_dir": str(folder), "stage": self.stage}}
         if self.stage in ("fit", "all"):
@@ -362,6 +361,18 @@ class SeasonLocalize:
         metrics.update(context.settings.record)
         write_metrics(run_dir, metrics)
         return metrics
+
+    def with_assumed_weather(self, context: RunContext) -> RunContext:
+        """The context with the radii's calibrated allowance keeping the thermometer σ (``conformal.input_uncertainty.
+        temperature_c``): a season reads no thermometer, so its one assumed temperature stays off the air by that much."""
+        stated_sd_c = float(context.settings.config["conformal"]["input_uncertainty"]["temperature_c"])
+        calibrated = context.components.input_uncertainty
+        allowance = dataclasses.replace(
+            context.calibration.input_uncertainty(stated_sd_c), exact_above_m=calibrated.exact_above_m, max_sigma_m=calibrated.max_sigma_m
+        )
+        if stated_sd_c:
+            log.info("the season assumes one temperature for every detection: the allowance keeps its %.2g °C error", stated_sd_c)
+        return dataclasses.replace(context, components=dataclasses.replace(context.components, input_uncertainty=allowance))
 
     def warn_about_calibration(self, calibration: FieldCalibration) -> None:
         """What a season must know of a field calibration: its offset lands on one assumed temperature, and drift is counted
