@@ -67,6 +67,7 @@ from acoustlab.season.stream import (
     write_manifest,
 )
 from acoustlab.stages.field_calibration import FieldCalibration
+from acoustlab.toolkit.input_uncertainty import InputUncertainty
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 from acoustlab.toolkit.quality import QualityThresholds
 
@@ -365,7 +366,7 @@ class SeasonLocalize:
     def with_assumed_weather(self, context: RunContext) -> RunContext:
         """The context with the radii's calibrated allowance keeping the thermometer σ (``conformal.input_uncertainty.
         temperature_c``): a season reads no thermometer, so its one assumed temperature stays off the air by that much."""
-        stated_sd_c = float(context.settings.config["conformal"]["input_uncertainty"]["temperature_c"])
+        stated_sd_c = InputUncertainty(**context.settings.config["conformal"]["input_uncertainty"]).temperature_c
         calibrated = context.components.input_uncertainty
         allowance = dataclasses.replace(
             context.calibration.input_uncertainty(stated_sd_c), exact_above_m=calibrated.exact_above_m, max_sigma_m=calibrated.max_sigma_m
