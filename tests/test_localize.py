@@ -324,3 +324,18 @@ def test_localize_on_gps_surveyed_mics_widens_the_radii_and_records_the_allowanc
     radius = "radius_gdop_scaled_0.95_m"
     assert placed.any() and (gps[radius][placed] > exact[radius][placed]).all()
     pd.testing.assert_series_equal(gps["x_m"], exact["x_m"])  # the positions themselves do not move
+
+
+@pytest.mark.slow
+def test_text_spot_ids_from_plan_playbacks_calibrate_the_radii_as_numbers_do(compose_cfg, tmp_path):
+    """``plan_playbacks`` names its spots ``spot_01`` …: an events table with those ids places every detection exactly as
+    the same table with numbered spots."""
+    _, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 10, known=6)
+    events_csv = tmp_path / "recordings" / "events.csv"
+    numbered, _, _ = localize(compose_cfg, tmp_path / "numbers", *overrides)
+    events = pd.read_csv(events_csv)
+    events["position_id"] = [f"spot_{k + 1:02d}" if k < 6 else "" for k in range(len(events))]
+    events.to_csv(events_csv, index=False)
+    named, metrics, _ = localize(compose_cfg, tmp_path / "names", *overrides)
+    assert metrics["training"]["n_calibration_playbacks"] > 0
+    pd.testing.assert_frame_equal(named, numbered)

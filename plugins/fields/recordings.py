@@ -113,6 +113,23 @@ def _read(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataFrame
     return table
 
 
+def _number_text_spots(events: pd.DataFrame) -> None:
+    """Text spot ids (``spot_01``, as ``plan_playbacks`` names them) numbered in order of first appearance, in place; a
+    row without one (a detection of unknown position) gets a number of its own after them. A column of numbers is left
+    as it is."""
+    if col.POSITION_ID not in events:
+        return
+    raw = events[col.POSITION_ID]
+    given = raw.notna() & (raw.astype(str).str.strip() != "")
+    if pd.to_numeric(raw[given], errors="coerce").notna().all():
+        return
+    codes, _ = pd.factorize(raw[given].astype(str).str.strip())
+    numbered = np.empty(len(events), dtype=np.int64)
+    numbered[given.to_numpy()] = codes
+    numbered[~given.to_numpy()] = codes.max(initial=-1) + 1 + np.arange(int((~given).sum()))
+    events[col.POSITION_ID] = numbered
+
+
 def _numeric(
     table: pd.DataFrame, field: str, columns: tuple[str, ...], finite: bool = True, lower: float | None = None, upper: float | None = None
 ) -> None:
@@ -282,6 +299,7 @@ class RecordingFolder:
             _unique(events, "events_csv", col.EVENT_ID)
             events[EVENT_NAME] = events[col.EVENT_ID]
             events[col.EVENT_ID] = np.arange(len(events))
+        _number_text_spots(events)
         _numeric(events, "events_csv", (col.EVENT_ID, col.START, col.END, col.POSITION_ID))
         _numeric(events, "events_csv", (col.TRUE_X, col.TRUE_Y, col.TRUE_Z), finite=False)
         _numeric(events, "events_csv", (col.TEMPERATURE,), lower=-60.0, upper=60.0)
