@@ -506,7 +506,13 @@ def summary_text(metrics: dict) -> str:
     lines.append(
         f"{col.METRICS_COVERAGE:<{ws}}" + "".join(f"{'@' + lv:>10}" for lv in levels) + f"{'radius@' + levels[-1]:>14}" if levels else ""
     )
+    by_position = metrics.get(col.METRICS_COVERAGE_BY_POSITION, {})
     for scorer, by in metrics[col.METRICS_COVERAGE].items():
         width = metrics[col.METRICS_WIDTH][scorer][levels[-1]]["median_m"]
         lines.append(f"{scorer:<{ws}}" + "".join(f"{by[lv]:>10.3f}" for lv in levels) + f"{num(width) + ' m':>14}")
+        if scorer in by_position:  # the guarantee's unit is the position: its mean coverage over positions beside
+            cells = "".join(f"{by_position[scorer][lv]['mean']:>10.3f}" if lv in by_position[scorer] else f"{'-':>10}" for lv in levels)
+            lines.append(f"{'  per position':<{ws}}" + cells)
+    if by_position:
+        lines.append("  coverage per detection; per position: the mean over source positions of each position's coverage")
     return "\n".join(lines)
