@@ -4,7 +4,7 @@
 ``FittedLocalizer.place`` (or ``place_solved`` where the solver stage already ran, as for the
 recordings ``localize`` also trains on), so what a positions row holds is defined here once:
 
-1. the solver stage (``PlacementRules.solve``): weak recorders left out, the field calibration's
+1. the solver stage (``solve_detections`` under ``Components.placement``): weak recorders left out, the field calibration's
    thermometer and clocks applied, the solver's columns under the plausible-region bound;
 2. the fitted method's predictions (``FittedMethod.predict``);
 3. the predictions as a localization reports them (``without_truth``: no errors, the detections'

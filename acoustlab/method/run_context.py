@@ -61,10 +61,9 @@ class RunContext:
 
     Attributes
     ----------
-    site : Site
-        The array the method is trained for: the calibrated array under ``calibration=PATH``.
     components : Components
-        The configured, never-fitted plugins and the method's settings (placement rules included).
+        The configured, never-fitted plugins and the method's settings (placement rules included); ``site`` and
+        ``calibration`` are theirs.
     simulator : Simulator
         The site's simulator.
     cache : StageCache
@@ -75,21 +74,27 @@ class RunContext:
         Plain settings (cache keys, sample rate, output folder, plots).
     field_source : FieldSource, optional
         The field recordings (jobs that need them).
-    calibration : FieldCalibration, optional
-        ``calibration=PATH``: the field calibration applied to the site and the recordings.
     stated_site : Site, optional
         The site as the config states it, where ``site`` is its calibration (the recordings are read for it).
     """
 
-    site: Site
     components: Components
     simulator: Simulator
     cache: StageCache
     plan: SimulationPlan
     settings: RunSettings
     field_source: FieldSource | None = None
-    calibration: FieldCalibration | None = None
     stated_site: Site | None = None
+
+    @property
+    def site(self) -> Site:
+        """The array the method is trained for: the calibrated array under ``calibration=PATH``."""
+        return self.components.site
+
+    @property
+    def calibration(self) -> FieldCalibration | None:
+        """``calibration=PATH``: the field calibration applied to the site and the recordings, or None."""
+        return self.components.placement.calibration
 
     @property
     def feature_sets(self) -> dict[str, FeatureSet]:

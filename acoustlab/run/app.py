@@ -178,7 +178,7 @@ def build_run(cfg: DictConfig, choices: dict[str, str] | None = None) -> BuiltRu
         components = dataclasses.replace(components, site=site, input_uncertainty=allowance)
     components = dataclasses.replace(components, placement=placement_rules(cfg, field_source, calibration))
     settings = run_settings(cfg, site, choices)
-    context = RunContext(site, components, simulator, cache, plan, settings, field_source, calibration, stated_site)
+    context = RunContext(components, simulator, cache, plan, settings, field_source, stated_site)
     return BuiltRun(context, protocol, tracker)
 
 

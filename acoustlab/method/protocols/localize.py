@@ -30,6 +30,7 @@ from acoustlab.reporting.positions import localization_summary, positions_summar
 from acoustlab.reporting.run_files import plot_and_time, quality_flag_counts, write_results
 from acoustlab.stages.dataset import Dataset
 from acoustlab.stages.mic_survey import mics_table_of, survey_allowance
+from acoustlab.toolkit.input_uncertainty import InputUncertainty
 
 log = logging.getLogger(__name__)
 
@@ -68,15 +69,13 @@ class LocalizeProtocol:
         field_data = field_dataset(context)
         timings = {"data_s": time.perf_counter() - started}
         stage_start = time.perf_counter()
-        components = context.components
+        components, stated = context.components, None
         if context.calibration is None:  # the radii carry the mics table's stated survey error (a calibration's replaces it)
-            allowance = survey_allowance(components.input_uncertainty, mics_table_of(context.field_source), context.site.n_mics)
-            components = dataclasses.replace(components, input_uncertainty=allowance)
+            stated = survey_allowance(components.input_uncertainty, mics_table_of(context.field_source), context.site.n_mics)
+            components = dataclasses.replace(components, input_uncertainty=stated)
         result = self.fit_and_place(dataset, LocalizationPipeline(components), field_data)
         timings["models_s"] = time.perf_counter() - stage_start
-        if context.calibration is None:  # what the radii assume of the inputs (a calibration's summary says it otherwise)
-            result.split_diagnostics[0]["input_allowance"] = dataclasses.asdict(components.input_uncertainty)
-        return write_localization(context, run_dir, result, dataset, field_data, timings, started)
+        return write_localization(context, run_dir, result, dataset, field_data, timings, started, stated)
 
     def fit_and_place(self, dataset: Dataset, pipeline: LocalizationPipeline, field_recordings: Dataset | None = None) -> MethodResult:
         """Fit on the simulation (and the playbacks with known positions); place every field detection without one.
@@ -124,9 +123,11 @@ def write_localization(
     field_data: Dataset,
     timings: dict[str, float],
     started: float,
+    input_allowance: InputUncertainty | None = None,
 ) -> dict[str, Any]:
     """A run without ground truth: positions.csv / .parquet, predictions, metrics.json (a summary instead of error metrics),
-    and a map; returns the metrics."""
+    and a map; returns the metrics. ``input_allowance``: the stated input errors the radii carry, recorded where no
+    calibration states them (its summary does)."""
     table, predictions, c = result.positions, result.predictions, context.components
     levels, scorers = c.levels, list(c.scorers)
     atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
@@ -135,12 +136,12 @@ def write_localization(
     for split in result.split_diagnostics:
         if "training" in split:  # simulated events and calibration playbacks the method was fitted on
             metrics["training"] = split["training"]
-        if "input_allowance" in split:  # the stated input errors the radii carry (m, °C, s)
-            metrics["input_allowance"] = split.pop("input_allowance")
         held_out = split.pop("held_out_calibration", None)
         if held_out is not None:  # the radii tested on the calibration playbacks, each spot held out
             metrics["held_out_calibration"] = held_out_calibration_summary(held_out, levels, scorers)
             _log_held_out(metrics["held_out_calibration"])
+    if input_allowance is not None:  # m, °C, s
+        metrics["input_allowance"] = dataclasses.asdict(input_allowance)
     if col.QUALITY_FLAGS in predictions:
         metrics[col.QUALITY_FLAGS] = quality_flag_counts(predictions)
     record = context.settings.record
