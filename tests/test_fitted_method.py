@@ -60,34 +60,60 @@ def test_a_position_on_both_sides_is_refused(compose_cfg, tmp_path):
         LocalizationPipeline(built.components).fit_predict(data.features, data.events, rows, rows[:5])
 
 
-def test_a_method_is_loaded_only_with_this_user_s_signature(tmp_path, monkeypatch):
-    """Unpickling runs code: a method file and digest replaced together (a received or tampered folder) are refused before
-    anything is unpickled; the same folder loads with the key that wrote it."""
+class _Payload:
+    """What an attacker would ship: an object that creates a file when it is rebuilt (unpickled or loaded)."""
+
+    target = ""
+
+    def __reduce__(self):
+        return (open, (self.target, "w"))
+
+    def __setstate__(self, state):
+        open(state["target"], "w").close()
+
+
+def _forge(folder, blob: bytes) -> str:
+    """Replace a saved method's file with ``blob`` and its recorded digest with the blob's, as a forger would."""
     import hashlib
     import json
+
+    from acoustlab.method.saved import DIGEST_FILE, METHOD_FILE
+
+    (folder / METHOD_FILE).write_bytes(blob)
+    record = json.loads((folder / DIGEST_FILE).read_text())
+    record["sha256"] = hashlib.sha256(blob).hexdigest()
+    (folder / DIGEST_FILE).write_text(json.dumps(record))
+    return record["sha256"]
+
+
+def test_a_forged_method_file_is_refused_before_anything_in_it_runs(tmp_path):
+    """No code runs when a method is loaded, whoever wrote the folder: a pickle, a foreign class and a function named in
+    the file are refused in one line with its digest updated too; a method saved elsewhere loads with no key."""
     import pickle
 
-    from acoustlab.core.errors import DataError
-    from acoustlab.method.saved import DIGEST_FILE, METHOD_FILE, load_method, method_key_path, save_method
+    import skops.io as sio
 
-    monkeypatch.setenv("ACOUSTLAB_KEY_FILE", str(tmp_path / "mine.key"))
-    digest = save_method({"a fitted": "method"}, tmp_path / "run", "config-key")
-    assert load_method(tmp_path / "run", digest) == {"a fitted": "method"}
-    assert method_key_path().stat().st_mode & 0o777 == 0o600
+    from acoustlab.core.files import atomic_write_bytes
+    from acoustlab.method.saved import load_method, save_method
 
-    class Payload:  # what an attacker would ship: code that runs when unpickled
-        def __reduce__(self):
-            return (open, (str(tmp_path / "pwned"), "w"))
-
-    evil = pickle.dumps(Payload())
-    (tmp_path / "run" / METHOD_FILE).write_bytes(evil)
-    record = json.loads((tmp_path / "run" / DIGEST_FILE).read_text())
-    record["sha256"] = hashlib.sha256(evil).hexdigest()  # the digest beside it updated too
-    (tmp_path / "run" / DIGEST_FILE).write_text(json.dumps(record))
-    with pytest.raises(DataError, match="was not written with this user's key"):
-        load_method(tmp_path / "run", record["sha256"])
-    assert not (tmp_path / "pwned").exists()
-    save_method({"a fitted": "method"}, tmp_path / "theirs", "config-key")
-    monkeypatch.setenv("ACOUSTLAB_KEY_FILE", str(tmp_path / "someone_else.key"))  # a folder made by another user
-    with pytest.raises(DataError, match="fit again"):
-        load_method(tmp_path / "theirs")
+    digest = save_method({"a fitted": np.arange(3)}, tmp_path / "run", "config-key")
+    np.testing.assert_array_equal(load_method(tmp_path / "run", digest)["a fitted"], np.arange(3))
+    pwned = tmp_path / "pwned"
+    payload = _Payload()
+    payload.target = str(pwned)
+    forged = {
+        "pickle": (pickle.dumps(payload), "not a saved acoustlab method"),
+        "class": (sio.dumps({"a fitted": payload}), "names types a saved method never holds.*_Payload"),
+        "function": (sio.dumps({"a fitted": atomic_write_bytes}), "never holds.*acoustlab.core.files.atomic_write_bytes"),
+    }
+    for name, (blob, message) in forged.items():
+        sha = _forge(tmp_path / "run", blob)
+        with pytest.raises(DataError, match=message):
+            load_method(tmp_path / "run", sha)
+        assert not pwned.exists(), name
+    sha = _forge(tmp_path / "run", b"")  # edited in place: the season's manifest still names the written digest
+    with pytest.raises(DataError, match="differs from the expected"):
+        load_method(tmp_path / "run", digest)
+    # the premise: trusting what the file names would have run the payload
+    sio.loads(forged["class"][0], trusted=sio.get_untrusted_types(data=forged["class"][0]))
+    assert pwned.exists()

@@ -1,6 +1,7 @@
 """protocol=season end to end on a synthetic season: positions near the truth, sharded == unsharded, resumable, verified method."""
 
 import json
+import logging
 import os
 import shutil
 import signal
@@ -467,10 +468,10 @@ def test_the_detector_tables_are_read_once_and_kept_compact(season, tmp_path, mo
 
 
 @pytest.mark.slow
-def test_a_season_folder_with_an_attacker_s_method_runs_no_code(season, compose_cfg, tmp_path):
+def test_a_season_folder_with_an_attacker_s_method_runs_no_code(season, compose_cfg, tmp_path, caplog):
     """A received or tampered season folder whose method is replaced by a pickle that would create a file, with every digest
     beside it (method.sha256.json, season.json) updated to match: the season stops in one line and the file is never made
-    (the method must carry this user's signature before anything is unpickled)."""
+    (a saved method is read without running code, whoever wrote it); ``protocol.stage=fit`` fits it again."""
     import hashlib
     import pickle
 
@@ -493,7 +494,13 @@ def test_a_season_folder_with_an_attacker_s_method_runs_no_code(season, compose_
     (folder / DIGEST_FILE).write_text(json.dumps({**record, "sha256": digest}))
     manifest = json.loads((folder / MANIFEST).read_text())
     (folder / MANIFEST).write_text(json.dumps({**manifest, "method_sha256": digest}))
-    cfg = compose_cfg(season_overrides(root, folder, f"paths.outputs_dir={tmp_path / 'outputs'}"))
-    with pytest.raises(DataError, match="key"):
-        run_experiment(cfg, tmp_path / "run")
+    overrides = season_overrides(root, folder, f"paths.outputs_dir={tmp_path / 'outputs'}")
+    with pytest.raises(DataError, match="not a saved acoustlab method"):
+        run_experiment(compose_cfg([*overrides, "protocol.stage=localize"]), tmp_path / "run")
+    assert not created.exists()
+    # the fit stage fits a method it cannot load again (one warning), and the season then runs with it
+    with caplog.at_level(logging.WARNING, logger="acoustlab.season"):
+        run_experiment(compose_cfg(overrides), tmp_path / "refit")
+    assert "is not used" in caplog.text and "fitting it again" in caplog.text
+    assert load_method(folder, json.loads((folder / MANIFEST).read_text())["method_sha256"]) is not None
     assert not created.exists()

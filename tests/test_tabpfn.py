@@ -43,6 +43,29 @@ def test_error_model_predicts_a_positive_quantile(tiny_checkpoint):
     assert (err.predict(x[:10]) > 0).all()
 
 
+def test_a_saved_tabpfn_model_holds_no_torch_object_and_predicts_the_same(tiny_checkpoint, tmp_path):
+    """Saved as settings and training rows (no torch object, nothing run on load), refitted on first use: the same
+    predictions bit for bit; a checkpoint replaced since the fit is named in one line."""
+    import shutil
+
+    from acoustlab.core.errors import DataError
+    from acoustlab.method.saved import load_method, save_method
+
+    x, y = data()
+    ckpt = tmp_path / "weights.ckpt"
+    shutil.copy(tiny_checkpoint, ckpt)
+    model = TabPFNErrorModel(model_path=str(ckpt), n_estimators=1, device="cpu").fit(x[:100], np.abs(y[:100]))
+    digest = save_method(model, tmp_path / "method", "key")
+    loaded = load_method(tmp_path / "method", digest)
+    assert getattr(loaded, "regressor_", None) is None  # what was saved holds no TabPFN regressor
+    np.testing.assert_array_equal(loaded.predict(x[100:]), model.predict(x[100:]))
+    from plugins.models.tabpfn_checkpoint import build_random_checkpoint
+
+    build_random_checkpoint(ckpt, seed=1)  # other weights under the same name
+    with pytest.raises(DataError, match="not the one this method was fitted with"):
+        load_method(tmp_path / "method", digest).predict(x[100:])
+
+
 def test_clone_and_row_cap(tiny_checkpoint):
     from sklearn.base import clone
 

@@ -1,87 +1,69 @@
-"""A fitted method saved once and loaded by every shard of a run, signed with this user's key.
+"""A fitted method saved once and loaded by every shard of a run, without running code from the file.
 
-The fitted method holds scikit-learn, XGBoost (and TabPFN) estimators, which have no safe
-serialisation format of their own that keeps every plugin; it is written with ``joblib``
-(pickle), and unpickling runs code from the file. So a method is loaded only when it carries an
-HMAC-SHA-256 made with this user's secret key (``method_key_path``, created on first use, readable
-by its owner only): a digest stored beside the file proves nothing, since whoever replaces the file
-can replace the digest. A folder received from someone else, or edited, is refused before anything
-is unpickled; fit again. Shards on other machines of a cluster share the key through the home folder
-(or ``ACOUSTLAB_KEY_FILE``).
+The method is written with skops (``skops.io``), which stores objects as a tree of their types and
+attributes and rebuilds only the types it is told to trust, where pickle would call whatever
+function the file names. acoustlab trusts skops' defaults (scikit-learn's estimators, numpy, the
+builtin containers), the classes of its own packages (``acoustlab``, ``plugins``) and the few
+scikit-learn and XGBoost types a fitted method holds (``TRUSTED_TYPES``; XGBoost's boosters are
+stored in XGBoost's own model format). A file naming any other type is refused before anything is
+built, in one line naming the types, so a season folder received from someone else, or edited, is
+safe to load whoever wrote it. Nothing needs a key. The SHA-256 beside the file (and in the
+season's manifest) catches a file that changed after it was written (integrity, not authorship).
+
+TabPFN's fitted state is its training rows: its models keep them and are fitted again on them
+when first used after loading (``plugins.models.tabpfn_models``), from the checkpoint they were
+fitted with (its SHA-256 checked).
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
-import io
+import importlib
 import json
-import os
-import secrets
 from pathlib import Path
 from typing import Any
-
-import joblib
 
 from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import DataError
 from acoustlab.core.files import atomic_write_bytes
 
-METHOD_FILE = "method.joblib"
+METHOD_FILE = "method.skops"
 DIGEST_FILE = "method.sha256.json"
-
-
-def method_key_path() -> Path:
-    """Where this user's signing key lives: ``$ACOUSTLAB_KEY_FILE``, else ``$XDG_CONFIG_HOME/acoustlab/method.key``
-    (``~/.config/acoustlab/method.key``)."""
-    given = os.environ.get("ACOUSTLAB_KEY_FILE")
-    if given:
-        return Path(given).expanduser()
-    config = Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config")
-    return config / "acoustlab" / "method.key"
-
-
-def _signing_key() -> bytes:
-    """This user's secret key, created (32 random bytes, mode 0600) the first time a method is saved or loaded.
-
-    It is written to a private temporary file and linked into place, so a process that finds the key
-    file always finds it whole, whichever of several processes made it.
-    """
-    path = method_key_path()
-    if not path.is_file():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        draft = path.with_name(f".{path.name}.{os.getpid()}.draft")
-        descriptor = os.open(draft, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(descriptor, "wb") as handle:
-            handle.write(secrets.token_bytes(32))
-        try:
-            os.link(draft, path)
-        except FileExistsError:  # another process made it first: use theirs
-            pass
-        finally:
-            draft.unlink()
-    return path.read_bytes()
-
-
-def _signature(path: Path) -> str:
-    """HMAC-SHA-256 of a file's bytes under this user's key."""
-    mac = hmac.new(_signing_key(), digestmod=hashlib.sha256)
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            mac.update(block)
-    return mac.hexdigest()
+#: Types outside skops' defaults and acoustlab's own packages that a fitted method holds.
+TRUSTED_TYPES = frozenset(
+    {
+        "sklearn.metrics._dist_metrics.EuclideanDistance64",
+        "sklearn.neighbors._kd_tree.KDTree",
+        "xgboost.core.Booster",
+        "xgboost.sklearn.XGBRegressor",
+        "xgboost.sklearn.XGBClassifier",
+    }
+)
+#: Packages whose classes a saved method may hold (acoustlab's own).
+OWN_PACKAGES = ("acoustlab", "plugins")
 
 
 def save_method(method: Any, directory: Path, key: str) -> str:
-    """Write ``method`` to ``directory/method.joblib`` with its digest, its signature and ``key`` (what it was fitted from);
-    return the digest."""
+    """Write ``method`` to ``directory/method.skops`` with its digest and ``key`` (what it was fitted from); return the digest.
+
+    Raises
+    ------
+    DataError
+        When the method holds a type ``load_method`` would refuse (a plugin holding an object
+        skops cannot store): saved, it could not be loaded.
+    """
+    import skops.io as sio
+
+    blob = sio.dumps(method)
+    refused = _refused_types(sio.get_untrusted_types(data=blob))
+    if refused:
+        raise DataError(
+            f"the fitted method holds {', '.join(refused)}, which a saved method may not hold (acoustlab.method.saved."
+            "TRUSTED_TYPES): a plugin keeps an object that cannot be stored without running code on load"
+        )
     directory.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    joblib.dump(method, buffer, compress=3)
-    atomic_write_bytes(directory / METHOD_FILE, buffer.getvalue())
+    atomic_write_bytes(directory / METHOD_FILE, blob)
     digest = file_sha256(directory / METHOD_FILE)
-    record = {"sha256": digest, "key": key, "hmac_sha256": _signature(directory / METHOD_FILE)}
-    atomic_write_bytes(directory / DIGEST_FILE, json.dumps(record, indent=2).encode())
+    atomic_write_bytes(directory / DIGEST_FILE, json.dumps({"sha256": digest, "key": key}, indent=2).encode())
     return digest
 
 
@@ -93,25 +75,28 @@ def saved_info(directory: Path) -> dict[str, str] | None:
     try:
         info = json.loads(path.read_text())
         return {"sha256": str(info["sha256"]), "key": str(info["key"])}
-    except (ValueError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError, RecursionError):
         return None
 
 
 def load_method(directory: Path, expected_sha256: str | None = None) -> Any:
-    """The method saved in ``directory``, after checking the file's SHA-256 against the recorded one (and ``expected_sha256``).
+    """The method saved in ``directory``, after checking the file's SHA-256 against the recorded one (and ``expected_sha256``)
+    and every type it names against the trusted ones.
 
     Raises
     ------
     DataError
-        Naming the file, when it is missing or its digest differs (changed since it was written).
+        Naming the file, when it is missing, changed since it was written, names a type that is not
+        trusted, or is not a saved method.
     """
+    import skops.io as sio
+
     path = directory / METHOD_FILE
     if not path.is_file():
         raise DataError(f"no fitted method at {path}: run the fit stage first (protocol.stage=fit)")
     try:
-        record = json.loads((directory / DIGEST_FILE).read_text())
-        recorded = record["sha256"]
-    except (OSError, ValueError, KeyError, TypeError):
+        recorded = json.loads((directory / DIGEST_FILE).read_text())["sha256"]
+    except (OSError, ValueError, KeyError, TypeError, RecursionError):
         raise DataError(
             f"{directory / DIGEST_FILE} is missing or unreadable: the fitted method {path} cannot be verified; fit again"
         ) from None
@@ -122,9 +107,32 @@ def load_method(directory: Path, expected_sha256: str | None = None) -> Any:
                 f"{path}: SHA-256 {actual[:12]}… differs from the {'recorded' if wanted == recorded else 'expected'} "
                 f"{wanted[:12]}…; the file changed after it was written, refusing to load it (fit again)"
             )
-    if not hmac.compare_digest(str(record.get("hmac_sha256", "")), _signature(path)):
-        raise DataError(
-            f"{path} was not written with this user's key ({method_key_path()}): loading a method runs code, so acoustlab "
-            "loads only methods it saved itself; fit again (protocol.stage=fit), or give shards on other machines that key file"
-        )
-    return joblib.load(path)
+    blob = path.read_bytes()
+    try:
+        untrusted = sio.get_untrusted_types(data=blob)
+    except Exception as exc:  # skops raises what its zip and JSON readers raise on a file that is not its own
+        raise DataError(f"{path}: not a saved acoustlab method ({type(exc).__name__}: {exc}); fit again") from None
+    refused = _refused_types(untrusted)
+    if refused:
+        raise DataError(f"{path} names types a saved method never holds ({', '.join(refused)}): refusing to load it; fit again")
+    try:
+        return sio.loads(blob, trusted=untrusted)
+    except Exception as exc:  # a trusted type whose stored state does not fit it: a file of another acoustlab version
+        raise DataError(f"{path}: cannot be loaded by this version of acoustlab ({type(exc).__name__}: {exc}); fit again") from None
+
+
+def _refused_types(names: list[str]) -> list[str]:
+    """Of the type names skops does not trust by default, those a saved method may not hold (sorted)."""
+    return sorted(name for name in names if name not in TRUSTED_TYPES and not _own_class(name))
+
+
+def _own_class(name: str) -> bool:
+    """Whether ``name`` is a class defined in acoustlab's own packages (a function or a foreign class is not)."""
+    module, _, attribute = name.rpartition(".")
+    if module.split(".")[0] not in OWN_PACKAGES:
+        return False
+    try:
+        found = getattr(importlib.import_module(module), attribute, None)
+    except ImportError:
+        return False
+    return isinstance(found, type) and found.__module__ == module

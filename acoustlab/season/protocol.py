@@ -44,7 +44,7 @@ from acoustlab.core.types import Site
 from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.pipeline import LocalizationPipeline
 from acoustlab.method.run_context import RunContext, simulated_dataset
-from acoustlab.method.saved import save_method, saved_info
+from acoustlab.method.saved import load_method, save_method, saved_info
 from acoustlab.method.splits import cap_rows
 from acoustlab.reporting.positions import localization_summary
 from acoustlab.reporting.run_files import write_metrics
@@ -75,7 +75,7 @@ log = logging.getLogger(__name__)
 
 STAGES = ("all", "fit", "localize", "merge")
 #: What a saved method is (part of its key): a folder holding a method saved as something else is fitted again
-SAVED_METHOD_FORMAT = "acoustlab.method.localizer.FittedLocalizer"
+SAVED_METHOD_FORMAT = "skops:acoustlab.method.localizer.FittedLocalizer"
 
 
 #: Config keys that size thread pools and worker processes (``${threads:}``): they never change a result.
@@ -282,9 +282,9 @@ class SeasonLocalize:
         if context.calibration is not None:  # a calibration file rewritten at the same path is another method
             key = hashlib.sha256(f"{key}:{context.calibration.sha256}".encode()).hexdigest()
         saved = saved_info(folder)
-        if saved is not None and saved["key"] == key:
+        digest = saved["sha256"] if saved is not None and saved["key"] == key and self._loads(folder, saved["sha256"]) else None
+        if digest is not None:
             log.info("season: reusing the method fitted earlier in %s", folder)
-            digest = saved["sha256"]
         else:
             dataset = simulated_dataset(context)
             if dataset is None:
@@ -305,6 +305,16 @@ class SeasonLocalize:
             recordings.origin + pd.Timedelta(seconds=float(recordings.table[col.END].max())),
             n_chunks(len(events), self.chunk_events),
         )
+
+    @staticmethod
+    def _loads(folder: Path, sha256: str) -> bool:
+        """Whether the method saved in ``folder`` loads (a changed, forged or older file is fitted again, said in one line)."""
+        try:
+            load_method(folder, sha256)
+        except DataError as exc:
+            log.warning("season: the method saved in %s is not used (%s); fitting it again", folder, exc)
+            return False
+        return True
 
     def localize(self, folder: Path) -> int:
         """This process's chunks: one shard, or every chunk over ``n_jobs`` local workers."""

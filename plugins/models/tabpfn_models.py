@@ -4,6 +4,12 @@ One regressor per coordinate (the pipeline clones the point model for x and for 
 an in-context learner: ``fit`` stores the training rows, ``predict`` runs the transformer, in
 batches. Weights are never downloaded here: ``TabPFNPointModel.preflight`` checks that the
 checkpoint exists before any simulation runs and otherwise stops with one message on how to get it.
+
+A fitted model is stored as its settings and training rows, never as TabPFN's torch objects (a
+saved method is read without running code: ``acoustlab.method.saved``): loaded, it fits TabPFN
+again on those rows when first used, from the same checkpoint (its SHA-256 recorded at the fit
+and checked), which gives the same predictions (TabPFN's fit is deterministic under
+``random_state``).
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.utils.validation import check_is_fitted
 
 from acoustlab.core.digests import file_sha256
-from acoustlab.core.errors import ConfigError
+from acoustlab.core.errors import ConfigError, DataError
 
 WEIGHTS_HELP = (
     "TabPFN weights not found at {path}. Download them once on a machine with internet: "
@@ -188,14 +194,36 @@ class TabPFNPointModel(RegressorMixin, BaseEstimator):
             raise ConfigError(
                 f"TabPFN got {X.shape[0]} training rows; cap them at 1,000 or set {self.config_group}.ignore_pretraining_limits=true deliberately"
             )
-        self.regressor_ = self._regressor().fit(X, np.asarray(y, dtype=np.float32))
+        self.training_rows_ = (X, np.asarray(y, dtype=np.float32))
+        self.checkpoint_fitted_sha256_ = file_sha256(self.resolved_path())
+        self.regressor_ = self._regressor().fit(*self.training_rows_)
         self.n_features_in_ = X.shape[1]
         return self
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Settings and training rows; TabPFN's fitted regressor (torch objects) is left out and fitted again when used."""
+        state = super().__getstate__()
+        state.pop("regressor_", None)
+        return state
+
+    def _fitted_regressor(self):
+        """TabPFN's regressor, fitted again on the stored training rows after loading (same checkpoint, checked)."""
+        check_is_fitted(self, "training_rows_")
+        if getattr(self, "regressor_", None) is None:
+            path = self.resolved_path()
+            if not path.is_file() or file_sha256(path) != self.checkpoint_fitted_sha256_:
+                raise DataError(
+                    f"{self.config_group}: the TabPFN checkpoint {path} is missing or not the one this method was fitted with "
+                    f"(SHA-256 {self.checkpoint_fitted_sha256_[:12]}…); point {self.config_group}.model_path at it or fit again"
+                )
+            check_checkpoint(path, self.checkpoint_fitted_sha256_, self.config_group)
+            self.regressor_ = self._regressor().fit(*self.training_rows_)
+        return self.regressor_
+
     def _batched(self, X: Any, **kwargs: Any) -> np.ndarray:
-        check_is_fitted(self, "regressor_")
+        regressor = self._fitted_regressor()
         X = np.asarray(X, dtype=np.float32)
-        parts = [self.regressor_.predict(X[i : i + self.batch_size], **kwargs) for i in range(0, X.shape[0], self.batch_size)]
+        parts = [regressor.predict(X[i : i + self.batch_size], **kwargs) for i in range(0, X.shape[0], self.batch_size)]
         if kwargs.get("output_type") == "quantiles":
             return np.concatenate([np.column_stack(p) for p in parts], axis=0)
         return np.concatenate(parts, axis=0)
