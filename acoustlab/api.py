@@ -229,6 +229,29 @@ def calibrate(
     return {**json.loads((folder / "calibration.json").read_text()), "path": str(folder / "calibration.json")}
 
 
+def _solve_arguments(mic_positions_m: Any, tdoa_s: Any, speed_of_sound_m_s: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | float]:
+    """``solve``'s arguments as arrays, each checked by name (shapes, finite mics, a speed of sound in air's range)."""
+
+    def numbers(name: str, value: Any) -> np.ndarray:
+        try:
+            return np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise ConfigError(f"solve: {name} must be numbers; got {type(value).__name__}") from None
+
+    mics = numbers("mic_positions_m", mic_positions_m)
+    if mics.ndim != 2 or mics.shape[1] not in (2, 3) or mics.shape[0] < 3 or not np.isfinite(mics).all():
+        raise ConfigError(f"solve: mic_positions_m must be (M, 2) or (M, 3) finite positions in m with M >= 3; got shape {mics.shape}")
+    tdoa = np.atleast_2d(numbers("tdoa_s", tdoa_s))
+    if tdoa.ndim != 2 or tdoa.shape[1] != mics.shape[0]:
+        raise ConfigError(f"solve: tdoa_s must be (E, {mics.shape[0]}) or ({mics.shape[0]},), one per mic; got shape {tdoa.shape}")
+    speed = numbers("speed_of_sound_m_s", speed_of_sound_m_s)
+    if speed.ndim > 1 or (speed.ndim == 1 and speed.shape[0] != tdoa.shape[0]):
+        raise ConfigError(f"solve: speed_of_sound_m_s must be one value or {tdoa.shape[0]} (one per event); got shape {speed.shape}")
+    if not np.isfinite(speed).all() or (speed < 200).any() or (speed > 450).any():
+        raise ConfigError(f"solve: speed_of_sound_m_s must lie in 200–450 m/s (air from −70 to +230 °C); got {speed_of_sound_m_s}")
+    return mics, tdoa, float(speed) if speed.ndim == 0 else speed
+
+
 def plan_playbacks(
     site: str,
     n_spots: int,
@@ -272,6 +295,21 @@ def plan_playbacks(
     from acoustlab.toolkit.event_physics import assumed_source_height_m
     from acoustlab.toolkit.playback_plan import plan_playbacks as plan
 
+    if isinstance(n_spots, bool) or not isinstance(n_spots, (int, np.integer)) or n_spots < 3:
+        raise ConfigError(f"plan_playbacks: n_spots must be a whole number >= 3; got {n_spots!r}")
+    if source_height_m is not None and not (isinstance(source_height_m, (int, float)) and np.isfinite(source_height_m)):
+        raise ConfigError(f"plan_playbacks: source_height_m must be a finite number of metres; got {source_height_m!r}")
+    if min_mic_distance_m is not None and not (isinstance(min_mic_distance_m, (int, float)) and min_mic_distance_m >= 0):
+        raise ConfigError(f"plan_playbacks: min_mic_distance_m must be a number of metres >= 0; got {min_mic_distance_m!r}")
+    if candidates_xy_m is not None:
+        candidates = np.asarray(candidates_xy_m)
+        if (
+            candidates.ndim != 2
+            or candidates.shape[1] != 2
+            or not np.issubdtype(candidates.dtype, np.number)
+            or not np.isfinite(candidates).all()
+        ):
+            raise ConfigError(f"plan_playbacks: candidates_xy_m must be a (C, 2) array of finite x, y in m; got shape {candidates.shape}")
     built = load_site(site, overrides=overrides, **settings)
     sigma = (
         np.broadcast_to(np.asarray(position_sigma_m, dtype=float), (built.n_mics,))
@@ -345,11 +383,9 @@ def solve(
 
     if solver not in ("hyperbolic", "least_squares"):
         raise ConfigError(f"solve: solver must be hyperbolic or least_squares; got {solver!r}")
+    mics, tdoa, speed = _solve_arguments(mic_positions_m, tdoa_s, speed_of_sound_m_s)
     cfg = compose_config([f"solver={solver}", *overrides_from({"solver": {"source_height_m": source_height_m, **params}})])
-    tdoa = np.atleast_2d(np.asarray(tdoa_s, dtype=float))
-    result = build(cfg.solver, "solver").solve(
-        SolverInputs(mic_positions_m=np.asarray(mic_positions_m, dtype=float), tdoa_s=tdoa, speed_of_sound_m_s=speed_of_sound_m_s)
-    )
+    result = build(cfg.solver, "solver").solve(SolverInputs(mic_positions_m=mics, tdoa_s=tdoa, speed_of_sound_m_s=speed))
     table = pd.DataFrame({col.TRUE_X: result.position_m[:, 0], col.TRUE_Y: result.position_m[:, 1]})  # positions.csv's names
     table[col.TRUE_Z] = result.diagnostics.get("source_height_m", np.full(len(table), source_height_m))
     table.loc[table[col.TRUE_X].isna(), col.TRUE_Z] = np.nan

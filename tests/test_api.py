@@ -35,6 +35,40 @@ def test_solve_places_events_from_time_differences_with_their_diagnostics():
         solve(mics, arrival, solver="consistent_set")
 
 
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        ({"speed_of_sound_m_s": 0.0}, "speed_of_sound_m_s must lie in 200–450 m/s"),
+        ({"speed_of_sound_m_s": -343.0}, "speed_of_sound_m_s must lie in 200–450 m/s"),
+        ({"speed_of_sound_m_s": np.full(5, 343.0)}, "speed_of_sound_m_s must be one value or 2 \\(one per event\\); got shape \\(5,\\)"),
+        ({"tdoa_s": np.zeros((2, 4))}, "tdoa_s must be \\(E, 5\\)"),
+        ({"mic_positions_m": [[0.0, 0.0], [1.0, float("nan")], [0.0, 1.0]]}, "mic_positions_m must be .* finite"),
+        ({"mic_positions_m": "mics.csv"}, "mic_positions_m must be numbers"),
+    ],
+)
+def test_solve_names_the_argument_it_cannot_use(arguments, message):
+    mics = np.array([[0.0, 0.0, 1.0], [50.0, 0.0, 3.0], [0.0, 50.0, 2.0], [50.0, 50.0, 6.0], [25.0, 25.0, 10.0]])
+    given = {"mic_positions_m": mics, "tdoa_s": np.zeros((2, 5)), **arguments}
+    with pytest.raises(ConfigError, match=message):
+        solve(**given)
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        ({"n_spots": "5"}, "n_spots must be a whole number >= 3; got '5'"),
+        ({"n_spots": 2}, "n_spots must be a whole number >= 3"),
+        ({"n_spots": 5, "candidates_xy_m": np.zeros((4, 3))}, "candidates_xy_m must be a \\(C, 2\\) array"),
+        ({"n_spots": 5, "source_height_m": "1.5"}, "source_height_m must be a finite number"),
+    ],
+)
+def test_plan_playbacks_names_the_argument_it_cannot_use(arguments, message):
+    from acoustlab.api import plan_playbacks
+
+    with pytest.raises(ConfigError, match=message):
+        plan_playbacks("frozen_lake", **arguments)
+
+
 @pytest.mark.slow
 def test_localize_from_python_equals_the_command_line_s_positions(tmp_path, compose_cfg):
     from acoustlab.run.app import run_experiment

@@ -522,7 +522,7 @@ def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
     ids, priors = list("abcdef"), Priors(stated, np.full(6, 2.0))
     protocol = CalibrateProtocol(held_out_folds=8)
     site = dataclasses.replace(site3(), mic_positions_m=stated)
-    held, jackknife = protocol.held_out(pb, priors, ids, site, HyperbolicSolver())
+    held, jackknife, _ = protocol.held_out(pb, priors, ids, site, HyperbolicSolver())
 
     def fit(p):
         return protocol.calibrate(p, priors, ids)
@@ -542,7 +542,7 @@ def test_the_jackknife_re_picks_each_folds_peaks_as_the_calibration_did():
     median_ms = {name: 1e3 * np.median(np.abs(np.concatenate(r))) for name, r in residual.items()}
     assert held["calibrated"]["median_abs_residual_ms"] == pytest.approx(median_ms["fold's picks"], rel=1e-9)
     assert median_ms["given picks"] > 1.05 * median_ms["fold's picks"]  # the premise: the given picks hold echoes
-    _, fixed = protocol.held_out(dataclasses.replace(pb, candidates_s=None), priors, ids, site, HyperbolicSolver())
+    _, fixed, _ = protocol.held_out(dataclasses.replace(pb, candidates_s=None), priors, ids, site, HyperbolicSolver())
     np.testing.assert_allclose(fixed["mic_position_sd_m"], jackknife_sd([fit(f) for f in folds])["mic_position_sd_m"], rtol=1e-9)
 
 
@@ -677,7 +677,7 @@ def test_the_jackknife_over_spots_holds_what_the_posterior_misses():
     protocol = CalibrateProtocol(held_out_folds=12)
     cal = protocol.calibrate(pb, priors, ids)
     site = dataclasses.replace(site3(), mic_positions_m=stated)
-    held, jackknife = protocol.held_out(pb, priors, ids, site, HyperbolicSolver())
+    held, jackknife, _ = protocol.held_out(pb, priors, ids, site, HyperbolicSolver())
     assert held["n_spots"] == 12 and jackknife["n_groups"] == 12
     # at spots it was not fitted on, the calibrated array predicts the time differences to about their per-spot
     # bias (0.15 ms), the stated one (mics 2 m off) to milliseconds
@@ -695,3 +695,114 @@ def test_the_jackknife_over_spots_holds_what_the_posterior_misses():
     loaded = load_calibration(str(path), site)
     np.testing.assert_allclose(loaded.mic_position_sd_m, np.maximum(cal.position_sd_m(), jackknife["mic_position_sd_m"]), rtol=1e-5)
     assert loaded.temperature_offset_sd_c == max(cal.sd("temperature_offset_c"), jackknife["temperature_offset_sd_c"])
+
+
+def test_a_playback_at_a_calibration_spot_is_solved_with_the_array_fitted_without_it(tmp_path: Path, caplog):
+    """No leak: the fixes that calibrate radii on playbacks come from an array that was not fitted on their spot."""
+    from acoustlab.method.protocols.calibrate import CalibrateProtocol, spot_rows
+    from acoustlab.stages.field_calibration import field_solver_columns
+    from plugins.solvers.hyperbolic import HyperbolicSolver
+
+    stated, true = array(5, 21)
+    site = dataclasses.replace(site3(), mic_positions_m=stated)
+    clocks = np.array([0.0, 4e-4, -3e-4, 2e-4, 1e-4])
+    pb = playbacks(true, spots_in(np.random.default_rng(0), 8), clocks, temperature_error_c=1.5, per=4, noise_s=2e-5)
+    ids, priors = list("abcde"), Priors(stated, np.full(5, 2.0))
+    protocol = CalibrateProtocol(held_out_folds=8)
+    cal = protocol.calibrate(pb, priors, ids)
+    *_, arrays = protocol.held_out(pb, priors, ids, site, HyperbolicSolver())
+    assert len(arrays) == 8 and sorted(a["without_spots"][0] for a in arrays) == sorted(str(s) for s in np.unique(pb.spot))
+    events = pd.DataFrame({col.EVENT_ID: np.arange(len(pb.spot)), col.POSITION_ID: pb.spot})
+
+    def loaded(with_held_out: bool):
+        extra = {"spots": spot_rows(pb), "held_out_arrays": arrays if with_held_out else []}
+        path = tmp_path / f"calibration_{with_held_out}.json"
+        write_calibration(path, dataclasses.replace(cal, extra={**cal.extra, **extra}), site, events)
+        return load_calibration(str(path), site)
+
+    full = loaded(True)
+    # three calls at the first spot, one at a spot that is not a playback spot, one of unknown position
+    spot_xy = pb.source_m[pb.spot == pb.spot[0]][0]
+    sources = np.array([spot_xy, spot_xy, spot_xy, [31.0, 12.0, 1.5], [22.0, 35.0, 1.5]])
+    air = float(speed_of_sound_m_s(10.0 - 1.5, 50.0))
+    features = _features_for(site, true, sources, clocks, air)
+    calls = pd.DataFrame(
+        {
+            col.EVENT_ID: np.arange(5),
+            col.TRUE_X: [*sources[:4, 0], np.nan],
+            col.TRUE_Y: [*sources[:4, 1], np.nan],
+            col.TEMPERATURE: 10.0,
+            col.HUMIDITY: 50.0,
+            col.SPEED_OF_SOUND: float(speed_of_sound_m_s(10.0, 50.0)),
+            "time_s": 0.0,
+        }
+    )
+    group = full.held_out_group(calls)
+    k = next(i for i, a in enumerate(arrays) if a["without_spots"] == [str(pb.spot[0])])
+    assert group.tolist() == [k, k, k, -1, -1]
+    solver = HyperbolicSolver()
+    solved, _ = field_solver_columns(features, calls, calibrated_site(site, full), solver, None, full)
+    without = full.without_spots(k)
+    alone, _ = field_solver_columns(
+        features[:3], calls[:3].drop(columns=[col.TRUE_X, col.TRUE_Y]), calibrated_site(site, without), solver, None, without
+    )
+    rest, _ = field_solver_columns(
+        features[3:], calls[3:].drop(columns=[col.TRUE_X, col.TRUE_Y]), calibrated_site(site, full), solver, None, full
+    )
+    fix = [col.SOLVER_X, col.SOLVER_Y]
+    np.testing.assert_array_equal(solved[fix].to_numpy()[:3], alone[fix].to_numpy())
+    np.testing.assert_array_equal(solved[fix].to_numpy()[3:], rest[fix].to_numpy())
+    assert solved.index.tolist() == features.index.tolist()
+    in_sample, _ = field_solver_columns(
+        features[:3], calls[:3].drop(columns=[col.TRUE_X, col.TRUE_Y]), calibrated_site(site, full), solver, None, full
+    )
+    assert np.abs(in_sample[fix].to_numpy() - alone[fix].to_numpy()).max() > 1e-4  # the premise: the two arrays differ there
+    # a calibration without held-out arrays: the events at its spots are named in one line
+    field_solver_columns(features, calls, calibrated_site(site, full), solver, None, loaded(False))
+    assert "3 event(s) at 1 of its playback spots have no calibration fitted without their spot" in caplog.text
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        ({"temperature_offset_c": 500.0}, "temperature_offset_c = 500 °C in size, beyond 25 °C"),
+        ({"clock_offset_s": [0.0, float("nan"), 0.0, 0.0, 0.0]}, "clock_offset_s holds a value that is not finite"),
+        ({"clock_offset_s": [0.0, 10.0, 0.0, 0.0, 0.0]}, "clock_offset_s = 10 s in size, beyond 1 s"),
+        ({"clock_drift_s_per_s": [0.0, 0.01, -0.01, 0.0, 0.0]}, "clock_drift = 0.01 s/s in size"),
+        ({"clock_offset_s": [0.0, 0.0]}, "clock_offset_s has 2 values; 5 \\(one per mic\\)"),
+        ({"temperature_call_sd_c": 91.6}, "temperature_call_sd_c = 91.6 °C"),
+        ({"mic_positions_m": "shift mic 2 by 40 m"}, "moves mic 2 40 m from its stated position, beyond 8 × its stated σ"),
+        ({"held_out_arrays": "a refit 500 °C off"}, "held_out_arrays\\[0\\]: field temperature_offset_c = 500"),
+    ],
+)
+def test_a_re_signed_calibration_with_values_no_array_has_is_refused_in_one_line(tmp_path: Path, edit, message):
+    """Its digest is unkeyed (anyone who edits it can redo it): every value is checked where it enters."""
+    from acoustlab.stages.field_calibration import _digest
+
+    stated, true = array(5, 21)
+    site = dataclasses.replace(site3(), mic_positions_m=stated)
+    pb = playbacks(true, spots_in(np.random.default_rng(0), 8), np.array([0.0, 4e-4, -3e-4, 2e-4, 1e-4]), 1.5, per=4)
+    cal = calibrate_array(pb, Priors(stated, np.full(5, 2.0)), list("abcde"))
+    path = tmp_path / "calibration.json"
+    write_calibration(path, cal, site, pd.DataFrame({col.EVENT_ID: np.arange(len(pb.spot)), col.POSITION_ID: pb.spot}))
+    body = json.loads(path.read_text())
+    body.pop("sha256")
+    body.update(edit)
+    if edit.get("mic_positions_m"):
+        body["mic_positions_m"] = (
+            np.asarray(body["stated_mic_positions_m"]) + np.array([[0, 0, 0]] * 2 + [[40.0, 0, 0]] + [[0, 0, 0]] * 2)
+        ).tolist()
+    if edit.get("held_out_arrays"):
+        body["spots"] = [{col.POSITION_ID: "0", col.TRUE_X: 10.0, col.TRUE_Y: 10.0, col.TRUE_Z: 1.5}]
+        keys = ("mic_positions_m", "clock_offset_s", "clock_drift_s_per_s", "drift_origin_s")
+        body["held_out_arrays"] = [{"without_spots": ["0"], "temperature_offset_c": 500.0, **{k: body[k] for k in keys}}]
+    path.write_text(json.dumps({**body, "sha256": _digest(body)}))
+    with pytest.raises(DataError, match=message):
+        load_calibration(str(path), site)
+
+
+def test_a_calibration_nested_too_deep_is_refused_in_one_line(tmp_path: Path):
+    path = tmp_path / "deep.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(DataError, match="nested deeper than any calibration"):
+        load_calibration(str(path), site3())

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from acoustlab.core.errors import DataError
 from acoustlab.method.saved import METHOD_FILE, load_method
 from acoustlab.run.app import run_experiment
-from acoustlab.season.stream import localize_chunks, merge_parts, part_path, read_manifest
+from acoustlab.season.stream import localize_chunks, merge_parts, part_bytes, part_path, read_manifest
 from acoustlab.season.synthetic import SyntheticSeason, write_season
 from acoustlab.stages.sites import site_from_config
 
@@ -254,11 +254,19 @@ def test_damaged_foreign_or_orphan_parts_are_recomputed_or_refused_in_one_line(s
         merge_parts(folder)
     assert localize_chunks(folder, range(5)) == 2
     pd.testing.assert_frame_equal(merge_parts(folder), expected)
-    shutil.copy(part_path(folder, 0), part_path(folder, 2))  # another chunk's (or season's) part under this chunk's name
-    with pytest.raises(DataError, match="part-000002.parquet holds other events than chunk 2"):
+    shutil.copy(part_path(folder, 0), part_path(folder, 2))  # another chunk's part under this chunk's name
+    with pytest.raises(DataError, match="part-000002.parquet holds the metadata of another season's part, not that of chunk 2"):
         localize_chunks(folder, range(5))
-    with pytest.raises(DataError, match="holds other events than chunk 2"):
+    with pytest.raises(DataError, match="not that of chunk 2"):
         merge_parts(folder)
+    # another season's chunk 2 (every season numbers its events 0, 1, 2 …: the same event ids), or a part with no season
+    own = pd.read_parquet(expected_part := part_path(root / "out", 2))
+    for foreign in (part_bytes(own, "f" * 64, 2), own.to_parquet(index=False)):
+        part_path(folder, 2).write_bytes(foreign)
+        with pytest.raises(DataError, match="part-000002.parquet holds the metadata of another season's part"):
+            merge_parts(folder)
+    shutil.copy(expected_part, part_path(folder, 2))
+    pd.testing.assert_frame_equal(merge_parts(folder), expected)
     (folder / MANIFEST).unlink()
     with pytest.raises(DataError, match="holds 5 parts but no season.json"):
         check_manifest(folder, read_manifest(root / "out"))

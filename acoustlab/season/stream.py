@@ -23,6 +23,7 @@ the fitted method: it does not grow with the season.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -34,6 +35,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 import pyarrow.parquet as pq
 import scipy.signal as ss
 
@@ -284,25 +286,52 @@ def chunk_event_ids(directory: Path, chunk_events: int) -> list[np.ndarray]:
     return [ids[i : i + chunk_events] for i in range(0, ids.size, chunk_events)]
 
 
-def read_part(directory: Path, k: int, event_ids: np.ndarray, columns: list[str] | None = None) -> pd.DataFrame | None:
+#: Keys of each part's Parquet metadata: the season it belongs to (``season_identity``) and the chunk it holds.
+PART_SEASON_KEY, PART_CHUNK_KEY = b"acoustlab.season", b"acoustlab.chunk"
+
+
+def season_identity(manifest: dict[str, Any]) -> str:
+    """The SHA-256 of a season's manifest (its events, files, method, chunking and radii): what each of its parts carries.
+
+    Every season numbers its events 0, 1, 2 …, so event ids alone cannot tell this season's part
+    from another's; two seasons with one identity were made from the same inputs and give the same parts.
+    """
+    return hashlib.sha256(json.dumps(manifest, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def part_bytes(table: pd.DataFrame, identity: str, k: int) -> bytes:
+    """Chunk ``k``'s positions as a Parquet file that names its season and chunk in its metadata."""
+    arrow = pa.Table.from_pandas(table, preserve_index=False)
+    arrow = arrow.replace_schema_metadata(
+        {**(arrow.schema.metadata or {}), PART_SEASON_KEY: identity.encode(), PART_CHUNK_KEY: str(k).encode()}
+    )
+    sink = pa.BufferOutputStream()
+    pq.write_table(arrow, sink)
+    return sink.getvalue().to_pybytes()
+
+
+def read_part(directory: Path, k: int, event_ids: np.ndarray, identity: str, columns: list[str] | None = None) -> pd.DataFrame | None:
     """Chunk ``k``'s part (``columns`` of it), or None where it cannot be read (an empty or damaged file: the chunk is computed again).
 
     Raises
     ------
     DataError
-        When the part reads but holds other events than chunk ``k``: it was copied in from another season.
+        When the part reads but is not this season's chunk ``k`` (its metadata names another season
+        or chunk, or none, or it holds other events): it was copied in from elsewhere.
     """
     path = part_path(directory, k)
     try:
+        metadata = pq.read_schema(path).metadata or {}
         table = pd.read_parquet(path, columns=columns)
     except (OSError, ValueError) as exc:
         log.warning("%s cannot be read (%s); chunk %d is computed again", path, str(exc).splitlines()[0][:120], k)
         return None
     held = table[col.EVENT_ID].to_numpy(np.int64) if col.EVENT_ID in table else np.array([], dtype=np.int64)
-    if not np.array_equal(held, event_ids):
+    ours = metadata.get(PART_SEASON_KEY) == identity.encode() and metadata.get(PART_CHUNK_KEY) == str(k).encode()
+    if not ours or not np.array_equal(held, event_ids):
+        what = "other events than" if ours else "the metadata of another season's part, not that of"
         raise DataError(
-            f"{path} holds other events than chunk {k} of this season (it is not this run's part); "
-            "delete it and run protocol.stage=localize again"
+            f"{path} holds {what} chunk {k} of this season (it is not this run's part); delete it and run protocol.stage=localize again"
         )
     return table
 
@@ -330,7 +359,12 @@ def localize_chunks(
     plan = ChunkPlan.from_manifest(manifest)
     recordings.check_unchanged()
     chunk_ids = chunk_event_ids(directory, plan.chunk_events)
-    todo = [k for k in chunks if not part_path(directory, k).is_file() or read_part(directory, k, chunk_ids[k], [col.EVENT_ID]) is None]
+    identity = season_identity(manifest)
+    todo = [
+        k
+        for k in chunks
+        if not part_path(directory, k).is_file() or read_part(directory, k, chunk_ids[k], identity, [col.EVENT_ID]) is None
+    ]
     total = sum(min(plan.chunk_events, manifest["n_events"] - k * plan.chunk_events) for k in todo)
     progress = _RateLog(total, progress_every_s, label)
     computed = 0
@@ -342,7 +376,7 @@ def localize_chunks(
         chunk = read_chunk(directory, k, plan.chunk_events)
         table = localize_events(fitted, recordings, chunk, manifest["recorders"], plan, recordings.origin, on_batch=progress.add)
         part_path(directory, k).parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(part_path(directory, k), table.to_parquet(index=False))
+        atomic_write_bytes(part_path(directory, k), part_bytes(table, identity, k))
     recordings.close()
     return computed
 
@@ -424,9 +458,10 @@ def merge_parts(directory: Path) -> pd.DataFrame:
             "for every shard first (protocol.stage=localize), then merge"
         )
     manifest = read_manifest(directory)
+    identity = season_identity(manifest)
     parts = []
     for k, event_ids in enumerate(chunk_event_ids(directory, manifest["chunk_events"])):
-        part = read_part(directory, k, event_ids)
+        part = read_part(directory, k, event_ids, identity)
         if part is None:
             raise DataError(
                 f"{part_path(directory, k)} cannot be read; run protocol.stage=localize again (it computes that chunk anew), then merge"

@@ -167,6 +167,44 @@ def write_calibration(path: Path, calibration: ArrayCalibration, site: Site, eve
     return digest
 
 
+#: A field event lies at a playback spot when its known position is within this of the spot's, m.
+SPOT_MATCH_M = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class HeldOutArray:
+    """The calibration refitted without some playback spots (one entry of ``calibration.json``'s ``held_out_arrays``)."""
+
+    #: indices into ``FieldCalibration.spots_m`` of the spots it was fitted without
+    spot_indices: np.ndarray
+    mic_positions_m: np.ndarray
+    temperature_offset_c: float
+    clock_offset_s: np.ndarray
+    clock_drift: np.ndarray
+    drift_origin_s: float
+
+
+def _held_out_arrays(body: dict[str, Any], spot_ids: list[str], mics_shape: tuple[int, ...]) -> tuple[HeldOutArray, ...]:
+    """``calibration.json``'s ``held_out_arrays``, each checked against the file's spots and its array's shape."""
+    arrays = []
+    for k, entry in enumerate(body.get("held_out_arrays") or []):
+        missing = [spot for spot in entry["without_spots"] if spot not in spot_ids]
+        mics = np.asarray(entry["mic_positions_m"], dtype=float)
+        if missing or mics.shape != mics_shape:
+            raise ValueError(f"held_out_arrays[{k}]")
+        arrays.append(
+            HeldOutArray(
+                spot_indices=np.array([spot_ids.index(spot) for spot in entry["without_spots"]], dtype=int),
+                mic_positions_m=mics,
+                temperature_offset_c=float(entry["temperature_offset_c"]),
+                clock_offset_s=np.asarray(entry["clock_offset_s"], dtype=float),
+                clock_drift=np.asarray(entry["clock_drift_s_per_s"], dtype=float),
+                drift_origin_s=float(entry["drift_origin_s"]),
+            )
+        )
+    return tuple(arrays)
+
+
 @dataclasses.dataclass(frozen=True)
 class FieldCalibration:
     """A loaded ``calibration.json``: what ``apply_calibration`` and ``calibrated_site`` need.
@@ -195,6 +233,54 @@ class FieldCalibration:
     redundancy: dict[str, Any] | None = None
     #: the thermometer error's spread from playback to playback about its offset, °C (``playback_temperature_spread_c``)
     temperature_call_sd_c: float = 0.0
+    #: (S, 2) surveyed x, y of the playback spots the calibration was fitted on, m; None in files made before it was written
+    spots_m: np.ndarray | None = None
+    #: the calibration refitted without some spots, one per group of spots (``calibrate``'s ``held_out_arrays``)
+    held_out: tuple[HeldOutArray, ...] = ()
+
+    def held_out_group(self, events: pd.DataFrame) -> np.ndarray:
+        """(E,) for each event at one of the calibration's spots, the index in ``held_out`` of the calibration fitted
+        without that spot; −1 for the other events.
+
+        An event is at a spot when its known position (``x_m, y_m``) lies within ``SPOT_MATCH_M`` of
+        it. One line warns where events lie at the calibration's spots and no held-out calibration
+        exists for them: their fixes, and radii calibrated on them, rest on an array fitted on them.
+        """
+        group = np.full(len(events), -1)
+        if self.spots_m is None or len(self.spots_m) == 0 or col.TRUE_X not in events or col.TRUE_Y not in events:
+            return group
+        known = events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)
+        offset = known[:, None, :] - self.spots_m[None, :, :]  # (E, S, 2)
+        distance = np.nan_to_num(np.hypot(offset[..., 0], offset[..., 1]), nan=np.inf)  # unknown positions: at no spot
+        nearest = distance.argmin(axis=1)
+        at_spot = distance.min(axis=1) <= SPOT_MATCH_M
+        for k, held in enumerate(self.held_out):
+            group[at_spot & np.isin(nearest, held.spot_indices)] = k
+        leaked = at_spot & (group < 0)
+        if leaked.any():
+            log.warning(
+                "calibration=%s: %d event(s) at %d of its playback spots have no calibration fitted without their spot "
+                "(calibrate with >= 4 spots and protocol.held_out_folds > 0): they are solved with an array fitted on them, "
+                "and radii calibrated on them are too small",
+                self.path,
+                int(leaked.sum()),
+                int(np.unique(nearest[leaked]).size),
+            )
+        return group
+
+    def without_spots(self, k: int) -> FieldCalibration:
+        """This calibration with the array, clocks and thermometer offset of ``held_out[k]`` (fitted without its spots);
+        the uncertainties stay the full calibration's."""
+        held = self.held_out[k]
+        return dataclasses.replace(
+            self,
+            mic_positions_m=held.mic_positions_m,
+            temperature_offset_c=held.temperature_offset_c,
+            clock_offset_s=held.clock_offset_s,
+            clock_drift=held.clock_drift,
+            drift_origin_s=held.drift_origin_s,
+            held_out=(),
+        )
 
     def summary(self) -> dict[str, Any]:
         """For metrics.json: where it came from and what it changed."""
@@ -259,6 +345,8 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
         body = json.loads(path.read_text(encoding="utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
         raise DataError(f"{where}: not a JSON file: {exc}") from None
+    except RecursionError:
+        raise DataError(f"{where}: nested deeper than any calibration is (not an acoustlab calibration)") from None
     if not isinstance(body, dict) or body.get("format") != FORMAT:
         raise DataError(f"{where}: not an acoustlab calibration (format {FORMAT!r} expected)")
     stated = body.pop("sha256", None)
@@ -290,11 +378,16 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
             covariance=np.asarray(body["covariance"], dtype=float).reshape(len(body["parameters"]), len(body["parameters"])),
             redundancy=dict(body["redundancy"]) if isinstance(body.get("redundancy"), dict) else None,
             temperature_call_sd_c=float(body["temperature_call_sd_c"]),
+            spots_m=np.array([[s[col.TRUE_X], s[col.TRUE_Y]] for s in body["spots"]], dtype=float).reshape(-1, 2)
+            if "spots" in body
+            else None,
+            held_out=_held_out_arrays(body, [str(s[col.POSITION_ID]) for s in body.get("spots", [])], mics.shape),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{where}: field {exc} is missing or not a number") from None
     if mics.shape != site.mic_positions_m.shape:
         raise DataError(f"{where}: calibrates {mics.shape[0]} mics; site {site.name!r} has {site.n_mics}")
+    check_values(out, body, where)
     if body.get("site") != site.name:
         log.warning("%s was made for site %r; applying it to site %r", where, body.get("site"), site.name)
     if out.redundancy is not None and out.redundancy.get("enough") is False:
@@ -309,6 +402,56 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
     if moved > 1e-3:
         raise DataError(f"{where}: was made from mic positions up to {moved:.3g} m from the site's: calibrate again for this array")
     return out
+
+
+#: Physical bounds of a calibration's values: (field, largest magnitude, unit, why). A file beyond them is refused.
+VALUE_BOUNDS = (
+    ("temperature_offset_c", 25.0, "°C", "a thermometer that far off is broken"),
+    ("temperature_offset_sd_c", 25.0, "°C", "no playback leaves the thermometer that uncertain"),
+    ("temperature_call_sd_c", 10.0, "°C", "the air does not vary that much between playbacks"),
+    ("clock_offset_s", 1.0, "s", "beyond any lag window a playback is searched in"),
+    ("clock_offset_sd_s", 1.0, "s", "beyond any lag window a playback is searched in"),
+    ("clock_drift", 1e-3, "s/s", "1,000 ppm, beyond any recorder's crystal"),
+    ("clock_drift_sd", 1e-3, "s/s", "1,000 ppm, beyond any recorder's crystal"),
+    ("mic_position_sd_m", 50.0, "m", "beyond any GPS's error"),
+)
+#: A calibrated mic may lie at most this many times its stated σ (``prior_sd``) from its stated position.
+MAX_SHIFT_SIGMAS = 8.0
+
+
+def check_values(calibration: FieldCalibration, body: dict[str, Any], where: str) -> None:
+    """Refuse, in one line naming the file and field, a calibration whose values are not finite, of the wrong shape, or
+    beyond physical bounds (``VALUE_BOUNDS``; a mic moved more than ``MAX_SHIFT_SIGMAS`` of its stated σ).
+
+    The file's digest proves only that it was not edited by accident: whoever edits it can recompute it.
+    """
+    m = len(calibration.mic_positions_m)
+    if not np.isfinite(calibration.mic_positions_m).all():
+        raise DataError(f"{where}: field mic_positions_m holds a value that is not finite")
+    for name, bound, unit, why in VALUE_BOUNDS:
+        value = np.atleast_1d(np.asarray(getattr(calibration, name), dtype=float))
+        if value.ndim != 1 or (value.size != m and value.size != 1):
+            raise DataError(f"{where}: field {name} has {value.size} values; {m} (one per mic) or 1 expected")
+        if not np.isfinite(value).all():
+            raise DataError(f"{where}: field {name} holds a value that is not finite")
+        if np.abs(value).max() > bound:
+            raise DataError(f"{where}: field {name} = {np.abs(value).max():.6g} {unit} in size, beyond {bound:g} {unit} ({why})")
+    if (calibration.temperature_offset_sd_c < 0) or (calibration.mic_position_sd_m < 0).any() or (calibration.clock_offset_sd_s < 0).any():
+        raise DataError(f"{where}: a standard deviation is negative")
+    if not np.isfinite(calibration.covariance).all():
+        raise DataError(f"{where}: field covariance holds a value that is not finite")
+    for k in range(len(calibration.held_out)):  # the refits without some spots are used as the file's own values are
+        check_values(calibration.without_spots(k), body, f"{where}: held_out_arrays[{k}]")
+    prior = dict(zip(calibration.parameters, np.asarray(body.get("prior_sd", []), dtype=float), strict=False))
+    stated = np.asarray(body.get("stated_mic_positions_m", calibration.mic_positions_m), dtype=float)
+    shift = np.hypot(*(calibration.mic_positions_m - stated)[:, :2].T)
+    for k in range(m):
+        sigma = max(prior.get(f"mic_{k}_x_m", np.inf), prior.get(f"mic_{k}_y_m", np.inf))
+        if shift[k] > MAX_SHIFT_SIGMAS * sigma + 1e-6:
+            raise DataError(
+                f"{where}: field mic_positions_m moves mic {k} {shift[k]:.3g} m from its stated position, beyond "
+                f"{MAX_SHIFT_SIGMAS:g} × its stated σ ({sigma:.3g} m)"
+            )
 
 
 def calibrated_site(site: Site, calibration: FieldCalibration) -> Site:
@@ -332,6 +475,30 @@ def field_solver_columns(
     """
     if min_gcc_peak is not None:
         events = drop_weakly_correlated_mics(features, events, site, min_gcc_peak)
+    group = calibration.held_out_group(events) if calibration is not None else np.full(len(events), -1)
+    if (group < 0).all():
+        return _solved(features, events, site, solver, plausible_margin_fraction, calibration)
+    # an event at a playback spot is solved with the array calibrated without that spot: its fix (and radii calibrated
+    # on it) then carries the array's error at a spot the array was not fitted on, as a new call's does
+    parts, order = [], []
+    for k in np.unique(group):
+        rows = np.flatnonzero(group == k)
+        used = calibration if k < 0 else calibration.without_spots(int(k))
+        parts.append(_solved(features.iloc[rows], events.iloc[rows], calibrated_site(site, used), solver, plausible_margin_fraction, used))
+        order.append(rows)
+    back = np.argsort(np.concatenate(order), kind="stable")
+    return tuple(pd.concat([part[i] for part in parts]).iloc[back] for i in (0, 1))  # type: ignore[return-value]
+
+
+def _solved(
+    features: pd.DataFrame,
+    events: pd.DataFrame,
+    site: Site,
+    solver: Any,
+    plausible_margin_fraction: float | None,
+    calibration: FieldCalibration | None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Features with the solver's columns and events with ``mics_used``, the calibration's clocks and thermometer applied."""
     if calibration is not None:  # the thermometer's offset and the recorders' clocks, before the solver
         features, events = apply_calibration(features, events, site, calibration)
     result = solve_events(features, events, site, solver)

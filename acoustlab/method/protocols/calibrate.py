@@ -156,9 +156,10 @@ class CalibrateProtocol:
             lambda p: self.calibrate(p, priors, mic_ids),
             anneal=lambda p, lags, heights: self.annealed_prediction(p, lags, heights, priors),
         )
-        calibration.extra["held_out"], calibration.extra["jackknife_sd"] = self.held_out(
-            playbacks, priors, mic_ids, site, context.components.solver
-        )
+        held_out, jackknife, arrays = self.held_out(playbacks, priors, mic_ids, site, context.components.solver)
+        calibration.extra["held_out"], calibration.extra["jackknife_sd"] = held_out, jackknife
+        calibration.extra["spots"] = spot_rows(playbacks)
+        calibration.extra["held_out_arrays"] = arrays
         digest = write_calibration(run_dir / "calibration.json", calibration, site, playback_events)
         metrics = {
             "calibration": calibration_metrics(calibration, run_dir / "calibration.json", digest, peak_ratio),
@@ -202,10 +203,12 @@ class CalibrateProtocol:
 
     def held_out(
         self, playbacks: Playbacks, priors: Priors, mic_ids: list[str], site: Site, solver: Any
-    ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    ) -> tuple[dict[str, Any] | None, dict[str, Any] | None, list[dict[str, Any]]]:
         """Errors of each spot's playbacks solved with the array calibrated without that spot, and with the stated array, m;
-        and the estimates' jackknife standard deviations over those calibrations (``jackknife_sd``). None, None with fewer
-        than 4 spots or ``held_out_folds=0``.
+        the estimates' jackknife standard deviations over those calibrations (``jackknife_sd``); and those calibrations
+        themselves with the spots each was fitted without (``held_out_arrays``: ``localize`` solves a radii calibration
+        playback with the array fitted without its spot, so the radii see the array's error at a spot it was not fitted
+        on). None, None, [] with fewer than 4 spots or ``held_out_folds=0``.
 
         The calibrated array is measured on the held-out playbacks' GCC peaks nearest the lags it
         predicts at their spots (where the playbacks carry their candidates), the stated array on the
@@ -219,12 +222,13 @@ class CalibrateProtocol:
         """
         spots = np.unique(playbacks.spot)
         if self.held_out_folds == 0 or spots.size < 4:
-            return None, None
+            return None, None, []
         folds = np.array_split(np.random.default_rng(0).permutation(spots), min(self.held_out_folds, spots.size))
         stated = np.full(len(playbacks.spot), np.nan)
         calibrated = np.full(len(playbacks.spot), np.nan)
         residual = {"stated": np.full(playbacks.tdoa_s.shape, np.nan), "calibrated": np.full(playbacks.tdoa_s.shape, np.nan)}
         without: list[ArrayCalibration] = []
+        arrays: list[dict[str, Any]] = []
 
         def fit(p: Playbacks) -> ArrayCalibration:
             return self.calibrate(p, priors, mic_ids)
@@ -236,6 +240,7 @@ class CalibrateProtocol:
             # the same estimator, rounds of re-picking included: a jackknife of another measures that one
             cal = fit(kept) if kept.candidates_s is None else calibrate_until_picks_hold(kept, fit, quiet=True)[0]
             without.append(cal)
+            arrays.append(held_out_array(cal, [str(spot) for spot in held]))
             stated[test] = _solve_errors(tested, site.mic_positions_m, np.zeros(site.n_mics), 0.0, site, solver)
             residual["stated"][test] = tested.pair_differences_s(tested.travel_times_s(site.mic_positions_m)) - tested.tdoa_s
             predicted = cal.predicted_tdoa_s(tested)  # of the spots, weather and times: the same whichever peaks are picked
@@ -262,7 +267,29 @@ class CalibrateProtocol:
             "stated": summary(stated, residual["stated"]),
             "calibrated": summary(calibrated, residual["calibrated"]),
         }
-        return held_out, jackknife_sd(without)
+        return held_out, jackknife_sd(without), arrays
+
+
+def held_out_array(calibration: ArrayCalibration, spots: list[str]) -> dict[str, Any]:
+    """The array, clocks and thermometer offset of a calibration fitted without ``spots`` (position ids), for
+    ``calibration.json``'s ``held_out_arrays``."""
+    return {
+        "without_spots": spots,
+        "mic_positions_m": np.round(calibration.mic_positions_m, 6).tolist(),
+        "temperature_offset_c": float(calibration.temperature_offset_c),
+        "clock_offset_s": calibration.clock_offset_s.tolist(),
+        "clock_drift_s_per_s": calibration.clock_drift.tolist(),
+        "drift_origin_s": float(calibration.drift_origin_s),
+    }
+
+
+def spot_rows(playbacks: Playbacks) -> list[dict[str, Any]]:
+    """One row per playback spot: its position id and surveyed position, m (``calibration.json``'s ``spots``)."""
+    rows = []
+    for spot in np.unique(playbacks.spot):
+        x, y, z = playbacks.source_m[np.flatnonzero(playbacks.spot == spot)[0]]
+        rows.append({col.POSITION_ID: str(spot), col.TRUE_X: float(x), col.TRUE_Y: float(y), col.TRUE_Z: float(z)})
+    return rows
 
 
 def jackknife_sd(without: list[ArrayCalibration]) -> dict[str, Any]:
