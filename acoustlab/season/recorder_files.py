@@ -31,6 +31,7 @@ import pandas as pd
 import soundfile as sf
 
 from acoustlab.core import columns as col
+from acoustlab.core.digests import sampled_file_sha256
 from acoustlab.core.errors import DataError, show
 from acoustlab.core.files import atomic_write_bytes
 from acoustlab.toolkit.file_start import start_from_metadata, timestamp_from_name
@@ -112,6 +113,7 @@ class RecorderFiles:
         stats = [os.stat(path) for path in table["path"]]
         table["size_bytes"] = [s.st_size for s in stats]  # what the season was indexed from: a resume checks it
         table["mtime_ns"] = [s.st_mtime_ns for s in stats]
+        table["content_sha256"] = [sampled_file_sha256(path) for path in table["path"]]  # a same-size, same-time rewrite
         table["sample_rate_hz"] = np.asarray(rates, dtype=float)
         for recorder, files in table.groupby("recorder_id", sort=False):  # recorders may differ; one recorder's files may not
             if files["sample_rate_hz"].nunique() > 1:
@@ -241,14 +243,17 @@ class RecorderFiles:
         """
         if "mtime_ns" not in self.table:  # indexed by an earlier version: nothing recorded to compare
             return
-        for path, size, mtime in zip(self.table["path"], self.table["size_bytes"], self.table["mtime_ns"], strict=True):
+        content = self.table["content_sha256"] if "content_sha256" in self.table else [None] * len(self.table)
+        for path, size, mtime, sampled in zip(self.table["path"], self.table["size_bytes"], self.table["mtime_ns"], content, strict=True):
             try:
                 now = os.stat(path)
+                changed = (now.st_size != size or now.st_mtime_ns != mtime) and "size or modification time"
+                changed = changed or (sampled is not None and sampled_file_sha256(path) != sampled and "content, at the same size and time")
             except OSError:
                 raise DataError(f"recordings: {path} is gone since the season was fitted; restore it, or fit a new season") from None
-            if now.st_size != size or now.st_mtime_ns != mtime:
+            if changed:
                 raise DataError(
-                    f"recordings: {path} changed since the season was fitted (size or modification time); its positions would "
+                    f"recordings: {path} changed since the season was fitted ({changed}); its positions would "
                     "mix two recordings: restore the file, or fit the season again in a new protocol.output_dir"
                 )
 

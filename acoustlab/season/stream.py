@@ -114,7 +114,13 @@ def season_manifest(
     """What a season's parts are made from: the events' and the audio files' digests, the method's, the chunking, the recorders,
     the radii. The files' digest covers each file's path, length, size and modification time, so a file rewritten between a
     kill and its resume is not mixed in."""
-    files = None if recordings is None else frame_sha256(recordings.table[["path", "n_frames", "size_bytes", "mtime_ns"]])
+    files = (
+        None
+        if recordings is None
+        else frame_sha256(
+            recordings.table[[c for c in ("path", "n_frames", "size_bytes", "mtime_ns", "content_sha256") if c in recordings.table]]
+        )
+    )
     return {
         "events_sha256": frame_sha256(events),
         "recordings": files,
