@@ -120,3 +120,34 @@ class Season:
         return self.peak_mib
 
     track_peak_above_idle_mib.unit = "MiB"
+
+
+class FilesFingerprint:
+    """The check a season's every localize stage makes of its audio files: ``os.stat`` alone, and with each file's
+    sampled content digest (``sampled_file_sha256``), over 10⁴ files of 256 KiB (from the page cache once warm)."""
+
+    params = [[10_000]]
+    param_names = ["n_files"]
+
+    def setup(self, n_files: int) -> None:
+        self.folder = WORK / "fingerprint"
+        self.folder.mkdir(parents=True, exist_ok=True)
+        blob = os.urandom(256 * 1024)
+        self.paths = [self.folder / f"file{k:05d}.wav" for k in range(n_files)]
+        for path in self.paths:
+            if not path.is_file():
+                path.write_bytes(blob)
+
+    def teardown(self, n_files: int) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+    def time_stat(self, n_files: int) -> None:
+        for path in self.paths:
+            os.stat(path)
+
+    def time_stat_and_sampled_digest(self, n_files: int) -> None:
+        from acoustlab.core.digests import sampled_file_sha256
+
+        for path in self.paths:
+            os.stat(path)
+            sampled_file_sha256(path)
