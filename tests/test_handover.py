@@ -135,3 +135,48 @@ def test_the_check_can_be_turned_off_and_its_tolerance_is_reported():
     on = LocalizationPipeline(components(ModelOnlyGate(), TrustSettings(novelty_factor=0))).fit_predict(features, events, train, test)
     tolerance = on.split_diagnostics[0]["trust"]["training_region"]["handover_tolerance_m"]
     assert 0 < tolerance < 5  # accurate (≤ 2 m) estimates misfit by at most a few metres of range difference
+
+
+def test_outside_the_array_the_hand_over_admits_no_estimate_ten_metres_off():
+    """The audit's grid on the lake's 3-mic array: exact time differences and two random decoys per pair, the solver's fix
+    exact, every grid point a model estimate. Judged in position metres (misfit × GDOP) with the tolerance accurate
+    estimates set, no point outside the array and 10 m or more from the source passes, for sources inside, 40 m south and
+    85 m east; the range-metre RMS rule (1.8 m, the lake's) admitted hundreds at 85 m east."""
+    from acoustlab.method.trust import TrainingSupport, misfit_excess_position_m
+    from acoustlab.run.plugin_checks import compose_config
+    from acoustlab.stages.sites import site_from_config
+    from acoustlab.toolkit.geometry import gdop
+
+    site = site_from_config(compose_config(["+site=frozen_lake"]).site)
+    mics, pairs, height = site.mic_positions_m, np.array(site.mic_pairs), 1.5
+    rng = np.random.default_rng(0)
+    reach = np.hypot(*(mics[pairs[:, 1], :2] - mics[pairs[:, 0], :2]).T) / SPEED  # the largest lag of each pair, s
+
+    def candidates(xy: np.ndarray) -> np.ndarray:
+        decoys = rng.uniform(-1, 1, (len(xy), len(pairs), 2)) * reach[None, :, None]
+        return np.concatenate([lags_s(np.column_stack([xy, np.full(len(xy), height)]), mics, site.mic_pairs)[..., None], decoys], -1)
+
+    def misfit(xy: np.ndarray, cands: np.ndarray) -> np.ndarray:
+        return candidate_misfit_m(xy, np.full(len(xy), height), mics, pairs, cands, np.full(len(xy), SPEED))
+
+    def at_gdop(xy: np.ndarray) -> np.ndarray:
+        return np.nan_to_num(gdop(mics, np.column_stack([xy, np.full(len(xy), height)])), nan=1e6, posinf=1e6)
+
+    low, high = mics[:, :2].min(axis=0), mics[:, :2].max(axis=0)
+    truth = np.column_stack([rng.uniform(low[0], high[0], 400), rng.uniform(low[1], high[1], 400)])
+    accurate = truth + rng.normal(0, 0.7, truth.shape)  # out-of-fold estimates within a metre or two
+    scaled = misfit(accurate, candidates(truth)) * at_gdop(accurate)
+    tolerance = TrainingSupport(TrustSettings())._handover_tolerance(scaled, np.hypot(*(accurate - truth).T))
+    assert 1.0 < tolerance < 5.0
+    centre = mics[:, :2].mean(axis=0)
+    xs, ys = np.meshgrid(np.arange(-150, 151, 2.0), np.arange(-150, 151, 2.0))
+    for source in (centre + [5.0, 3.0], np.array([centre[0], low[1] - 40]), np.array([high[0] + 85, centre[1]])):
+        cands = candidates(source[None])
+        grid = source + np.column_stack([xs.ravel(), ys.ravel()])
+        both = (misfit(source[None], cands).repeat(len(grid)), misfit(grid, cands.repeat(len(grid), axis=0)))
+        passes = misfit_excess_position_m(both, at_gdop(grid), len(grid)) <= tolerance
+        far = np.hypot(*(grid - source).T) >= 10.0
+        outside = ((grid < low - 5) | (grid > high + 5)).any(axis=1)
+        assert not (passes & far & outside).any()
+        assert (passes & far).sum() <= 5  # inside the array a decoy can meet all three pairs at a few points
+        assert passes[np.argmin(np.hypot(*(grid - source).T))]  # the truth itself passes

@@ -306,21 +306,27 @@ class LocalizationPipeline:
         solver_xy: np.ndarray,
         groups: np.ndarray,
         model_xy: np.ndarray,
+        sim: np.ndarray,
     ) -> TrainingSupport | None:
-        """The point model's training support learned from ``rows`` (None with ``trust.enabled=false``).
+        """The point model's training support learned from the simulated ones of ``rows`` (None with ``trust.enabled=false``).
 
         ``model_xy`` (indexed like ``rows``) are out-of-fold model estimates: how well the accurate
-        ones explain the measured time differences sets the hand-over tolerance.
+        ones explain the measured time differences sets the hand-over tolerance. Field playbacks
+        among ``rows`` (``sim`` False) teach the point model and calibrate the radii, but neither
+        widen the training region nor set the tolerance: the docs promise both from simulation,
+        and a few playbacks near the hull's edge would otherwise hand calls beyond it to the model.
         """
         if not self.c.trust.enabled:
             return None
+        if sim.any() and not sim.all():
+            rows, model_xy = rows[sim], model_xy[sim]
         truth = (
             events[[col.TRUE_X, col.TRUE_Y, col.TRUE_Z]].to_numpy(float)[rows]
             if col.TRUE_Z in events
             else np.column_stack([events[[col.TRUE_X, col.TRUE_Y]].to_numpy(float)[rows], np.full(rows.size, np.nan)])
         )
         model_misfit = self._misfit_m(features.iloc[rows], model_xy)
-        model_misfit = None if model_misfit is None else model_misfit[0]
+        model_misfit = None if model_misfit is None else model_misfit[0] * self._gdop_at(model_xy, features.iloc[rows])
         return TrainingSupport(self.c.trust).fit(
             features.iloc[rows][mcols],
             truth,
@@ -353,11 +359,12 @@ class LocalizationPipeline:
     ) -> SupportCues:
         """``rows`` (``model_xy`` indexed like them) checked against the model's training support, once for every gate."""
         at = features.iloc[rows]
-        misfit = None
+        misfit, model_gdop = None, None
         if support is not None and support.handover_tolerance_m_ is not None:
             both = self._misfit_m(at, solver_xy[rows], model_xy)
             misfit = None if both is None else tuple(both)
-        return support_cues(solver_xy[rows], model_xy, at, at[mcols], support, misfit)
+            model_gdop = self._gdop_at(model_xy, at)
+        return support_cues(solver_xy[rows], model_xy, at, at[mcols], support, misfit, model_gdop)
 
     def _decide(
         self, gate: Gate, rows: np.ndarray, solver_xy: np.ndarray, model_xy: np.ndarray, features: pd.DataFrame, cues: SupportCues
@@ -422,7 +429,7 @@ class LocalizationPipeline:
         cal = self._calibration_errors(split, oof_model)
         log.info("final point and error models on %d training rows", train.size)
         models = self._fit_point(features.iloc[train][split.mcols], split.truth[train], split.solver_xy[train], split.groups[train])
-        support = self._support(train, features, split.mcols, events, split.solver_xy, split.groups, oof_model)
+        support = self._support(train, features, split.mcols, events, split.solver_xy, split.groups, oof_model, split.sim)
         fitted = FittedMethod(
             pipeline=self,
             mcols=split.mcols,
@@ -761,7 +768,7 @@ class LocalizationPipeline:
         substituted = np.zeros(train.size, dtype=bool)
         for fit_idx, held_idx in folds:
             fold_gate = self._fit_gate(self.c.gate, train[fit_idx], sim[fit_idx], solver_xy, oof_model[fit_idx], features, truth, groups)
-            support = self._support(train[fit_idx], features, mcols, events, solver_xy, groups, oof_model[fit_idx])
+            support = self._support(train[fit_idx], features, mcols, events, solver_xy, groups, oof_model[fit_idx], sim[fit_idx])
             cues = self._cues(train[held_idx], solver_xy, oof_model[held_idx], features, mcols, support)
             decision = self._decide(fold_gate, train[held_idx], solver_xy, oof_model[held_idx], features, cues).decision
             position[held_idx], substituted[held_idx] = decision.position_m, decision.substituted

@@ -17,11 +17,15 @@ domain and checks every gate's decision against it:
   show consistency; there no fix counts as consistent, and neither does a fix from exactly as
   many mics as unknowns + 1 (``solver__n_mics_used`` < ``solver__dimensions_used`` + 2).
 * **The measurements** (the hand-over check): the model's estimate must explain the measured
-  time differences (any GCC candidate per pair, ``candidate_misfit_m``) at least as well as the
-  solver's fix, within a tolerance set on simulation: the ``handover_quantile`` of the misfits
-  of accurate (≤ ``handover_accurate_m``) out-of-fold model estimates. It needs no training
-  data of the site, so it holds where the simulation does not match the site: a model estimate
-  tens of metres from where the time differences point is never reported.
+  time differences (the median over pairs of the nearest GCC candidate's misfit,
+  ``candidate_misfit_m``, so that a few pairs whose candidates are all wrong cannot dominate it)
+  at least as well as the solver's fix, within a tolerance in position metres: how much worse it
+  explains them (m of range difference) times the GDOP at the estimate (m of position per m of
+  range difference) may not exceed the ``handover_quantile`` of the same product for accurate
+  (≤ ``handover_accurate_m``) out-of-fold model estimates on the simulated training rows. Outside
+  an array the range differences change slowly with position, so a misfit in range metres admits
+  estimates tens of metres off there; scaled by the GDOP it does not. It needs no training data
+  of the site, so it holds where the simulation does not match the site.
 * **The rule** (``support_cues`` once per rows, ``apply_trust`` per gate): where the gate substituted the model's estimate but the
   model is outside its support (its input is novel, its own estimate lies outside the training
   hull, or the solver's consistent fix lies outside it), the solver's fix is kept and the row
@@ -154,8 +158,9 @@ class TrainingSupport:
             other positions (events at one position are near-copies of each other, so their own
             distances would make every new position look novel).
         model_misfit_m, model_error_m : numpy.ndarray, optional
-            (N,) out-of-fold model estimates' candidate misfits and 2-D errors, m: they set the
-            hand-over tolerance (``handover_tolerance_m_``; None, and no hand-over check, without them).
+            (N,) out-of-fold model estimates' candidate misfits times the GDOP at each (m of position)
+            and their 2-D errors, m: they set the hand-over tolerance (``handover_tolerance_m_``;
+            None, and no hand-over check, without them).
         """
         from scipy.spatial import ConvexHull, QhullError  # imported when fitting: the config schema imports this module
 
@@ -186,7 +191,7 @@ class TrainingSupport:
         return self
 
     def _handover_tolerance(self, misfit_m: np.ndarray | None, error_m: np.ndarray | None) -> float | None:
-        """The misfit (m) that accurate model estimates stay within on simulation; None: no check."""
+        """The GDOP-scaled misfit (m of position) that accurate model estimates stay within on simulation; None: no check."""
         s = self.settings
         if not s.handover_check or misfit_m is None or error_m is None:
             return None
@@ -337,6 +342,7 @@ def support_cues(
     model_features: pd.DataFrame,
     support: TrainingSupport | None,
     misfit_m: tuple[np.ndarray, np.ndarray] | None = None,
+    model_gdop: np.ndarray | None = None,
 ) -> SupportCues:
     """Check rows against the point model's training support (module docstring); no gate is involved yet.
 
@@ -352,7 +358,9 @@ def support_cues(
         None: nothing is distrusted.
     misfit_m : tuple of numpy.ndarray, optional
         (B,) candidate misfits (``candidate_misfit_m``) of the solver's fix and of the model's
-        estimate, m; with the support's hand-over tolerance they decide the hand-over check.
+        estimate, m of range difference; with the support's hand-over tolerance they decide the hand-over check.
+    model_gdop : numpy.ndarray, optional
+        (B,) GDOP at the model's estimates: turns the misfit's excess into position metres (1 where not given).
     """
     n = len(solver_xy)
     if support is None:
@@ -371,7 +379,7 @@ def support_cues(
     solver_outside = support.outside_region(solver_xy, solver_height(features))
     model_outside = support.outside_region(model_xy)
     consistent = support.consistent(features)
-    excess = _misfit_excess_m(misfit_m, n)
+    excess = misfit_excess_position_m(misfit_m, model_gdop, n)
     tolerance = support.handover_tolerance_m_
     explains_worse = np.zeros(n, dtype=bool) if tolerance is None else np.isfinite(excess) & (excess > tolerance)
     distrust = np.full(n, REASON_GATE, dtype=object)
@@ -393,16 +401,18 @@ def support_cues(
     return SupportCues(flags, distrust)
 
 
-def _misfit_excess_m(misfit_m: tuple[np.ndarray, np.ndarray] | None, n: int) -> np.ndarray:
-    """(B,) how much worse the model's estimate explains the time differences than the solver's fix, m.
+def misfit_excess_position_m(misfit_m: tuple[np.ndarray, np.ndarray] | None, model_gdop: np.ndarray | None, n: int) -> np.ndarray:
+    """(B,) how much worse the model's estimate explains the time differences than the solver's fix, in position metres.
 
-    Without a solver fix the model's misfit is compared with a perfect fit (0); NaN where the
-    model's misfit is unknown (no candidates, no estimate).
+    The excess of the model's misfit over the solver's (m of range difference) times the GDOP at
+    the model's estimate (1 where not given). Without a solver fix the model's misfit is compared
+    with a perfect fit (0); NaN where the model's misfit is unknown (no candidates, no estimate).
     """
     if misfit_m is None:
         return np.full(n, np.nan)
     solver, model = (np.asarray(m, dtype=float) for m in misfit_m)
-    return model - np.where(np.isfinite(solver), solver, 0.0)
+    scale = np.ones(n) if model_gdop is None else np.asarray(model_gdop, dtype=float)
+    return (model - np.where(np.isfinite(solver), solver, 0.0)) * scale
 
 
 def apply_trust(decision: GateDecision, solver_xy: np.ndarray, cues: SupportCues) -> TrustedDecision:
