@@ -61,16 +61,18 @@ NOT_GUARANTEED_METHOD = (
 MIN_FIELD_CALIBRATION_POSITIONS = 3
 #: What a radius guarantees, in one sentence each (metrics.json ``calibration.guarantee``; docs/method.md).
 GUARANTEE_SIMULATION = (
-    "A radius at level l covers the error of a new detection like the simulated calibration events with probability about l, "
-    "marginally over detections; calibration errors come from out-of-fold models over source positions and radii use the "
-    "refitted model (a CV+-style scheme without an exact finite-sample guarantee), so coverage is measured, not assumed."
+    "A radius at level l covers the error of a new detection at a new source position like the simulated ones with "
+    "probability about l, marginally over positions: each calibration error comes from models fitted without its position "
+    "and the radii use the models refitted on all (cross-conformal with a refit, which has no exact finite-sample "
+    "guarantee), so coverage is measured per position and per detection (coverage_by_position, coverage)."
 )
 GUARANTEE_FIELD = (
-    "A radius at level l covers the error of a random detection at a new spot with probability at least l, marginally over "
-    "spots, if the field calibration spots are exchangeable with the spots of the calls and the calls of one spot with each "
-    "other (the spots' error distributions pooled, each spot weighing the same, the new spot's share at infinity: Dunn, "
-    "Wasserman and Ramdas 2022; Lee, Barber and Willett 2023); a level needing more spots than given has no radius. "
-    "Calibration errors come from out-of-fold models and radii use the refitted one (CV+-style)."
+    "A radius at level l covers the error of a random call at a new spot with probability about l, marginally over spots, if "
+    "the calibration spots are exchangeable with the spots of the calls and the calls of one spot with each other (each spot "
+    "weighing the same: Dunn, Wasserman and Ramdas 2022); each spot's errors come from models fitted without that spot and "
+    "its playbacks are solved with the array calibrated without it, while the radii use the models refitted on all spots "
+    "(cross-conformal with a refit: the rank is split conformal's, the exact bound at least l is not), and a level needing "
+    "more spots than given has no radius; calibration_by_split gives what one set of spots may cover."
 )
 
 

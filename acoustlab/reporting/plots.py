@@ -64,22 +64,31 @@ def error_cdf(ax: plt.Axes, errors_by_label: dict[str, np.ndarray]) -> None:
     ax.legend(loc="lower right", fontsize=8)
 
 
-def coverage_calibration(ax: plt.Axes, coverage_by_label: dict[str, dict[float, float]], n_detections: int | None = None) -> None:
+def coverage_calibration(
+    ax: plt.Axes,
+    coverage_by_label: dict[str, dict[float, float]],
+    intervals_by_label: dict[str, dict[float, tuple[float, float]]] | None = None,
+    n_positions: int | None = None,
+) -> None:
     """Empirical against nominal coverage, one line per label, with the diagonal.
 
-    With ``n_detections`` the band where an exactly calibrated method's empirical coverage falls
-    95 % of the time for independent detections (binomial, ±1.96 standard errors) is shaded;
-    detections sharing a position are correlated, so the real band is wider.
+    ``intervals_by_label`` draws each point's 95 % position-bootstrap interval (whole source
+    positions resampled: detections at one position share its geometry and propagation, so a
+    binomial band over detections would be too narrow); ``n_positions`` names how many positions.
     """
     ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="ideal")
-    if n_detections:
-        grid = np.linspace(0, 1, 101)
-        half = 1.96 * np.sqrt(grid * (1 - grid) / n_detections)
-        ax.fill_between(grid, grid - half, grid + half, color="0.85", label=f"±1.96 s.e., n={n_detections}")
     styles = ("-", "--", ":", "-.")
     for i, (label, by_level) in enumerate(coverage_by_label.items()):
         levels = sorted(by_level)
-        ax.plot(levels, [by_level[lv] for lv in levels], marker="o", label=label, ls=styles[i % len(styles)])
+        line = ax.plot(levels, [by_level[lv] for lv in levels], marker="o", label=label, ls=styles[i % len(styles)])[0]
+        interval = (intervals_by_label or {}).get(label)
+        if interval:
+            shown = [lv for lv in levels if lv in interval]
+            low = [by_level[lv] - interval[lv][0] for lv in shown]
+            high = [interval[lv][1] - by_level[lv] for lv in shown]
+            ax.errorbar(shown, [by_level[lv] for lv in shown], yerr=[low, high], fmt="none", ecolor=line.get_color(), capsize=3)
+    if intervals_by_label:
+        ax.plot([], [], color="0.3", marker="|", ls="none", label=f"95 % position bootstrap ({n_positions or '?'} positions)")
     ax.set_xlabel("nominal coverage")
     ax.set_ylabel("empirical coverage")
     ax.set_xlim(0, 1)
@@ -273,10 +282,13 @@ def write_run_plots(predictions: pd.DataFrame, metrics: dict, site: Site | None,
     paths.append(_save(fig, out_dir / "error_cdf.png"))
 
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
-    coverage_calibration(
-        ax, {s: {float(lv): v for lv, v in by.items()} for s, by in metrics[col.METRICS_COVERAGE].items()}, len(predictions)
-    )
-    ax.set_title("coverage calibration (pooled test detections)", fontsize=9)
+    ci = metrics.get(col.METRICS_CI95, {})
+    by_position = metrics.get(col.METRICS_COVERAGE_BY_POSITION, {})
+    curves = {f"{s}, per detection": {float(lv): v for lv, v in by.items()} for s, by in metrics[col.METRICS_COVERAGE].items()}
+    curves |= {f"{s}, per position": {float(lv): v["mean"] for lv, v in by.items()} for s, by in by_position.items()}
+    intervals = {f"{s}, per detection": {float(lv): tuple(v) for lv, v in by.items()} for s, by in ci.get(col.METRICS_COVERAGE, {}).items()}
+    coverage_calibration(ax, curves, intervals, ci.get("n_positions"))
+    ax.set_title("coverage calibration (test detections; the guarantee's unit is the position)", fontsize=8)
     paths.append(_save(fig, out_dir / "coverage_calibration.png"))
 
     fig, ax = plt.subplots(figsize=(4.5, 4.5))

@@ -336,6 +336,7 @@ def coverage_rows(runs: list[RunResult]) -> pd.DataFrame:
             for level in by_level:
                 row[f"median radius@{level} (m)"] = r.metrics[col.METRICS_WIDTH][scorer][level]["median_m"]
             for level, stats in r.metrics.get(col.METRICS_COVERAGE_BY_POSITION, {}).get(scorer, {}).items():
+                row[f"coverage per position@{level} (share)"] = stats["mean"]  # the guarantee's unit
                 row[f"worst position@{level} (share)"] = stats["min"]
             rows.append(row)
     return pd.DataFrame(rows)
