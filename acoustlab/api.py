@@ -244,7 +244,7 @@ def _solve_arguments(mic_positions_m: Any, tdoa_s: Any, speed_of_sound_m_s: Any)
     tdoa = np.atleast_2d(numbers("tdoa_s", tdoa_s))
     if tdoa.ndim != 2 or tdoa.shape[1] != mics.shape[0]:
         raise ConfigError(f"solve: tdoa_s must be (E, {mics.shape[0]}) or ({mics.shape[0]},), one per mic; got shape {tdoa.shape}")
-    speed = numbers("speed_of_sound_m_s", speed_of_sound_m_s)
+    speed = numbers(col.SPEED_OF_SOUND, speed_of_sound_m_s)  # the argument is named after the events table's column
     if speed.ndim > 1 or (speed.ndim == 1 and speed.shape[0] != tdoa.shape[0]):
         raise ConfigError(f"solve: speed_of_sound_m_s must be one value or {tdoa.shape[0]} (one per event); got shape {speed.shape}")
     if not np.isfinite(speed).all() or (speed < 200).any() or (speed > 450).any():

@@ -451,3 +451,30 @@ def test_both_scorers_refuse_an_unknown_calibration_unit_or_method_in_one_line()
         ConformalizedQuantile(GradientBoostingRegressor(loss="quantile"), calibration_unit="position").fit(
             np.ones(5), np.ones(5), np.ones(5), [0.5], quantiles=np.ones((5, 1))
         )
+
+
+@pytest.mark.parametrize("n_spots, level", [(10, 0.5), (10, 0.8), (20, 0.8), (25, 0.95)])
+def test_the_one_set_statement_is_the_beta_quantile_for_subsample_and_a_lower_bound_for_pooled(n_spots, level):
+    """'With probability 0.9 over your spots, this radius covers at least c': over 1,500 sets of spots × 5 calls with a
+    bias per spot, c is the 10 % quantile of one subsampled set's coverage of a new spot's call (within Monte Carlo
+    error), and pooling every call does at least as well."""
+    from scipy.stats import norm
+
+    from acoustlab.toolkit.conformal import one_set_coverage, subsampled_position_quantile
+
+    rng = np.random.default_rng(n_spots * 100 + int(100 * level))
+    spread = np.hypot(0.7, 0.5)  # a call's log-error: the spot's bias (0.7) plus its own (0.5)
+
+    def coverage(radius: float) -> float:  # of a random call at a new spot, exactly
+        return float(norm.cdf(np.log(radius) / spread)) if np.isfinite(radius) else 1.0
+
+    groups = np.repeat(np.arange(n_spots), 5)
+    subsampled, pooled = [], []
+    for k in range(1500):
+        scores = np.exp(np.repeat(rng.normal(0, 0.7, n_spots), 5) + rng.normal(0, 0.5, groups.size))
+        subsampled.append(coverage(subsampled_position_quantile(scores, groups, level, seed=k)))
+        pooled.append(coverage(grouped_conformal_quantile(scores, groups, level)))
+    stated = one_set_coverage(n_spots, level)
+    assert stated == pytest.approx(np.quantile(subsampled, 0.1), abs=0.03)
+    assert np.quantile(pooled, 0.1) >= stated - 0.01
+    assert one_set_coverage(18, 0.95) is None  # 19 spots needed for a 0.95 radius at all

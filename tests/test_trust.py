@@ -329,7 +329,7 @@ def test_calibration_on_too_few_positions_for_a_level_warns(caplog):
     """4 field playback spots support 0.5 and 0.8 for a new position, not 0.95 (19 needed): said in the log, the diagnostics and
     every row (no radius at 0.95, radius_note says why)."""
     settings, (features, events, train, test) = _calibrated_on_field_spots(4)
-    with caplog.at_level("WARNING"):
+    with caplog.at_level("INFO", logger="acoustlab.method.pipeline"):
         result = LocalizationPipeline(settings).fit_predict(features, events, train, test)
     calibration = result.split_diagnostics[0]["calibration"]
     assert calibration["on"] == "field" and calibration["n_positions"] == 4
@@ -343,6 +343,11 @@ def test_calibration_on_too_few_positions_for_a_level_warns(caplog):
     # one set of n = 4 spots covers Beta(k, n + 1 - k), k = ceil((n + 1) level): at 0.8, Beta(4, 1), 5 % quantile 0.05 ** (1 / 4)
     assert calibration["coverage_of_one_set"]["0.8"] == [round(0.05**0.25, 3), round(0.95**0.25, 3)]
     assert set(calibration["coverage_of_one_set"]) == {"0.5", "0.8"}
+    # what the user's one set of 4 spots gives, in metrics, on every row and in the log: Beta(4, 1)'s 10 % quantile at 0.8
+    one_set = calibration["one_set"]["covers_at_least"]
+    assert one_set["0.8"] == pytest.approx(0.1**0.25) and one_set["0.95"] is None
+    np.testing.assert_allclose(p[col.one_set_coverage(0.8)], 0.1**0.25)
+    assert "with probability 0.9 over your 4 calibration spots, the radii cover at least" in caplog.text
     assert calibration["not_guaranteed_levels"] == []
     # asked for anyway: the simulation's 0.95 radius scaled by field/simulation at 0.8, at least the 0.8 radius, labelled
     settings.unsupported_levels = "rescaled"

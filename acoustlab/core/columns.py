@@ -264,6 +264,12 @@ def radius(scorer: str, level: float) -> str:
     return f"{RADIUS_PREFIX}{GROUP_SEPARATOR}{scorer}{GROUP_SEPARATOR}{level_key(level)}"
 
 
+def one_set_coverage(level: str | float) -> str:
+    """``radius_covers_at_least__<level>``: with probability 0.9 over the calibration spots, the share of calls at a new spot
+    the radii at that level cover at least (a field calibration only; ``acoustlab.toolkit.conformal.one_set_coverage``)."""
+    return f"radius_covers_at_least{GROUP_SEPARATOR}{level_key(float(level))}"
+
+
 def parse_radius(column: str) -> tuple[str, str] | None:
     """``(scorer, level key)`` of a ``radius__<scorer>__<level>`` column; None for any other column."""
     parts = column.split(GROUP_SEPARATOR)

@@ -216,6 +216,9 @@ class FittedMethod:
             for level in self.calibration.get("unsupported_levels", [])
         ]
         out[col.RADIUS_NOTE] = "; ".join(notes)
+        one_set = (self.calibration.get("one_set") or {}).get("covers_at_least", {})
+        for level, covers in one_set.items():  # a field calibration: what the user's one set of spots gives each radius
+            out[col.one_set_coverage(level)] = np.nan if covers is None else covers
 
     def _rescale_unsupported(
         self, name: str, radii: np.ndarray, predicted: np.ndarray, gdop: np.ndarray, region: dict[str, np.ndarray]

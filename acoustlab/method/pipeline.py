@@ -45,7 +45,13 @@ from acoustlab.method.trust import (
 )
 from acoustlab.stages.field_calibration import event_time_s
 from acoustlab.stages.solver_columns import pair_candidate_lags
-from acoustlab.toolkit.conformal import positions_needed, selective_threshold, selective_threshold_by_position
+from acoustlab.toolkit.conformal import (
+    ONE_SET_PROBABILITY,
+    one_set_coverage,
+    positions_needed,
+    selective_threshold,
+    selective_threshold_by_position,
+)
 from acoustlab.toolkit.event_physics import source_height_m
 from acoustlab.toolkit.geometry import gdop
 from acoustlab.toolkit.input_uncertainty import InputErrors, InputUncertainty, allowance_sigma_m
@@ -736,6 +742,8 @@ class LocalizationPipeline:
             "not_guaranteed_levels": rescaled,
             "not_guaranteed_method": NOT_GUARANTEED_METHOD if rescaled else None,
             "guarantee": GUARANTEE_FIELD if on == "field" else GUARANTEE_SIMULATION,
+            # with probability 0.9 over calibration sets of this many positions, each radius covers at least this (field only)
+            "one_set": self._one_set_statement(n_positions) if on == "field" else None,
             # what one calibration set of this many positions gives with one event per position (position_method=subsample):
             # coverage ~ Beta(k, n + 1 − k), k = ⌈(n + 1)·level⌉; pooling every event (the default) scatters less
             "coverage_of_one_set": {
@@ -744,6 +752,20 @@ class LocalizationPipeline:
                 if (k := int(np.ceil((n_positions + 1) * level))) <= n_positions
             },
         }
+
+    def _one_set_statement(self, n_positions: int) -> dict[str, Any]:
+        """Per level, what one set of ``n_positions`` calibration spots gives its radius (``one_set_coverage``), logged once."""
+        levels = {col.level_key(level): one_set_coverage(n_positions, level) for level in self.c.levels}
+        stated = {level: c for level, c in levels.items() if c is not None}
+        if stated:
+            log.info(
+                "with probability %.1f over your %d calibration spots, the radii cover at least %s of calls at a new spot "
+                "(exact with conformal position_method=subsample; a lower bound for pooled)",
+                ONE_SET_PROBABILITY,
+                n_positions,
+                ", ".join(f"{c:.2f} at {level}" for level, c in stated.items()),
+            )
+        return {"probability": ONE_SET_PROBABILITY, "n_positions": n_positions, "covers_at_least": levels}
 
     def _out_of_fold_gate(
         self,

@@ -23,6 +23,19 @@ DETECTION_FIELDS = (
 )
 
 
+def _add_radius_columns(out: pd.DataFrame, predictions: pd.DataFrame, levels: list[float], scorers: list[str], placed: np.ndarray) -> None:
+    """The radii per scorer and level (m, empty where not placed), what one set of calibration spots gives them, and why
+    a level has none."""
+    for scorer in scorers:
+        for level in levels:
+            out[f"radius_{scorer}_{col.level_key(level)}_m"] = np.where(placed, predictions[col.radius(scorer, level)], np.nan)
+    for level in levels:  # with probability 0.9 over the user's calibration spots, each radius at that level covers at least this
+        if col.one_set_coverage(level) in predictions:
+            out[col.one_set_coverage(level)] = predictions[col.one_set_coverage(level)]
+    if col.RADIUS_NOTE in predictions:  # a level without a guarantee (too few calibration spots) has no radius, and says so
+        out[col.RADIUS_NOTE] = predictions[col.RADIUS_NOTE].fillna("").astype(str)
+
+
 def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: list[str]) -> pd.DataFrame:
     """One row per detection: the position (gate), the solver's and model's estimates, the decision, radii, flags.
 
@@ -36,7 +49,9 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     ``outside_training_region`` (the solver's fix lies outside the region the model was trained
     on) and ``novelty`` (> 1: the detection is unlike the training data); ``predicted_error_m``;
     ``radius_<scorer>_<level>_m`` per scorer and level (empty where the calibration has too few
-    positions for that level's guarantee, ``radius_note`` saying so); ellipse columns when computed; ``placed``
+    positions for that level's guarantee, ``radius_note`` saying so); under a field calibration
+    ``radius_covers_at_least__<level>`` (with probability 0.9 over the calibration spots, the
+    share of calls at a new spot those radii cover at least); ellipse columns when computed; ``placed``
     and ``abstain_reason``; quality flags from the solver stage (``solver__failure``,
     ``solver__consistency``, ``solver__n_mics_used``, GDOPs, …); ``tdoa_0_<j>_s``, the measured
     time differences t_j − t_0 (s, the strongest GCC peak of each pair with mic 0, after a field
@@ -85,11 +100,7 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
         out["outside_training_region"] = predictions[col.trust_flag("solver_outside_support")].to_numpy(bool)
         out["novelty"] = predictions[col.trust_flag("novelty")].to_numpy(float)
     out[col.PREDICTED_ERROR] = predictions[col.PREDICTED_ERROR]
-    for scorer in scorers:
-        for level in levels:
-            out[f"radius_{scorer}_{col.level_key(level)}_m"] = np.where(placed, predictions[col.radius(scorer, level)], np.nan)
-    if col.RADIUS_NOTE in predictions:  # a level without a guarantee (too few calibration spots) has no radius, and says so
-        out[col.RADIUS_NOTE] = predictions[col.RADIUS_NOTE].fillna("").astype(str)
+    _add_radius_columns(out, predictions, levels, scorers, placed)
     for c in predictions.columns:
         if c.startswith("ellipse__"):
             out[c] = np.where(placed, predictions[c], np.nan)

@@ -47,6 +47,28 @@ def positions_needed(level: float) -> int:
     return int(math.ceil(level / (1 - level) - 1e-9))
 
 
+#: The probability over calibration sets that ``one_set_coverage`` states.
+ONE_SET_PROBABILITY = 0.9
+
+
+def one_set_coverage(n_positions: int, level: float, probability: float = ONE_SET_PROBABILITY) -> float | None:
+    """The coverage that one calibration set of ``n_positions`` positions gives its radius at ``level`` with ``probability``.
+
+    With one exchangeable score per position the rank k = ⌈(n + 1)·level⌉ gives a radius whose
+    coverage of a new position, given the set, is Beta(k, n + 1 − k)-distributed (Vovk 2012's
+    training-conditional view of split conformal); its (1 − ``probability``) quantile c is what
+    "with probability 0.9 over your spots, this radius covers at least c" states. Exact for
+    ``position_method: subsample``; pooling every event of a position scatters less, so there c is
+    a lower bound (``tests/test_conformal.py``). None where ``level`` needs more positions than given.
+    """
+    from scipy.stats import beta
+
+    k = math.ceil((n_positions + 1) * level)
+    if k > n_positions:
+        return None
+    return float(beta.ppf(1 - probability, k, n_positions + 1 - k))
+
+
 def subsampled_position_quantile(scores: np.ndarray, groups: np.ndarray, level: float, seed: int = 0) -> float:
     """A conformal quantile with a finite-sample guarantee over positions: one event per position, drawn at random.
 
