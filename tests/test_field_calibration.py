@@ -806,3 +806,47 @@ def test_a_calibration_nested_too_deep_is_refused_in_one_line(tmp_path: Path):
     path.write_text("[" * 100_000 + "]" * 100_000)
     with pytest.raises(DataError, match="nested deeper than any calibration"):
         load_calibration(str(path), site3())
+
+
+def test_calibrate_names_a_deaf_recorder_leaves_it_out_and_refuses_noise():
+    """A recorder that never heard the playbacks (its lags noise) is named and left out, so the others are found as
+    without it; windows of noise alone determine no array and stop in one line."""
+    from acoustlab.method.protocols.playback_checks import unheard_mics, without_mics
+
+    site, true, clocks, features, events, direct, priors = _echoed_playbacks(3, 10, 1.0)
+    ids = list("abcdef")
+    rng = np.random.default_rng(5)
+    deaf = features.copy()
+    for i, j in site.mic_pairs:
+        if 2 in (i, j):
+            for k in (1, 2, 3):
+                deaf[col.tdoa_lag(i, j, k)] = rng.uniform(-0.1, 0.1, len(deaf))
+    fit = lambda p: calibrate_array(p, priors, ids)  # noqa: E731
+    calibration, _ = calibrate_playbacks(deaf, events, site, fit)
+    assert unheard_mics(calibration, ids) == [2]
+    again, _ = calibrate_playbacks(without_mics(deaf, site, [2]), events, site, fit)
+    assert unheard_mics(again, ids) == []
+    shift = np.hypot(*(again.mic_positions_m - true)[:, :2].T)
+    assert np.delete(shift, 2).max() < 0.05  # the others found as if mic 2 were not there
+    np.testing.assert_array_equal(again.mic_positions_m[2], site.mic_positions_m[2])  # kept where it was stated
+    noise = features.copy()
+    for name in noise.columns:
+        noise[name] = rng.uniform(-0.1, 0.1, len(noise))
+    with pytest.raises(DataError, match="the playbacks' time differences fit no array .* nothing written"):
+        unheard_mics(calibrate_playbacks(noise, events, site, fit)[0], ids)
+
+
+def test_calibrate_refuses_spots_in_another_frame_and_half_given_positions():
+    from acoustlab.method.protocols.playback_checks import check_positions
+
+    site, _, _, _, events, _, _ = _echoed_playbacks(3, 10, 1.0)
+    events = events.assign(**{col.EVENT_ID: np.arange(len(events))})
+    check_positions(events, site)
+    utm = events.copy()
+    utm.loc[utm[col.POSITION_ID] == 4, [col.TRUE_X, col.TRUE_Y]] += [500_000.0, 6_700_000.0]  # one spot in UTM
+    with pytest.raises(DataError, match="spot 4 at .* lies 6,7.* km from the array's centre .* different frames"):
+        check_positions(utm, site)
+    half = events.copy()
+    half.loc[[3, 7], col.TRUE_X] = np.nan
+    with pytest.raises(DataError, match=r"2 event\(s\) give only one of x_m, y_m \(event ids \[3, 7\]\)"):
+        check_positions(half, site)

@@ -333,8 +333,11 @@ class FieldCalibration:
         return CorrelatedInputErrors(covariance, drifts=drifts, drift_origin_s=self.drift_origin_s)
 
 
-def load_calibration(path_text: str, site: Site) -> FieldCalibration:
-    """Read and check ``calibration.json`` for ``site`` (one line naming the file and the problem on any fault)."""
+def load_calibration(path_text: str, site: Site, quiet: bool = False) -> FieldCalibration:
+    """Read and check ``calibration.json`` for ``site`` (one line naming the file and the problem on any fault).
+
+    ``quiet`` leaves out the warnings for a run that uses it (``calibrate`` checks the file it has just written).
+    """
     path = Path(path_text).expanduser()
     where = f"calibration={path_text}"
     if not path.is_file():
@@ -388,9 +391,9 @@ def load_calibration(path_text: str, site: Site) -> FieldCalibration:
     if mics.shape != site.mic_positions_m.shape:
         raise DataError(f"{where}: calibrates {mics.shape[0]} mics; site {site.name!r} has {site.n_mics}")
     check_values(out, body, where)
-    if body.get("site") != site.name:
+    if body.get("site") != site.name and not quiet:
         log.warning("%s was made for site %r; applying it to site %r", where, body.get("site"), site.name)
-    if out.redundancy is not None and out.redundancy.get("enough") is False:
+    if out.redundancy is not None and out.redundancy.get("enough") is False and not quiet:
         log.warning(
             "%s rests on %d spots, fewer than calibrate asks for (%s): its mics and clocks may rest on wrong GCC peaks",
             where,

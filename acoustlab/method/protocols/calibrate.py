@@ -30,12 +30,13 @@ import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import FieldSource, SolverInputs
-from acoustlab.core.errors import ConfigError
+from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
 from acoustlab.method.protocols.calibration_report import calibration_metrics, log_calibration, warn_if_one_playback_per_spot, warn_if_tonal
+from acoustlab.method.protocols.playback_checks import check_positions, unheard_mics, without_mics
 from acoustlab.method.run_context import RunContext, field_dataset
 from acoustlab.reporting.run_files import write_metrics
-from acoustlab.stages.field_calibration import playback_rows, playbacks_from, second_peak_ratio, write_calibration
+from acoustlab.stages.field_calibration import load_calibration, playback_rows, playbacks_from, second_peak_ratio, write_calibration
 from acoustlab.stages.mic_survey import mic_position_sigmas, mics_table_of
 from acoustlab.stages.solver_columns import pair_candidate_weights
 from acoustlab.toolkit.array_calibration import (
@@ -144,23 +145,41 @@ class CalibrateProtocol:
             if mics_table is not None and "mic_id" in mics_table and len(mics_table) == site.n_mics
             else [str(m) for m in range(site.n_mics)]
         )
+        check_positions(field.events, site)
         log.info("calibrating %d mics from %d playbacks", site.n_mics, len(playback_events))
         warn_if_one_playback_per_spot(playback_events)
         peak_ratio = second_peak_ratio(field.features, field.events, site)
         warn_if_tonal(peak_ratio)
-        # the field sources fill each event's weather (their defaults where a table has none)
-        calibration, playbacks = calibrate_playbacks(
-            field.features,
-            field.events,
-            site,
-            lambda p: self.calibrate(p, priors, mic_ids),
-            anneal=lambda p, lags, heights: self.annealed_prediction(p, lags, heights, priors),
-        )
+
+        def calibrated(features: pd.DataFrame) -> tuple[ArrayCalibration, Playbacks]:
+            # the field sources fill each event's weather (their defaults where a table has none)
+            return calibrate_playbacks(
+                features,
+                field.events,
+                site,
+                lambda p: self.calibrate(p, priors, mic_ids),
+                anneal=lambda p, lags, heights: self.annealed_prediction(p, lags, heights, priors),
+            )
+
+        calibration, playbacks = calibrated(field.features)
+        unheard = unheard_mics(calibration, mic_ids)
+        if unheard:  # fitted again without them: their stated positions and clocks stay, and the file says why
+            calibration, playbacks = calibrated(without_mics(field.features, site, unheard))
+            unheard_mics(calibration, mic_ids)
+            calibration.not_identified["unheard"] = (
+                f"recorder(s) {', '.join(mic_ids[m] for m in unheard)} did not hear the playbacks: kept at their stated "
+                "positions and clocks"
+            )
         held_out, jackknife, arrays = self.held_out(playbacks, priors, mic_ids, site, context.components.solver)
         calibration.extra["held_out"], calibration.extra["jackknife_sd"] = held_out, jackknife
         calibration.extra["spots"] = spot_rows(playbacks)
         calibration.extra["held_out_arrays"] = arrays
         digest = write_calibration(run_dir / "calibration.json", calibration, site, playback_events)
+        try:  # what localize will check when it reads the file, checked before anyone can use it
+            load_calibration(str(run_dir / "calibration.json"), site, quiet=True)
+        except DataError as exc:
+            (run_dir / "calibration.json").unlink()
+            raise DataError(f"calibrate: the playbacks do not determine the array ({exc}); nothing written") from None
         metrics = {
             "calibration": calibration_metrics(calibration, run_dir / "calibration.json", digest, peak_ratio),
             **context.settings.record,
