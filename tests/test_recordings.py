@@ -261,7 +261,7 @@ def test_a_mics_table_with_each_files_start_time(tmp_path, compose_cfg):
     )
     mics.loc[0, "start_time"] = "yesterday"
     mics.to_csv(tmp_path / "mics.csv", index=False)
-    with pytest.raises(DataError, match=r"line 2, column 'start_time': 'yesterday' is not an ISO 8601 time"):
+    with pytest.raises(DataError, match=r"line 2, column start_time: 'yesterday' is not an ISO 8601 time"):
         build(cfg.field, "field").load(site)
 
 
@@ -311,3 +311,17 @@ def test_the_tables_are_read_once_until_a_table_file_changes(tmp_path, compose_c
     assert len(reads) == 1 and again.loc[0, "file"] != "changed by the caller"
     mics.assign(mic_id=[f"m{k}" for k in range(len(mics))]).to_csv(tmp_path / "mics.csv", index=False)
     assert folder.tables()[0]["mic_id"].iloc[0] == "m0" and len(reads) == 2
+
+
+def test_the_peers_start_timestamps_mixing_naive_and_zoned_times_stop_in_one_line(tmp_path, compose_cfg):
+    """Read as UTC, a naive time beside zoned ones would be off by the zone (2 h here) and every clip lost without a
+    word: the column is refused, naming the line."""
+    mics = copy_example_audio(tmp_path)
+    coords = pd.DataFrame({"file": mics["file"], "x": mics["x_m"], "y": mics["y_m"], "z": mics["z_m"]})
+    det = pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1})
+    det["start_timestamp"] = "2021-05-01T06:00:00.200000+02:00"
+    det.loc[2, "start_timestamp"] = "2021-05-01T06:00:00.200000"
+    coords.to_csv(tmp_path / "coords.csv", index=False)
+    det.to_csv(tmp_path / "det.csv", index=False)
+    with pytest.raises(DataError, match="line 4, column start_timestamp: '2021-05-01T06:00:00.200000' lacks a UTC offset and line 2 does"):
+        load_opensoundscape_layout(compose_cfg, tmp_path, tmp_path / "coords.csv", tmp_path / "det.csv")

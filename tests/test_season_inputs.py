@@ -1,5 +1,7 @@
 """Season inputs: recordings indexed by absolute time, clips stitched across files, detector tables, events."""
 
+import shutil
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -313,3 +315,22 @@ def test_consecutive_fixed_windows_of_a_singing_bird_stay_separate_events():
     events = group_detections(detections(rows), margin_s=0.3, min_recorders=2, max_event_s=10.0)
     assert len(events) == 20 and not events["too_long"].any() and (events["n_recorders"] == 3).all()
     np.testing.assert_allclose(events["start_s"], 3.0 * np.arange(20) - 0.3)
+
+
+def test_a_files_table_reads_only_inside_its_audio_dir(tmp_path, season_files):
+    """As field=recordings: an absolute path elsewhere, '..' and a linked recorder folder are refused in one line naming
+    the line and where it resolves; allow_outside_audio_dir reads them."""
+    folder, _ = season_files
+    audio = tmp_path / "audio"
+    (audio / "B").mkdir(parents=True)
+    (audio / "A").symlink_to(folder / "A")  # a recorder folder linked from elsewhere
+    shutil.copy(folder / "B" / "20260501_050000.wav", audio / "B" / "20260501_050000.wav")
+    table = tmp_path / "files.csv"
+    for named in ("A/20260501_050000.wav", str(folder / "A" / "20260501_050000.wav"), "../audio0/A/20260501_050000.wav"):
+        table.write_text(f"recorder_id,file,start_time\nB,B/20260501_050000.wav,2026-05-01T05:00:00\nA,{named},2026-05-01T05:00:00\n")
+        with pytest.raises(DataError, match="line 3, column file: .* outside recordings.audio_dir .*allow_outside_audio_dir=true"):
+            RecorderFiles.from_table(table, audio)
+    table.write_text(
+        "recorder_id,file,start_time\nB,B/20260501_050000.wav,2026-05-01T05:00:00\nA,A/20260501_050000.wav,2026-05-01T05:00:00\n"
+    )
+    assert len(RecorderFiles.from_table(table, audio, allow_outside_audio_dir=True).table) == 2

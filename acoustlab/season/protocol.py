@@ -141,7 +141,7 @@ class SeasonLocalize:
         """The season's files (from ``files_csv`` or from file names under ``audio_dir``)."""
         files_csv, audio_dir = self.recordings_cfg.get("files_csv"), self.recordings_cfg.get("audio_dir")
         if files_csv:
-            return RecorderFiles.from_table(files_csv, audio_dir)
+            return RecorderFiles.from_table(files_csv, audio_dir, bool(self.recordings_cfg.get("allow_outside_audio_dir", False)))
         if audio_dir:
             return RecorderFiles.from_file_names(audio_dir)
         raise ConfigError(

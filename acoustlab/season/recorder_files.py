@@ -35,6 +35,7 @@ from acoustlab.core.digests import sampled_file_sha256
 from acoustlab.core.errors import DataError, show
 from acoustlab.core.files import atomic_write_bytes
 from acoustlab.toolkit.file_start import start_from_metadata, timestamp_from_name
+from acoustlab.toolkit.table_times import iso_times
 
 log = logging.getLogger(__name__)
 
@@ -158,8 +159,13 @@ class RecorderFiles:
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
-    def from_table(cls, csv_path: str | Path, audio_dir: str | Path | None = None) -> RecorderFiles:
-        """Index from a CSV with ``recorder_id, file, start_time`` (file paths relative to ``audio_dir`` or the CSV's folder)."""
+    def from_table(cls, csv_path: str | Path, audio_dir: str | Path | None = None, allow_outside_audio_dir: bool = False) -> RecorderFiles:
+        """Index from a CSV with ``recorder_id, file, start_time`` (file paths relative to ``audio_dir`` or the CSV's folder).
+
+        With ``audio_dir`` every file must lie inside it once links are followed (absolute paths, ``..``
+        and linked folders included), unless ``allow_outside_audio_dir``; without, the table's paths
+        are taken as written (relative ones from the CSV's folder).
+        """
         path = Path(csv_path)
         if not path.is_file():
             raise DataError(f"recordings.files_csv: file {path} does not exist")
@@ -171,26 +177,18 @@ class RecorderFiles:
         missing = [c for c in ("recorder_id", "file", "start_time") if c not in table]
         if missing:
             raise DataError(f"recordings.files_csv: {path} lacks columns {missing}; found {list(table.columns)}")
-        text = table["start_time"].astype(str).str.strip()
-        has_offset = text.str.contains(r"(?:Z|[+-]\d{2}:?\d{2})$", regex=True).to_numpy()
-        if has_offset.any() and not has_offset.all():
-            line = int(np.flatnonzero(has_offset != has_offset[0])[0])
-            raise DataError(
-                f"recordings.files_csv: {path} line {line + 2}, column start_time: {show(text.iloc[line])} "
-                f"{'has' if has_offset[line] else 'lacks'} a UTC offset and line 2 {'does not' if has_offset[line] else 'does'}; "
-                "give every time with an offset or none"
-            )
-        start = pd.to_datetime(text, errors="coerce", format="ISO8601", utc=bool(has_offset.all()))
-        if start.isna().any():
-            line = int(np.flatnonzero(start.isna().to_numpy())[0])
-            raise DataError(
-                f"recordings.files_csv: {path} line {line + 2}, column start_time: {show(table['start_time'].iloc[line])} is not "
-                "an ISO 8601 time (e.g. 2026-05-01T05:30:00)"
-            )
-        if start.dt.tz is not None:  # every time had an offset: all in UTC
-            start = start.dt.tz_localize(None)
+        start = iso_times(table["start_time"], f"recordings.files_csv: {path}", "start_time")
         base = Path(audio_dir) if audio_dir is not None else path.parent
         files = [str(f if Path(f).is_absolute() else base / f) for f in table["file"].astype(str)]
+        root = base.resolve()
+        outside = [k for k, f in enumerate(files) if not Path(f).resolve().is_relative_to(root)] if audio_dir is not None else []
+        if outside and not allow_outside_audio_dir:  # the rule of field=recordings: a table reads only the folder it is given
+            k = outside[0]
+            raise DataError(
+                f"recordings.files_csv: {path} line {k + 2}, column file: {show(table['file'].iloc[k])} resolves to "
+                f"{Path(files[k]).resolve()}, outside recordings.audio_dir {root} (absolute, '..' or a link); set "
+                "protocol.recordings.allow_outside_audio_dir=true to read it anyway"
+            )
         absent = [f for f in files if not Path(f).is_file()]
         if absent:
             raise DataError(f"recordings.files_csv: {path}: {len(absent)} files do not exist, e.g. {absent[0]}")

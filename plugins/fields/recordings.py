@@ -63,6 +63,7 @@ from acoustlab.toolkit.quality import (
     failed_positions,
     mics_to_drop,
 )
+from acoustlab.toolkit.table_times import iso_times
 
 log = logging.getLogger(__name__)
 
@@ -375,7 +376,7 @@ class RecordingFolder:
         hit = det[classes].max(axis=1) > 0 if classes else pd.Series(True, index=det.index)
         stated = coords.set_index("file")["start_timestamp"] if "start_timestamp" in coords else None
         if stated is None and "start_timestamp" in det:  # the peer's absolute window starts: each file's start follows
-            absolute = _timestamps(det["start_timestamp"], f"field.detections_csv: {det.attrs.get('path')}", "start_timestamp")
+            absolute = iso_times(det["start_timestamp"], f"field.detections_csv: {det.attrs.get('path')}", "start_timestamp")
             stated = (absolute - pd.to_timedelta(det["start_time"].to_numpy(float), unit="s")).groupby(det["file"]).min()
         where = f"field.coords_csv: {coords.attrs.get('path')}"
         starts = self._file_starts(files["file"].tolist(), None if stated is None else files["file"].map(stated), where, "start_timestamp")
@@ -409,7 +410,7 @@ class RecordingFolder:
         naming a file where some do and some do not.
         """
         if stated is not None:
-            return _timestamps(stated, where, column)
+            return iso_times(stated, where, column)
         starts = pd.Series([file_start_time(self.audio_path(f)) for f in files], index=files, dtype=object)
         known = starts.notna().to_numpy()
         if not known.any():
@@ -711,16 +712,6 @@ def _check_rate_labels(durations: dict[str, tuple[float, float]], tolerance: flo
                     f"{rate:g} Hz is likely wrong ({standard:g} Hz would make it {median:.3f} s); fix the header, or set "
                     "field.compare_durations=false if this recorder really recorded that much less"
                 )
-
-
-def _timestamps(values: pd.Series, where: str, column: str) -> pd.Series:
-    """ISO 8601 times of a table column (UTC where they carry a zone), or one line naming the first that is not one."""
-    text = values.astype(str).str.strip()
-    parsed = pd.to_datetime(text, errors="coerce", format="ISO8601", utc=True)
-    if parsed.isna().any():
-        i = int(np.flatnonzero(parsed.isna().to_numpy())[0])
-        raise DataError(f"{where}, line {i + 2}, column {column!r}: {show(values.iloc[i])} is not an ISO 8601 time")
-    return parsed.dt.tz_localize(None)
 
 
 def _offsets(starts: pd.Series | None, files: pd.Series) -> np.ndarray:
