@@ -151,3 +151,38 @@ class FilesFingerprint:
         for path in self.paths:
             os.stat(path)
             sampled_file_sha256(path)
+
+
+class EventGrouping:
+    """Detections grouped into events (``group_detections``): 10⁶ rows, 5 recorders hearing each call, and every
+    detection repeated ``repeats`` times (a table read twice, a detector writing a window per view)."""
+
+    params = [[1_000_000], [1, 4]]
+    param_names = ["n_rows", "repeats"]
+
+    def setup(self, n_rows: int, repeats: int) -> None:
+        import numpy as np
+        import pandas as pd
+
+        from acoustlab.core import columns as col
+
+        rng = np.random.default_rng(0)
+        calls = n_rows // (5 * repeats)
+        start = np.repeat(np.sort(rng.uniform(0, 30 * 86400, calls)), 5) + rng.uniform(0, 0.05, 5 * calls)
+        self.detections = pd.DataFrame(
+            {
+                "recorder_id": pd.Categorical(np.tile([f"R{k}" for k in range(5)], calls).repeat(repeats)),
+                col.START: start.repeat(repeats),
+                col.END: start.repeat(repeats) + 1.0,
+                "low_hz": 2000.0,
+                "high_hz": 6000.0,
+                "label": pd.Categorical(np.full(5 * calls * repeats, "song")),
+                "score": 0.9,
+                "source": "t.txt:2",
+            }
+        )
+
+    def time_group(self, n_rows: int, repeats: int) -> None:
+        from acoustlab.season.events import group_detections
+
+        group_detections(self.detections, 0.2)

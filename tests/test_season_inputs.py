@@ -207,6 +207,22 @@ def test_raven_tables_per_recorder_place_selections_by_file_start_and_offset(two
     assert only["label"].tolist() == ["tit"]
 
 
+def test_a_selection_beginning_outside_its_file_is_named_and_left_out(two_recorders, caplog):
+    """A begin time before its file or 99,999 s into a 60-s file: never a call in it; one warning names the table, the
+    first such line and the file's length, and the other selections are kept."""
+    folder, files = two_recorders
+    rows = [
+        ("20260501_050000.wav", 12.0, 0.5, "wren"),
+        ("20260501_050000.wav", 99999.0, 0.5, "wren"),
+        ("20260501_050100.wav", -3.0, 0.5, "tit"),
+    ]
+    raven_table(folder / "R0.Table.1.selections.txt", rows)
+    with caplog.at_level("WARNING"):
+        det = read_detections([folder / "R0.Table.1.selections.txt"], "raven", files)
+    assert det["start_s"].tolist() == [12.0]
+    assert "2 row(s) of" in caplog.text and "line 4: 99999.000 s into 20260501_050000.wav, which is 60.000 s long" in caplog.text
+
+
 def test_one_raven_table_for_all_recorders_needs_a_recorder_column(two_recorders):
     folder, files = two_recorders
     raven_table(folder / "all.txt", [("20260501_050000.wav", 12.0, 0.5, "wren")])
@@ -306,6 +322,20 @@ def test_detections_are_grouped_into_events_heard_by_enough_recorders():
     np.testing.assert_allclose(events[["start_s", "end_s"]].iloc[0], [9.7, 11.05])
     np.testing.assert_allclose(events[["band_low_hz", "band_high_hz"]].iloc[0], [2000, 6000])
     assert events["too_long"].tolist() == [False, False, True]
+
+
+def test_repeats_of_one_detection_are_one_detection(caplog):
+    """The same table read twice (every row twice on every recorder): the events of reading it once, each naming both
+    source rows, and one warning; without merging, each repeat opened an event of its own."""
+    rows = [(f"R{r}", 5.0 * k + 0.01 * r, 5.0 * k + 0.5, 2000, 5000, "wren") for k in range(30) for r in range(4)]
+    once = group_detections(detections(rows), margin_s=0.3, min_recorders=2)
+    twice = detections(rows + rows)
+    twice["source"] = [f"t.txt:{k + 2}" for k in range(len(twice))]
+    with caplog.at_level("WARNING"):
+        events = group_detections(twice, margin_s=0.3, min_recorders=2)
+    assert "120 repeat(s) of a detection on the same recorder" in caplog.text
+    pd.testing.assert_frame_equal(events.drop(columns="detections"), once.drop(columns="detections"))
+    assert events["detections"].iloc[0].split(";")[:2] == ["t.txt:2", "t.txt:122"]
 
 
 def test_consecutive_fixed_windows_of_a_singing_bird_stay_separate_events():

@@ -43,6 +43,8 @@ log = logging.getLogger(__name__)
 DETECTION_COLUMNS = ("recorder_id", col.START, col.END, "low_hz", "high_hz", "label", "score", "source")
 FORMATS = ("raven", "birdnet", "opensoundscape")
 RAVEN_TIMES = ("Begin Time (s)", "End Time (s)")
+#: How far a detection's begin may lie outside its file, s (rounding of the tables' times).
+OFFSET_TOLERANCE_S = 0.01
 BIRDNET_TIMES = ("Start (s)", "End (s)")
 
 
@@ -72,7 +74,8 @@ def _numbers(table: pd.DataFrame, column: str) -> np.ndarray:
         bad |= ~np.isfinite(values)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
-        raise DataError(f"detections: {table.attrs['path']} line {k + 2}, column {column!r}: {show(table[column].iloc[k])} is not a number")
+        line = table.attrs["lines"][k] if "lines" in table.attrs else k + 2
+        raise DataError(f"detections: {table.attrs['path']} line {line}, column {column!r}: {show(table[column].iloc[k])} is not a number")
     return values
 
 
@@ -99,14 +102,30 @@ def _place(
     score: np.ndarray,
     recorders: Sequence[str | None],
 ) -> pd.DataFrame:
-    """Detections in season seconds from per-file offsets."""
+    """Detections in season seconds from per-file offsets (a row's line in its file: ``table.attrs["lines"]``, else its
+    position + 2)."""
+    line = np.asarray(table.attrs.get("lines", np.arange(len(table)) + 2))
     if (duration_s <= 0).any():
         k = int(np.flatnonzero(duration_s <= 0)[0])
-        raise DataError(f"detections: {table.attrs['path']} line {k + 2}: the detection ends before it begins ({duration_s[k]:.3f} s)")
+        raise DataError(f"detections: {table.attrs['path']} line {line[k]}: the detection ends before it begins ({duration_s[k]:.3f} s)")
     _check_band(table, low, high, recordings.sample_rate_hz)
     rows = recordings.file_indices(files, recorders)
     start = recordings.table[col.START].to_numpy(float)[rows] + offset_s
-    return pd.DataFrame(
+    length_s = (recordings.table["n_frames"].to_numpy(float) / recordings.table["sample_rate_hz"].to_numpy(float))[rows]
+    outside = ~((offset_s >= -OFFSET_TOLERANCE_S) & (offset_s <= length_s + OFFSET_TOLERANCE_S))
+    if outside.any():  # a begin time outside its own file: a wrong file or a wrong time, never a call in it
+        k = int(np.flatnonzero(outside)[0])
+        log.warning(
+            "detections: %d row(s) of %s begin outside their file and are left out, e.g. line %d: %.3f s into %s, which is %.3f s "
+            "long (a Raven table over a sequence of files needs its File Offset (s) column)",
+            int(outside.sum()),
+            table.attrs["path"],
+            line[k],
+            offset_s[k],
+            files[k],
+            length_s[k],
+        )
+    detections = pd.DataFrame(
         {
             "recorder_id": recordings.table["recorder_id"].to_numpy()[rows],
             col.START: start,
@@ -115,9 +134,10 @@ def _place(
             "high_hz": high,
             "label": label.astype(str),
             "score": score,
-            "source": [f"{Path(table.attrs['path']).name}:{k + 2}" for k in range(len(table))],
+            "source": [f"{Path(table.attrs['path']).name}:{k}" for k in line],
         }
     )
+    return detections[~outside].reset_index(drop=True) if outside.any() else detections
 
 
 def _check_band(table: pd.DataFrame, low: np.ndarray, high: np.ndarray, sample_rate_hz: float) -> None:
@@ -144,7 +164,9 @@ def read_raven(path: Path, recordings: RecorderFiles, label_column: str | None =
     table = _read_table(path, "\t", "Raven selection table")
     _require(table, RAVEN_TIMES, "Raven selection table")
     if "Selection" in table:
+        lines = np.flatnonzero(~table.duplicated("Selection", keep="first").to_numpy()) + 2  # the file's lines, header line 1
         table = table.drop_duplicates("Selection", keep="first").reset_index(drop=True)
+        table.attrs["lines"] = lines
         table.attrs["path"] = str(path)
     file_column = next((c for c in ("Begin File", "Begin Path") if c in table), None)
     if file_column is None:

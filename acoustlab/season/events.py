@@ -74,6 +74,29 @@ def link_per_recorder(start_s: np.ndarray, end_s: np.ndarray, recorder: np.ndarr
     return cluster
 
 
+def _without_repeats(detections: pd.DataFrame) -> pd.DataFrame:
+    """Detections with each repeat of one recorder's detection (same label, start and end) merged into the first.
+
+    A recorder cannot hear one call twice: a repeat is the same table read twice, or a detector
+    writing a window once per view. Kept, each repeat would open an event of its own that no
+    other detection closes, and linking would grow with the square of their number. The merged
+    row keeps the highest score and every source row.
+    """
+    key = ["label", "recorder_id", col.START, col.END]
+    repeated = detections.duplicated(key, keep=False)
+    if not repeated.any():
+        return detections
+    merged = detections.groupby(key, sort=False, observed=True, dropna=False).agg(
+        low_hz=("low_hz", "min"), high_hz=("high_hz", "max"), score=("score", "max"), source=("source", lambda s: ";".join(map(str, s)))
+    )
+    merged = merged.reset_index().sort_values([col.START, "recorder_id"], kind="stable").reset_index(drop=True)
+    log.warning(
+        "detections: %d repeat(s) of a detection on the same recorder (same label, start and end) merged into one each",
+        len(detections) - len(merged),
+    )
+    return merged
+
+
 def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: int = 2, max_event_s: float = 10.0) -> pd.DataFrame:
     """Events from detections (see the module docstring), in time order, ``event_id`` 0, 1, ….
 
@@ -89,6 +112,7 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
     max_event_s : float
         Longest clip read, s.
     """
+    detections = _without_repeats(detections)
     parts = []
     for label, group in detections.groupby("label", sort=True):
         g = group.sort_values([col.START, "recorder_id"], kind="stable")
