@@ -633,6 +633,12 @@ def test_calibrate_recovers_a_rendered_array_and_localize_uses_it(compose_cfg, t
     after = np.median(np.hypot(*(np.asarray(body["mic_positions_m"]) - true_mics)[:, :2].T))
     assert after < 0.3 * before
     assert metrics["calibration"]["sha256"] == body["sha256"]
+    # the speed of sound the playbacks measured, beside the thermometer's: the air was colder than read, so sound slower
+    speed = metrics["calibration"]["speed_of_sound"]
+    assert speed["calibrated_m_s"] == pytest.approx(
+        float(speed_of_sound_m_s(speed["temperature_read_c"] + body["temperature_offset_c"], speed["relative_humidity_pct"])), abs=1e-3
+    )
+    assert speed["as_read_m_s"] - speed["calibrated_m_s"] > 1.0  # 3 °C high reads about 1.8 m/s fast
     # 8 spots heard by all 6 mics: 40 independent time differences for 18 unknowns (thermometer, 5 clocks, 6 mics x, y)
     assert metrics["calibration"]["redundancy"] == body["redundancy"]
     assert body["redundancy"]["unknowns"] == 18 and body["redundancy"]["independent_time_differences"] == 40

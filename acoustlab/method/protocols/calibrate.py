@@ -32,7 +32,13 @@ from acoustlab.core import columns as col
 from acoustlab.core.contracts import FieldSource, SolverInputs
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
-from acoustlab.method.protocols.calibration_report import calibration_metrics, log_calibration, warn_if_one_playback_per_spot, warn_if_tonal
+from acoustlab.method.protocols.calibration_report import (
+    calibration_metrics,
+    log_calibration,
+    speed_of_sound_summary,
+    warn_if_one_playback_per_spot,
+    warn_if_tonal,
+)
 from acoustlab.method.protocols.playback_checks import check_positions, unheard_mics, without_mics
 from acoustlab.method.run_context import RunContext, field_dataset
 from acoustlab.reporting.run_files import write_metrics
@@ -172,6 +178,7 @@ class CalibrateProtocol:
             )
         held_out, jackknife, arrays = self.held_out(playbacks, priors, mic_ids, site, context.components.solver)
         calibration.extra["held_out"], calibration.extra["jackknife_sd"] = held_out, jackknife
+        calibration.extra["speed_of_sound"] = speed_of_sound_summary(calibration, playbacks)
         calibration.extra["spots"] = spot_rows(playbacks)
         calibration.extra["held_out_arrays"] = arrays
         digest = write_calibration(run_dir / "calibration.json", calibration, site, playback_events)

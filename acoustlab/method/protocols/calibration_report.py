@@ -11,7 +11,8 @@ import numpy as np
 import pandas as pd
 
 from acoustlab.core import columns as col
-from acoustlab.toolkit.array_calibration import MIN_REDUNDANCY, ArrayCalibration
+from acoustlab.toolkit.array_calibration import MIN_REDUNDANCY, ArrayCalibration, Playbacks
+from acoustlab.toolkit.physics import speed_of_sound_m_s
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +66,23 @@ def calibration_metrics(calibration: ArrayCalibration, path: Path, digest: str, 
         "clock_offset_ms": [round(1e3 * v, 4) for v in summary["clock_offset_s"]],
         "mic_position_shift_m": summary["mic_position_shift_m"],
         "second_peak_ratio": peak_ratio,
+        "speed_of_sound": calibration.extra.get("speed_of_sound"),
+    }
+
+
+def speed_of_sound_summary(calibration: ArrayCalibration, playbacks: Playbacks) -> dict[str, float]:
+    """The speed of sound at the playbacks' mean thermometer reading and humidity, as read and as calibrated, m/s.
+
+    acoustlab's air is humid (``acoustlab.toolkit.physics.speed_of_sound_m_s``: c = 20.05 √T_v, T_v the virtual
+    temperature): an offset fitted against another formula (a renderer's dry air) is an offset of the formulas as well as
+    of the thermometer, while the speed of sound it gives is what the time differences measured.
+    """
+    temperature, humidity = float(np.mean(playbacks.temperature_c)), float(np.mean(playbacks.relative_humidity_pct))
+    return {
+        "temperature_read_c": round(temperature, 3),
+        "relative_humidity_pct": round(humidity, 3),
+        "as_read_m_s": round(float(speed_of_sound_m_s(temperature, humidity)), 4),
+        "calibrated_m_s": round(float(speed_of_sound_m_s(temperature + calibration.temperature_offset_c, humidity)), 4),
     }
 
 
@@ -85,10 +103,16 @@ def log_calibration(calibration: ArrayCalibration) -> None:
             MIN_REDUNDANCY,
             enough["spots_needed"],
         )
+    speed = calibration.extra.get("speed_of_sound") or {}
     log.info(
-        "thermometer offset %+.2f ± %.2f °C; clock offsets (ms) %s; mic shifts (m) %s; median time-difference residual %.3g → %.3g ms",
+        "thermometer offset %+.2f ± %.2f °C (speed of sound %s m/s calibrated, %s m/s as read, at %s °C and %s %% humidity); "
+        "clock offsets (ms) %s; mic shifts (m) %s; median time-difference residual %.3g → %.3g ms",
         calibration.temperature_offset_c,
         calibration.sd("temperature_offset_c"),
+        speed.get("calibrated_m_s"),
+        speed.get("as_read_m_s"),
+        speed.get("temperature_read_c"),
+        speed.get("relative_humidity_pct"),
         np.round(1e3 * calibration.clock_offset_s, 3).tolist(),
         np.round(np.hypot(*calibration.mic_position_shift_m[:, :2].T), 2).tolist(),
         1e3 * (summary["residual_median_abs_before_s"] or np.nan),
