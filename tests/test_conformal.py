@@ -478,3 +478,17 @@ def test_the_one_set_statement_is_the_beta_quantile_for_subsample_and_a_lower_bo
     assert stated == pytest.approx(np.quantile(subsampled, 0.1), abs=0.03)
     assert np.quantile(pooled, 0.1) >= stated - 0.01
     assert one_set_coverage(18, 0.95) is None  # 19 spots needed for a 0.95 radius at all
+
+
+def test_a_region_without_calibration_events_says_why_its_radius_is_infinite():
+    """Mondrian by region with every calibration spot inside the array: far detections get an infinite radius and a
+    note naming the region and its (zero) calibration events; inside ones neither."""
+    rng = np.random.default_rng(0)
+    err = rng.exponential(size=40)
+    scorer = SplitConformal("none", binning="region").fit(err, np.ones(40), np.ones(40), [0.5, 0.8], hull_distance=np.zeros(40))
+    hull = np.array([0.0, 2.0])
+    radii = scorer.radius(np.ones(2), np.ones(2), hull_distance=hull)
+    notes = scorer.radius_notes(np.ones(2), np.ones(2), hull_distance=hull)
+    assert np.isfinite(radii[0]).all() and np.isinf(radii[1]).all()
+    assert notes.tolist() == ["", "radius at 0.5, 0.8 infinite: 0 calibration events farther outside the array"]
+    assert (SplitConformal("none").fit(err, np.ones(40), np.ones(40), [0.8]).radius_notes(np.ones(2), np.ones(2)) == "").all()

@@ -46,8 +46,19 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
 #: (conformal scorers with ``needs_quantiles``: fit the final quantile model once, applied by their ``predict_quantiles``),
 #: ``config_patch(site, field_source, config)`` (protocols and jobs: config changes the job needs, given the resolved config
 #: as a plain dict, returned as a plain nested dict merged into it before the context is built, e.g. calibrate's wider GCC
-#: lag window; None for none).
-OPTIONAL_HOOKS = ("preflight", "validate", "input_files", "projection", "fit_quantiles", "tables", "load_chunks", "config_patch")
+#: lag window; None for none), ``radius_notes(predicted_m, gdop, **region)`` (conformal scorers: (B,) why a row's radii
+#: are infinite, '' where they are not, e.g. a Mondrian region without calibration events).
+OPTIONAL_HOOKS = (
+    "preflight",
+    "validate",
+    "input_files",
+    "projection",
+    "fit_quantiles",
+    "tables",
+    "load_chunks",
+    "config_patch",
+    "radius_notes",
+)
 
 
 def declared(plugin: Any, name: str) -> Any:

@@ -19,6 +19,7 @@ from acoustlab.core.contracts import (
     ConformalScorer,
     Gate,
     declared,
+    hook,
 )
 from acoustlab.method.estimates import TestEstimates, crb_from_features, error_2d_m, hull_distance_extent
 from acoustlab.method.trust import (
@@ -192,6 +193,7 @@ class FittedMethod:
         )
         out[col.INPUT_SIGMA] = input_sigma
         allowance = input_sigma[:, None] * np.array([level_factor(level) for level in c.levels])[None, :]
+        row_notes: list[np.ndarray] = []
         for name, scorer in self.scorers.items():
             quantiles = None
             if name in self.quantile_models:
@@ -202,6 +204,9 @@ class FittedMethod:
             region = self.pipeline._region(scorer, t.trusted.decision.position_m)
             if quantiles is None:
                 radii = scorer.radius(predicted, t.gdop, **region)
+                notes_of = hook(scorer, "radius_notes")  # a Mondrian bin without calibration events: why its radii are infinite
+                if notes_of is not None:
+                    row_notes.append(np.array([f"{name}: {n}" if n else "" for n in notes_of(predicted, t.gdop, **region)], dtype=object))
             else:
                 radii = scorer.radius(predicted, t.gdop, quantiles=np.maximum(quantiles, self.floor))
             radii = self._rescale_unsupported(name, radii, predicted, t.gdop, region)
@@ -215,7 +220,9 @@ class FittedMethod:
             else f"no radius at {level}: its guarantee needs {needed[level]} calibration positions, {given} given"
             for level in self.calibration.get("unsupported_levels", [])
         ]
-        out[col.RADIUS_NOTE] = "; ".join(notes)
+        out[col.RADIUS_NOTE] = (
+            ["; ".join([*notes, *(n for n in row if n)]) for row in zip(*row_notes, strict=True)] if row_notes else "; ".join(notes)
+        )
         one_set = (self.calibration.get("one_set") or {}).get("covers_at_least", {})
         for level, covers in one_set.items():  # a field calibration: what the user's one set of spots gives each radius
             out[col.one_set_coverage(level)] = np.nan if covers is None else covers

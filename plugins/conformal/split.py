@@ -41,6 +41,8 @@ NORMALISERS = ("none", "gdop", "predicted_error")
 BINNINGS = ("none", "gdop", "predicted_error", "region")
 #: ``binning: region``: an estimate up to this many array extents outside the mics' hull is "near", beyond it "far".
 REGION_NEAR_EXTENT = 0.5
+#: The three regions of ``binning="region"``, as a radius note names them.
+REGION_NAMES = ("inside the array", f"within {REGION_NEAR_EXTENT:g} array extents outside it", "farther outside the array")
 
 
 class SplitConformal:
@@ -174,6 +176,18 @@ class SplitConformal:
         self.n_calibration_ = int(scores.size)
         self.n_calibration_by_bin_ = np.bincount(bins, minlength=n_bins).tolist()
         return self
+
+    def radius_notes(self, predicted_m: np.ndarray, gdop: np.ndarray, hull_distance: np.ndarray | None = None) -> np.ndarray:
+        """(B,) why a row's radii are infinite where its Mondrian bin held too few calibration events for a level ('' elsewhere)."""
+        notes = np.full(len(predicted_m), "", dtype=object)
+        if self.binning == "none":  # one bin: too few calibration positions is the calibration's own note
+            return notes
+        bins = self._bins(predicted_m, gdop, hull_distance)
+        for b in np.flatnonzero(~np.isfinite(self.quantiles_).all(axis=1)):
+            levels = ", ".join(f"{lv:g}" for lv, q in zip(self.levels_, self.quantiles_[b], strict=True) if not np.isfinite(q))
+            where = REGION_NAMES[b] if self.binning == "region" else f"in {self.binning} bin {b + 1} of {len(self.quantiles_)}"
+            notes[bins == b] = f"radius at {levels} infinite: {self.n_calibration_by_bin_[b]} calibration events {where}"
+        return notes
 
     def radius(self, predicted_m: np.ndarray, gdop: np.ndarray, hull_distance: np.ndarray | None = None) -> np.ndarray:
         """(B, L) radii in m (≥ 0); infinite in a Mondrian bin the calibration left empty or too small for the level."""

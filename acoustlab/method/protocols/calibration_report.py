@@ -80,7 +80,7 @@ def speed_of_sound_summary(calibration: ArrayCalibration, playbacks: Playbacks) 
     temperature, humidity = float(np.mean(playbacks.temperature_c)), float(np.mean(playbacks.relative_humidity_pct))
     return {
         "temperature_read_c": round(temperature, 3),
-        "relative_humidity_pct": round(humidity, 3),
+        col.HUMIDITY: round(humidity, 3),
         "as_read_m_s": round(float(speed_of_sound_m_s(temperature, humidity)), 4),
         "calibrated_m_s": round(float(speed_of_sound_m_s(temperature + calibration.temperature_offset_c, humidity)), 4),
     }
@@ -112,7 +112,7 @@ def log_calibration(calibration: ArrayCalibration) -> None:
         speed.get("calibrated_m_s"),
         speed.get("as_read_m_s"),
         speed.get("temperature_read_c"),
-        speed.get("relative_humidity_pct"),
+        speed.get(col.HUMIDITY),
         np.round(1e3 * calibration.clock_offset_s, 3).tolist(),
         np.round(np.hypot(*calibration.mic_position_shift_m[:, :2].T), 2).tolist(),
         1e3 * (summary["residual_median_abs_before_s"] or np.nan),
