@@ -585,3 +585,29 @@ def test_the_console_summary_keeps_its_columns_and_says_what_each_method_is():
     text = summary_text(metrics)
     per_position = next(line for line in text.splitlines() if line.strip().startswith("per position"))
     assert per_position.split()[-2:] == ["0.440", "0.710"] and "mean over source positions" in text
+
+
+def test_the_error_models_rank_correlation_is_split_between_and_within_positions():
+    """An error model that knows only which positions are hard: pooled ρ high, between positions high, within them ~0."""
+    import numpy as np
+    import pandas as pd
+
+    from acoustlab.core import columns as col
+    from acoustlab.reporting.metrics import spearman_rho
+
+    rng = np.random.default_rng(0)
+    hardness = np.repeat(rng.uniform(0.1, 10, 40), 10)  # 40 positions × 10 detections
+    error = hardness * rng.exponential(size=hardness.size)
+    predictions = pd.DataFrame(
+        {
+            col.error_m("gate"): error,
+            col.PREDICTED_ERROR: hardness,
+            "gdop": np.ones_like(error),
+            col.POSITION_ID: np.repeat(np.arange(40), 10),
+        }
+    )
+    rho = spearman_rho(predictions)
+    assert rho["error_model"] > 0.5 and rho["error_model_between_positions"] > 0.7
+    assert rho["error_model_within_positions"] is None  # constant within each position: no ranking there at all
+    predictions[col.PREDICTED_ERROR] = hardness + rng.normal(0, 1e-3, hardness.size)  # noise within: ρ about 0
+    assert abs(spearman_rho(predictions)["error_model_within_positions"]) < 0.1

@@ -96,7 +96,8 @@ def crb_summary(predictions: pd.DataFrame) -> dict[str, float] | None:
 
 
 def spearman_rho(predictions: pd.DataFrame) -> dict[str, float | None]:
-    """Spearman ρ of the error model's prediction and of GDOP with the gate's actual error.
+    """Spearman ρ of the error model's prediction and of GDOP with the gate's actual error, pooled over detections; and
+    the error model's between and within positions (``_rho_by_position``).
 
     A constant predictor (e.g. the constant error model) has no rank correlation: reported as None.
     """
@@ -110,7 +111,33 @@ def spearman_rho(predictions: pd.DataFrame) -> dict[str, float | None]:
         ):
             v = values[ok]
             rho[name] = float(spearmanr(v, err_gate[ok]).statistic) if np.ptp(v) > 0 and np.ptp(err_gate[ok]) > 0 else None
+    if ok.sum() >= 3 and col.POSITION_ID in predictions:
+        rho.update(
+            _rho_by_position(predictions[col.PREDICTED_ERROR].to_numpy(float), err_gate, predictions[col.POSITION_ID].to_numpy(), ok)
+        )
     return rho
+
+
+def _rho_by_position(predicted: np.ndarray, error: np.ndarray, groups: np.ndarray, ok: np.ndarray) -> dict[str, float | None]:
+    """The error model's Spearman ρ between positions (of their median predicted and actual errors) and within them
+    (the mean over positions with 3 or more detections of each position's own ρ).
+
+    Pooled over detections, ρ mixes the two: an error model that only tells hard positions from
+    easy ones shows a high pooled ρ while it ranks nothing within a position.
+    """
+    table = pd.DataFrame({"predicted": predicted[ok], "error": error[ok], "group": groups[ok]})
+    medians = table.groupby("group").median()
+    between = (
+        float(spearmanr(medians["predicted"], medians["error"]).statistic)
+        if len(medians) >= 3 and np.ptp(medians["predicted"]) > 0 and np.ptp(medians["error"]) > 0
+        else None
+    )
+    within = [
+        spearmanr(g["predicted"], g["error"]).statistic
+        for _, g in table.groupby("group")
+        if len(g) >= 3 and np.ptp(g["predicted"]) > 0 and np.ptp(g["error"]) > 0
+    ]
+    return {"error_model_between_positions": between, "error_model_within_positions": float(np.mean(within)) if within else None}
 
 
 def gross_error_auc(predictions: pd.DataFrame, gross_m: float = 5.0) -> dict[str, float | None]:
