@@ -221,6 +221,57 @@ def test_a_local_worker_stops_when_its_parent_is_killed(season, tmp_path):
     assert sum(part_path(folder, k).is_file() for k in range(5)) < 5
 
 
+def _children_of(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(stat.parent.name))
+        except (OSError, ValueError, IndexError):
+            continue
+    return found
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` is alive and not a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_killed_two_worker_season_leaves_no_process(season, tmp_path):
+    """kill -9 of a season running two local workers: within seconds no process it started is left (the workers die
+    with it, mid-chunk; no idle pool or resource tracker stays), and the parts written are whole."""
+    root, _, _, _ = season
+    folder = tmp_path / "killed_pool"
+    shutil.copytree(root / "out", folder, ignore=shutil.ignore_patterns("parts"))
+    code = f"from pathlib import Path\nfrom acoustlab.season.stream import localize_in_workers\nif __name__ == '__main__':\n    localize_in_workers(Path({str(folder)!r}), 2, 1)\n"
+    parent = subprocess.Popen([sys.executable, "-c", code], env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    deadline = time.monotonic() + 120
+    while not part_path(folder, 0).is_file() and parent.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    children = _children_of(parent.pid)
+    assert len(children) >= 2, "the workers had not started"
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 20
+    while any(_running(pid) for pid in children) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    left = [pid for pid in children if _running(pid)]
+    for pid in left:
+        os.kill(pid, signal.SIGKILL)
+    assert not left, f"{len(left)} process(es) the killed season started kept running"
+    for k in range(5):  # whatever was written is whole: it reads, and a resume computes only the rest
+        if part_path(folder, k).is_file():
+            pd.read_parquet(part_path(folder, k))
+    localize_chunks(folder, range(5))
+    pd.testing.assert_frame_equal(merge_parts(folder), pd.read_parquet(root / "run" / "positions.parquet"))
+
+
 @pytest.mark.slow
 def test_a_changed_method_file_is_refused_and_other_inputs_never_mix(season, compose_cfg, tmp_path):
     root, _, _, _ = season

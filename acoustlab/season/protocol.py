@@ -28,7 +28,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -56,7 +55,7 @@ from acoustlab.season.stream import (
     ChunkPlan,
     check_manifest,
     localize_chunks,
-    localize_shard,
+    localize_in_workers,
     merge_parts,
     missing_chunks,
     n_chunks,
@@ -328,14 +327,9 @@ class SeasonLocalize:
             return localize_chunks(
                 folder, range(n_chunks(manifest["n_events"], manifest["chunk_events"])), progress_every_s=self.progress_every_s
             )
-        from joblib import Parallel, delayed
-
         threads = max(1, free_cores() // self.n_jobs)  # workers × threads ≤ cores: oversubscribed OpenMP spin-waits
         log.info("season: %d local workers, %d thread(s) each", self.n_jobs, threads)
-        done = Parallel(n_jobs=self.n_jobs, backend="loky")(
-            delayed(localize_shard)(str(folder), s, self.n_jobs, threads, os.getpid()) for s in range(self.n_jobs)
-        )
-        return int(sum(done))
+        return localize_in_workers(folder, self.n_jobs, threads)
 
     def run_job(self, context: RunContext, run_dir: Path) -> dict[str, Any]:
         """Run the configured stage(s); writes and returns the run's metrics (positions summary after a merge)."""

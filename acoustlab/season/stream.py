@@ -45,6 +45,7 @@ from acoustlab.core.errors import DataError
 from acoustlab.core.files import atomic_write_bytes
 from acoustlab.core.heap import keep_freed_memory
 from acoustlab.core.types import RecordingBatch
+from acoustlab.core.workers import run_in_workers
 from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.saved import load_method
 from acoustlab.season.recorder_files import RecorderFiles
@@ -426,7 +427,7 @@ def read_chunk(directory: Path, k: int, chunk_events: int) -> pd.DataFrame:
 
 
 def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1, parent_pid: int | None = None) -> int:
-    """One local worker's shard (joblib): the chunks k ≡ shard (mod n_shards), with ``threads`` threads for numerics.
+    """One local worker's shard: the chunks k ≡ shard (mod n_shards), with ``threads`` threads for numerics.
 
     ``parent_pid``: the run that started the worker; the worker stops when that process is gone.
     """
@@ -441,6 +442,13 @@ def localize_shard(directory: str, shard: int, n_shards: int, threads: int = 1, 
             label=f"season shard {shard + 1}/{n_shards}",
             parent_pid=parent_pid,
         )
+
+
+def localize_in_workers(directory: Path, n_workers: int, threads: int) -> int:
+    """Every chunk of the season in ``directory`` over ``n_workers`` local processes of ``threads`` threads each, each a shard;
+    the workers die with this process (``acoustlab.core.workers``). Returns how many chunks were computed."""
+    shards = [(str(directory), s, n_workers, threads, os.getpid()) for s in range(n_workers)]
+    return int(sum(run_in_workers(localize_shard, shards, n_workers)))
 
 
 def missing_chunks(directory: Path) -> list[int]:
