@@ -37,6 +37,7 @@ EVENT_TABLE_COLUMNS = (
     col.BAND_LOW,
     col.BAND_HIGH,
     "too_long",
+    "not_read",
     "detections",
 )
 
@@ -74,6 +75,56 @@ def link_per_recorder(start_s: np.ndarray, end_s: np.ndarray, recorder: np.ndarr
     return cluster
 
 
+def merge_split_calls(start_s: np.ndarray, recorder: np.ndarray, cluster: np.ndarray, margin_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """One event per call: events of one call that linking split (a recorder's false positive just before the call took
+    its slot, and the call's first arrival joined it) merged again, each recorder's detection nearest the call kept.
+
+    Consecutive events (by their median start) are one call where their median starts lie within
+    twice ``margin_s`` (a call's arrivals span at most the array's travel time; jitter and the
+    false positive's own offset take the rest) and they share fewer recorders than the smaller
+    has: two calls of one bird in quick succession share every recorder and stay two. In the
+    merged event a recorder with several detections keeps the one whose start is nearest the
+    median start of the recorders with one (of all, where none has one); its others are returned
+    as ``apart`` (True): a false positive, or an echo, of a recorder the call already has.
+
+    Returns
+    -------
+    cluster : numpy.ndarray
+        (N,) each detection's event after merging (the ones set apart keep their merged event's).
+    apart : numpy.ndarray
+        (N,) True for a detection set apart.
+    """
+    ids = np.unique(cluster)
+    median = np.array([np.median(start_s[cluster == c]) for c in ids])
+    members = {c: set(recorder[cluster == c]) for c in ids}
+    merged_into: dict[int, int] = {}
+    head, head_recorders, head_median = None, set(), -np.inf
+    for k in np.argsort(median, kind="stable"):
+        c, mine = ids[k], members[ids[k]]
+        if (
+            head is not None
+            and median[k] - head_median <= 2 * margin_s
+            and len(mine & head_recorders) < min(len(mine), len(head_recorders))
+        ):
+            merged_into[c] = head
+            head_recorders = head_recorders | mine
+        else:
+            head, head_recorders, head_median = c, set(mine), median[k]
+    merged = np.array([merged_into.get(c, c) for c in cluster])
+    apart = np.zeros(len(cluster), dtype=bool)
+    for c in np.unique(merged):
+        rows = np.flatnonzero(merged == c)
+        recorders, counts = np.unique(recorder[rows], return_counts=True)
+        if (counts == 1).all():
+            continue
+        single = np.isin(recorder[rows], recorders[counts == 1])
+        centre = np.median(start_s[rows[single]] if single.any() else start_s[rows])
+        for r in recorders[counts > 1]:
+            mine = rows[recorder[rows] == r]
+            apart[mine[np.argsort(np.abs(start_s[mine] - centre), kind="stable")[1:]]] = True
+    return merged, apart
+
+
 def _without_repeats(detections: pd.DataFrame) -> pd.DataFrame:
     """Detections with each repeat of one recorder's detection (same label, start and end) merged into the first.
 
@@ -100,6 +151,9 @@ def _without_repeats(detections: pd.DataFrame) -> pd.DataFrame:
 def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: int = 2, max_event_s: float = 10.0) -> pd.DataFrame:
     """Events from detections (see the module docstring), in time order, ``event_id`` 0, 1, ….
 
+    A detection set apart from its call (``merge_split_calls``) is a row of its own, not read, with
+    ``not_read`` naming the call's event: never a second position for one call.
+
     Parameters
     ----------
     detections : pandas.DataFrame
@@ -114,29 +168,51 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
     """
     detections = _without_repeats(detections)
     parts = []
-    for label, group in detections.groupby("label", sort=True):
+    for label, group in detections.groupby("label", sort=True, observed=True):
         g = group.sort_values([col.START, "recorder_id"], kind="stable")
-        cluster = link_per_recorder(g[col.START].to_numpy(float), g[col.END].to_numpy(float), g["recorder_id"].to_numpy(), margin_s)
-        g = g.assign(_cluster=cluster)
-        agg = g.groupby("_cluster", sort=True).agg(
-            first=(col.START, "min"),
-            last=(col.END, "max"),
-            n_recorders=("recorder_id", "nunique"),
-            recorders=("recorder_id", lambda r: ";".join(sorted(set(map(str, r))))),
-            score=("score", "max"),
-            low=("low_hz", "min"),
-            high=("high_hz", "max"),
-            detections=("source", lambda s: ";".join(s)),
+        start, recorder = g[col.START].to_numpy(float), g["recorder_id"].to_numpy()
+        cluster, apart = merge_split_calls(
+            start, recorder, link_per_recorder(start, g[col.END].to_numpy(float), recorder, margin_s), margin_s
+        )
+        host = np.where(apart, cluster, -1)  # the event whose call a detection set apart fell in
+        cluster = np.where(apart, cluster.max(initial=-1) + 1 + np.arange(len(cluster)), cluster)  # … a row of its own
+        agg = (
+            g.assign(_cluster=cluster, _host=host)
+            .groupby("_cluster", sort=True)
+            .agg(
+                first=(col.START, "min"),
+                last=(col.END, "max"),
+                n_recorders=("recorder_id", "nunique"),
+                recorders=("recorder_id", lambda r: ";".join(sorted(set(map(str, r))))),
+                score=("score", "max"),
+                low=("low_hz", "min"),
+                high=("high_hz", "max"),
+                detections=("source", lambda s: ";".join(map(str, s))),
+                host=("_host", "max"),
+            )
+            .reset_index()
         )
         agg["label"] = label
         parts.append(agg)
     if not parts:
         return pd.DataFrame(columns=list(EVENT_TABLE_COLUMNS))
-    events = pd.concat(parts, ignore_index=True).sort_values(["first", "label"], kind="stable").reset_index(drop=True)
+    events = pd.concat(parts, ignore_index=True)
     heard = events["n_recorders"].to_numpy() >= min_recorders
-    if (~heard).any():
-        log.info("events: %d of %d heard by fewer than %d recorders; not localized", int((~heard).sum()), len(events), min_recorders)
-    events = events[heard].reset_index(drop=True)
+    hosts_heard = set(zip(events["label"][heard], events["_cluster"][heard], strict=True))
+    apart = (events["host"].to_numpy() >= 0) & np.array(
+        [(lab, h) in hosts_heard for lab, h in zip(events["label"], events["host"], strict=True)]
+    )
+    dropped = ~heard & ~apart
+    if dropped.any():
+        log.info("events: %d of %d heard by fewer than %d recorders; not localized", int(dropped.sum()), len(events), min_recorders)
+    if apart.any():
+        log.warning(
+            "events: %d detection(s) fell within another event's call on a recorder it already has (a false positive or an "
+            "echo): kept as rows of their own, flagged in not_read, not localized",
+            int(apart.sum()),
+        )
+    events = events[~dropped].sort_values(["first", "label"], kind="stable").reset_index(drop=True)
+    number = {(lab, c): k for k, (lab, c) in enumerate(zip(events["label"], events["_cluster"], strict=True))}
     out = pd.DataFrame(
         {
             col.EVENT_ID: np.arange(len(events), dtype=np.int64),
@@ -151,6 +227,10 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
         }
     )
     out["too_long"] = (out[col.END] - out[col.START]).to_numpy() > max_event_s
+    out["not_read"] = [
+        f"a second detection on recorder {rec} within event {number[(lab, h)]}'s call (a false positive or an echo)" if h >= 0 else ""
+        for lab, h, rec in zip(events["label"], events["host"], events["recorders"], strict=True)
+    ]
     out["detections"] = events["detections"].to_numpy()
     if out["too_long"].any():
         log.warning(

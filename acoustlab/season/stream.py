@@ -197,9 +197,15 @@ def _clip(
     return clip, [*read.flags, *reasons]
 
 
+def not_read_reasons(events: pd.DataFrame) -> np.ndarray:
+    """(E,) why an event's clips are not read ('' where they are): ``too_long``, or its ``not_read`` note."""
+    noted = events["not_read"].fillna("").astype(str).to_numpy() if "not_read" in events else np.full(len(events), "")
+    return np.where(events["too_long"].to_numpy(bool), "too_long", noted)
+
+
 def clip_lengths_s(events: pd.DataFrame) -> np.ndarray:
-    """Each event's clip length, s (a ``too_long`` event's stand-in: it is flagged, not read)."""
-    return np.where(events["too_long"].to_numpy(bool), TOO_LONG_STAND_IN_S, (events[col.END] - events[col.START]).to_numpy(float))
+    """Each event's clip length, s (an event not read gets a stand-in: it is flagged, not read)."""
+    return np.where(not_read_reasons(events) != "", TOO_LONG_STAND_IN_S, (events[col.END] - events[col.START]).to_numpy(float))
 
 
 def padded_samples(lengths_s: np.ndarray, sample_rate_hz: float) -> np.ndarray:
@@ -216,11 +222,9 @@ def read_batch(
     n_max = int(padded.max())
     audio = np.zeros((len(events), len(recorders), n_max), dtype=np.float32)
     flags, dropped, usable = [], [], []
-    for e, (start, length, too_long) in enumerate(
-        zip(events[col.START].to_numpy(float), lengths_s, events["too_long"].to_numpy(bool), strict=True)
-    ):
-        if too_long:
-            flags.append("too_long")
+    for e, (start, length, why_not) in enumerate(zip(events[col.START].to_numpy(float), lengths_s, not_read_reasons(events), strict=True)):
+        if why_not:
+            flags.append(why_not)
             dropped.append("")
             usable.append(False)
             continue
