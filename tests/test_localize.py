@@ -141,7 +141,7 @@ def test_calibration_playbacks_join_training_and_positions_are_projected(compose
     """Events with known positions (calibration playbacks) are added to the training rows, not localized; the others are
     placed and also written in the mics table's projected coordinates."""
     batch, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 10, known=4, rotation_deg=30.0)
-    table, metrics, _ = localize(compose_cfg, tmp_path, *overrides)
+    table, metrics, run_dir = localize(compose_cfg, tmp_path, *overrides)
     assert table["event_id"].tolist() == [4, 5, 6, 7, 8, 9]
     assert metrics["training"]["n_calibration_playbacks"] == 4 and metrics["training"]["n_simulated"] > 0
     a = np.deg2rad(30.0)
@@ -150,6 +150,15 @@ def test_calibration_playbacks_join_training_and_positions_are_projected(compose
     np.testing.assert_allclose(table["easting_m"], expected_e, atol=1e-6)
     np.testing.assert_allclose(table["northing_m"], expected_n, atol=1e-6)
     assert (table["crs"] == "EPSG:32617").all()
+    # the map layer a GIS opens: the positions in the mics' CRS, every column of positions.csv, the radii as circles
+    import geopandas as gpd
+
+    layer = gpd.read_file(run_dir / "positions.gpkg", layer="positions")
+    assert layer.crs.to_epsg() == 32617 and set(table.columns) <= set(layer.columns)
+    placed = table["placed"].to_numpy(bool)
+    np.testing.assert_allclose(layer.geometry.x[placed], table["easting_m"][placed], atol=1e-6)
+    radii = gpd.read_file(run_dir / "positions.gpkg", layer="radii")
+    assert radii.crs.to_epsg() == 32617 and len(radii) > 0
 
 
 @pytest.mark.slow

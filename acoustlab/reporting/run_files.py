@@ -66,6 +66,17 @@ def write_results(run_dir: Path, config: dict[str, Any], predictions: pd.DataFra
     atomic_write_bytes(run_dir / PENDING_FILE, json.dumps({"destination": None, "error": "not yet sent to the tracker"}).encode())
 
 
+def write_positions(run_dir: Path, table: pd.DataFrame, csv: bool = True) -> None:
+    """A positions table as every job writes it: ``positions.parquet``, ``positions.csv`` (with ``csv``), and the map layer
+    ``positions.gpkg`` (``acoustlab.reporting.geo``; optional: a failure there is a warning, never a lost run)."""
+    from acoustlab.reporting.geo import GEOPACKAGE, write_geopackage
+
+    atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
+    if csv:
+        atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
+    optional_artefact(GEOPACKAGE, lambda: write_geopackage(table, run_dir / GEOPACKAGE))
+
+
 def optional_artefact(what: str, write: Callable[[], Any]) -> None:
     """Write an artefact the results do not depend on (plots, …); a failure is a warning, never a lost run."""
     try:

@@ -38,7 +38,6 @@ import pandas as pd
 from acoustlab.core import columns as col
 from acoustlab.core.cores import free_cores
 from acoustlab.core.errors import ConfigError, DataError
-from acoustlab.core.files import atomic_write_bytes
 from acoustlab.core.types import Site
 from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.pipeline import LocalizationPipeline
@@ -46,7 +45,7 @@ from acoustlab.method.run_context import RunContext, simulated_dataset
 from acoustlab.method.saved import load_method, save_method, saved_info
 from acoustlab.method.splits import cap_rows
 from acoustlab.reporting.positions import localization_summary
-from acoustlab.reporting.run_files import write_metrics
+from acoustlab.reporting.run_files import write_metrics, write_positions
 from acoustlab.season.detections import FORMATS, read_detections
 from acoustlab.season.events import group_detections
 from acoustlab.season.recorder_files import RecorderFiles
@@ -350,9 +349,7 @@ class SeasonLocalize:
             log.info("season: %d chunks computed now, %d still missing", computed, len(missing))
         if self.stage in ("merge", "all"):
             table = merge_parts(folder)
-            atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
-            if self.write_csv:
-                atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
+            write_positions(run_dir, table, csv=self.write_csv)
             radii = read_manifest(folder)["radii"]
             metrics[col.METRICS_LOCALIZATION] = localization_summary(table, radii["levels"], radii["scorers"])
             log.info(

@@ -19,7 +19,6 @@ import numpy as np
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError
-from acoustlab.core.files import atomic_write_bytes
 from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.pipeline import LocalizationPipeline, MethodResult
 from acoustlab.method.protocols.field import combine
@@ -27,7 +26,7 @@ from acoustlab.method.run_context import RunContext, field_dataset, simulated_da
 from acoustlab.method.splits import cap_rows
 from acoustlab.reporting.metrics import held_out_calibration_summary, split_diagnostics_summary
 from acoustlab.reporting.positions import localization_summary, positions_summary_text
-from acoustlab.reporting.run_files import plot_and_time, quality_flag_counts, write_results
+from acoustlab.reporting.run_files import plot_and_time, quality_flag_counts, write_positions, write_results
 from acoustlab.stages.dataset import Dataset
 from acoustlab.stages.mic_survey import mics_table_of, survey_allowance
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
@@ -130,8 +129,7 @@ def write_localization(
     calibration states them (its summary does)."""
     table, predictions, c = result.positions, result.predictions, context.components
     levels, scorers = c.levels, list(c.scorers)
-    atomic_write_bytes(run_dir / "positions.csv", table.to_csv(index=False).encode())
-    atomic_write_bytes(run_dir / "positions.parquet", table.to_parquet(index=False))
+    write_positions(run_dir, table)
     metrics: dict[str, Any] = {col.METRICS_LOCALIZATION: localization_summary(table, levels, scorers)}
     for split in result.split_diagnostics:
         if "training" in split:  # simulated events and calibration playbacks the method was fitted on
