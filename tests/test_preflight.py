@@ -170,3 +170,15 @@ def test_a_mistyped_key_gets_the_closest_existing_one(run_cli, compose_cfg):
     cfg = compose_cfg(["+site=frozen_lake", "+protocol.test_fractoin=0.2"])
     with pytest.raises(ConfigError, match=r"protocol.test_fractoin is not a setting of SimOnlyProtocol; did you mean test_fraction\?"):
         build(cfg.protocol, "protocol")
+
+
+@pytest.mark.parametrize("value", ["/data/Gärten/audio", "/data/it's", "/data/[x]"])
+def test_a_setting_hydra_cannot_read_says_how_to_quote_it(value):
+    """Hydra's lexer stops on letters beyond ASCII, a quote or a bracket with no word of which setting: one line naming
+    it, with its quoted form, which then reads."""
+    with pytest.raises(ConfigError, match="cannot read the setting .field.audio_dir=.*only in double quotes, as ") as caught:
+        check_argv(["+site=frozen_lake", f"field.audio_dir={value}"])
+    quoted = str(caught.value).split("only in double quotes, as ", 1)[1].rsplit(" (the whole setting", 1)[0]
+    assert quoted == f'field.audio_dir="{value}"'
+    check_argv(["+site=frozen_lake", quoted])
+    check_argv(["+site=frozen_lake", "field.audio_dir=/data/my marsh"])  # spaces read as they are

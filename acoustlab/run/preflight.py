@@ -80,6 +80,35 @@ def _check_typed_value(key: str, value: str) -> None:
             raise ConfigError(f"{key} must be {expected}; got {option!r}") from None
 
 
+def _check_override_syntax(argv: list[str]) -> None:
+    """Refuse, in one line that says how to quote it, a setting Hydra's override grammar cannot read.
+
+    Hydra reads an unquoted value as its own grammar: letters beyond ASCII (a folder named
+    ``Gärten``), quotes and brackets stop its lexer with no word of which setting, or how to write it.
+
+    Raises
+    ------
+    ConfigError
+        Naming the setting and its quoted form.
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    for arg in argv:
+        if arg.startswith("-") or "=" not in arg:
+            continue
+        try:
+            parser.parse_overrides([arg])
+        except HydraException:
+            key, value = arg.split("=", 1)
+            quoted = value.replace("\\", "\\\\").replace('"', '\\"')
+            raise ConfigError(
+                f"cannot read the setting {arg!r}: Hydra reads a value with commas, quotes, brackets or letters beyond ASCII "
+                f'only in double quotes, as {key}="{quoted}" (the whole setting quoted once more for the shell)'
+            ) from None
+
+
 def check_argv(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
     """Validate group overrides and the site choice in command-line arguments.
 
@@ -91,6 +120,7 @@ def check_argv(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
     """
     if _inspecting(argv):
         return
+    _check_override_syntax(argv)
     site_given = False
     for arg in argv:
         if arg.startswith("-") or "=" not in arg:
