@@ -39,7 +39,7 @@ from acoustlab.method.protocols.calibration_report import (
     warn_if_one_playback_per_spot,
     warn_if_tonal,
 )
-from acoustlab.method.protocols.playback_checks import check_positions, unheard_mics, without_mics
+from acoustlab.method.protocols.playback_checks import check_positions, unheard_mics, with_unknown_uncertainty_from_one_spot, without_mics
 from acoustlab.method.run_context import RunContext, field_dataset
 from acoustlab.reporting.run_files import write_metrics
 from acoustlab.stages.field_calibration import load_calibration, playback_rows, playbacks_from, second_peak_ratio, write_calibration
@@ -176,6 +176,7 @@ class CalibrateProtocol:
                 f"recorder(s) {', '.join(mic_ids[m] for m in unheard)} did not hear the playbacks: kept at their stated "
                 "positions and clocks"
             )
+        calibration = with_unknown_uncertainty_from_one_spot(calibration)
         held_out, jackknife, arrays = self.held_out(playbacks, priors, mic_ids, site, context.components.solver)
         calibration.extra["held_out"], calibration.extra["jackknife_sd"] = held_out, jackknife
         calibration.extra["speed_of_sound"] = speed_of_sound_summary(calibration, playbacks)

@@ -8,6 +8,7 @@ write a file that ``localize`` applies without a word.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -115,3 +116,17 @@ def without_mics(features: pd.DataFrame, site: Site, mics: list[int]) -> pd.Data
                 features[col.tdoa_lag(i, j, k)] = np.nan
                 k += 1
     return features
+
+
+def with_unknown_uncertainty_from_one_spot(calibration: ArrayCalibration) -> ArrayCalibration:
+    """From one spot the posterior, counting its pairs as independent, is thousands of times too small (a clock's σ in
+    microseconds where it is unknown): the calibration's covariance becomes its priors' (what was stated; the estimates
+    stay), said in ``not_identified`` and one warning. Calibrations from more spots are returned as they are."""
+    if calibration.n_spots > 1:
+        return calibration
+    log.warning(
+        "calibrate: one spot cannot tell what its estimates leave uncertain; the radii carry the stated (prior) "
+        "uncertainties instead: play back from more spots (docs/calibrate.md)"
+    )
+    notes = {**calibration.not_identified, "uncertainty": "one spot: the estimates' uncertainty is unknown, the priors' is carried"}
+    return dataclasses.replace(calibration, covariance=np.diag(np.asarray(calibration.prior_sd, dtype=float) ** 2), not_identified=notes)
