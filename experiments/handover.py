@@ -3,8 +3,9 @@
 Usage: python experiments/handover.py [--own-sim frozen_lake] [--cross-sim frozen_lake forest] [--n-positions 60]
 
 A gate hands a detection over to the point model only where the model's estimate explains the
-measured time differences (any GCC candidate per pair) at least as well as the solver's fix,
-within the tolerance set on simulation (``pipeline.trust.handover_*``; acoustlab/method/trust.py).
+measured time differences (all but a quarter of the pairs, each at its nearest GCC candidate) at
+least as well as the solver's fix, within a tolerance in position metres (the misfit's excess times
+the GDOP at the estimate) set on simulation (``pipeline.trust.handover_*``; acoustlab/method/trust.py).
 The check runs after the gate, so the same run's predictions also give the positions without it
 (the trust check's other rules applied alone): both are reported from one run, on the same
 point-model predictions. Runs (XGBoost point model and error model, learned gate, the project cache):
@@ -153,7 +154,7 @@ def main() -> None:
         tolerances = [t.get("training_region", {}).get("handover_tolerance_m") for t in splits]
         raw[label]["handover_tolerance_m"] = float(np.median([t for t in tolerances if t is not None] or [np.nan]))
         lines += rows
-    lines += ["", "Per run: hand-over tolerance (m of range difference), gate decisions overridden by reason, events, seconds:", ""]
+    lines += ["", "Per run: hand-over tolerance (m of position: the misfit over the solver's times the GDOP at the estimate), gate decisions overridden by reason, events, seconds:", ""]
     for label, r in raw.items():
         tol = r["handover_tolerance_m"]
         lines.append(
