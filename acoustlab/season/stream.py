@@ -50,7 +50,7 @@ from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.saved import load_method
 from acoustlab.season.recorder_files import RecorderFiles
 from acoustlab.stages.dataset import extract_features
-from acoustlab.toolkit.dsp import next_fast_len
+from acoustlab.toolkit.dsp import clip_samples
 from acoustlab.toolkit.quality import QualityThresholds, clip_quality, mics_to_drop
 
 log = logging.getLogger(__name__)
@@ -209,8 +209,8 @@ def clip_lengths_s(events: pd.DataFrame) -> np.ndarray:
 
 
 def padded_samples(lengths_s: np.ndarray, sample_rate_hz: float) -> np.ndarray:
-    """The FFT-friendly length, in samples, each clip is zero-padded to: a function of the clip's own length only."""
-    return np.array([next_fast_len(int(round(length * sample_rate_hz)) + 1) for length in lengths_s], dtype=np.int64)
+    """Each clip's length in samples, the length its features are computed at (``clip_samples``: its own length only)."""
+    return np.array([clip_samples(0.0, length, sample_rate_hz)[1] for length in lengths_s], dtype=np.int64)
 
 
 def read_batch(

@@ -17,6 +17,19 @@ def next_fast_len(n: int) -> int:
     return int(sfft.next_fast_len(int(n), real=True))
 
 
+def clip_samples(start_s: float, length_s: float, sample_rate_hz: float) -> tuple[int, int]:
+    """Where a clip lies in its recording: its first sample and its length, in samples (its features are computed at that
+    length).
+
+    One rule for every job that cuts clips (``localize``'s recordings, a season's long files), so
+    the same window of the same audio gives the same clip and the same features whichever job cuts
+    it: both ends rounded to the nearest sample, the length the clip's own (never its batch-mates',
+    and not zero-padded: padding changes a PHAT-weighted correlation, and on a real array it moved
+    one pair's peak by 20 ms).
+    """
+    return int(round(start_s * sample_rate_hz)), int(round(length_s * sample_rate_hz))
+
+
 def delay_and_scale(signal: np.ndarray, delays_s: np.ndarray, gains: np.ndarray, sample_rate_hz: float, n_out: int) -> np.ndarray:
     """Copies of a signal delayed by fractional amounts and scaled, via an FFT phase ramp.
 

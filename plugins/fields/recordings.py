@@ -52,6 +52,7 @@ from acoustlab.core.errors import ConfigError, DataError, show
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_channels, load_mono
+from acoustlab.toolkit.dsp import clip_samples
 from acoustlab.toolkit.file_start import file_start_time
 from acoustlab.toolkit.peer_tables import RECORDER, recorders_of
 from acoustlab.toolkit.quality import (
@@ -622,8 +623,12 @@ class RecordingFolder:
     def _batch(self, mics: pd.DataFrame, events: pd.DataFrame) -> RecordingBatch:
         """The clips of ``events`` on every mic, each flagged; ``dead_mics`` and the stated ``hardware_failure`` per event."""
         fs = self.sample_rate_hz
-        pad = int(self.pad_s * fs)
-        lengths = ((events[col.END] - events[col.START]).to_numpy(float) * fs).astype(int) + 2 * pad
+        pad = int(round(self.pad_s * fs))
+        # each clip's window (the event widened by pad_s on both sides) cut as a season cuts its clips
+        lengths = np.array(
+            [clip_samples(0.0, end - start + 2 * self.pad_s, fs)[1] for start, end in zip(events[col.START], events[col.END], strict=True)],
+            dtype=np.int64,
+        )
         audio = np.zeros((len(events), len(mics), int(lengths.max())), dtype=np.float32)
         per_mic = "file" in mics.columns
         paths = {f: str(self.audio_path(f)) for f in self._audio_files(mics, events)}  # resolved once, not per event and mic
@@ -631,7 +636,7 @@ class RecordingFolder:
         for k, ev in enumerate(events.itertuples()):
             for m in range(len(mics)):
                 file, offset = _file_at(mics, m, ev.start_s) if per_mic else (ev.file, 0.0)
-                start = int(round((ev.start_s - offset) * fs)) - pad  # each file's own time: it may start later than the others
+                start = clip_samples(ev.start_s - offset - self.pad_s, 0.0, fs)[0]  # each file's own time: it may start later
                 if per_mic and "channel" in mics:
                     signal = load_channels(paths[file], fs)[int(mics["channel"].iloc[m])]
                 elif per_mic:
