@@ -86,8 +86,10 @@ class Season:
             )
             shutil.rmtree(self.folder, ignore_errors=True)
             write_season(season, self.folder).to_csv(self.folder / "truth.csv", index=False)
+        from acoustlab.method.saved import METHOD_FILE
+
         self.fitted = self.folder / f"fitted_{settings.replace('=', '_')}"
-        if not self.fitted.is_dir():
+        if not (self.fitted / METHOD_FILE).is_file():  # none yet, or one saved in another format: fit (again)
             measured(season_args(site, self.folder, self.fitted, "protocol.stage=fit", *self.extra))
 
     def _localize(self) -> tuple[int, dict[str, float], dict[str, float]]:
