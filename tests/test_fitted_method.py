@@ -117,3 +117,25 @@ def test_a_forged_method_file_is_refused_before_anything_in_it_runs(tmp_path):
     # the premise: trusting what the file names would have run the payload
     sio.loads(forged["class"][0], trusted=sio.get_untrusted_types(data=forged["class"][0]))
     assert pwned.exists()
+
+
+@pytest.mark.parametrize("kind", ["random_forest", "knn", "hist_gradient_boosting", "xgboost"])
+def test_every_shipped_estimator_is_saved_and_loaded_without_pickle(kind, tmp_path):
+    """The point models, error models and gate classifiers acoustlab ships: each one's fitted state is stored by skops
+    with types acoustlab trusts, and loaded it predicts the same."""
+    from sklearn.ensemble import HistGradientBoostingClassifier, RandomForestRegressor
+    from sklearn.neighbors import KNeighborsRegressor
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+    from xgboost import XGBRegressor
+
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(200, 5)), rng.normal(size=200)
+    estimator = {
+        "random_forest": lambda: RandomForestRegressor(n_estimators=5, random_state=0).fit(x, y),
+        "knn": lambda: make_pipeline(StandardScaler(), KNeighborsRegressor()).fit(x, y),
+        "hist_gradient_boosting": lambda: HistGradientBoostingClassifier(max_iter=10).fit(x, y > 0),
+        "xgboost": lambda: XGBRegressor(n_estimators=5, n_jobs=1).fit(x, y),
+    }[kind]()
+    loaded = load_method(tmp_path, save_method({"model": estimator}, tmp_path, kind))["model"]
+    np.testing.assert_array_equal(loaded.predict(x), estimator.predict(x))

@@ -133,6 +133,17 @@ def test_learned_gate_reaches_the_oracle_on_an_informative_diagnostic():
     assert gate.diagnostics()["oof_auc"] > 0.95
     assert np.percentile(err, 95) <= 1.2 * np.percentile(oracle, 95)
     assert decision.substituted[gross[test]].mean() > 0.9 and decision.substituted[~gross[test]].mean() < 0.2
+    # a gate fitted for real (not a fall-back) is saved without pickle and decides the same once loaded
+    import tempfile
+    from pathlib import Path
+
+    from acoustlab.method.saved import load_method, save_method
+
+    with tempfile.TemporaryDirectory() as folder:
+        loaded = load_method(Path(folder), save_method(gate, Path(folder), "gate"))
+    again = loaded.decide(solver[test], model[test], features[test], site)
+    np.testing.assert_array_equal(again.position_m, decision.position_m)
+    assert loaded.diagnostics()["threshold_grid"] == gate.diagnostics()["threshold_grid"]
 
 
 def test_learned_gate_never_trains_on_a_held_out_position(monkeypatch):

@@ -31,8 +31,11 @@ DIGEST_FILE = "method.sha256.json"
 #: Types outside skops' defaults and acoustlab's own packages that a fitted method holds.
 TRUSTED_TYPES = frozenset(
     {
+        "sklearn.ensemble._hist_gradient_boosting.predictor.TreePredictor",
         "sklearn.metrics._dist_metrics.EuclideanDistance64",
+        "sklearn.neighbors._ball_tree.BallTree",
         "sklearn.neighbors._kd_tree.KDTree",
+        "sklearn.tree._tree.Tree",
         "xgboost.core.Booster",
         "xgboost.sklearn.XGBRegressor",
         "xgboost.sklearn.XGBClassifier",
@@ -53,7 +56,13 @@ def save_method(method: Any, directory: Path, key: str) -> str:
     """
     import skops.io as sio
 
-    blob = sio.dumps(method)
+    try:
+        blob = sio.dumps(method)
+    except (TypeError, ValueError, NotImplementedError) as exc:  # an object skops cannot take apart (a pandas table, a torch module)
+        raise DataError(
+            f"the fitted method cannot be saved without pickle ({type(exc).__name__}: {exc}): a plugin keeps an object "
+            "skops cannot store; keep plain arrays, lists and dicts in fitted attributes"
+        ) from None
     refused = _refused_types(sio.get_untrusted_types(data=blob))
     if refused:
         raise DataError(

@@ -214,7 +214,7 @@ class LearnedGate:
                 auc,
                 grid,
             )
-        self.oof_auc_, self.threshold_, self.threshold_grid_, self.fallback_ = auc, threshold, grid, None
+        self.oof_auc_, self.threshold_, self.threshold_grid_, self.fallback_ = auc, threshold, _records(grid), None
         self.classifier_ = self._classifier().fit(x, y, sample_weight=w)
         log.info("learned gate: out-of-fold AUC %.3f, threshold %.3f", self.oof_auc_, self.threshold_)
         return self
@@ -222,7 +222,7 @@ class LearnedGate:
     def _fall_back(self, why: str, auc: float | None = None, grid: pd.DataFrame | None = None) -> LearnedGate:
         """Decide as the box-gated solver (substitute failures only) and say why."""
         log.warning("learned gate falls back to the solver's fix (substituting failures only): %s", why)
-        self.classifier_, self.threshold_, self.oof_auc_, self.threshold_grid_, self.fallback_ = None, np.inf, auc, grid, why
+        self.classifier_, self.threshold_, self.oof_auc_, self.threshold_grid_, self.fallback_ = None, np.inf, auc, _records(grid), why
         return self
 
     def _weights(self, err_solver: np.ndarray, err_model: np.ndarray) -> np.ndarray | None:
@@ -289,5 +289,10 @@ class LearnedGate:
             return {}
         out: dict[str, Any] = {"threshold": float(self.threshold_), "oof_auc": self.oof_auc_, "fallback": getattr(self, "fallback_", None)}
         if getattr(self, "threshold_grid_", None) is not None:
-            out["threshold_grid"] = self.threshold_grid_.to_dict(orient="records")
+            out["threshold_grid"] = self.threshold_grid_
         return out
+
+
+def _records(grid: pd.DataFrame | None) -> list[dict[str, float]] | None:
+    """The threshold grid as plain records: a fitted gate is saved without pandas objects (``acoustlab.method.saved``)."""
+    return None if grid is None else [{str(k): float(v) for k, v in row.items()} for row in grid.to_dict(orient="records")]
