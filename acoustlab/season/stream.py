@@ -186,13 +186,15 @@ def _clip(
 ) -> tuple[np.ndarray, list[str]]:
     """One recorder's clip at the method's sample rate, and its quality flags (none for what is missing in the ``margin_s`` context)."""
     rate = recordings.rate_of(recorder)  # recorders may run at different rates: each clip is resampled from its own
-    n_file = int(round(length_s * rate))
+    n_clip = clip_samples(0.0, length_s, sample_rate_hz)[1]  # the window's samples at the method's rate (the one clip rule)
+    n_file = int(np.ceil(n_clip * rate / sample_rate_hz))
     read = recordings.read(recorder, start_s, n_file, context=min(int(round(margin_s * rate)), n_file // 2))
     samples = read.samples
     if rate != sample_rate_hz:  # the method was fitted at the simulator's rate
         up, down = int(sample_rate_hz), int(rate)
         g = np.gcd(up, down)
         samples = ss.resample_poly(samples, up // g, down // g).astype(np.float32)
+    samples = samples[:n_clip]
     clip, reasons = clip_quality(samples, 0, samples.size, thresholds)
     return clip, [*read.flags, *reasons]
 

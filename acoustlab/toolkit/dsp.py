@@ -18,16 +18,18 @@ def next_fast_len(n: int) -> int:
 
 
 def clip_samples(start_s: float, length_s: float, sample_rate_hz: float) -> tuple[int, int]:
-    """Where a clip lies in its recording: its first sample and its length, in samples (its features are computed at that
-    length).
+    """Where a clip lies in its recording: its first sample and its length, in samples, the window extended at its end
+    to an FFT-friendly length (its features are computed at that length).
 
     One rule for every job that cuts clips (``localize``'s recordings, a season's long files), so
     the same window of the same audio gives the same clip and the same features whichever job cuts
-    it: both ends rounded to the nearest sample, the length the clip's own (never its batch-mates',
-    and not zero-padded: padding changes a PHAT-weighted correlation, and on a real array it moved
-    one pair's peak by 20 ms).
+    it: the start rounded to the nearest sample, the length the window's own rounded up to the next
+    length the FFT handles fast (a function of the window alone, never of its batch-mates'). The
+    extension is read from the recording, not zero-padded: zeros change a PHAT-weighted correlation
+    (on the shipped real array one pair's peak moved 20 ms), a few more samples of the same audio do
+    not; and arbitrary lengths made a season's features a third slower.
     """
-    return int(round(start_s * sample_rate_hz)), int(round(length_s * sample_rate_hz))
+    return int(round(start_s * sample_rate_hz)), next_fast_len(int(round(length_s * sample_rate_hz)))
 
 
 def delay_and_scale(signal: np.ndarray, delays_s: np.ndarray, gains: np.ndarray, sample_rate_hz: float, n_out: int) -> np.ndarray:
