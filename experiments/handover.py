@@ -154,7 +154,11 @@ def main() -> None:
         tolerances = [t.get("training_region", {}).get("handover_tolerance_m") for t in splits]
         raw[label]["handover_tolerance_m"] = float(np.median([t for t in tolerances if t is not None] or [np.nan]))
         lines += rows
-    lines += ["", "Per run: hand-over tolerance (m of position: the misfit over the solver's times the GDOP at the estimate), gate decisions overridden by reason, events, seconds:", ""]
+    lines += [
+        "",
+        "Per run: hand-over tolerance (m of position: the misfit over the solver's times the GDOP at the estimate), gate decisions overridden by reason, events, seconds:",
+        "",
+    ]
     for label, r in raw.items():
         tol = r["handover_tolerance_m"]
         lines.append(
