@@ -323,13 +323,14 @@ class RecorderFiles:
             raise DataError(f"recordings: no files of recorder {recorder_id!r}; recorders: {', '.join(self.recorders)}")
         return files.rate
 
-    def read(self, recorder_id: str, start_s: float, n_samples: int, context: int = 0) -> ClipRead:
+    def read(self, recorder_id: str, start_s: float, n_samples: int, context: int = 0, extension: int = 0) -> ClipRead:
         """``n_samples`` of one recorder from ``start_s`` (season seconds), stitched across its files.
 
         Sample k of the clip is the recording at time ``start_s + k / fs`` (fs the recorder's rate, ``rate_of``); in file f
         that is sample ``round((start_s − start_f) · fs) + k``, so a clip across a boundary equals
         the same clip cut from the files joined end to end. The first and last ``context`` samples are
-        context around the detections: where no file covers them they are zeros and flag nothing.
+        context around the detections: where no file covers them they are zeros and flag nothing; so are the last
+        ``extension`` samples, beyond the window (its extension to an FFT-friendly length).
         """
         files = self._by_recorder.get(str(recorder_id))
         if files is None:
@@ -362,7 +363,7 @@ class RecorderFiles:
             lead = -int(round((start_s - files.start_s[first_k]) * fs))
             tail = int(files.n_frames[last_k]) - int(round((start_s - files.start_s[last_k]) * fs))
             missing = np.flatnonzero(~covered)
-            missing = missing[(missing >= context) & (missing < n_samples - context)]
+            missing = missing[(missing >= context) & (missing < n_samples - context - extension)]
             if ((missing >= lead) & (missing < tail)).any():
                 flags.append("gap")
             if ((missing < lead) | (missing >= tail)).any():

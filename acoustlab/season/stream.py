@@ -188,7 +188,8 @@ def _clip(
     rate = recordings.rate_of(recorder)  # recorders may run at different rates: each clip is resampled from its own
     n_clip = clip_samples(0.0, length_s, sample_rate_hz)[1]  # the window's samples at the method's rate (the one clip rule)
     n_file = int(np.ceil(n_clip * rate / sample_rate_hz))
-    read = recordings.read(recorder, start_s, n_file, context=min(int(round(margin_s * rate)), n_file // 2))
+    extension = max(n_file - int(round(length_s * rate)), 0)  # beyond the window: read where the recording goes on
+    read = recordings.read(recorder, start_s, n_file, context=min(int(round(margin_s * rate)), n_file // 2), extension=extension)
     samples = read.samples
     if rate != sample_rate_hz:  # the method was fitted at the simulator's rate
         up, down = int(sample_rate_hz), int(rate)

@@ -129,7 +129,7 @@ class QualityThresholds:
 
 
 def clip_quality(
-    signal: np.ndarray, start: int, length: int, thresholds: QualityThresholds, margin: int = 0
+    signal: np.ndarray, start: int, length: int, thresholds: QualityThresholds, margin: int = 0, extension: int = 0
 ) -> tuple[np.ndarray, list[str]]:
     """Cut ``length`` samples from ``start`` (may be negative or past the end) and say what is wrong with them.
 
@@ -146,6 +146,9 @@ def clip_quality(
     margin : int
         Samples at either end that are context, not the event (padding): they may lie outside
         the recording without the clip counting as truncated.
+    extension : int
+        Samples at the end beyond the window, there to reach an FFT-friendly length
+        (``acoustlab.toolkit.dsp.clip_samples``): zeros where the recording ends, never a flag.
 
     Returns
     -------
@@ -168,9 +171,10 @@ def clip_quality(
         low, high = part.min(), part.max()
     if hi > lo:
         clip[lo - start : hi - start] = part
-    if min(hi, start + length - margin) <= max(lo, start + margin):
+    end = start + length - margin - extension  # where the event's own samples end
+    if min(hi, end) <= max(lo, start + margin):
         return clip, ["out_of_range"]
-    if lo > start + margin or hi < start + length - margin:
+    if lo > start + margin or hi < end:
         reasons.append("truncated")
     if not all_finite:
         reasons.append("nonfinite")

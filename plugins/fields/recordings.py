@@ -629,6 +629,7 @@ class RecordingFolder:
             [clip_samples(0.0, end - start + 2 * self.pad_s, fs)[1] for start, end in zip(events[col.START], events[col.END], strict=True)],
             dtype=np.int64,
         )
+        windows = np.round(((events[col.END] - events[col.START]).to_numpy(float) + 2 * self.pad_s) * fs).astype(np.int64)
         audio = np.zeros((len(events), len(mics), int(lengths.max())), dtype=np.float32)
         per_mic = "file" in mics.columns
         paths = {f: str(self.audio_path(f)) for f in self._audio_files(mics, events)}  # resolved once, not per event and mic
@@ -643,7 +644,9 @@ class RecordingFolder:
                     signal = load_mono(paths[file], fs)
                 else:
                     signal = load_channels(paths[ev.file], fs)[m]
-                audio[k, m, : lengths[k]], reasons[k, m] = clip_quality(signal, start, int(lengths[k]), self.thresholds, margin=pad)
+                audio[k, m, : lengths[k]], reasons[k, m] = clip_quality(
+                    signal, start, int(lengths[k]), self.thresholds, margin=pad, extension=int(lengths[k] - windows[k])
+                )
             for m in duplicate_channels(audio[k, :, : lengths[k]]):  # the same samples on two mics: a wiring or table error
                 reasons[k, m] = [*reasons[k, m], "duplicate"]
         flags = [_describe(row, mics) for row in reasons]
