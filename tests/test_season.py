@@ -152,7 +152,7 @@ def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path
     cfg = compose_cfg(season_overrides(root, fitted, "protocol.stage=merge", f"paths.outputs_dir={tmp_path / 'outputs'}"))
     run_experiment(cfg, tmp_path / "merged")
     pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "merged" / "positions.parquet"), unsharded, check_exact=True)
-    local = tmp_path / "local"  # two local worker processes (joblib)
+    local = tmp_path / "local"  # two local worker processes (acoustlab.core.workers)
     shutil.copytree(root / "out", local, ignore=shutil.ignore_patterns("parts"))
     cfg = compose_cfg(season_overrides(root, local, "protocol.n_jobs=2", f"paths.outputs_dir={tmp_path / 'outputs'}"))
     run_experiment(cfg, tmp_path / "local_run")
@@ -183,7 +183,7 @@ def test_a_killed_run_resumes_without_redoing_finished_chunks(season, tmp_path):
 
 @pytest.mark.slow
 def test_a_local_worker_stops_when_its_parent_is_killed(season, tmp_path):
-    """A worker started by a run (as joblib's local workers are) stops before its next chunk once that run is killed."""
+    """A worker started by a run (as its local workers are) stops before its next chunk once that run is killed."""
     root, _, _, _ = season
     folder = tmp_path / "orphan"
     shutil.copytree(root / "out", folder, ignore=shutil.ignore_patterns("parts"))
