@@ -94,32 +94,31 @@ def merge_split_calls(start_s: np.ndarray, recorder: np.ndarray, cluster: np.nda
     apart : numpy.ndarray
         (N,) True for a detection set apart.
     """
-    ids = np.unique(cluster)
-    median = np.array([np.median(start_s[cluster == c]) for c in ids])
-    members = {c: set(recorder[cluster == c]) for c in ids}
-    merged_into: dict[int, int] = {}
-    head, head_recorders, head_median = None, set(), -np.inf
+    ids, inverse = np.unique(cluster, return_inverse=True)
+    by_event = pd.DataFrame({"event": inverse, "start": start_s, "recorder": recorder})
+    median = by_event.groupby("event")["start"].median().to_numpy()
+    members = by_event.groupby("event")["recorder"].agg(set).to_numpy()
+    head_of = np.arange(ids.size)  # each event's merged event, by position in ids
+    head, head_recorders, head_median = -1, set(), -np.inf
     for k in np.argsort(median, kind="stable"):
-        c, mine = ids[k], members[ids[k]]
-        if (
-            head is not None
-            and median[k] - head_median <= 2 * margin_s
-            and len(mine & head_recorders) < min(len(mine), len(head_recorders))
-        ):
-            merged_into[c] = head
+        mine = members[k]
+        if head >= 0 and median[k] - head_median <= 2 * margin_s and len(mine & head_recorders) < min(len(mine), len(head_recorders)):
+            head_of[k] = head
             head_recorders = head_recorders | mine
         else:
-            head, head_recorders, head_median = c, set(mine), median[k]
-    merged = np.array([merged_into.get(c, c) for c in cluster])
+            head, head_recorders, head_median = k, set(mine), median[k]
+    merged = ids[head_of[inverse]]
     apart = np.zeros(len(cluster), dtype=bool)
-    for c in np.unique(merged):
-        rows = np.flatnonzero(merged == c)
-        recorders, counts = np.unique(recorder[rows], return_counts=True)
-        if (counts == 1).all():
-            continue
-        single = np.isin(recorder[rows], recorders[counts == 1])
+    # only events where a recorder has several detections need a choice: found in one pass, then row by row
+    counts = pd.DataFrame({"event": merged, "recorder": recorder}).groupby(["event", "recorder"], sort=False).size()
+    crowded = counts.index.get_level_values("event")[counts.to_numpy() > 1].unique()
+    rows_of = pd.Series(np.arange(len(cluster))).groupby(merged).indices
+    for c in crowded:
+        rows = rows_of[c]
+        recorders, n = np.unique(recorder[rows], return_counts=True)
+        single = np.isin(recorder[rows], recorders[n == 1])
         centre = np.median(start_s[rows[single]] if single.any() else start_s[rows])
-        for r in recorders[counts > 1]:
+        for r in recorders[n > 1]:
             mine = rows[recorder[rows] == r]
             apart[mine[np.argsort(np.abs(start_s[mine] - centre), kind="stable")[1:]]] = True
     return merged, apart
