@@ -17,12 +17,12 @@ fitted with (its SHA-256 checked).
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import json
 from pathlib import Path
 from typing import Any
 
-from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import DataError
 from acoustlab.core.files import atomic_write_bytes
 
@@ -71,7 +71,7 @@ def save_method(method: Any, directory: Path, key: str) -> str:
         )
     directory.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(directory / METHOD_FILE, blob)
-    digest = file_sha256(directory / METHOD_FILE)
+    digest = hashlib.sha256(blob).hexdigest()  # of the bytes just written, not read back
     atomic_write_bytes(directory / DIGEST_FILE, json.dumps({"sha256": digest, "key": key}, indent=2).encode())
     return digest
 
@@ -109,14 +109,14 @@ def load_method(directory: Path, expected_sha256: str | None = None) -> Any:
         raise DataError(
             f"{directory / DIGEST_FILE} is missing or unreadable: the fitted method {path} cannot be verified; fit again"
         ) from None
-    actual = file_sha256(path)
+    blob = path.read_bytes()  # read once: the digest and the load are of the same bytes
+    actual = hashlib.sha256(blob).hexdigest()
     for wanted in {recorded, expected_sha256} - {None}:
         if actual != wanted:
             raise DataError(
                 f"{path}: SHA-256 {actual[:12]}… differs from the {'recorded' if wanted == recorded else 'expected'} "
                 f"{wanted[:12]}…; the file changed after it was written, refusing to load it (fit again)"
             )
-    blob = path.read_bytes()
     try:
         untrusted = sio.get_untrusted_types(data=blob)
     except Exception as exc:  # skops raises what its zip and JSON readers raise on a file that is not its own
