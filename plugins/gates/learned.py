@@ -35,6 +35,7 @@ from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import Site
 from acoustlab.toolkit.event_physics import source_height_m
 from acoustlab.toolkit.geometry import bounding_box
+from acoustlab.toolkit.quantile_bins import BinnedColumns
 from acoustlab.toolkit.tdoa import energy_residual_db
 
 log = logging.getLogger(__name__)
@@ -145,6 +146,19 @@ class LearnedGate:
             max_iter=self.max_iter, learning_rate=self.learning_rate, max_leaf_nodes=self.max_leaf_nodes, random_state=self.seed
         )
 
+    def _fit_classifier(
+        self, x: pd.DataFrame, y: np.ndarray, w: np.ndarray | None
+    ) -> tuple[BinnedColumns | None, HistGradientBoostingClassifier]:
+        """The classifier fitted on the cues' bin numbers where that grows the same trees (else on the cues), and the bins used.
+
+        The bins are the classifier's own (``acoustlab.toolkit.quantile_bins``), found in one pass:
+        with sample weights scikit-learn finds them one quantile at a time, most of a gate's fit.
+        """
+        bins = BinnedColumns().fit(x, w)
+        if not bins.exact:
+            return None, self._classifier().fit(x, y, sample_weight=w)
+        return bins, self._classifier().fit(bins.transform(x), y, sample_weight=w)
+
     def _failed(self, solver_position_m: np.ndarray, site: Site) -> np.ndarray:
         low, high = bounding_box(site.mic_positions_m, self.margin_fraction)
         finite = np.isfinite(solver_position_m).all(axis=1)
@@ -196,12 +210,11 @@ class LearnedGate:
         for fit_idx, held_idx in GroupKFold(n_splits=self.n_folds).split(x, y, g):
             # a cue missing for every event of this fold's training part is left out of this fold's classifier
             cols = [c for c in x.columns if np.isfinite(x[c].to_numpy(float)[fit_idx]).any()]
-            clf = (
-                self._classifier().fit(x.iloc[fit_idx][cols], y[fit_idx], sample_weight=None if w is None else w[fit_idx])
-                if np.unique(y[fit_idx]).size > 1
-                else None
-            )
-            oof[held_idx] = clf.predict_proba(x.iloc[held_idx][cols])[:, 1] if clf is not None else float(y[fit_idx][0])
+            if np.unique(y[fit_idx]).size > 1:
+                bins, clf = self._fit_classifier(x.iloc[fit_idx][cols], y[fit_idx], None if w is None else w[fit_idx])
+                oof[held_idx] = _probability(bins, clf, x.iloc[held_idx][cols])
+            else:
+                oof[held_idx] = float(y[fit_idx][0])
         auc = float(roc_auc_score(y, oof))
         if auc < self.min_auc:
             return self._fall_back(f"out-of-fold AUC {auc:.3f} is below gate.min_auc={self.min_auc:g}", auc)
@@ -215,20 +228,21 @@ class LearnedGate:
                 grid,
             )
         self.oof_auc_, self.threshold_, self.threshold_grid_, self.fallback_ = auc, threshold, _records(grid), None
-        self.classifier_ = self._classifier().fit(x, y, sample_weight=w)
+        self.bins_, self.classifier_ = self._fit_classifier(x, y, w)
         log.info("learned gate: out-of-fold AUC %.3f, threshold %.3f", self.oof_auc_, self.threshold_)
         return self
 
     def _fall_back(self, why: str, auc: float | None = None, grid: pd.DataFrame | None = None) -> LearnedGate:
         """Decide as the box-gated solver (substitute failures only) and say why."""
         log.warning("learned gate falls back to the solver's fix (substituting failures only): %s", why)
-        self.classifier_, self.threshold_, self.oof_auc_, self.threshold_grid_, self.fallback_ = None, np.inf, auc, _records(grid), why
+        self.bins_, self.classifier_, self.threshold_, self.oof_auc_ = None, None, np.inf, auc
+        self.threshold_grid_, self.fallback_ = _records(grid), why
         return self
 
     def _weights(self, err_solver: np.ndarray, err_model: np.ndarray) -> np.ndarray | None:
         """(N,) sample weights, the capped cost of the wrong choice (m; at least 1 mm so no event is ignored); None: equal weights.
 
-        (None rather than ones: scikit-learn's gradient boosting takes a ~5× slower path with any sample weights.)
+        (None rather than ones: with any sample weights scikit-learn's gradient boosting bins by weighted quantiles.)
         """
         if self.stakes_cap_m is None:
             return None
@@ -274,7 +288,8 @@ class LearnedGate:
             if missing:
                 raise DataError(f"the learned gate was trained with cues {missing[:3]} that these events lack")
             with threadpool_limits(limits=self.n_threads, user_api="openmp"):
-                prob[~failed] = self.classifier_.predict_proba(cues.loc[cues.index[~failed], self.columns_])[:, 1]
+                # a gate saved before the bins were kept has none: its classifier reads the values
+                prob[~failed] = _probability(getattr(self, "bins_", None), self.classifier_, cues.loc[cues.index[~failed], self.columns_])
         return prob
 
     def decide(self, solver_position_m: np.ndarray, model_position_m: np.ndarray, features: pd.DataFrame, site: Site) -> GateDecision:
@@ -291,6 +306,11 @@ class LearnedGate:
         if getattr(self, "threshold_grid_", None) is not None:
             out["threshold_grid"] = self.threshold_grid_
         return out
+
+
+def _probability(bins: BinnedColumns | None, classifier: HistGradientBoostingClassifier, x: pd.DataFrame) -> np.ndarray:
+    """(B,) the classifier's probability of "solver worse" for cues ``x`` (as bin numbers where it was fitted on them)."""
+    return classifier.predict_proba(x if bins is None else bins.transform(x))[:, 1]
 
 
 def _records(grid: pd.DataFrame | None) -> list[dict[str, float]] | None:
