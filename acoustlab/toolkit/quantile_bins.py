@@ -7,12 +7,12 @@ time binning (the learned gate: 24 of 31 s in the main job, under cProfile). Thi
 the same thresholds for all quantiles of a column at once (one sort, one cumulative sum, one
 vectorised search) and maps values to their bin numbers. Boosting on the bin numbers then grows
 the trees it would grow on the values, and predicts the same, provided every bin holds a
-training value (``BinnedColumns.exact``): the classifier's own binning of whole numbers
+training value (``BinnedColumns.binned_``): the classifier's own binning of whole numbers
 0, 1, …, k is those numbers, and its threshold between bins ``b`` and ``b + 1`` separates the
 same values as the threshold found here. Where an inner bin is empty (a quantile falling on a
 boundary of the weights), a threshold between two non-adjacent bin numbers would not; an empty
-top bin (a heavy largest value) is harmless unless the column has missing values. Otherwise
-the caller fits on the values instead.
+top bin (a heavy largest value) is harmless unless the column has missing values. Such a column
+is handed over as it is, and the classifier bins it itself (each column is binned on its own).
 
 The rule for each column (scikit-learn's ``_find_binning_thresholds``, facts not code): NaN and
 zero-weight values are left out; a column with one distinct value has no threshold; one with at
@@ -103,9 +103,10 @@ class BinnedColumns:
         The columns, in the order fitted.
     thresholds_ : list of numpy.ndarray
         Each column's thresholds.
-    exact : bool
-        Whether every bin of every column holds a training value, so that boosting on the bin
-        numbers grows and predicts as it would on the values.
+    binned_ : list of bool
+        Per column, whether it is given as bin numbers: where boosting on them grows and predicts
+        as on the values (module docstring); a column where it would not is given as it is, and
+        the classifier bins it itself.
     """
 
     def __init__(self, max_bins: int = 255) -> None:
@@ -115,19 +116,26 @@ class BinnedColumns:
         """Find each column's thresholds on ``table`` (rows weighted by ``sample_weight``)."""
         self.columns_ = [str(c) for c in table.columns]
         self.thresholds_ = [column_thresholds(table[c].to_numpy(np.float64), sample_weight, self.max_bins) for c in table.columns]
-        binned = self.transform(table)
         # the classifier bins what it is given from the rows that weigh something, as the thresholds were found
         weighs = np.ones(len(table), dtype=bool) if sample_weight is None else np.asarray(sample_weight) != 0
-        self.exact = all(_grows_alike(binned[c].to_numpy(), t, weighs) for c, t in zip(binned.columns, self.thresholds_, strict=True))
+        self.binned_ = [
+            _grows_alike(_bin_numbers(table[c].to_numpy(np.float64), t), t, weighs)
+            for c, t in zip(self.columns_, self.thresholds_, strict=True)
+        ]
         return self
 
     def transform(self, table: pd.DataFrame) -> pd.DataFrame:
-        """``table``'s columns as bin numbers (float; NaN stays NaN), same index and names."""
+        """``table``'s columns, as bin numbers where ``binned_`` (float; NaN stays NaN), else as they are; same index and names."""
         out = {}
-        for name, thresholds in zip(self.columns_, self.thresholds_, strict=True):
+        for name, thresholds, binned in zip(self.columns_, self.thresholds_, self.binned_, strict=True):
             values = table[name].to_numpy(np.float64)
-            out[name] = np.where(np.isnan(values), np.nan, np.searchsorted(thresholds, values, side="left").astype(np.float64))
+            out[name] = _bin_numbers(values, thresholds) if binned else values
         return pd.DataFrame(out, index=table.index)
+
+
+def _bin_numbers(values: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
+    """Bin ``i`` for ``thresholds[i-1] < value <= thresholds[i]`` (float), NaN for NaN."""
+    return np.where(np.isnan(values), np.nan, np.searchsorted(thresholds, values, side="left").astype(np.float64))
 
 
 def _grows_alike(numbers: np.ndarray, thresholds: np.ndarray, weighs: np.ndarray) -> bool:

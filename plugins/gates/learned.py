@@ -146,17 +146,13 @@ class LearnedGate:
             max_iter=self.max_iter, learning_rate=self.learning_rate, max_leaf_nodes=self.max_leaf_nodes, random_state=self.seed
         )
 
-    def _fit_classifier(
-        self, x: pd.DataFrame, y: np.ndarray, w: np.ndarray | None
-    ) -> tuple[BinnedColumns | None, HistGradientBoostingClassifier]:
-        """The classifier fitted on the cues' bin numbers where that grows the same trees (else on the cues), and the bins used.
+    def _fit_classifier(self, x: pd.DataFrame, y: np.ndarray, w: np.ndarray | None) -> tuple[BinnedColumns, HistGradientBoostingClassifier]:
+        """The classifier fitted on the cues as bin numbers (each where that grows the same trees), and the bins.
 
         The bins are the classifier's own (``acoustlab.toolkit.quantile_bins``), found in one pass:
         with sample weights scikit-learn finds them one quantile at a time, most of a gate's fit.
         """
         bins = BinnedColumns().fit(x, w)
-        if not bins.exact:
-            return None, self._classifier().fit(x, y, sample_weight=w)
         return bins, self._classifier().fit(bins.transform(x), y, sample_weight=w)
 
     def _failed(self, solver_position_m: np.ndarray, site: Site) -> np.ndarray:
