@@ -1,4 +1,4 @@
-"""A season's answer does not depend on how the work is cut: 10⁵ detections, three batch/chunk settings, two shard counts.
+"""A season's answer and memory do not depend on how the work is cut: 10⁵ detections, three batch/chunk settings, two shard counts.
 
 Usage: python experiments/season_invariance.py [--site frozen_lake] [--detections 100000] [--workdir DIR]
 
@@ -9,12 +9,14 @@ localized by ``python -m acoustlab season`` with its defaults three times, from 
 season does):
 
 * ``batch_events=16, chunk_events=256``, one process (the defaults);
-* ``batch_events=1, chunk_events=97``, one process;
-* ``batch_events=7, chunk_events=1000``, two local shards (``protocol.n_jobs=2``).
+* ``batch_events=16, chunk_events=7``, two local shards (``protocol.n_jobs=2``): many small parts;
+* ``batch_events=7, chunk_events=1000``, two local shards.
 
 Every column of every row of ``positions.parquet`` is compared with the first run's, bit for bit
-(NaN equal to NaN). Reported: rows, cells compared, cells that differ, the largest difference, and
-each run's wall time and detections per second of wall time. ``--workdir`` keeps the recordings
+(NaN equal to NaN). Reported: rows, cells compared, cells that differ, the largest difference,
+whether every call of the season is one row (each call's event id once, none missing), each
+run's peak resident memory (the largest of the command and its workers, ``wait4``), wall time
+and detections per second of wall time. ``--workdir`` keeps the recordings
 (about 5 GiB for 10⁵ detections) for a rerun. Writes experiments/results/season_invariance.md.
 """
 
@@ -22,14 +24,17 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from common import compose_cfg, machine, time_cli, write_results
+from common import REPO, compose_cfg, machine, write_results
 
 from acoustlab.method.saved import DIGEST_FILE, METHOD_FILE
 from acoustlab.season.synthetic import SyntheticSeason, write_season
@@ -39,7 +44,7 @@ log = logging.getLogger("experiments.season_invariance")
 #: The compared ways to cut the work, the reference first.
 SETTINGS = {
     "batch 16, chunk 256, 1 shard": ["protocol.batch_events=16", "protocol.chunk_events=256"],
-    "batch 1, chunk 97, 1 shard": ["protocol.batch_events=1", "protocol.chunk_events=97"],
+    "batch 16, chunk 7, 2 shards": ["protocol.batch_events=16", "protocol.chunk_events=7", "protocol.n_jobs=2"],
     "batch 7, chunk 1000, 2 shards": ["protocol.batch_events=7", "protocol.chunk_events=1000", "protocol.n_jobs=2"],
 }
 
@@ -65,8 +70,8 @@ def recordings(site_name: str, n_detections: int, folder: Path) -> int:
     return sum(len(pd.read_csv(t, sep="\t")) for t in sorted((folder / "raven").glob("*.txt")))
 
 
-def run(site: str, folder: Path, out: Path, extra: list[str]) -> float:
-    """One ``python -m acoustlab season`` over the season in ``folder`` into ``out``; its wall time, s."""
+def run(site: str, folder: Path, out: Path, extra: list[str]) -> tuple[float, float]:
+    """One ``python -m acoustlab season`` over the season in ``folder`` into ``out``; its wall time, s, and peak memory, MiB."""
     args = [
         "season",
         f"+site={site}",
@@ -79,7 +84,28 @@ def run(site: str, folder: Path, out: Path, extra: list[str]) -> float:
         f"hydra.run.dir={out}_run",
         *extra,
     ]
-    return time_cli(args)
+    return time_cli_with_memory(args)
+
+
+def time_cli_with_memory(args: list[str]) -> tuple[float, float]:
+    """Seconds and peak resident MiB of one ``python -m acoustlab ARGS`` (the largest of it and the workers it waited for)."""
+    started = time.perf_counter()
+    with tempfile.TemporaryFile() as err:
+        proc = subprocess.Popen([sys.executable, "-m", "acoustlab", *args], cwd=REPO, stdout=subprocess.DEVNULL, stderr=err)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        if proc.returncode != 0:
+            err.seek(0)
+            raise SystemExit(f"command failed: {args}\n{err.read()[-3000:].decode(errors='replace')}")
+    elapsed = time.perf_counter() - started
+    log.info("%6.1f s, %6.0f MiB  %s", elapsed, usage.ru_maxrss / 1024, " ".join(args))
+    return elapsed, usage.ru_maxrss / 1024  # Linux reports kilobytes
+
+
+def every_call_once(table: pd.DataFrame, n_calls: int) -> bool:
+    """Whether the positions hold one row per call of the season: ``n_calls`` rows, each event id once."""
+    ids = table["event_id"]
+    return len(table) == n_calls and ids.is_unique and ids.notna().all()
 
 
 def differences(table: pd.DataFrame, reference: pd.DataFrame) -> dict[str, float]:
@@ -110,6 +136,7 @@ def main() -> None:
         work = args.workdir or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         n_detections = recordings(args.site, args.detections, work / "season")
+        n_calls = len(pd.read_csv(work / "season" / "truth.csv"))
         rows, reference = {}, None
         for k, (name, extra) in enumerate(SETTINGS.items()):
             out = work / f"out{k}"
@@ -119,10 +146,17 @@ def main() -> None:
                 out.mkdir()
                 for file in (METHOD_FILE, DIGEST_FILE):
                     shutil.copy(work / "out0" / file, out / file)
-            seconds = run(args.site, work / "season", out, extra)
+            seconds, peak_mib = run(args.site, work / "season", out, extra)
             table = pd.read_parquet(Path(f"{out}_run") / "positions.parquet")
             reference = table if reference is None else reference
-            rows[name] = {"rows": len(table), **differences(table, reference), "wall s": seconds, "detections/s": n_detections / seconds}
+            rows[name] = {
+                "rows": len(table),
+                **differences(table, reference),
+                "every call once": every_call_once(table, n_calls),
+                "peak MiB": peak_mib,
+                "wall s": seconds,
+                "detections/s": n_detections / seconds,
+            }
             log.info("%s: %s", name, rows[name])
     frame = pd.DataFrame(rows).T
     markdown = [
@@ -135,7 +169,8 @@ def main() -> None:
         "",
         frame.to_markdown(floatfmt=".4g"),
         "",
-        "The first run's wall time includes fitting the method; the others reuse it. "
+        "`every call once`: one row per call of the season, each event id once. `peak MiB`: the largest resident memory of "
+        "the command or one of its workers. The first run's wall time includes fitting the method; the others reuse it. "
         f"Detections per second are of wall time on this machine: {machine()}.",
     ]
     write_results("season_invariance", {"rows": rows, "n_detections": n_detections}, markdown)
