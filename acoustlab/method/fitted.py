@@ -29,7 +29,6 @@ from acoustlab.method.trust import (
 )
 from acoustlab.toolkit.conformal import conformal_quantile
 from acoustlab.toolkit.event_physics import source_height_m
-from acoustlab.toolkit.input_uncertainty import level_factor
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
 
 if TYPE_CHECKING:
@@ -188,11 +187,11 @@ class FittedMethod:
     def _add_radii(self, out: pd.DataFrame, features: pd.DataFrame, events: pd.DataFrame, t: TestEstimates, predicted: np.ndarray) -> None:
         """``radius__<scorer>__<level>`` columns: conformal radii grown by the stated input errors where they apply."""
         c = self.pipeline.c
-        input_sigma = self.pipeline._input_sigma(
+        found = self.pipeline._input_allowance(
             t.trusted.decision.position_m, features, events, calibrated_on_field=self.calibrated_on_field
         )
-        out[col.INPUT_SIGMA] = input_sigma
-        allowance = input_sigma[:, None] * np.array([level_factor(level) for level in c.levels])[None, :]
+        out[col.INPUT_SIGMA] = found.sigma_m
+        allowance = found.radius_m
         row_notes: list[np.ndarray] = []
         for name, scorer in self.scorers.items():
             quantiles = None

@@ -54,7 +54,7 @@ from acoustlab.toolkit.conformal import (
 )
 from acoustlab.toolkit.event_physics import source_height_m
 from acoustlab.toolkit.geometry import gdop
-from acoustlab.toolkit.input_uncertainty import InputErrors, InputUncertainty, allowance_sigma_m
+from acoustlab.toolkit.input_uncertainty import Allowance, InputErrors, InputUncertainty, allowance_m
 from acoustlab.toolkit.tdoa import candidate_misfit_m
 
 log = logging.getLogger(__name__)
@@ -634,8 +634,10 @@ class LocalizationPipeline:
             return {}
         return {"hull_distance": hull_distance_extent(self.c.site, position_m)}
 
-    def _input_sigma(self, position_m: np.ndarray, features: pd.DataFrame, events: pd.DataFrame, calibrated_on_field: bool) -> np.ndarray:
-        """(B,) per-axis position error (m) the stated input errors cause at each field detection; 0 where none applies.
+    def _input_allowance(
+        self, position_m: np.ndarray, features: pd.DataFrame, events: pd.DataFrame, calibrated_on_field: bool
+    ) -> Allowance:
+        """What the stated input errors add to each field detection's radii at the configured levels; 0 where none applies.
 
         Simulated events know their inputs exactly, and radii calibrated on field recordings
         already hold the field's input errors: the allowance is for field detections whose radii
@@ -643,20 +645,22 @@ class LocalizationPipeline:
         """
         stated = self.c.input_uncertainty
         field = events["is_field"].to_numpy(bool) if "is_field" in events else np.zeros(len(events), bool)
-        sigma = np.zeros(len(events))
+        out = Allowance(np.zeros(len(events)), np.zeros((len(events), len(self.c.levels))))
         if stated.is_zero or calibrated_on_field or not field.any() or col.TEMPERATURE not in events:
-            return sigma
+            return out
         source = np.column_stack([position_m, source_height_m(features, self.c.site)])
         humidity = events[col.HUMIDITY].to_numpy(float) if col.HUMIDITY in events else np.zeros(len(events))
-        sigma[field] = allowance_sigma_m(
+        found = allowance_m(
             self.c.site.mic_positions_m,
             source[field],
             events[col.TEMPERATURE].to_numpy(float)[field],
             humidity[field],
             stated,
+            self.c.levels,
             time_s=event_time_s(events)[field],  # a calibration's drift grows its clocks' errors with it
         )
-        return sigma
+        out.sigma_m[field], out.radius_m[field] = found.sigma_m, found.radius_m
+        return out
 
     def _calibration_domain(self, events: pd.DataFrame, train: np.ndarray, finite: np.ndarray) -> np.ndarray:
         """(train,) mask of the training rows whose out-of-fold errors calibrate conformal and selective localization.

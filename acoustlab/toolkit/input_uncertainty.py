@@ -23,12 +23,20 @@ playbacks an hour apart, extrapolated over a season, can grow a clock's error by
 
 With J the (M × 3) Jacobian of (r_i) in (x, y, c·τ₀) and Σ_r the covariance of those range
 errors, the least-squares estimate's covariance is (JᵀJ)⁻¹ Jᵀ Σ_r J (JᵀJ)⁻¹; its horizontal
-block gives an RMS error σ = √(trace / 2) per axis, and the radius that holds a circular 2-D
-Gaussian error at level ℓ is σ √(−2 ln(1 − ℓ)).
+block gives an RMS error σ = √(trace / 2) per axis (the ``input_sigma_m`` column).
+
+The radius the allowance adds at level ℓ (``allowance_m``) follows the shift's shape, not a
+round error of the same σ: a thermometer error moves every fix along a line, where a round
+radius σ √(−2 ln(1 − ℓ)) holds 0.917 at 0.95 instead of 0.95. To first order it is the
+ℓ-quantile of a 2-D Gaussian with the horizontal block's two axes (``gaussian_radius_factor``);
+where the first-order σ exceeds ``exact_above_m``, the ℓ-quantile of the Monte Carlo's own
+shifts, which also carries their tail (mics 2 m off: a round radius held 0.87–0.93 of the
+shifts at 0.95 over simulated surveys, the Monte Carlo quantile 0.88–0.94; ``docs/localize.md``).
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -166,7 +174,21 @@ def position_sigma_m(
     stated: InputErrors,
     time_s: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(B,) per-axis RMS horizontal position error (m) from the stated input errors (module docstring).
+    """(B,) per-axis RMS horizontal position error (m) from the stated input errors, first order: √(trace / 2) of
+    ``horizontal_covariance_m2`` (same parameters)."""
+    cov = horizontal_covariance_m2(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated, time_s)
+    return np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0) / 2)
+
+
+def horizontal_covariance_m2(
+    mic_positions_m: np.ndarray,
+    source_m: np.ndarray,
+    temperature_c: np.ndarray,
+    relative_humidity_pct: np.ndarray,
+    stated: InputErrors,
+    time_s: np.ndarray | None = None,
+) -> np.ndarray:
+    """(B, 2, 2) covariance of the horizontal fix's shift (m²) under the stated input errors, first order (module docstring).
 
     Parameters
     ----------
@@ -200,13 +222,72 @@ def position_sigma_m(
         independent = (c * stated.clock_offset_s) ** 2 + stated.mic_position_m**2  # per mic, per unit-direction projection
         cov_r = independent[:, None, None] * np.eye(r.shape[1])[None] + ((sigma_c / c) ** 2)[:, None, None] * r[:, :, None] * r[:, None, :]
     ok = np.isfinite(src).all(axis=1)
-    out = np.full(len(src), np.nan)
+    out = np.full((len(src), 2, 2), np.nan)
     if ok.any():
         j = jac[ok]
         pinv = np.linalg.pinv(j)  # (B, 3, M): (JᵀJ)⁻¹ Jᵀ
-        cov = pinv @ cov_r[ok] @ np.swapaxes(pinv, 1, 2)
-        out[ok] = np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0) / 2)
+        out[ok] = (pinv @ cov_r[ok] @ np.swapaxes(pinv, 1, 2))[:, :2, :2]
     return out
+
+
+@dataclass(frozen=True)
+class Allowance:
+    """What the stated input errors add to each detection's radii.
+
+    Attributes
+    ----------
+    sigma_m : numpy.ndarray
+        (B,) per-axis RMS shift of the fix, m (``input_sigma_m``).
+    radius_m : numpy.ndarray
+        (B, L) the radius that holds the shift at each level, m (module docstring).
+    """
+
+    sigma_m: np.ndarray
+    radius_m: np.ndarray
+
+
+def allowance_m(
+    mic_positions_m: np.ndarray,
+    source_m: np.ndarray,
+    temperature_c: np.ndarray,
+    relative_humidity_pct: np.ndarray,
+    stated: InputErrors,
+    levels: tuple[float, ...] | list[float] = (),
+    time_s: np.ndarray | None = None,
+) -> Allowance:
+    """The allowance the radii carry at ``levels``: first order, by Monte Carlo where that exceeds ``exact_above_m``.
+
+    To first order the radius at ℓ is the ℓ-quantile of the Gaussian shift with the first-order
+    covariance's two axes; where the first-order σ exceeds ``stated.exact_above_m``, σ and the
+    radii are the Monte Carlo shifts' RMS and ℓ-quantiles (``monte_carlo_shifts_m``). σ is capped at
+    ``max_sigma_m`` and each radius at ``max_sigma_m`` times the round factor of its level.
+    ``time_s`` (B,), when each call happened, s: where a calibration estimated drift, its clocks'
+    errors grow with it.
+    """
+    levels = [float(level) for level in levels]
+    cov = horizontal_covariance_m2(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated, time_s)
+    sigma = np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0) / 2)
+    axes = np.sqrt(np.clip(np.linalg.eigvalsh(np.nan_to_num(cov)), 0.0, None))  # (B, 2): minor, major standard deviations
+    ratio = np.divide(axes[:, 0], axes[:, 1], out=np.ones(len(axes)), where=axes[:, 1] > 0)
+    radius = np.zeros((len(sigma), len(levels)))
+    for k, level in enumerate(levels):
+        radius[:, k] = axes[:, 1] * gaussian_radius_factor(level, ratio)
+    radius[~np.isfinite(sigma)] = np.nan
+    poor = np.isfinite(sigma) & (sigma > stated.exact_above_m)
+    if poor.any():
+        shifts = monte_carlo_shifts_m(
+            mic_positions_m,
+            np.asarray(source_m)[poor],
+            np.asarray(temperature_c)[poor],
+            np.asarray(relative_humidity_pct)[poor],
+            stated,
+            time_s=None if time_s is None else np.asarray(time_s)[poor],
+        )
+        sigma[poor] = np.sqrt(np.mean(shifts**2, axis=(1, 2)))
+        if levels:
+            radius[poor] = np.quantile(np.sqrt((shifts**2).sum(-1)), levels, axis=1).T
+    round_factors = np.array([level_factor(level) for level in levels])
+    return Allowance(np.minimum(sigma, stated.max_sigma_m), np.minimum(radius, stated.max_sigma_m * round_factors))
 
 
 def allowance_sigma_m(
@@ -217,22 +298,8 @@ def allowance_sigma_m(
     stated: InputErrors,
     time_s: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(B,) the per-axis σ (m) the radii carry: first order, by Monte Carlo where that exceeds ``exact_above_m``, capped at ``max_sigma_m``.
-
-    ``time_s`` (B,), when each call happened, s: where a calibration estimated drift, its clocks' errors grow with it.
-    """
-    sigma = position_sigma_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated, time_s)
-    poor = np.isfinite(sigma) & (sigma > stated.exact_above_m)
-    if poor.any():
-        sigma[poor] = monte_carlo_sigma_m(
-            mic_positions_m,
-            np.asarray(source_m)[poor],
-            np.asarray(temperature_c)[poor],
-            np.asarray(relative_humidity_pct)[poor],
-            stated,
-            time_s=None if time_s is None else np.asarray(time_s)[poor],
-        )
-    return np.minimum(sigma, stated.max_sigma_m)
+    """(B,) the per-axis σ (m) of ``allowance_m`` (first order, by Monte Carlo where that exceeds ``exact_above_m``, capped)."""
+    return allowance_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated, (), time_s).sigma_m
 
 
 def level_factor(level: float) -> float:
@@ -240,8 +307,53 @@ def level_factor(level: float) -> float:
     return float(np.sqrt(-2 * np.log(1 - level)))
 
 
+#: Axis ratios (minor ÷ major) at which ``gaussian_radius_factor`` is tabulated, and the draws that tabulate it.
+_RATIOS = np.linspace(0.0, 1.0, 41)
+_TABLE_DRAWS = 200_000
+
+
+@functools.cache
+def _radius_factors(level: float) -> np.ndarray:
+    """(41,) the ``level``-quantile of √(z₁² + ρ² z₂²) at each ratio ρ of ``_RATIOS`` (fixed draws, seed 0; exact at ρ = 1)."""
+    z = np.random.default_rng(0).normal(size=(2, _TABLE_DRAWS)) ** 2
+    table = np.quantile(np.sqrt(z[0][None] + (_RATIOS**2)[:, None] * z[1][None]), level, axis=1)
+    table[-1] = level_factor(level)  # a round error: √(−2 ln(1 − ℓ)), exactly
+    return table
+
+
+def gaussian_radius_factor(level: float, axis_ratio: np.ndarray) -> np.ndarray:
+    """Radius ÷ the major axis's σ that holds a 2-D Gaussian error at ``level``, for minor ÷ major σ ``axis_ratio`` in [0, 1].
+
+    A line (ratio 0) needs the 1-D two-sided quantile (1.96 at 0.95), a round error
+    √(−2 ln(1 − ℓ)) (2.45 at 0.95); between them, the quantile of √(z₁² + ρ² z₂²), tabulated.
+    """
+    return np.interp(np.clip(np.asarray(axis_ratio, dtype=float), 0.0, 1.0), _RATIOS, _radius_factors(float(level)))
+
+
 #: Draws of the Monte Carlo (the same for every detection: a detection's allowance never depends on its batch).
 N_DRAWS = 64
+
+
+def monte_carlo_shifts_m(
+    mic_positions_m: np.ndarray,
+    source_m: np.ndarray,
+    temperature_c: np.ndarray,
+    relative_humidity_pct: np.ndarray,
+    stated: InputErrors,
+    n_iterations: int = 15,
+    time_s: np.ndarray | None = None,
+) -> np.ndarray:
+    """(B, N_DRAWS, 2) shifts (m) of the least-squares fix when the inputs are off by the stated errors, by Monte Carlo.
+
+    ``fix_shift_m`` under ``N_DRAWS`` fixed draws (seed 0) of the errors: a speed of sound off by
+    the thermometer's error, mics off by the survey error and clocks off by theirs; with
+    ``CorrelatedInputErrors``, drawn together from the calibration's covariance (a clock's drift
+    times the call's time since the drift's origin added to its offset, ``time_s`` (B,), s). Near
+    a singular geometry some draws have no nearby fix at all: a shift counts at most 3 × ``max_sigma_m``.
+    """
+    d_temperature, d_clock, d_mics = _input_draws(stated, len(mic_positions_m), time_s)
+    shift = fix_shift_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, d_temperature, d_clock, d_mics, n_iterations)
+    return np.clip(np.nan_to_num(shift, nan=np.inf), -3 * stated.max_sigma_m, 3 * stated.max_sigma_m)
 
 
 def monte_carlo_sigma_m(
@@ -253,17 +365,8 @@ def monte_carlo_sigma_m(
     n_iterations: int = 15,
     time_s: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(B,) per-axis RMS shift (m) of the least-squares fix when the inputs are off by the stated errors, by Monte Carlo.
-
-    ``fix_shift_m`` under ``N_DRAWS`` fixed draws (seed 0) of the errors: a speed of sound off by
-    the thermometer's error, mics off by the survey error and clocks off by theirs; with
-    ``CorrelatedInputErrors``, drawn together from the calibration's covariance (a clock's drift
-    times the call's time since the drift's origin added to its offset, ``time_s`` (B,), s).
-    """
-    d_temperature, d_clock, d_mics = _input_draws(stated, len(mic_positions_m), time_s)
-    shift = fix_shift_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, d_temperature, d_clock, d_mics, n_iterations)
-    # near a singular geometry some draws have no nearby fix at all: a shift counts at most 3 × max_sigma_m
-    shift = np.clip(np.nan_to_num(shift, nan=np.inf), -3 * stated.max_sigma_m, 3 * stated.max_sigma_m)
+    """(B,) per-axis RMS of ``monte_carlo_shifts_m``, m."""
+    shift = monte_carlo_shifts_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated, n_iterations, time_s)
     return np.sqrt(np.mean(shift**2, axis=(1, 2)))
 
 
