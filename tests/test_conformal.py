@@ -443,7 +443,7 @@ def test_both_scorers_refuse_an_unknown_calibration_unit_or_method_in_one_line()
 
     with pytest.raises(ConfigError, match="calibration_unit must be 'event' or 'position'; got 'spot'"):
         SplitConformal(calibration_unit="spot")
-    with pytest.raises(ConfigError, match="position_method must be 'pooled' or 'subsample'; got 'mean'"):
+    with pytest.raises(ConfigError, match="position_method must be 'pooled', 'subsample' or 'pac'; got 'mean'"):
         SplitConformal(calibration_unit="position", position_method="mean")
     with pytest.raises(ConfigError, match="calibration_unit must be 'event' or 'position'; got 'spot'"):
         ConformalizedQuantile(GradientBoostingRegressor(loss="quantile"), calibration_unit="spot")
@@ -492,3 +492,43 @@ def test_a_region_without_calibration_events_says_why_its_radius_is_infinite():
     assert np.isfinite(radii[0]).all() and np.isinf(radii[1]).all()
     assert notes.tolist() == ["", "radius at 0.5, 0.8 infinite: 0 calibration events farther outside the array"]
     assert (SplitConformal("none").fit(err, np.ones(40), np.ones(40), [0.8]).radius_notes(np.ones(2), np.ones(2)) == "").all()
+
+
+@pytest.mark.parametrize("n_spots, level", [(10, 0.8), (25, 0.95), (40, 0.8)])
+def test_a_pac_radius_covers_level_minus_epsilon_for_all_but_delta_of_the_sets(n_spots, level):
+    """``position_method: pac``: over 2,000 sets of spots × 5 calls with a bias per spot, one set's coverage of a new
+    spot's call falls below ℓ − ε in at most δ of the sets (the marginal rank's in as many or more); the one-set statement is
+    ≥ ℓ − ε; fewer spots than ``pac_positions_needed`` give no finite radius."""
+    from scipy.stats import norm
+
+    from acoustlab.toolkit.conformal import one_set_coverage, pac_positions_needed, subsampled_position_quantile
+
+    delta, epsilon = 0.1, 0.05
+    rng = np.random.default_rng(n_spots)
+    spread = np.hypot(0.7, 0.5)
+    groups = np.repeat(np.arange(n_spots), 5)
+    pac, marginal = [], []
+    for k in range(2000):
+        scores = np.exp(np.repeat(rng.normal(0, 0.7, n_spots), 5) + rng.normal(0, 0.5, groups.size))
+        scorer = SplitConformal("none", use_error_model=False, calibration_unit="position", position_method="pac", seed=k)
+        radius = scorer.fit(scores, np.zeros(groups.size), np.ones(groups.size), [level], groups=groups).quantiles_[0, 0]
+        pac.append(norm.cdf(np.log(radius) / spread))
+        marginal.append(norm.cdf(np.log(subsampled_position_quantile(scores, groups, level, seed=k)) / spread))
+    short = np.mean(np.array(pac) < level - epsilon)
+    assert short <= delta + 0.02  # Monte Carlo error ≈ 0.007
+    assert np.mean(np.array(marginal) < level - epsilon) >= short  # the same rank where the set is small (25 spots at 0.95)
+    assert one_set_coverage(n_spots, level, method="pac") >= level - epsilon
+    needed = pac_positions_needed(level, delta, epsilon)
+    assert (needed, pac_positions_needed(0.8, delta, epsilon), pac_positions_needed(0.95, delta, epsilon)) == (needed, 9, 22)
+    few = np.exp(rng.normal(0, 1, (needed - 1) * 5))
+    scorer = SplitConformal("none", use_error_model=False, calibration_unit="position", position_method="pac")
+    assert np.isinf(
+        scorer.fit(few, np.zeros(few.size), np.ones(few.size), [level], groups=np.repeat(np.arange(needed - 1), 5)).quantiles_
+    ).all()
+
+
+def test_pac_settings_are_checked_in_one_line():
+    with pytest.raises(ConfigError, match="pac_delta must lie in"):
+        SplitConformal(position_method="pac", pac_delta=1.5)
+    with pytest.raises(ConfigError, match="pac_epsilon must lie in"):
+        SplitConformal(position_method="pac", pac_epsilon=-0.1)

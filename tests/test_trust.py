@@ -519,3 +519,18 @@ def test_radii_are_tested_on_the_calibration_spots_each_held_out():
     for level, cell in summary["coverage"]["fixed"].items():
         assert abs(cell["positions"] - float(level)) < 0.2, (level, cell)
     assert {"gdop", "hull_distance"} <= set(summary["by_condition"])
+
+
+def test_pac_radii_on_field_spots_state_their_own_guarantee_and_spot_count():
+    """``position_method: pac`` on 12 field spots: 0.8 radii (9 spots needed) with a one-set statement of at least 0.75 on
+    every row and a guarantee sentence naming the PAC scorer; 0.95 (22 needed) left empty with the count in the note."""
+    settings, (features, events, train, test) = _calibrated_on_field_spots(12)
+    for scorer in settings.scorers.values():
+        scorer.position_method = "pac"
+    result = LocalizationPipeline(settings).fit_predict(features, events, train, test)
+    calibration, p = result.split_diagnostics[0]["calibration"], result.predictions
+    assert calibration["positions_needed_by_level"] == {"0.5": 3, "0.8": 9, "0.95": 22}
+    assert calibration["unsupported_levels"] == ["0.95"] and p[col.radius("fixed", 0.95)].isna().all()
+    assert (p[col.one_set_coverage(0.8)] >= 0.75).all() and np.isfinite(p[col.radius("fixed", 0.8)]).all()
+    assert "PAC scorer's radius (fixed) instead covers at least l − 0.05 with probability 0.9" in calibration["guarantee"]
+    assert (p[col.RADIUS_NOTE] == "no radius at 0.95: its guarantee needs 22 calibration positions, 12 given").all()

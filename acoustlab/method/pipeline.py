@@ -48,6 +48,7 @@ from acoustlab.stages.solver_columns import pair_candidate_lags
 from acoustlab.toolkit.conformal import (
     ONE_SET_PROBABILITY,
     one_set_coverage,
+    pac_positions_needed,
     positions_needed,
     selective_threshold,
     selective_threshold_by_position,
@@ -79,6 +80,11 @@ GUARANTEE_FIELD = (
     "its playbacks are solved with the array calibrated without it, while the radii use the models refitted on all spots "
     "(cross-conformal with a refit: the rank is split conformal's, the exact bound at least l is not), and a level needing "
     "more spots than given has no radius; calibration_by_split gives what one set of spots may cover."
+)
+#: … added for a scorer with ``position_method: pac``.
+GUARANTEE_PAC = (
+    " A PAC scorer's radius ({names}) instead covers at least l − {epsilon:g} with probability {confidence:g} over the set "
+    "of spots (one call per spot at the rank of Beta(k, n + 1 − k)'s {delta:g} quantile)."
 )
 
 
@@ -722,9 +728,9 @@ class LocalizationPipeline:
         cannot support are listed (and logged as a warning) instead of silently reported as met.
         """
         n_positions = int(np.unique(train_groups[cal]).size)
-        needed = {col.level_key(level): positions_needed(level) for level in self.c.levels}
-        unsupported = [level for level, n in needed.items() if n_positions < n]
         on = "field" if domain.sum() < domain.size else "all"
+        needed = {col.level_key(level): self._positions_needed(level, on == "field") for level in self.c.levels}
+        unsupported = [level for level, n in needed.items() if n_positions < n]
         rescaled = unsupported if on == "field" and self.c.unsupported_levels == "rescaled" else []
         if unsupported:
             log.warning(
@@ -745,7 +751,7 @@ class LocalizationPipeline:
             # radii given anyway (conformal.unsupported_levels=rescaled): no guarantee, and labelled so
             "not_guaranteed_levels": rescaled,
             "not_guaranteed_method": NOT_GUARANTEED_METHOD if rescaled else None,
-            "guarantee": GUARANTEE_FIELD if on == "field" else GUARANTEE_SIMULATION,
+            "guarantee": self._field_guarantee() if on == "field" else GUARANTEE_SIMULATION,
             # with probability 0.9 over calibration sets of this many positions, each radius covers at least this (field only)
             "one_set": self._one_set_statement(n_positions) if on == "field" else None,
             # what one calibration set of this many positions gives with one event per position (position_method=subsample):
@@ -757,14 +763,51 @@ class LocalizationPipeline:
             },
         }
 
+    def _positions_needed(self, level: float, on_field: bool) -> int:
+        """Calibration positions a radius at ``level`` needs: ``positions_needed``, or on field spots the most any PAC scorer needs."""
+        needed = [positions_needed(level)]
+        if on_field:
+            needed += [
+                pac_positions_needed(level, scorer.pac_delta, scorer.pac_epsilon)
+                for scorer in self.c.scorers.values()
+                if getattr(scorer, "position_method", None) == "pac"
+            ]
+        return max(needed)
+
+    def _field_guarantee(self) -> str:
+        """``GUARANTEE_FIELD``, with the PAC scorers' own sentence where there are any (one per δ, ε)."""
+        pac: dict[tuple[float, float], list[str]] = {}
+        for name, scorer in self.c.scorers.items():
+            if getattr(scorer, "position_method", None) == "pac":
+                pac.setdefault((scorer.pac_delta, scorer.pac_epsilon), []).append(name)
+        return GUARANTEE_FIELD + "".join(
+            GUARANTEE_PAC.format(names=", ".join(names), epsilon=epsilon, confidence=1 - delta, delta=delta)
+            for (delta, epsilon), names in pac.items()
+        )
+
+    def _one_set_at(self, n_positions: int, level: float) -> float | None:
+        """The smallest ``one_set_coverage`` over the scorers at ``level``, each by its own rank rule (None: no scorer's is finite)."""
+        found = [
+            one_set_coverage(
+                n_positions,
+                level,
+                method=getattr(scorer, "position_method", "pooled"),  # SplitConformal's settings; another scorer pools
+                delta=getattr(scorer, "pac_delta", 0.1),
+                epsilon=getattr(scorer, "pac_epsilon", 0.05),
+            )
+            for scorer in self.c.scorers.values()
+        ]
+        finite = [c for c in found if c is not None]
+        return min(finite) if finite else None
+
     def _one_set_statement(self, n_positions: int) -> dict[str, Any]:
         """Per level, what one set of ``n_positions`` calibration spots gives its radius (``one_set_coverage``), logged once."""
-        levels = {col.level_key(level): one_set_coverage(n_positions, level) for level in self.c.levels}
+        levels = {col.level_key(level): self._one_set_at(n_positions, level) for level in self.c.levels}
         stated = {level: c for level, c in levels.items() if c is not None}
         if stated:
             log.info(
                 "with probability %.1f over your %d calibration spots, the radii cover at least %s of calls at a new spot "
-                "(exact with conformal position_method=subsample; a lower bound for pooled)",
+                "(exact with conformal position_method=subsample or pac; a lower bound for pooled)",
                 ONE_SET_PROBABILITY,
                 n_positions,
                 ", ".join(f"{c:.2f} at {level}" for level, c in stated.items()),

@@ -10,8 +10,9 @@ from acoustlab.core.errors import ConfigError
 
 #: What a calibration's guarantee is over: random events, or random source positions (field spots).
 CALIBRATION_UNITS = ("event", "position")
-#: How a position-level quantile uses a position's events: all of them pooled, or one drawn at random.
-POSITION_METHODS = ("pooled", "subsample")
+#: How a position-level quantile uses a position's events: all of them pooled, or one drawn at random
+#: (at the marginal rank, or at the PAC rank that holds ℓ − ε with probability 1 − δ over calibration sets).
+POSITION_METHODS = ("pooled", "subsample", "pac")
 
 
 def conformal_quantile(scores: np.ndarray, level: float) -> float:
@@ -51,7 +52,47 @@ def positions_needed(level: float) -> int:
 ONE_SET_PROBABILITY = 0.9
 
 
-def one_set_coverage(n_positions: int, level: float, probability: float = ONE_SET_PROBABILITY) -> float | None:
+def pac_rank(n_positions: int, level: float, delta: float, epsilon: float) -> int | None:
+    """The smallest rank k whose score covers at least ``level − epsilon`` with probability ≥ 1 − ``delta`` over calibration sets.
+
+    With one exchangeable score per position, the k-th smallest's coverage of a new position is
+    Beta(k, n + 1 − k) given the set (Vovk 2012): k is the smallest with
+    P(Beta(k, n + 1 − k) < level − epsilon) ≤ delta, a "probably approximately correct" radius
+    (training-conditional, as in Vovk 2012 and Park et al. 2020's PAC prediction sets) where the
+    usual rank ⌈(n + 1)·level⌉ holds ``level`` only on average over sets. None where no k ≤ n does
+    (``pac_positions_needed``).
+    """
+    from scipy.stats import beta
+
+    if n_positions < 1:
+        return None
+    ranks = np.arange(1, n_positions + 1)
+    ok = np.flatnonzero(beta.cdf(level - epsilon, ranks, n_positions + 1 - ranks) <= delta)  # falls as k grows
+    return int(ranks[ok[0]]) if ok.size else None
+
+
+def pac_positions_needed(level: float, delta: float, epsilon: float) -> int:
+    """How many positions a PAC radius at ``level`` needs: the largest score covers ℓ − ε with probability 1 − δ once
+    (ℓ − ε)ⁿ ≤ δ, n = ⌈ln δ / ln(ℓ − ε)⌉ (at δ = 0.1, ε = 0.05: 9 positions for 0.8, 22 for 0.95)."""
+    return int(math.ceil(math.log(delta) / math.log(level - epsilon) - 1e-9))
+
+
+def check_pac(delta: float, epsilon: float) -> None:
+    """Refuse a PAC setting outside 0 < δ < 1, 0 ≤ ε < 0.5 (one line naming the value)."""
+    if not 0 < delta < 1:
+        raise ConfigError(f"conformal pac_delta must lie in (0, 1); got {delta}")
+    if not 0 <= epsilon < 0.5:
+        raise ConfigError(f"conformal pac_epsilon must lie in [0, 0.5); got {epsilon}")
+
+
+def one_set_coverage(
+    n_positions: int,
+    level: float,
+    probability: float = ONE_SET_PROBABILITY,
+    method: str = "pooled",
+    delta: float = 0.1,
+    epsilon: float = 0.05,
+) -> float | None:
     """The coverage that one calibration set of ``n_positions`` positions gives its radius at ``level`` with ``probability``.
 
     With one exchangeable score per position the rank k = ⌈(n + 1)·level⌉ gives a radius whose
@@ -59,17 +100,20 @@ def one_set_coverage(n_positions: int, level: float, probability: float = ONE_SE
     training-conditional view of split conformal); its (1 − ``probability``) quantile c is what
     "with probability 0.9 over your spots, this radius covers at least c" states. Exact for
     ``position_method: subsample``; pooling every event of a position scatters less, so there c is
-    a lower bound (``tests/test_conformal.py``). None where ``level`` needs more positions than given.
+    a lower bound (``tests/test_conformal.py``). With ``method="pac"`` the rank is ``pac_rank``'s. None
+    where ``level`` needs more positions than given.
     """
     from scipy.stats import beta
 
-    k = math.ceil((n_positions + 1) * level)
-    if k > n_positions:
+    k = pac_rank(n_positions, level, delta, epsilon) if method == "pac" else math.ceil((n_positions + 1) * level)
+    if k is None or k > n_positions:
         return None
     return float(beta.ppf(1 - probability, k, n_positions + 1 - k))
 
 
-def subsampled_position_quantile(scores: np.ndarray, groups: np.ndarray, level: float, seed: int = 0) -> float:
+def subsampled_position_quantile(
+    scores: np.ndarray, groups: np.ndarray, level: float, seed: int = 0, pac: tuple[float, float] | None = None
+) -> float:
     """A conformal quantile with a finite-sample guarantee over positions: one event per position, drawn at random.
 
     With n calibration positions exchangeable with a new one (the spots are not chosen to suit the
@@ -90,6 +134,9 @@ def subsampled_position_quantile(scores: np.ndarray, groups: np.ndarray, level: 
         Nominal coverage in (0, 1).
     seed : int
         Seed of the draw (the same inputs give the same quantile).
+    pac : (delta, epsilon), optional
+        Take the score at ``pac_rank`` instead: it covers at least ``level − epsilon`` of a new
+        position's events with probability ≥ 1 − ``delta`` over calibration sets.
     """
     scores, groups = np.asarray(scores, dtype=float), np.asarray(groups)
     if scores.size == 0 or groups.shape != scores.shape:
@@ -97,7 +144,11 @@ def subsampled_position_quantile(scores: np.ndarray, groups: np.ndarray, level: 
     order = np.lexsort((scores, groups))  # by position, then by score: the draw does not depend on the rows' order
     codes, start, counts = np.unique(groups[order], return_index=True, return_counts=True)
     pick = np.random.default_rng(seed).integers(0, counts)
-    return conformal_quantile(scores[order][start + pick], level)
+    drawn = scores[order][start + pick]
+    if pac is None:
+        return conformal_quantile(drawn, level)
+    k = pac_rank(drawn.size, level, *pac)
+    return math.inf if k is None else float(np.sort(drawn)[k - 1])
 
 
 def grouped_conformal_quantile(scores: np.ndarray, groups: np.ndarray, level: float) -> float:
@@ -286,16 +337,23 @@ def check_calibration_unit(unit: str, method: str = "pooled") -> None:
     if unit not in CALIBRATION_UNITS:
         raise ConfigError(f"conformal calibration_unit must be 'event' or 'position'; got {unit!r}")
     if method not in POSITION_METHODS:
-        raise ConfigError(f"conformal position_method must be 'pooled' or 'subsample'; got {method!r}")
+        raise ConfigError(f"conformal position_method must be 'pooled', 'subsample' or 'pac'; got {method!r}")
 
 
 def calibration_quantile(
-    scores: np.ndarray, level: float, unit: str = "event", groups: np.ndarray | None = None, method: str = "pooled", seed: int = 0
+    scores: np.ndarray,
+    level: float,
+    unit: str = "event",
+    groups: np.ndarray | None = None,
+    method: str = "pooled",
+    seed: int = 0,
+    pac: tuple[float, float] = (0.1, 0.05),
 ) -> float:
     """The conformal quantile of ``scores`` whose guarantee is over ``unit``: events, or positions (``groups``) by ``method``.
 
-    ``event``: ``conformal_quantile``; ``position``: ``grouped_conformal_quantile`` (``pooled``) or
-    ``subsampled_position_quantile`` (``subsample``, one event per position drawn with ``seed``).
+    ``event``: ``conformal_quantile``; ``position``: ``grouped_conformal_quantile`` (``pooled``),
+    ``subsampled_position_quantile`` (``subsample``, one event per position drawn with ``seed``), or
+    the same draw at the PAC rank for ``pac = (delta, epsilon)`` (``pac``).
     """
     if unit == "event":
         return conformal_quantile(scores, level)
@@ -303,4 +361,4 @@ def calibration_quantile(
         raise ValueError("calibration_unit='position' needs the calibration events' positions (groups)")
     if method == "pooled":
         return grouped_conformal_quantile(scores, np.asarray(groups), level)
-    return subsampled_position_quantile(scores, np.asarray(groups), level, seed)
+    return subsampled_position_quantile(scores, np.asarray(groups), level, seed, pac if method == "pac" else None)
