@@ -670,8 +670,8 @@ def test_a_calibration_is_not_calibrated_again(compose_cfg, tmp_path: Path):
 
 def test_the_jackknife_over_spots_holds_what_the_posterior_misses():
     """Each spot's time differences carry their own bias (multipath, as on the second simulator's forest): more playbacks per
-    spot shrink the posterior σ but not the error; the jackknife over spots covers the mics' real errors, the posterior
-    does not, and a loaded calibration carries the larger of the two into the radii."""
+    spot shrink a per-pair posterior σ but not the error; the calibration's σ (by playback, at least by spot) and the
+    jackknife over spots cover the mics' real errors, and a loaded calibration carries the larger of the two into the radii."""
     from acoustlab.method.protocols.calibrate import CalibrateProtocol, jackknife_sd
     from plugins.solvers.hyperbolic import HyperbolicSolver
 
@@ -690,8 +690,12 @@ def test_the_jackknife_over_spots_holds_what_the_posterior_misses():
     assert held["calibrated"]["median_abs_residual_ms"] < 0.2 < 1.0 < held["stated"]["median_abs_residual_ms"]
     error = np.hypot(*(cal.mic_positions_m - true)[:, :2].T) / np.sqrt(2)  # per axis, as the σ are
     # a σ that holds its errors gives a median |error| / σ of about 0.83 here (√(χ²₂ median / 2))
-    assert np.median(error / cal.position_sd_m()) > 2  # the posterior is far too sure (2.6)
-    assert np.median(error / np.asarray(jackknife["mic_position_sd_m"])) < 1  # the jackknife holds them
+    per_pair = np.array(
+        [np.hypot(*(cal.sd(f"mic_{m}_{a}_m") / cal.extra["sd_over_per_pair"][f"mic_{m}_{a}_m"] for a in "xy")) for m in range(6)]
+    )
+    assert np.median(error / (per_pair / np.sqrt(2))) > 2  # every pair counted as independent: far too sure (2.6)
+    assert np.median(error / cal.position_sd_m()) < 1  # a playback's m − 1 differences, at least the spots' own spread: it holds
+    assert np.median(error / np.asarray(jackknife["mic_position_sd_m"])) < 1  # so does the jackknife
     # it is the jackknife of the calibration itself (the same fit without each spot), not of a cheaper fit
     without = [protocol.calibrate(pb.subset(pb.spot != s), priors, ids) for s in np.unique(pb.spot)]
     np.testing.assert_allclose(jackknife["mic_position_sd_m"], jackknife_sd(without)["mic_position_sd_m"], rtol=1e-9)

@@ -60,6 +60,13 @@ MIN_REDUNDANCY = 2.0
 CONVERGED_PRIORS = 1e-4
 #: A residual beyond this many timing-noise units counts as an outlier in the report.
 OUTLIER_K = 5.0
+#: What the calibration's σ covers, in calibration.json (``sd_unit``).
+SD_UNIT = (
+    "each estimate's sd counts a playback's m - 1 independent time differences (not its m(m - 1)/2 pairs, which share mics), "
+    "at least the cluster-robust sd by spot (a spot's playbacks share its multipath), and in a run the larger of that and the "
+    "jackknife's over spots; it does not cover a bias every spot shares (e.g. the ground reflection inside every direct "
+    "path's peak); sd_over_per_pair: each sd over the posterior's with every pair independent"
+)
 #: The thermometer's offset is bounded to this many prior standard deviations (±30 °C for the default 3 °C).
 MAX_TEMPERATURE_PRIORS = 10.0
 #: The annealed search's mixture widths, s: from where every candidate within a few ms pulls (the stated array's
@@ -593,9 +600,17 @@ def calibrate_array(
     else:
         log.warning("calibration: the robust fit still moved after %d reweighting passes; its estimates may not have settled", max_reweight)
     jac = model.jacobian(u, sigma_t, weights)
-    cov_u = np.linalg.pinv(jac.T @ jac)
-    covariance = cov_u * np.outer(model.sd, model.sd)
-    ratio = np.sqrt(np.clip(np.diag(cov_u), 0, None))
+    cov_u = np.linalg.pinv(jac.T @ jac)  # every pair independent: what the geometry identifies
+    rows = model.measured.sum()
+    by_playback = jac.copy()
+    by_playback[:rows] *= np.sqrt(independent_share(playbacks.pairs, model.measured))[:, None]
+    spot_of_row = np.broadcast_to(np.asarray(playbacks.spot)[:, None], model.measured.shape)[model.measured]
+    by_spot, factor = by_spot_covariance(
+        np.linalg.pinv(by_playback.T @ by_playback), by_playback, model.residuals(u, sigma_t, weights), spot_of_row
+    )
+    factor = np.sqrt(np.divide(np.diag(by_spot), np.diag(cov_u), out=np.ones(len(factor)), where=np.diag(cov_u) > 0))  # both units together
+    covariance = by_spot * np.outer(model.sd, model.sd)
+    ratio = np.sqrt(np.clip(np.diag(cov_u), 0, None))  # identification is the geometry's: the per-pair posterior's
     identified = {name: bool(q <= IDENTIFIED_RATIO) for name, q in zip(model.names, ratio, strict=True)}
     for kind, label in (("temperature", "temperature_offset_c"), ("clocks", "clock_"), ("drift", "drift_"), ("positions", "mic_")):
         weak = [n for n in model.names if n.startswith(label) and not identified[n]]
@@ -628,8 +643,74 @@ def calibrate_array(
         n_spots=playbacks.n_spots,
         priors=priors,
         temperature_call_sd_c=playback_temperature_spread_c(after - playbacks.tdoa_s, loading, model.measured, sigma_t, playbacks.spot),
-        extra={"redundancy": redundancy(playbacks, len(model.names))},
+        extra={
+            "redundancy": redundancy(playbacks, len(model.names)),
+            "sd_unit": SD_UNIT,
+            "sd_over_per_pair": {name: round(float(f), 4) for name, f in zip(model.names, factor, strict=True)},
+        },
     )
+
+
+def independent_share(pairs: list[tuple[int, int]], measured: np.ndarray) -> np.ndarray:
+    """(R,) per measured pair, the independent time differences of its playback over the pairs measured: (m − 1) / p.
+
+    A playback heard on m mics gives m − 1 independent time differences however many of its pairs
+    are measured: pairs share mics, and an arrival's error enters every pair it is in. With all
+    p = m(m − 1)/2 pairs and white noise per mic, the pairs' information is m/2 times what independent
+    pairs would give (the pairs' difference matrix D has DᵀD = mI − 11ᵀ); weighting each pair by
+    (m − 1)/p gives the playback its m − 1 (exact for all pairs, as ``calibrate`` measures them).
+    """
+    first, second = np.array(pairs, dtype=int).reshape(-1, 2).T
+    n_mics = int(max(first.max(initial=-1), second.max(initial=-1))) + 1
+    heard = np.zeros((measured.shape[0], n_mics), dtype=bool)
+    for k in range(measured.shape[1]):
+        heard[measured[:, k], first[k]] = heard[measured[:, k], second[k]] = True
+    share = np.divide(
+        np.maximum(heard.sum(axis=1) - 1, 0), measured.sum(axis=1), out=np.zeros(measured.shape[0]), where=measured.any(axis=1)
+    )
+    return np.broadcast_to(share[:, None], measured.shape)[measured]
+
+
+def by_spot_covariance(
+    cov_pairs: np.ndarray, jac: np.ndarray, residual: np.ndarray, spot_of_row: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The posterior covariance with each parameter's variance at least the cluster-robust one by spot (scaled units).
+
+    The per-pair posterior ``cov_pairs`` = (JᵀJ)⁻¹ counts every pair of every playback as an
+    independent measurement. They are not: pairs share mics, and a spot's multipath delays every
+    playback from it alike, so its playbacks move the estimates together (a mic's σ was 1.5–2.9×
+    too small with per-spot multipath). The sandwich (JᵀJ)⁻¹ (Σ_s g_s g_sᵀ · G/(G − 1) + I) (JᵀJ)⁻¹,
+    g_s = J_sᵀ r_s the score of spot s's rows, takes the spot as the unit (Liang & Zeger 1986; the
+    G/(G − 1) small-sample factor; I for the prior rows, whose score has unit variance); each
+    parameter's σ is the larger of the two, correlations kept from the posterior (the sandwich's
+    meat has rank at most G + its prior's, too few to carry them from 10 spots).
+
+    Parameters
+    ----------
+    cov_pairs : numpy.ndarray
+        (K, K) (JᵀJ)⁻¹ in the fit's scaled units.
+    jac, residual : numpy.ndarray
+        (R + K, K) and (R + K,) the fit's scaled Jacobian and residuals: R data rows, then K prior rows.
+    spot_of_row : numpy.ndarray
+        (R,) the spot of each data row.
+
+    Returns
+    -------
+    covariance, factor : numpy.ndarray
+        (K, K) the covariance and (K,) each σ's factor over the per-pair posterior's (≥ 1).
+    """
+    n_prior = cov_pairs.shape[0]
+    data_j, data_r = jac[: len(jac) - n_prior], residual[: len(residual) - n_prior]
+    spots = np.unique(spot_of_row)
+    if spots.size < 2 or n_prior == 0:
+        return cov_pairs, np.ones(n_prior)
+    scores = np.stack([data_j[spot_of_row == s].T @ data_r[spot_of_row == s] for s in spots])  # (G, K)
+    meat = scores.T @ scores * spots.size / (spots.size - 1) + np.eye(n_prior)
+    robust = cov_pairs @ meat @ cov_pairs
+    variance = np.diag(cov_pairs)
+    grow = np.sqrt(np.divide(np.diag(robust), variance, out=np.ones_like(variance), where=variance > 0))
+    factor = np.maximum(1.0, grow)
+    return cov_pairs * np.outer(factor, factor), factor
 
 
 def playback_temperature_spread_c(
