@@ -325,3 +325,53 @@ def test_the_peers_start_timestamps_mixing_naive_and_zoned_times_stop_in_one_lin
     det.to_csv(tmp_path / "det.csv", index=False)
     with pytest.raises(DataError, match="line 4, column start_timestamp: '2021-05-01T06:00:00.200000' lacks a UTC offset and line 2 does"):
         load_opensoundscape_layout(compose_cfg, tmp_path, tmp_path / "coords.csv", tmp_path / "det.csv")
+
+
+def _with_opso_start(path, start: str) -> None:
+    """Rewrite ``path`` with OpenSoundscape's comment (``Audio.save``'s opso_metadata v0.1) giving ``start``."""
+    import json
+
+    import soundfile as sf
+
+    audio, fs = sf.read(path)
+    with sf.SoundFile(path, "w", samplerate=fs, channels=1 if audio.ndim == 1 else audio.shape[1]) as f:
+        f.comment = "opso_metadata" + json.dumps({"opso_metadata_version": "v0.1", "recording_start_time": start})
+        f.write(audio)
+
+
+def test_the_peers_own_late_start_is_read_from_its_opso_metadata(tmp_path, compose_cfg):
+    """The peer's late-start case as OpenSoundscape writes it: each WAV's start in its ``opso_metadata`` comment, one
+    recorder 0.1 s late, detections in each file's own time and no start column in any table: the reference time
+    differences (the late file taken to start with the others was −35 ms off where +24 ms is right)."""
+    mics = copy_example_audio(tmp_path)
+    late = late_copy(tmp_path, mics)
+    for f in mics["file"]:
+        _with_opso_start(tmp_path / f, "2021-05-01T06:00:00.100000-04:00" if f == late else "2021-05-01T06:00:00-04:00")
+    coords = pd.DataFrame({"file": mics["file"], "x": mics["x_m"], "y": mics["y_m"], "z": mics["z_m"]})
+    det = pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1})
+    det.loc[det["file"] == late, ["start_time", "end_time"]] = [0.1, 0.4]
+    coords.to_csv(tmp_path / "coords.csv", index=False)
+    det.to_csv(tmp_path / "det.csv", index=False)
+    batch, tdoa = load_opensoundscape_layout(compose_cfg, tmp_path, tmp_path / "coords.csv", tmp_path / "det.csv")
+    assert batch.n_events == 1 and not batch.events["quality_flags"].iloc[0]
+    np.testing.assert_allclose(tdoa[0], UPSTREAM_TDOA_S, atol=1e-3)
+
+
+def test_an_opso_comment_gives_its_start_in_utc_and_a_broken_one_is_named(tmp_path):
+    import soundfile as sf
+
+    from acoustlab.core.errors import DataError
+    from acoustlab.toolkit.file_start import opso_start, start_from_metadata
+
+    assert opso_start('opso_metadata{"opso_metadata_version": "v0.1", "recording_start_time": "2021-05-01T06:00:00-04:00"}') == (
+        pd.Timestamp("2021-05-01T10:00:00")
+    )
+    assert opso_start("Recorded at 05:30:00 01/05/2026 (UTC) by AudioMoth") is None
+    assert opso_start('opso_metadata{"opso_metadata_version": "v0.1"}') is None  # no start given: the file's name may say
+    broken = tmp_path / "broken.wav"
+    sf.write(broken, np.zeros(800), 8000)
+    with sf.SoundFile(broken, "w", samplerate=8000, channels=1) as f:
+        f.comment = 'opso_metadata{"recording_start_time": "yesterday"}'
+        f.write(np.zeros(800))
+    with pytest.raises(DataError, match=r"broken\.wav: an OpenSoundscape comment's recording_start_time 'yesterday'"):
+        start_from_metadata(broken)

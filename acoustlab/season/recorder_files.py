@@ -45,7 +45,7 @@ CONTIGUOUS_TOLERANCE_S = 0.5
 
 
 def _start_of(path: Path) -> pd.Timestamp:
-    """When a file starts: the time its recorder wrote into it (GUANO, Broadcast WAV, AudioMoth), else the time in its name."""
+    """When a file starts: the time its recorder wrote into it (GUANO, Broadcast WAV, AudioMoth, OpenSoundscape), else the time in its name."""
     start = start_from_metadata(path)
     return start if start is not None else timestamp_from_name(path.name)
 

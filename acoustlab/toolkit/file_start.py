@@ -1,4 +1,4 @@
-"""When a recording starts, read from the file itself: AudioMoth's comment, GUANO, Broadcast WAV, or its name.
+"""When a recording starts, read from the file itself: AudioMoth's comment, GUANO, Broadcast WAV, OpenSoundscape, or its name.
 
 Recorders write their start time into the file, each its own way:
 
@@ -9,6 +9,8 @@ Recorders write their start time into the file, each its own way:
   ``Timestamp`` is ISO 8601;
 * **Broadcast WAV**: a ``bext`` chunk with ``OriginationDate``, ``OriginationTime`` and the
   sample-accurate ``TimeReference`` (samples since midnight);
+* **OpenSoundscape** (``Audio.save``): the comment, ``opso_metadata`` followed by a JSON object
+  whose ``recording_start_time`` is ISO 8601 (``opso_metadata_version`` v0.1);
 * and the file name, ``YYYYMMDD_HHMMSS`` and its variants, as the fallback.
 
 Times with a zone are returned in UTC; times without one as written (an array's recorders share
@@ -68,6 +70,37 @@ def audiomoth_start(comment: str) -> pd.Timestamp | None:
     return local - offset
 
 
+#: What OpenSoundscape's comment starts with, before its JSON.
+OPSO_PREFIX = "opso_metadata"
+
+
+def opso_start(comment: str) -> pd.Timestamp | None:
+    """``recording_start_time`` of an OpenSoundscape comment, in UTC where it has a zone (None when it is not one, or has none).
+
+    Raises
+    ------
+    DataError
+        When the comment is OpenSoundscape's but its JSON or its time cannot be read (a file that
+        claims a start time it does not give would otherwise be aligned with the others silently).
+    """
+    import json
+
+    if not (comment or "").startswith(OPSO_PREFIX):
+        return None
+    try:
+        body = json.loads(comment[len(OPSO_PREFIX) :])
+    except ValueError as exc:
+        raise DataError(f"an OpenSoundscape comment ({OPSO_PREFIX}…) holds no readable JSON: {exc}") from None
+    value = body.get("recording_start_time") if isinstance(body, dict) else None
+    if value in (None, ""):
+        return None
+    try:
+        stamp = pd.Timestamp(value)
+    except (TypeError, ValueError):
+        raise DataError(f"an OpenSoundscape comment's recording_start_time {value!r} is not an ISO 8601 time") from None
+    return stamp.tz_convert("UTC").tz_localize(None) if stamp.tzinfo is not None else stamp
+
+
 def _riff_chunks(path: Path) -> dict[str, bytes]:
     """The ``guan`` and ``bext`` chunks of a RIFF/WAVE file (empty for any other file)."""
     found: dict[str, bytes] = {}
@@ -118,7 +151,13 @@ def bext_start(chunk: bytes, sample_rate_hz: float) -> pd.Timestamp | None:
 
 
 def start_from_metadata(path: str | Path) -> pd.Timestamp | None:
-    """The start time a recorder wrote into the file (GUANO, Broadcast WAV, AudioMoth), or None."""
+    """The start time a recorder or OpenSoundscape wrote into the file (GUANO, Broadcast WAV, AudioMoth, opso_metadata), or None.
+
+    Raises
+    ------
+    DataError
+        Naming the file, when its OpenSoundscape comment cannot be read.
+    """
     import soundfile as sf
 
     path = Path(path)
@@ -129,10 +168,15 @@ def start_from_metadata(path: str | Path) -> pd.Timestamp | None:
     except (OSError, RuntimeError, struct.error) as exc:
         log.debug("no start time read from %s: %s", path, exc)
         return None
+    try:
+        opso = opso_start(comment)
+    except DataError as exc:
+        raise DataError(f"{path}: {exc}") from None
     for start in (
         guano_start(chunks["guan"]) if "guan" in chunks else None,
         bext_start(chunks["bext"], rate) if "bext" in chunks else None,
         audiomoth_start(comment),
+        opso,
     ):
         if start is not None:
             return start

@@ -419,7 +419,7 @@ class RecordingFolder:
         if not known.all():
             missing, given = files[int(np.flatnonzero(~known)[0])], files[int(np.flatnonzero(known)[0])]
             raise DataError(
-                f"field: {missing!r} says nothing of when it starts (no GUANO, Broadcast WAV or AudioMoth time, no time in its "
+                f"field: {missing!r} says nothing of when it starts (no GUANO, Broadcast WAV, AudioMoth or OpenSoundscape time, no time in its "
                 f"name) while {given!r} does; give every file's start ({where}, column {column}) or none"
             )
         return pd.to_datetime(starts)
