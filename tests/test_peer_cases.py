@@ -93,6 +93,37 @@ def test_a_too_short_file_is_dropped_from_the_event_not_the_event(tmp_path, comp
     assert "out_of_range" in batch.events["quality_flags"].iloc[0]
 
 
+def test_the_peers_own_tables_with_a_heightless_too_short_file_place_the_call_without_it(tmp_path, compose_cfg, caplog):
+    """The peer's own LOCA tables: a too-short seventh file whose coordinates row has no z, named by a detection. It is left
+    out with its recorder, in one warning naming it, for the site (``+site=recordings``) and the field alike, and the call
+    keeps the six good recorders and the reference time differences (the table was refused before)."""
+    import soundfile as sf
+
+    from acoustlab.stages.sites import site_from_config
+    from tests.test_recordings import UPSTREAM_TDOA_S, load_opensoundscape_layout
+
+    mics, coords = _loca_folder(tmp_path)
+    audio, fs = sf.read(tmp_path / mics["file"].iloc[0])
+    sf.write(tmp_path / "veryshort.wav", audio[: int(0.05 * fs)], fs)
+    coords = coords.astype(object)
+    coords.loc["veryshort.wav"] = [5.0, 5.0, ""]
+    coords.to_csv(tmp_path / "aru_coords.csv")
+    pd.DataFrame({"file": coords.index, "start_time": 0.2, "end_time": 0.5, "zeep": 1}).to_csv(tmp_path / "det.csv", index=False)
+    tables = [f"field.coords_csv={tmp_path / 'aru_coords.csv'}", f"field.detections_csv={tmp_path / 'det.csv'}"]
+    with caplog.at_level("WARNING", logger="acoustlab.toolkit.peer_tables"):
+        site = site_from_config(compose_cfg(["+site=recordings", "field=recordings", f"field.audio_dir={tmp_path}", *tables]).site)
+        batch, tdoa = load_opensoundscape_layout(
+            compose_cfg,
+            tmp_path,
+            tmp_path / "aru_coords.csv",
+            tmp_path / "det.csv",
+            site=[f"site.mics={site.mic_positions_m.tolist()}".replace(" ", ""), "site.mics_csv=null"],
+        )
+    assert site.n_mics == 6 and "give no height (z)" in caplog.text and "veryshort.wav" in caplog.text
+    assert batch.n_events == 1
+    np.testing.assert_allclose(tdoa[0], UPSTREAM_TDOA_S, atol=1e-3)
+
+
 def test_too_few_receivers_for_any_window_is_one_clear_line(tmp_path, compose_cfg):
     """The peer returns no events when min_n_receivers exceeds the receivers; acoustlab says so in one line."""
     from tests.test_recordings import load_opensoundscape_layout

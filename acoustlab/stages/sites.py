@@ -19,7 +19,7 @@ from acoustlab.core.errors import ConfigError, DataError, show
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import NoiseRegime, Site, require_range
 from acoustlab.toolkit.geometry import collinearity_ratio
-from acoustlab.toolkit.peer_tables import recorder_positions_m, recorders_of
+from acoustlab.toolkit.peer_tables import recorder_positions_m, recorders_of, without_heightless
 
 NOISE_KINDS = ("recorded", "white", "pink", "band")
 #: Mics whose centred 2-D coordinates have a smaller/larger singular value below this are collinear.
@@ -68,6 +68,7 @@ def _opensoundscape_mics(coords_csv: str, detections_csv: str | None) -> np.ndar
     coords["file"] = coords["file"].astype(str).str.strip()
     if used is not None and coords["file"].isin(used).any():
         coords = coords[coords["file"].isin(used)]
+    coords = without_heightless(coords, f"site.coords_csv: {path}")
     xyz = coords[[c for c in ("x", "y", "z") if c in coords]].apply(pd.to_numeric, errors="coerce").to_numpy(float)
     if not np.isfinite(xyz).all():
         row = int(np.flatnonzero(~np.isfinite(xyz).all(axis=1))[0])

@@ -54,7 +54,7 @@ from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_channels, load_mono
 from acoustlab.toolkit.dsp import clip_samples
 from acoustlab.toolkit.file_start import file_start_time
-from acoustlab.toolkit.peer_tables import RECORDER, recorders_of
+from acoustlab.toolkit.peer_tables import RECORDER, recorders_of, without_heightless
 from acoustlab.toolkit.quality import (
     DEAD_MICS,
     QUALITY_REASONS,
@@ -357,6 +357,7 @@ class RecordingFolder:
             path = coords.attrs["path"]
             coords = coords[~unused].reset_index(drop=True)
             coords.attrs["path"] = path
+        coords = without_heightless(coords, f"field.coords_csv: {coords.attrs.get('path')}")
         _numeric(coords, "coords_csv", ("x", "y", "z"))
         _numeric(det, "detections_csv", ("start_time", "end_time"))
         classes = [c for c in det.columns if c not in ("file", "start_time", "end_time", "start_timestamp")]
