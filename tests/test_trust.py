@@ -534,3 +534,38 @@ def test_pac_radii_on_field_spots_state_their_own_guarantee_and_spot_count():
     assert (p[col.one_set_coverage(0.8)] >= 0.75).all() and np.isfinite(p[col.radius("fixed", 0.8)]).all()
     assert "PAC scorer's radius (fixed) instead covers at least l − 0.05 with probability 0.9" in calibration["guarantee"]
     assert (p[col.RADIUS_NOTE] == "no radius at 0.95: its guarantee needs 22 calibration positions, 12 given").all()
+
+
+def test_radii_calibrated_on_field_spots_carry_the_drift_that_grows_after_them():
+    """Radii calibrated on playbacks hold the clocks' errors as they were then; a calibration's drift adds, at a call a
+    week later, what its allowance has grown beyond the larger of its two values at the playbacks' first and last time,
+    and nothing at a call between them; radii calibrated on simulation carry the whole allowance."""
+    from acoustlab.toolkit.input_uncertainty import CorrelatedInputErrors, allowance_m
+
+    site = site3()
+    m = site.n_mics
+    variances = np.r_[0.01, 0.0, np.full(m - 1, 1e-10), np.full(2 * m, 1e-4), 0.0, np.full(m - 1, 1e-18)]  # drifts 1e-9 s/s
+    stated = CorrelatedInputErrors(np.diag(variances), drifts=True, drift_origin_s=0.0)
+    settings = components(BoundingBoxGate())
+    settings.input_uncertainty = stated
+    pipeline = LocalizationPipeline(settings)
+    week = 7 * 86_400.0
+    events = pd.DataFrame({"is_field": True, col.TEMPERATURE: 12.0, col.HUMIDITY: 70.0, "time_s": [1800.0, week], "position_id": [1, 2]})
+    features = pd.DataFrame(index=events.index)
+    position = np.array([[20.0, 15.0], [20.0, 15.0]])
+    on_field = pipeline._input_allowance(position, features, events, calibrated_on_field=True, calibration_times_s=(0.0, 3600.0))
+    assert (on_field.radius_m[0] == 0).all() and (on_field.radius_m[1] > 0).all()
+    from acoustlab.toolkit.event_physics import source_height_m
+
+    source = np.column_stack([position, source_height_m(features, site)])
+    full = allowance_m(
+        site.mic_positions_m, source, np.full(2, 12.0), np.full(2, 70.0), stated, settings.levels, time_s=np.array([1800.0, week])
+    )
+    at_end = allowance_m(
+        site.mic_positions_m, source, np.full(2, 12.0), np.full(2, 70.0), stated, settings.levels, time_s=np.full(2, 3600.0)
+    )
+    np.testing.assert_allclose(on_field.radius_m[1], np.sqrt(full.radius_m[1] ** 2 - at_end.radius_m[1] ** 2), rtol=1e-9)
+    on_simulation = pipeline._input_allowance(position, features, events, calibrated_on_field=False)
+    np.testing.assert_allclose(on_simulation.radius_m, full.radius_m)
+    no_drift = pipeline._input_allowance(position, features, events, calibrated_on_field=True, calibration_times_s=None)
+    assert (no_drift.radius_m == 0).all()

@@ -75,6 +75,8 @@ class FittedMethod:
     simulation_scorers: dict[str, ConformalScorer] = field(default_factory=dict)
     #: (error_xy, position, predicted error, source height) of the calibration events, for ellipses
     ellipse_calibration: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+    #: (earliest, latest) time of the field rows that calibrated the radii, s (a calibration's drift grows after them)
+    calibration_times_s: tuple[float, float] | None = None
 
     def split_info(self, trust: dict[str, Any]) -> dict[str, Any]:
         """What the fitted plugins report, for ``MethodResult.split_diagnostics``."""
@@ -188,7 +190,11 @@ class FittedMethod:
         """``radius__<scorer>__<level>`` columns: conformal radii grown by the stated input errors where they apply."""
         c = self.pipeline.c
         found = self.pipeline._input_allowance(
-            t.trusted.decision.position_m, features, events, calibrated_on_field=self.calibrated_on_field
+            t.trusted.decision.position_m,
+            features,
+            events,
+            calibrated_on_field=self.calibrated_on_field,
+            calibration_times_s=getattr(self, "calibration_times_s", None),  # a method saved before the field had none
         )
         out[col.INPUT_SIGMA] = found.sigma_m
         allowance = found.radius_m

@@ -55,7 +55,7 @@ from acoustlab.toolkit.conformal import (
 )
 from acoustlab.toolkit.event_physics import source_height_m
 from acoustlab.toolkit.geometry import gdop
-from acoustlab.toolkit.input_uncertainty import Allowance, InputErrors, InputUncertainty, allowance_m
+from acoustlab.toolkit.input_uncertainty import Allowance, CorrelatedInputErrors, InputErrors, InputUncertainty, allowance_m
 from acoustlab.toolkit.tdoa import candidate_misfit_m
 
 log = logging.getLogger(__name__)
@@ -454,6 +454,7 @@ class LocalizationPipeline:
             floor=cal.floor,
             calibrated_on_field=bool(cal.domain.sum() < cal.domain.size),
             calibration=self._calibration_summary(cal.domain, cal.rows, split.groups[train]),
+            calibration_times_s=_time_span_s(event_time_s(events.iloc[train[cal.rows]])) if cal.domain.sum() < cal.domain.size else None,
         )
         self._fit_error_models(split, cal, fitted)
         if self.c.ellipse:
@@ -641,30 +642,40 @@ class LocalizationPipeline:
         return {"hull_distance": hull_distance_extent(self.c.site, position_m)}
 
     def _input_allowance(
-        self, position_m: np.ndarray, features: pd.DataFrame, events: pd.DataFrame, calibrated_on_field: bool
+        self,
+        position_m: np.ndarray,
+        features: pd.DataFrame,
+        events: pd.DataFrame,
+        calibrated_on_field: bool,
+        calibration_times_s: tuple[float, float] | None = None,
     ) -> Allowance:
         """What the stated input errors add to each field detection's radii at the configured levels; 0 where none applies.
 
-        Simulated events know their inputs exactly, and radii calibrated on field recordings
-        already hold the field's input errors: the allowance is for field detections whose radii
-        were calibrated on simulation.
+        Simulated events know their inputs exactly: the allowance is for field detections. Radii
+        calibrated on field recordings already hold the field's input errors as they were when those
+        recordings were made; of a calibration's clock drift, what it adds at a detection beyond its
+        larger value at the two ends of ``calibration_times_s`` is added (in quadrature), nothing else.
         """
         stated = self.c.input_uncertainty
         field = events["is_field"].to_numpy(bool) if "is_field" in events else np.zeros(len(events), bool)
         out = Allowance(np.zeros(len(events)), np.zeros((len(events), len(self.c.levels))))
-        if stated.is_zero or calibrated_on_field or not field.any() or col.TEMPERATURE not in events:
+        if stated.is_zero or not field.any() or col.TEMPERATURE not in events:
             return out
-        source = np.column_stack([position_m, source_height_m(features, self.c.site)])
+        drifting = isinstance(stated, CorrelatedInputErrors) and stated.drifts and calibration_times_s is not None
+        if calibrated_on_field and not drifting:
+            return out
+        source = np.column_stack([position_m, source_height_m(features, self.c.site)])[field]
         humidity = events[col.HUMIDITY].to_numpy(float) if col.HUMIDITY in events else np.zeros(len(events))
-        found = allowance_m(
-            self.c.site.mic_positions_m,
-            source[field],
-            events[col.TEMPERATURE].to_numpy(float)[field],
-            humidity[field],
-            stated,
-            self.c.levels,
-            time_s=event_time_s(events)[field],  # a calibration's drift grows its clocks' errors with it
-        )
+        weather = (events[col.TEMPERATURE].to_numpy(float)[field], humidity[field])
+        times = event_time_s(events)[field]  # a calibration's drift grows its clocks' errors with it
+        mics, levels = self.c.site.mic_positions_m, self.c.levels
+        found = allowance_m(mics, source, *weather, stated, levels, time_s=times)
+        if calibrated_on_field:
+            ends = [allowance_m(mics, source, *weather, stated, levels, time_s=np.full(len(times), t)) for t in calibration_times_s]
+            found = Allowance(
+                _growth(found.sigma_m, np.maximum(ends[0].sigma_m, ends[1].sigma_m)),
+                _growth(found.radius_m, np.maximum(ends[0].radius_m, ends[1].radius_m)),
+            )
         out.sigma_m[field], out.radius_m[field] = found.sigma_m, found.radius_m
         return out
 
@@ -902,3 +913,14 @@ class LocalizationPipeline:
                 sel["delta"],
             )
         return threshold, info
+
+
+def _growth(now: np.ndarray, then: np.ndarray) -> np.ndarray:
+    """What an allowance ``now`` adds to one ``then`` already held, in quadrature (0 where it is not larger)."""
+    return np.sqrt(np.maximum(np.nan_to_num(now) ** 2 - np.nan_to_num(then) ** 2, 0.0))
+
+
+def _time_span_s(times_s: np.ndarray) -> tuple[float, float] | None:
+    """(earliest, latest) of the finite ``times_s``, s; None where none is finite."""
+    finite = np.asarray(times_s, dtype=float)[np.isfinite(times_s)]
+    return (float(finite.min()), float(finite.max())) if finite.size else None
