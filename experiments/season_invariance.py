@@ -15,7 +15,8 @@ season does):
 Every column of every row of ``positions.parquet`` is compared with the first run's, bit for bit
 (NaN equal to NaN). Reported: rows, cells compared, cells that differ, the largest difference,
 whether every call of the season is one row (each call's event id once, none missing), each
-run's peak resident memory (the largest of the command and its workers, ``wait4``), wall time
+run's peak resident memory (the largest of the command and its workers, ``wait4`` from a small
+intermediate process), wall time
 and detections per second of wall time. ``--workdir`` keeps the recordings
 (about 5 GiB for 10⁵ detections) for a rerun. Writes experiments/results/season_invariance.md.
 """
@@ -24,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import shutil
 import subprocess
 import sys
@@ -87,19 +87,26 @@ def run(site: str, folder: Path, out: Path, extra: list[str]) -> tuple[float, fl
     return time_cli_with_memory(args)
 
 
+#: Runs its arguments as a command and prints the command's peak resident memory (kB on Linux). A command forked straight
+#: from this experiment would inherit the experiment's own high-water mark (Linux carries it across fork and exec), so
+#: it is forked from this small process instead.
+_PEAK_OF = (
+    "import os, subprocess, sys; p = subprocess.Popen(sys.argv[1:]); _, status, usage = os.wait4(p.pid, 0); "
+    "print(usage.ru_maxrss, file=sys.stderr); sys.exit(os.waitstatus_to_exitcode(status))"
+)
+
+
 def time_cli_with_memory(args: list[str]) -> tuple[float, float]:
     """Seconds and peak resident MiB of one ``python -m acoustlab ARGS`` (the largest of it and the workers it waited for)."""
     started = time.perf_counter()
-    with tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen([sys.executable, "-m", "acoustlab", *args], cwd=REPO, stdout=subprocess.DEVNULL, stderr=err)
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        if proc.returncode != 0:
-            err.seek(0)
-            raise SystemExit(f"command failed: {args}\n{err.read()[-3000:].decode(errors='replace')}")
+    command = [sys.executable, "-c", _PEAK_OF, sys.executable, "-m", "acoustlab", *args]
+    proc = subprocess.run(command, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     elapsed = time.perf_counter() - started
-    log.info("%6.1f s, %6.0f MiB  %s", elapsed, usage.ru_maxrss / 1024, " ".join(args))
-    return elapsed, usage.ru_maxrss / 1024  # Linux reports kilobytes
+    if proc.returncode != 0:
+        raise SystemExit(f"command failed: {args}\n{proc.stderr[-3000:]}")
+    peak_mib = int(proc.stderr.strip().splitlines()[-1]) / 1024  # Linux reports kilobytes
+    log.info("%6.1f s, %6.0f MiB  %s", elapsed, peak_mib, " ".join(args))
+    return elapsed, peak_mib
 
 
 def every_call_once(table: pd.DataFrame, n_calls: int) -> bool:
