@@ -326,9 +326,10 @@ def test_srp_phat_cross_correlates_in_the_shared_gcc_band(compose_cfg):
 
 #: Options that are deliberate variants of a plugin (its name says how), by (group, option, plugin label) → the settings that make the variant.
 YAML_VARIANTS: dict[tuple[str, str, str], set[str]] = {
-    # every conformal scorer is one SplitConformal variant: what it scales by, whether it uses the error model, its bins, its unit
+    # every conformal scorer is one SplitConformal variant: what it scales by, whether it uses the error model, its bins, its unit,
+    # how a position-level quantile is taken
     **{
-        ("conformal", option, label): {"normaliser", "use_error_model", "binning", "n_bins", "calibration_unit"}
+        ("conformal", option, label): {"normaliser", "use_error_model", "binning", "n_bins", "calibration_unit", "position_method"}
         for option in group_options("conformal")
         for label in ("fixed", "gdop_scaled", "gdop_only", "error_ratio", "mondrian_gdop", "gdop_by_region")
     },

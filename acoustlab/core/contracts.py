@@ -31,6 +31,11 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
     "calibration_unit": None,
     # conformal scorers: fit and radius take ``hull_distance`` (the estimate's distance outside the mics' hull, array extents)
     "needs_hull_distance": False,
+    # conformal scorers: how a position-level quantile is taken ("pooled", "subsample" or "pac": the rank that covers at least
+    # level − pac_epsilon with probability 1 − pac_delta over calibration sets), for the one-set statement and the spots needed
+    "position_method": "pooled",
+    "pac_delta": 0.1,
+    "pac_epsilon": 0.05,
     # protocols and jobs: needs field recordings (checked in the preflight)
     "needs_field": False,
     # simulators and feature sets: bumped by hand to invalidate cached results of an unchanged module

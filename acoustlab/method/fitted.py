@@ -194,7 +194,7 @@ class FittedMethod:
             features,
             events,
             calibrated_on_field=self.calibrated_on_field,
-            calibration_times_s=getattr(self, "calibration_times_s", None),  # a method saved before the field had none
+            calibration_times_s=self.calibration_times_s,  # a method saved before the field had none reads the class default
         )
         out[col.INPUT_SIGMA] = found.sigma_m
         allowance = found.radius_m

@@ -779,9 +779,9 @@ class LocalizationPipeline:
         needed = [positions_needed(level)]
         if on_field:
             needed += [
-                pac_positions_needed(level, scorer.pac_delta, scorer.pac_epsilon)
+                pac_positions_needed(level, declared(scorer, "pac_delta"), declared(scorer, "pac_epsilon"))
                 for scorer in self.c.scorers.values()
-                if getattr(scorer, "position_method", None) == "pac"
+                if declared(scorer, "position_method") == "pac"
             ]
         return max(needed)
 
@@ -789,8 +789,8 @@ class LocalizationPipeline:
         """``GUARANTEE_FIELD``, with the PAC scorers' own sentence where there are any (one per δ, ε)."""
         pac: dict[tuple[float, float], list[str]] = {}
         for name, scorer in self.c.scorers.items():
-            if getattr(scorer, "position_method", None) == "pac":
-                pac.setdefault((scorer.pac_delta, scorer.pac_epsilon), []).append(name)
+            if declared(scorer, "position_method") == "pac":
+                pac.setdefault((declared(scorer, "pac_delta"), declared(scorer, "pac_epsilon")), []).append(name)
         return GUARANTEE_FIELD + "".join(
             GUARANTEE_PAC.format(names=", ".join(names), epsilon=epsilon, confidence=1 - delta, delta=delta)
             for (delta, epsilon), names in pac.items()
@@ -802,9 +802,9 @@ class LocalizationPipeline:
             one_set_coverage(
                 n_positions,
                 level,
-                method=getattr(scorer, "position_method", "pooled"),  # SplitConformal's settings; another scorer pools
-                delta=getattr(scorer, "pac_delta", 0.1),
-                epsilon=getattr(scorer, "pac_epsilon", 0.05),
+                method=declared(scorer, "position_method"),
+                delta=declared(scorer, "pac_delta"),
+                epsilon=declared(scorer, "pac_epsilon"),
             )
             for scorer in self.c.scorers.values()
         ]
