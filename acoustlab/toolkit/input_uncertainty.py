@@ -316,7 +316,7 @@ _TABLE_DRAWS = 200_000
 def _radius_factors(level: float) -> np.ndarray:
     """(41,) the ``level``-quantile of √(z₁² + ρ² z₂²) at each ratio ρ of ``_RATIOS`` (fixed draws, seed 0; exact at ρ = 1)."""
     z = np.random.default_rng(0).normal(size=(2, _TABLE_DRAWS)) ** 2
-    table = np.quantile(np.sqrt(z[0][None] + (_RATIOS**2)[:, None] * z[1][None]), level, axis=1)
+    table = np.array([np.quantile(np.sqrt(z[0] + ratio**2 * z[1]), level) for ratio in _RATIOS])  # one ratio at a time: 3 MB
     table[-1] = level_factor(level)  # a round error: √(−2 ln(1 − ℓ)), exactly
     return table
 
