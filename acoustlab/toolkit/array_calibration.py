@@ -605,10 +605,11 @@ def calibrate_array(
     by_playback = jac.copy()
     by_playback[:rows] *= np.sqrt(independent_share(playbacks.pairs, model.measured))[:, None]
     spot_of_row = np.broadcast_to(np.asarray(playbacks.spot)[:, None], model.measured.shape)[model.measured]
-    by_spot, factor = by_spot_covariance(
+    by_spot = by_spot_covariance(
         np.linalg.pinv(by_playback.T @ by_playback), by_playback, model.residuals(u, sigma_t, weights), spot_of_row
     )
-    factor = np.sqrt(np.divide(np.diag(by_spot), np.diag(cov_u), out=np.ones(len(factor)), where=np.diag(cov_u) > 0))  # both units together
+    # each σ over the per-pair posterior's: the playback's share and the spots' spread together
+    factor = np.sqrt(np.divide(np.diag(by_spot), np.diag(cov_u), out=np.ones(len(cov_u)), where=np.diag(cov_u) > 0))
     covariance = by_spot * np.outer(model.sd, model.sd)
     ratio = np.sqrt(np.clip(np.diag(cov_u), 0, None))  # identification is the geometry's: the per-pair posterior's
     identified = {name: bool(q <= IDENTIFIED_RATIO) for name, q in zip(model.names, ratio, strict=True)}
@@ -671,46 +672,44 @@ def independent_share(pairs: list[tuple[int, int]], measured: np.ndarray) -> np.
     return np.broadcast_to(share[:, None], measured.shape)[measured]
 
 
-def by_spot_covariance(
-    cov_pairs: np.ndarray, jac: np.ndarray, residual: np.ndarray, spot_of_row: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def by_spot_covariance(posterior: np.ndarray, jac: np.ndarray, residual: np.ndarray, spot_of_row: np.ndarray) -> np.ndarray:
     """The posterior covariance with each parameter's variance at least the cluster-robust one by spot (scaled units).
 
-    The per-pair posterior ``cov_pairs`` = (JᵀJ)⁻¹ counts every pair of every playback as an
-    independent measurement. They are not: pairs share mics, and a spot's multipath delays every
-    playback from it alike, so its playbacks move the estimates together (a mic's σ was 1.5–2.9×
-    too small with per-spot multipath). The sandwich (JᵀJ)⁻¹ (Σ_s g_s g_sᵀ · G/(G − 1) + I) (JᵀJ)⁻¹,
-    g_s = J_sᵀ r_s the score of spot s's rows, takes the spot as the unit (Liang & Zeger 1986; the
-    G/(G − 1) small-sample factor; I for the prior rows, whose score has unit variance); each
-    parameter's σ is the larger of the two, correlations kept from the posterior (the sandwich's
-    meat has rank at most G + its prior's, too few to carry them from 10 spots).
+    A spot's multipath delays every playback from it alike, so its playbacks move the estimates
+    together (a mic's σ was 1.5–2.9× too small with per-spot multipath). The sandwich
+    A (Σ_s g_s g_sᵀ · G/(G − 1) + I) A, with A = ``posterior`` = (JᵀJ)⁻¹ and g_s = J_sᵀ r_s the score of
+    spot s's rows, takes the spot as the unit (Liang & Zeger 1986; the G/(G − 1) small-sample
+    factor; I for the prior rows, whose score has unit variance); each parameter's σ is the larger
+    of the two, correlations kept from the posterior (the sandwich's meat has rank at most G + its
+    prior's, too few to carry them from 10 spots).
 
     Parameters
     ----------
-    cov_pairs : numpy.ndarray
-        (K, K) (JᵀJ)⁻¹ in the fit's scaled units.
+    posterior : numpy.ndarray
+        (K, K) (JᵀJ)⁻¹ of ``jac`` in the fit's scaled units (``calibrate_array`` weighs each pair by
+        ``independent_share`` first).
     jac, residual : numpy.ndarray
-        (R + K, K) and (R + K,) the fit's scaled Jacobian and residuals: R data rows, then K prior rows.
+        (R + K, K) and (R + K,) the scaled Jacobian and the fit's residuals: R data rows, then K prior rows.
     spot_of_row : numpy.ndarray
         (R,) the spot of each data row.
 
     Returns
     -------
-    covariance, factor : numpy.ndarray
-        (K, K) the covariance and (K,) each σ's factor over the per-pair posterior's (≥ 1).
+    numpy.ndarray
+        (K, K) the covariance, each variance at least ``posterior``'s.
     """
-    n_prior = cov_pairs.shape[0]
+    n_prior = posterior.shape[0]
     data_j, data_r = jac[: len(jac) - n_prior], residual[: len(residual) - n_prior]
     spots = np.unique(spot_of_row)
     if spots.size < 2 or n_prior == 0:
-        return cov_pairs, np.ones(n_prior)
+        return posterior
     scores = np.stack([data_j[spot_of_row == s].T @ data_r[spot_of_row == s] for s in spots])  # (G, K)
     meat = scores.T @ scores * spots.size / (spots.size - 1) + np.eye(n_prior)
-    robust = cov_pairs @ meat @ cov_pairs
-    variance = np.diag(cov_pairs)
+    robust = posterior @ meat @ posterior
+    variance = np.diag(posterior)
     grow = np.sqrt(np.divide(np.diag(robust), variance, out=np.ones_like(variance), where=variance > 0))
     factor = np.maximum(1.0, grow)
-    return cov_pairs * np.outer(factor, factor), factor
+    return posterior * np.outer(factor, factor)
 
 
 def playback_temperature_spread_c(
