@@ -22,7 +22,7 @@ import logging
 
 import numpy as np
 from common import write_results
-from radii_leak import playbacks
+from radii_leak import circle_array, playbacks, spots_in_circle
 
 from acoustlab.method.protocols.calibrate import CalibrateProtocol
 from acoustlab.toolkit.array_calibration import Priors
@@ -34,13 +34,8 @@ FORMS = ("spot-level (as calibrated)", "per-pair posterior")
 def replication(seed: int, n_mics: int, n_spots: int, noise: str) -> dict[str, np.ndarray]:
     """Per form of σ, the z of every estimated mic coordinate, clock and the thermometer of one calibration; and the factors."""
     rng = np.random.default_rng(seed)
-    angle = 2 * np.pi * np.arange(n_mics) / n_mics
-    true = np.column_stack([30 * np.cos(angle), 30 * np.sin(angle), np.full(n_mics, 1.5)])
-    direction = rng.uniform(0, 2 * np.pi, n_mics)
-    stated = true + 2.0 * np.column_stack([np.cos(direction), np.sin(direction), np.zeros(n_mics)])
-    clocks = np.r_[0.0, rng.uniform(-1e-3, 1e-3, n_mics - 1)]
-    r, a = 25 * np.sqrt(rng.uniform(0, 1, n_spots)), rng.uniform(0, 2 * np.pi, n_spots)
-    spots = np.column_stack([r * np.cos(a), r * np.sin(a), np.full(n_spots, 1.5)])
+    true, stated, clocks = circle_array(rng, n_mics)
+    spots = spots_in_circle(rng, n_spots)
     fit = CalibrateProtocol().calibrate(
         playbacks(rng, true, spots, clocks, noise, 0), Priors(stated, np.full(n_mics, 2.0)), list(map(str, range(n_mics)))
     )

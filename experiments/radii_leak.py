@@ -71,18 +71,28 @@ def playbacks(rng, true_mics, spots, clocks, noise: str, first_spot: int) -> Pla
     return Playbacks(source, arrival[:, second] - arrival[:, first], thermometer, humidity, np.zeros(n), spot, pairs)
 
 
-def replication(seed: int, n_mics: int, n_spots: int, noise: str) -> dict[str, np.ndarray]:
-    """Per scheme, the (levels,) per-position coverage at the new spots of one replication."""
-    rng = np.random.default_rng(seed)
+def circle_array(rng: np.random.Generator, n_mics: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(true, stated, clocks): mics on a 30 m circle, each stated 2 m from where it stands, clocks within ±1 ms (mic 0's 0)."""
     angle = 2 * np.pi * np.arange(n_mics) / n_mics
     true = np.column_stack([30 * np.cos(angle), 30 * np.sin(angle), np.full(n_mics, 1.5)])
     direction = rng.uniform(0, 2 * np.pi, n_mics)
     stated = true + 2.0 * np.column_stack([np.cos(direction), np.sin(direction), np.zeros(n_mics)])
-    clocks = np.r_[0.0, rng.uniform(-1e-3, 1e-3, n_mics - 1)]
+    return true, stated, np.r_[0.0, rng.uniform(-1e-3, 1e-3, n_mics - 1)]
+
+
+def spots_in_circle(rng: np.random.Generator, k: int) -> np.ndarray:
+    """(k, 3) spots uniform over the disc of radius 25 m inside the array, 1.5 m high."""
+    r, a = 25 * np.sqrt(rng.uniform(0, 1, k)), rng.uniform(0, 2 * np.pi, k)
+    return np.column_stack([r * np.cos(a), r * np.sin(a), np.full(k, 1.5)])
+
+
+def replication(seed: int, n_mics: int, n_spots: int, noise: str) -> dict[str, np.ndarray]:
+    """Per scheme, the (levels,) per-position coverage at the new spots of one replication."""
+    rng = np.random.default_rng(seed)
+    true, stated, clocks = circle_array(rng, n_mics)
 
     def spots(k: int) -> np.ndarray:
-        r, a = 25 * np.sqrt(rng.uniform(0, 1, k)), rng.uniform(0, 2 * np.pi, k)
-        return np.column_stack([r * np.cos(a), r * np.sin(a), np.full(k, 1.5)])
+        return spots_in_circle(rng, k)
 
     site = site_of(stated)
     solver = _solver()
