@@ -137,11 +137,12 @@ def late_copy(folder, mics, late_s=0.1):
     return late
 
 
-@pytest.mark.parametrize("where", ["coords", "detections"])
+@pytest.mark.parametrize("where", ["coords", "detections", "opso_metadata"])
 def test_per_file_start_times_of_the_peers_tables_are_honoured(tmp_path, compose_cfg, where):
     """A file that starts 0.1 s late, its detection window in its own time (0.1–0.4 s where the others say 0.2–0.5 s): with
-    its start time in the coordinates table, or the detections' absolute start_timestamp, the clip is cut at the same
-    moment and the time differences are the reference ones; without, they would be 0.1 s off."""
+    its start time in the coordinates table, the detections' absolute start_timestamp, or (as OpenSoundscape writes it)
+    each WAV's ``opso_metadata`` comment with no start column in any table, the clip is cut at the same moment and the
+    time differences are the reference ones; without, they would be 0.1 s off (−35 ms where +24 ms is right)."""
     mics = copy_example_audio(tmp_path)
     late = late_copy(tmp_path, mics)
     start = pd.Series(pd.Timestamp("2021-05-01T06:00:00"), index=mics["file"])
@@ -151,6 +152,9 @@ def test_per_file_start_times_of_the_peers_tables_are_honoured(tmp_path, compose
     det.loc[det["file"] == late, ["start_time", "end_time"]] = [0.1, 0.4]
     if where == "coords":
         coords["start_timestamp"] = start.dt.strftime("%Y-%m-%dT%H:%M:%S.%f").to_numpy()
+    elif where == "opso_metadata":
+        for f in mics["file"]:
+            _with_opso_start(tmp_path / f, start[f].tz_localize("-04:00").isoformat())
     else:
         absolute = start[det["file"]].to_numpy() + pd.to_timedelta(det["start_time"], unit="s").to_numpy()
         det["start_timestamp"] = pd.Series(absolute).dt.strftime("%Y-%m-%dT%H:%M:%S.%f").to_numpy()
@@ -337,24 +341,6 @@ def _with_opso_start(path, start: str) -> None:
     with sf.SoundFile(path, "w", samplerate=fs, channels=1 if audio.ndim == 1 else audio.shape[1]) as f:
         f.comment = "opso_metadata" + json.dumps({"opso_metadata_version": "v0.1", "recording_start_time": start})
         f.write(audio)
-
-
-def test_the_peers_own_late_start_is_read_from_its_opso_metadata(tmp_path, compose_cfg):
-    """The peer's late-start case as OpenSoundscape writes it: each WAV's start in its ``opso_metadata`` comment, one
-    recorder 0.1 s late, detections in each file's own time and no start column in any table: the reference time
-    differences (the late file taken to start with the others was −35 ms off where +24 ms is right)."""
-    mics = copy_example_audio(tmp_path)
-    late = late_copy(tmp_path, mics)
-    for f in mics["file"]:
-        _with_opso_start(tmp_path / f, "2021-05-01T06:00:00.100000-04:00" if f == late else "2021-05-01T06:00:00-04:00")
-    coords = pd.DataFrame({"file": mics["file"], "x": mics["x_m"], "y": mics["y_m"], "z": mics["z_m"]})
-    det = pd.DataFrame({"file": mics["file"], "start_time": 0.2, "end_time": 0.5, "zeep": 1})
-    det.loc[det["file"] == late, ["start_time", "end_time"]] = [0.1, 0.4]
-    coords.to_csv(tmp_path / "coords.csv", index=False)
-    det.to_csv(tmp_path / "det.csv", index=False)
-    batch, tdoa = load_opensoundscape_layout(compose_cfg, tmp_path, tmp_path / "coords.csv", tmp_path / "det.csv")
-    assert batch.n_events == 1 and not batch.events["quality_flags"].iloc[0]
-    np.testing.assert_allclose(tdoa[0], UPSTREAM_TDOA_S, atol=1e-3)
 
 
 def test_an_opso_comment_gives_its_start_in_utc_and_a_broken_one_is_named(tmp_path):
