@@ -177,7 +177,7 @@ def position_sigma_m(
     """(B,) per-axis RMS horizontal position error (m) from the stated input errors, first order: √(trace / 2) of
     ``horizontal_covariance_m2`` (same parameters)."""
     cov = horizontal_covariance_m2(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated, time_s)
-    return np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0) / 2)
+    return _per_axis_sigma(cov)
 
 
 def horizontal_covariance_m2(
@@ -266,7 +266,7 @@ def allowance_m(
     """
     levels = [float(level) for level in levels]
     cov = horizontal_covariance_m2(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated, time_s)
-    sigma = np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0) / 2)
+    sigma = _per_axis_sigma(cov)
     axes = np.sqrt(np.clip(np.linalg.eigvalsh(np.nan_to_num(cov)), 0.0, None))  # (B, 2): minor, major standard deviations
     ratio = np.divide(axes[:, 0], axes[:, 1], out=np.ones(len(axes)), where=axes[:, 1] > 0)
     radius = np.zeros((len(sigma), len(levels)))
@@ -283,7 +283,7 @@ def allowance_m(
             stated,
             time_s=None if time_s is None else np.asarray(time_s)[poor],
         )
-        sigma[poor] = np.sqrt(np.mean(shifts**2, axis=(1, 2)))
+        sigma[poor] = _per_axis_rms(shifts)
         if levels:
             radius[poor] = np.quantile(np.sqrt((shifts**2).sum(-1)), levels, axis=1).T
     round_factors = np.array([level_factor(level) for level in levels])
@@ -367,7 +367,7 @@ def monte_carlo_sigma_m(
 ) -> np.ndarray:
     """(B,) per-axis RMS of ``monte_carlo_shifts_m``, m."""
     shift = monte_carlo_shifts_m(mic_positions_m, source_m, temperature_c, relative_humidity_pct, stated, n_iterations, time_s)
-    return np.sqrt(np.mean(shift**2, axis=(1, 2)))
+    return _per_axis_rms(shift)
 
 
 def fix_shift_m(
@@ -436,3 +436,13 @@ def _input_draws(stated: InputErrors, n_mics: int, time_s: np.ndarray | None = N
     d_mics = rng.normal(0.0, 1.0, (N_DRAWS, n_mics, 2)) * stated.mic_position_m
     d_clock = rng.normal(0.0, 1.0, (N_DRAWS, n_mics)) * stated.clock_offset_s
     return d_temperature, d_clock, d_mics
+
+
+def _per_axis_sigma(cov: np.ndarray) -> np.ndarray:
+    """(B,) per-axis RMS σ, m, of (B, 2, 2) horizontal covariances: √(trace / 2) (``input_sigma_m``)."""
+    return np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0) / 2)
+
+
+def _per_axis_rms(shifts: np.ndarray) -> np.ndarray:
+    """(B,) per-axis RMS, m, of (B, D, 2) Monte Carlo shifts: the same σ as ``_per_axis_sigma`` of their covariance about 0."""
+    return np.sqrt(np.mean(shifts**2, axis=(1, 2)))
