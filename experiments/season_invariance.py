@@ -89,7 +89,8 @@ def run(site: str, folder: Path, out: Path, extra: list[str]) -> tuple[float, fl
 
 #: Runs its arguments as a command and prints the command's peak resident memory (kB on Linux). A command forked straight
 #: from this experiment would inherit the experiment's own high-water mark (Linux carries it across fork and exec), so
-#: it is forked from this small process instead.
+#: it is forked from this small process instead. benchmarks/bench_season.py's PEAK_PROBE reads the command's own VmHWM,
+#: which leaves out its workers; here the largest of the command and the workers it waited for is wanted (two shards).
 _PEAK_OF = (
     "import os, subprocess, sys; p = subprocess.Popen(sys.argv[1:]); _, status, usage = os.wait4(p.pid, 0); "
     "print(usage.ru_maxrss, file=sys.stderr); sys.exit(os.waitstatus_to_exitcode(status))"
