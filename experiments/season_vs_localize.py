@@ -13,11 +13,13 @@ site's own simulated events:
 * as a season: the same clips laid end to end in one long file per recorder (600-s files), 0.5 s
   between them of white noise at each clip's own noise floor (``--gap zeros``: silence), one Raven
   selection per clip per recorder
-  (its bounds), localized by ``python -m acoustlab season`` with its defaults (the lean set, the
-  coarse search) and with ``features=physics features.gcc.search=fine``.
+  (its bounds), and a weather logger's table with one reading per clip (the temperature and
+  humidity its events carry), localized by ``python -m acoustlab season`` with its defaults (the
+  lean set, the coarse search) with the weather table, without it (one assumed temperature), and
+  with ``features=physics``.
 
-So features (lean vs full, coarse vs fine) and the season's clip windows (a detection widened by the
-array's travel time, read from long files) are separated. Failures count as infinite errors; > 5 m
+So features (lean vs full, coarse vs fine), the season's clip windows (read from long files) and its
+weather are separated. Failures count as infinite errors; > 5 m
 and p95 carry 95 % bootstrap intervals over source positions. Writes
 experiments/results/season_vs_localize.md (``--gap zeros``: season_vs_localize_silence.md).
 """
@@ -45,9 +47,12 @@ ORIGIN = pd.Timestamp("2026-05-01T05:00:00")
 RUNS = {
     "localize, full features (default)": ("events", []),
     "localize, lean + coarse": ("events", ["features=physics_lean_coarse"]),
-    "season, lean + coarse (default)": ("season", []),
-    "season, full + fine": ("season", ["features=physics"]),
+    "season, lean + coarse (default), weather table": ("season", ["WEATHER"]),
+    "season, lean + coarse (default), one assumed temperature": ("season", []),
+    "season, full features, weather table": ("season", ["features=physics", "WEATHER"]),
 }
+#: The weather logger's table of the laid-out season (one reading per clip, at its middle).
+WEATHER_CSV = "weather.csv"
 
 
 def field_settings(n_positions: int) -> list[str]:
@@ -85,6 +90,13 @@ def lay_out(site_name: str, n_positions: int, folder: Path, gap_fill: str = "whi
             sf.write(folder / "audio" / f"R{m}" / name, signal[first : first + n_file], int(fs), subtype="FLOAT")
     begin = np.array(starts) / fs
     end = begin + lengths / fs
+    pd.DataFrame(
+        {
+            "time": [(ORIGIN + pd.Timedelta(seconds=float(t))).isoformat() for t in (begin + end) / 2],
+            "temperature_c": batch.events["temperature_c"].to_numpy(float),
+            "relative_humidity_pct": batch.events["relative_humidity_pct"].to_numpy(float),
+        }
+    ).to_csv(folder / WEATHER_CSV, index=False)
     (folder / "raven").mkdir(parents=True, exist_ok=True)
     index = (begin // FILE_S).astype(int)
     for m in range(site.n_mics):
@@ -173,7 +185,7 @@ def main() -> None:
                         f"protocol.recordings.audio_dir={folder / 'audio'}",
                         f"protocol.detections.paths=[{folder / 'raven'}]",
                         f"protocol.output_dir={folder / f'season{len(seconds)}'}",
-                        *extra,
+                        *[f"protocol.weather_csv={folder / WEATHER_CSV}" if e == "WEATHER" else e for e in extra],
                         *args.extra,
                     ],
                     run_dir,

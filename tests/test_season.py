@@ -132,6 +132,20 @@ def test_a_season_s_answer_does_not_depend_on_how_it_is_cut(season, whole_season
 
 
 @pytest.mark.slow
+def test_each_event_is_placed_in_its_own_air_where_the_events_carry_it(season, whole_season):
+    """Events carrying the plan's own weather give the plan's positions bit for bit; the same events carrying a 20 °C warmer
+    air are placed with that air's speed of sound, so they move (the season was rendered at the plan's)."""
+    events, whole = whole_season
+    plan = read_manifest(season[0] / "out")["plan"]
+    same = events.assign(temperature_c=plan["temperature_c"], relative_humidity_pct=plan["relative_humidity_pct"])
+    pd.testing.assert_frame_equal(_placed(season, same, 8), whole, check_exact=True)
+    warm = _placed(season, same.assign(temperature_c=plan["temperature_c"] + 20.0), 8)
+    truth = season[1]
+    error = {name: np.hypot(t["solver_x_m"] - truth["x_m"], t["solver_y_m"] - truth["y_m"]) for name, t in (("own", whole), ("warm", warm))}
+    assert np.median(error["warm"]) > 2 * np.median(error["own"]), {k: np.median(v) for k, v in error.items()}
+
+
+@pytest.mark.slow
 def test_sharded_runs_give_the_unsharded_positions(season, compose_cfg, tmp_path):
     root, _, _, _ = season
     unsharded = pd.read_parquet(root / "run" / "positions.parquet")

@@ -13,6 +13,7 @@ from acoustlab.core.errors import DataError
 from acoustlab.season.detections import read_detections
 from acoustlab.season.events import group_detections
 from acoustlab.season.recorder_files import RecorderFiles, timestamp_from_name
+from acoustlab.season.weather import read_weather, weather_at
 
 FS = 8000
 
@@ -422,3 +423,71 @@ def test_one_call_is_one_event_whatever_false_boxes_come_before_it(caplog):
     assert split <= 2
     twice = [(f"R{r}", t + 0.01 * r, t + 0.01 * r + 0.25, 2000, 5000, "wren") for t in (20.0, 20.3) for r in range(5)]
     assert (group_detections(detections(twice), margin_s=0.22, min_recorders=2)["n_recorders"] == 5).sum() == 2
+
+
+def test_a_clip_reaches_past_its_detections_only_as_far_as_a_recorder_without_one_needs():
+    """Every recorder detected the call: the clip is its detections plus the pad. One did not: widened on both sides by that
+    recorder's shortest travel time to one that did (its arrival lies within that of theirs), not the array's largest."""
+    travel = pd.DataFrame(
+        [[0.0, 0.1, 0.3], [0.1, 0.0, 0.25], [0.3, 0.25, 0.0]], index=["R0", "R1", "R2"], columns=["R0", "R1", "R2"]
+    )  # s
+    rows = [("R0", 10.0, 10.5, 2000, 5000, "wren"), ("R1", 10.05, 10.55, 2000, 5000, "wren"), ("R2", 10.2, 10.7, 2000, 5000, "wren")]
+    rows += [("R0", 20.0, 20.5, 2000, 5000, "wren"), ("R1", 20.05, 20.55, 2000, 5000, "wren")]  # R2 missed it
+    events = group_detections(detections(rows), margin_s=0.31, min_recorders=2, travel_s=travel, pad_s=0.01)
+    np.testing.assert_allclose(events["widening_s"], [0.01, 0.26])
+    np.testing.assert_allclose(events[["start_s", "end_s"]], [[9.99, 10.71], [19.74, 20.81]])
+    old_rule = group_detections(detections(rows), margin_s=0.31, min_recorders=2)
+    np.testing.assert_allclose(old_rule["widening_s"], 0.31)
+    assert (events["event_id"] == old_rule["event_id"]).all() and (events["recorders"] == old_rule["recorders"]).all()
+
+
+def write_weather(path, rows, header="time,temperature_c,relative_humidity_pct"):
+    path.write_text(header + "\n" + "\n".join(rows) + "\n")
+    return path
+
+
+def test_a_weather_table_gives_each_event_its_air_interpolated_in_time(tmp_path, caplog):
+    path = write_weather(tmp_path / "w.csv", ["2026-05-01T05:10:00,10.0,80", "2026-05-01T05:00:00,4.0,90", "2026-05-01T05:20:00,16,70"])
+    weather = read_weather(path)
+    assert weather["time"].is_monotonic_increasing
+    origin = pd.Timestamp("2026-05-01T05:00:00")
+    with caplog.at_level("WARNING"):
+        air = weather_at(weather, np.array([0.0, 300.0, 900.0, 3600.0]), origin, path)
+    np.testing.assert_allclose(air["temperature_c"], [4.0, 7.0, 13.0, 16.0])
+    np.testing.assert_allclose(air["relative_humidity_pct"], [90.0, 85.0, 75.0, 70.0])
+    assert "1 of 4 events lie outside w.csv's readings" in caplog.text
+    only_temperature = read_weather(write_weather(tmp_path / "t.csv", ["2026-05-01T05:00:00Z,4.0"], "time,temperature_c"))
+    air = weather_at(only_temperature, np.array([5.0]), pd.Timestamp("2026-05-01T06:00:00+01:00"), tmp_path / "t.csv")
+    assert list(air.columns) == ["temperature_c"] and air["temperature_c"].iloc[0] == 4.0
+    with pytest.raises(DataError, match="carry time zone but the recordings' start times do not"):
+        weather_at(only_temperature, np.array([5.0]), origin, tmp_path / "t.csv")
+
+
+@pytest.mark.parametrize(
+    ("header", "rows", "message"),
+    [
+        ("time,temp", ["2026-05-01T05:00:00,4"], "has no 'temperature_c' column"),
+        ("time,temperature_c", ["yesterday,4"], r"line 2, column 'time': 'yesterday' is not an ISO 8601 time"),
+        ("time,temperature_c", ["2026-05-01T05:00:00,4", "2026-05-01T05:01:00,277.1"], r"line 3, column 'temperature_c': '277.1' is not"),
+        ("time,temperature_c,relative_humidity_pct", ["2026-05-01T05:00:00,4,"], r"column 'relative_humidity_pct': '' is not a number"),
+        ("time,temperature_c", ["2026-05-01T05:00:00,4", "2026-05-01T05:00:00,5"], r"line 3: time '2026-05-01T05:00:00' is given twice"),
+    ],
+)
+def test_a_bad_weather_table_stops_with_one_line_naming_file_line_and_column(tmp_path, header, rows, message):
+    with pytest.raises(DataError, match=r"protocol.weather_csv: .*w.csv.*" + message):
+        read_weather(write_weather(tmp_path / "w.csv", rows, header))
+
+
+def test_a_season_with_a_weather_table_carries_each_event_s_air_and_without_one_none(tmp_path):
+    from types import SimpleNamespace
+
+    from acoustlab.season.protocol import SeasonLocalize
+
+    path = write_weather(tmp_path / "w.csv", ["2026-05-01T05:00:00,4.0,90", "2026-05-01T05:00:20,14.0,70"])
+    events = pd.DataFrame({"event_id": [0, 1], "start_s": [4.0, 14.0], "end_s": [6.0, 16.0]})
+    recordings = SimpleNamespace(origin=pd.Timestamp("2026-05-01T05:00:00"))
+    with_air = SeasonLocalize({}, {"format": "raven"}, {}, weather_csv=str(path)).with_weather(events, recordings)
+    np.testing.assert_allclose(with_air[["temperature_c", "relative_humidity_pct"]], [[6.5, 85.0], [11.5, 75.0]])
+    assert SeasonLocalize({}, {"format": "raven"}, {}).with_weather(events, recordings) is events
+    with pytest.raises(Exception, match="protocol.events.pad_s must be a number >= 0"):
+        SeasonLocalize({}, {"format": "raven"}, {"pad_s": -1}).pad_s()

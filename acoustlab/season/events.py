@@ -6,8 +6,13 @@ recorder's next detection is its next call, so a detector's consecutive fixed wi
 3-s windows of a bird singing on and on) become one event per window instead of chaining into one
 long event. A detection joins the open event (within the travel time of its reach, lacking its
 recorder) it overlaps most, else starts one. The event's clip spans the earliest start to the
-latest end, widened by the travel time on both sides, so every recorder's clip holds the call
-whichever recorder heard it first. Events heard by
+latest end of its detections, widened on both sides only by what a recorder that did not detect it
+needs: a recorder's arrival lies within its travel time from any recorder that heard the call, so
+the widening is, over the recorders without a detection, the largest of their shortest travel
+times to one with (none where every recorder detected it: each detection holds its own arrival),
+plus a stated pad for a detector's box that starts late. A wider clip only adds the noise around
+the call to every cross-correlation. Without the travel times (``travel_s``) the clip is widened by
+the linkage distance, the array's largest travel time. Events heard by
 fewer than ``min_recorders`` recorders are dropped (they cannot be localized); events longer than
 ``max_event_s`` (a chorus merged into one window) are kept but flagged ``too_long`` and not read.
 The detection band (Raven's ``Low/High Freq (Hz)``) of an event is the union of its detections'
@@ -39,6 +44,7 @@ EVENT_TABLE_COLUMNS = (
     "too_long",
     "not_read",
     "detections",
+    "widening_s",
 )
 
 
@@ -147,7 +153,37 @@ def _without_repeats(detections: pd.DataFrame) -> pd.DataFrame:
     return merged
 
 
-def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: int = 2, max_event_s: float = 10.0) -> pd.DataFrame:
+def clip_widening_s(recorders_heard: np.ndarray, travel_s: pd.DataFrame, pad_s: float) -> np.ndarray:
+    """(E,) how far each event's clip reaches beyond its detections on either side, s (see the module docstring).
+
+    Parameters
+    ----------
+    recorders_heard : numpy.ndarray
+        (E,) each event's recorders with a detection, ``;``-joined.
+    travel_s : pandas.DataFrame
+        Largest travel time between each two recorders read, s (index and columns: recorder ids).
+    pad_s : float
+        Added to every widening, s.
+    """
+    names = [str(r) for r in travel_s.index]
+    travel = travel_s.to_numpy(float)
+    sets, inverse = np.unique(np.asarray(recorders_heard, dtype=str), return_inverse=True)
+    per_set = np.empty(sets.size)
+    for k, joined in enumerate(sets):  # one value per distinct set of recorders: a season has few
+        heard = np.isin(names, joined.split(";"))
+        needed = travel[~heard][:, heard].min(axis=1) if heard.any() else travel[~heard].max(axis=1, initial=0.0)
+        per_set[k] = float(needed.max(initial=0.0))
+    return per_set[inverse] + float(pad_s)
+
+
+def group_detections(
+    detections: pd.DataFrame,
+    margin_s: float,
+    min_recorders: int = 2,
+    max_event_s: float = 10.0,
+    travel_s: pd.DataFrame | None = None,
+    pad_s: float = 0.0,
+) -> pd.DataFrame:
     """Events from detections (see the module docstring), in time order, ``event_id`` 0, 1, ….
 
     A detection set apart from its call (``merge_split_calls``) is a row of its own, not read, with
@@ -158,12 +194,16 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
     detections : pandas.DataFrame
         ``acoustlab.season.detections.DETECTION_COLUMNS``, season seconds.
     margin_s : float
-        The array's largest travel time (plus a margin), s: the linkage distance and the clip's
-        widening on each side.
+        The array's largest travel time (plus a margin), s: the linkage distance (and the clip's
+        widening on each side where ``travel_s`` is None).
     min_recorders : int
         Fewest distinct recorders that must have detected an event.
     max_event_s : float
         Longest clip read, s.
+    travel_s : pandas.DataFrame, optional
+        Largest travel time between each two recorders read, s (``clip_widening_s``).
+    pad_s : float
+        Added to the widening on each side where ``travel_s`` is given, s.
     """
     detections = _without_repeats(detections)
     parts = []
@@ -212,11 +252,14 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
         )
     events = events[~dropped].sort_values(["first", "label"], kind="stable").reset_index(drop=True)
     number = {(lab, c): k for k, (lab, c) in enumerate(zip(events["label"], events["_cluster"], strict=True))}
+    widening = (
+        np.full(len(events), float(margin_s)) if travel_s is None else clip_widening_s(events["recorders"].to_numpy(), travel_s, pad_s)
+    )
     out = pd.DataFrame(
         {
             col.EVENT_ID: np.arange(len(events), dtype=np.int64),
-            col.START: events["first"].to_numpy(float) - margin_s,
-            col.END: events["last"].to_numpy(float) + margin_s,
+            col.START: events["first"].to_numpy(float) - widening,
+            col.END: events["last"].to_numpy(float) + widening,
             "label": events["label"].astype(str).to_numpy(),
             "n_recorders": events["n_recorders"].to_numpy(int),
             "recorders": events["recorders"].to_numpy(),
@@ -231,6 +274,7 @@ def group_detections(detections: pd.DataFrame, margin_s: float, min_recorders: i
         for lab, h, rec in zip(events["label"], events["host"], events["recorders"], strict=True)
     ]
     out["detections"] = events["detections"].to_numpy()
+    out["widening_s"] = widening
     if out["too_long"].any():
         log.warning(
             "events: %d longer than max_event_s=%g s (overlapping calls merged); flagged too_long and not localized",

@@ -38,6 +38,7 @@ import pandas as pd
 from acoustlab.core import columns as col
 from acoustlab.core.cores import free_cores
 from acoustlab.core.errors import ConfigError, DataError
+from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import Site
 from acoustlab.method.localizer import FittedLocalizer
 from acoustlab.method.pipeline import LocalizationPipeline
@@ -64,6 +65,7 @@ from acoustlab.season.stream import (
     write_events,
     write_manifest,
 )
+from acoustlab.season.weather import read_weather, weather_at
 from acoustlab.stages.field_calibration import FieldCalibration
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
 from acoustlab.toolkit.physics import speed_of_sound_m_s
@@ -103,6 +105,7 @@ class SeasonLocalize:
         batch_events: int = 16,
         temperature_c: float | None = None,
         relative_humidity_pct: float | None = None,
+        weather_csv: str | None = None,
         output_dir: str | None = None,
         stage: str = "all",
         shard: int | None = None,
@@ -126,6 +129,7 @@ class SeasonLocalize:
         self.max_train_rows, self.seed = int(max_train_rows), int(seed)
         self.chunk_events, self.batch_events = int(chunk_events), int(batch_events)
         self.temperature_c, self.relative_humidity_pct = temperature_c, relative_humidity_pct
+        self.weather_csv = str(weather_csv) if weather_csv else None
         self.output_dir, self.stage = output_dir, stage
         self.shard, self.n_shards, self.n_jobs = (None if shard is None else int(shard)), int(n_shards), int(n_jobs)
         self.progress_every_s, self.write_csv = float(progress_every_s), bool(write_csv)
@@ -161,12 +165,29 @@ class SeasonLocalize:
         return order
 
     def margin_s(self, site: Site) -> float:
-        """Linkage distance and clip widening, s: the array's largest travel time at the slowest sound speed, plus 10 ms."""
+        """Linkage distance, s: the array's largest travel time at the slowest sound speed, plus 10 ms."""
         if self.events_cfg.get("margin_s") is not None:
             return float(self.events_cfg["margin_s"])
+        return float(self.travel_s(site, list(map(str, range(site.n_mics)))).to_numpy().max()) + 0.01
+
+    @staticmethod
+    def travel_s(site: Site, recorders: list[str]) -> pd.DataFrame:
+        """Travel time between each two recorders (in the site's mic order) at the slowest sound speed of the site, s."""
         mics = site.mic_positions_m
-        largest = max(np.linalg.norm(mics[i] - mics[j]) for i, j in site.mic_pairs)
-        return largest / speed_of_sound_m_s(site.temperature_range_c[0], site.relative_humidity_range_pct[0]) + 0.01
+        distance = np.linalg.norm(mics[:, None, :] - mics[None, :, :], axis=-1)
+        slowest = speed_of_sound_m_s(site.temperature_range_c[0], site.relative_humidity_range_pct[0])
+        return pd.DataFrame(distance / slowest, index=recorders, columns=recorders)
+
+    def pad_s(self) -> float:
+        """How far past its detections an event's clip reaches even where every recorder detected it, s (a late-starting box)."""
+        given = self.events_cfg.get("pad_s")
+        try:
+            pad = 0.01 if given is None else float(given)
+        except (TypeError, ValueError):
+            pad = np.nan
+        if not np.isfinite(pad) or pad < 0:
+            raise ConfigError(f"protocol.events.pad_s must be a number >= 0 (s); got {self.events_cfg.get('pad_s')!r}")
+        return pad
 
     def events(self, recordings: RecorderFiles, site: Site) -> pd.DataFrame:
         """The season's events from its detector tables."""
@@ -190,13 +211,35 @@ class SeasonLocalize:
             log.warning("detections on recorders %s, which are not in the array, are ignored", unknown)
             detections = detections[~detections["recorder_id"].isin(unknown)]
         min_recorders = int(self.events_cfg.get("min_recorders", 2))
-        events = group_detections(detections, self.margin_s(site), min_recorders, float(self.events_cfg.get("max_event_s", 10.0)))
+        events = group_detections(
+            detections,
+            self.margin_s(site),
+            min_recorders,
+            float(self.events_cfg.get("max_event_s", 10.0)),
+            travel_s=self.travel_s(site, self.recorder_order(recordings, site)),
+            pad_s=self.pad_s(),
+        )
         if events.empty:
             raise DataError(
                 f"protocol=season: {len(detections)} detections, but no event was detected on {min_recorders} or more recorders "
                 "(protocol.events.min_recorders); nothing to localize"
             )
-        return events
+        return self.with_weather(events, recordings)
+
+    def with_weather(self, events: pd.DataFrame, recordings: RecorderFiles) -> pd.DataFrame:
+        """The events with each one's own temperature and humidity from ``protocol.weather_csv`` (as they are without one)."""
+        if not self.weather_csv:
+            return events
+        path = resolve_path(self.weather_csv)
+        middle_s = (events[col.START].to_numpy(float) + events[col.END].to_numpy(float)) / 2  # the widening is symmetric
+        air = weather_at(read_weather(path), middle_s, recordings.origin, path)
+        log.info(
+            "season: each event's air from %s (%.1f to %.1f °C over the events)",
+            path,
+            float(air[col.TEMPERATURE].min()),
+            float(air[col.TEMPERATURE].max()),
+        )
+        return events.assign(**{name: air[name].to_numpy(float) for name in air})
 
     def validate(self, site: Site) -> None:
         """Preflight: index the recordings and read the detector tables (headers and tables only, no audio); kept for ``fit``."""
@@ -230,7 +273,7 @@ class SeasonLocalize:
             "detections": self.detections_cfg,
             "events": self.events_cfg,
             "chunk": [self.chunk_events, self.batch_events],
-            "weather": [self.temperature_c, self.relative_humidity_pct],
+            "weather": [self.temperature_c, self.relative_humidity_pct, self.weather_csv],
             "quality": dataclasses.asdict(self.quality),
             "method": self.method_key(context.settings.config),
         }
@@ -336,7 +379,8 @@ class SeasonLocalize:
         log.info("season folder: %s (the same command resumes it; protocol.output_dir=… chooses another)", folder)
         if context.calibration is not None:
             self.warn_about_calibration(context.calibration)
-            context = self.with_assumed_weather(context)
+            if not self.weather_csv:  # with a logger's readings each event has its own air, as in localize
+                context = self.with_assumed_weather(context)
         started = time.perf_counter()
         metrics: dict[str, Any] = {"season": {"output_dir": str(folder), "stage": self.stage}}
         if self.stage in ("fit", "all"):
@@ -379,7 +423,7 @@ class SeasonLocalize:
     def warn_about_calibration(self, calibration: FieldCalibration) -> None:
         """What a season must know of a field calibration: its offset lands on one assumed temperature, and drift is counted
         from the season's first file."""
-        if self.temperature_c is None:
+        if self.temperature_c is None and not self.weather_csv:
             log.warning(
                 "protocol.temperature_c is not given: the calibration's thermometer offset (%+.2f °C) is added to the middle of the "
                 "site's temperature range; give your thermometer's typical reading as protocol.temperature_c",

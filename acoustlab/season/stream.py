@@ -225,7 +225,10 @@ def read_batch(
     n_max = int(padded.max())
     audio = np.zeros((len(events), len(recorders), n_max), dtype=np.float32)
     flags, dropped, usable = [], [], []
-    for e, (start, length, why_not) in enumerate(zip(events[col.START].to_numpy(float), lengths_s, not_read_reasons(events), strict=True)):
+    # what lies beyond an event's detections is context: missing there (before the first file, in a gap) it flags nothing
+    context_s = events["widening_s"].to_numpy(float) if "widening_s" in events else np.full(len(events), plan.margin_s)
+    starts = events[col.START].to_numpy(float)
+    for e, (start, length, why_not) in enumerate(zip(starts, lengths_s, not_read_reasons(events), strict=True)):
         if why_not:
             flags.append(why_not)
             dropped.append("")
@@ -233,7 +236,7 @@ def read_batch(
             continue
         parts, per_mic = [], []
         for m, recorder in enumerate(recorders):
-            clip, reasons = _clip(recordings, recorder, start, length, sample_rate_hz, plan.quality, plan.margin_s)
+            clip, reasons = _clip(recordings, recorder, start, length, sample_rate_hz, plan.quality, float(context_s[e]))
             audio[e, m, : clip.size] = clip[:n_max]
             per_mic.append(reasons)
             if reasons:
@@ -249,8 +252,9 @@ def read_batch(
             col.TRUE_X: np.nan,
             col.TRUE_Y: np.nan,
             col.TRUE_Z: np.nan,
-            col.TEMPERATURE: plan.temperature_c,
-            col.HUMIDITY: plan.relative_humidity_pct,
+            # a weather table gives each event its own air (``acoustlab.season.weather``); else the plan's one assumption
+            col.TEMPERATURE: events[col.TEMPERATURE].to_numpy(float) if col.TEMPERATURE in events else plan.temperature_c,
+            col.HUMIDITY: events[col.HUMIDITY].to_numpy(float) if col.HUMIDITY in events else plan.relative_humidity_pct,
             col.START: events[col.START].to_numpy(float),
             col.END: events[col.END].to_numpy(float),
             col.QUALITY_FLAGS: flags,
