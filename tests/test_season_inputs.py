@@ -428,9 +428,7 @@ def test_one_call_is_one_event_whatever_false_boxes_come_before_it(caplog):
 def test_a_clip_reaches_past_its_detections_only_as_far_as_a_recorder_without_one_needs():
     """Every recorder detected the call: the clip is its detections plus the pad. One did not: widened on both sides by that
     recorder's shortest travel time to one that did (its arrival lies within that of theirs), not the array's largest."""
-    travel = pd.DataFrame(
-        [[0.0, 0.1, 0.3], [0.1, 0.0, 0.25], [0.3, 0.25, 0.0]], index=["R0", "R1", "R2"], columns=["R0", "R1", "R2"]
-    )  # s
+    travel = pd.DataFrame([[0.0, 0.1, 0.3], [0.1, 0.0, 0.25], [0.3, 0.25, 0.0]], index=["R0", "R1", "R2"], columns=["R0", "R1", "R2"])  # s
     rows = [("R0", 10.0, 10.5, 2000, 5000, "wren"), ("R1", 10.05, 10.55, 2000, 5000, "wren"), ("R2", 10.2, 10.7, 2000, 5000, "wren")]
     rows += [("R0", 20.0, 20.5, 2000, 5000, "wren"), ("R1", 20.05, 20.55, 2000, 5000, "wren")]  # R2 missed it
     events = group_detections(detections(rows), margin_s=0.31, min_recorders=2, travel_s=travel, pad_s=0.01)
