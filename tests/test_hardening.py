@@ -451,10 +451,35 @@ def test_projected_mic_coordinates_that_disagree_with_the_local_ones_are_named(t
     with pytest.raises(DataError, match=r"mics.csv, line \d: x_m, y_m and easting_m, northing_m disagree by"):
         folder(tmp_path).projection()
     mics.assign(easting_m=mics["x_m"] + 500000.0, northing_m=mics["y_m"] + 4100000.0).to_csv(tmp_path / "mics.csv", index=False)
-    rotation, translation, crs = folder(tmp_path).projection()
+    rotation, translation, crs, geographic = folder(tmp_path).projection()
     np.testing.assert_allclose(rotation, np.eye(2), atol=1e-9)
     np.testing.assert_allclose(translation, [500000.0, 4100000.0], atol=1e-6)
-    assert crs == ""
+    assert crs == "" and not geographic
+
+
+def test_a_recordings_folder_whose_mics_are_given_in_latitude_longitude_is_placed_in_their_utm_zone(tmp_path):
+    pyproj = pytest.importorskip("pyproj")
+    mics, _ = lake_folder(tmp_path)
+    lon, lat = pyproj.Transformer.from_crs("EPSG:32633", "EPSG:4326", always_xy=True).transform(mics["x_m"] + 500000.0, mics["y_m"] + 5.2e6)
+    mics.drop(columns=["x_m", "y_m"]).assign(latitude=lat, longitude=lon).to_csv(tmp_path / "mics.csv", index=False)
+    local, _ = folder(tmp_path).tables()
+    spans = local[["x_m", "y_m"]].to_numpy(float) - local[["x_m", "y_m"]].to_numpy(float)[0]
+    np.testing.assert_allclose(spans, mics[["x_m", "y_m"]].to_numpy(float), atol=1e-6)  # the same array, in its own zone
+    rotation, translation, crs, geographic = folder(tmp_path).projection()
+    assert crs == "EPSG:32633" and geographic
+    np.testing.assert_allclose(rotation, np.eye(2), atol=1e-12)
+    # playback spots surveyed with the same GPS: in the same local frame (a spot at mic b, one unknown, one 10 m north of a)
+    _, spot_lat = pyproj.Transformer.from_crs("EPSG:32633", "EPSG:4326", always_xy=True).transform(500000.0, 5.2e6 + 10.0)
+    events = pd.read_csv(tmp_path / "events.csv").assign(latitude=[lat[1], np.nan, spot_lat], longitude=[lon[1], np.nan, lon[0]])
+    events.to_csv(tmp_path / "events.csv", index=False)
+    _, read = folder(tmp_path).tables()
+    np.testing.assert_allclose(
+        read[["x_m", "y_m"]].to_numpy(float)[[0, 2]], [local.loc[1, ["x_m", "y_m"]], local.loc[0, ["x_m", "y_m"]] + [0, 10]], atol=1e-6
+    )
+    assert read[["x_m", "y_m"]].iloc[1].isna().all()
+    events.assign(x_m=0.0).to_csv(tmp_path / "events.csv", index=False)
+    with pytest.raises(DataError, match="events.csv: give the spots once"):
+        folder(tmp_path).tables()
 
 
 def test_error_messages_show_numbers_as_numbers():

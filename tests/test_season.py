@@ -580,3 +580,37 @@ def test_a_season_folder_with_an_attacker_s_method_runs_no_code(season, compose_
     assert "is not used" in caplog.text and "fitting it again" in caplog.text
     assert load_method(folder, json.loads((folder / MANIFEST).read_text())["method_sha256"]) is not None
     assert not created.exists()
+
+
+@pytest.mark.slow
+def test_a_season_on_mics_given_in_latitude_longitude_is_a_map_layer_in_their_utm_zone(compose_cfg, tmp_path):
+    """Mics as a GPS shows them (latitude/longitude, no local coordinates): the season is placed in their local frame and
+    every position is also written in the UTM zone's easting/northing and in latitude/longitude, and the GeoPackage a GIS
+    opens is in that zone."""
+    gpd = pytest.importorskip("geopandas")
+    from test_map_frame import gps_table
+
+    from acoustlab.toolkit.map_frame import geographic_of
+
+    gps_table().to_csv(tmp_path / "mics.csv", index=False)
+    overrides = season_overrides(tmp_path, tmp_path / "out", f"paths.outputs_dir={tmp_path / 'outputs'}")
+    overrides[0:1] = ["+site=from_csv", f"site.mics_csv={tmp_path / 'mics.csv'}"]
+    cfg = compose_cfg(overrides)
+    site = site_from_config(cfg.site)
+    truth = write_season(
+        SyntheticSeason.for_site(
+            site, duration_s=30, file_s=15, n_calls=8, min_spacing_s=2.0, sample_rate_hz=float(cfg.simulator.sample_rate_hz)
+        ),
+        tmp_path,
+    )
+    run_experiment(cfg, tmp_path / "run")
+    table = pd.read_parquet(tmp_path / "run" / "positions.parquet")
+    placed = table["placed"].to_numpy(bool)
+    assert placed.sum() >= 6 and (table["crs"] == "EPSG:32617").all()
+    assert np.median(np.hypot(table["x_m"] - truth["x_m"], table["y_m"] - truth["y_m"])[placed]) < 1.0
+    latitude, longitude = geographic_of(table["easting_m"], table["northing_m"], "EPSG:32617")
+    np.testing.assert_allclose(table[["latitude", "longitude"]][placed], np.c_[latitude, longitude][placed], atol=1e-12)
+    assert table["latitude"][placed].between(41.2995, 41.3009).all()  # in and around the array
+    layer = gpd.read_file(tmp_path / "run" / "positions.gpkg", layer="positions")
+    assert layer.crs.to_epsg() == 32617
+    np.testing.assert_allclose(layer.geometry.x[placed], table["easting_m"][placed], atol=1e-6)

@@ -47,7 +47,7 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
 #: Optional hooks a plugin may define; a plugin without one is taken to need nothing there. Get them with ``hook``.
 #: ``preflight()`` (models: check what must exist before anything is simulated, e.g. weights), ``validate(site)``
 #: (field sources and protocol=season: check tables and headers), ``input_files()`` (field sources: the files whose contents key the
-#: cache), ``projection()`` (field sources: the rigid map to projected coordinates, or None), ``fit_quantiles(x, error, levels)``
+#: cache), ``projection()`` (field sources: the rigid map to map coordinates as ``acoustlab.toolkit.map_frame.map_projection`` returns it, or None), ``fit_quantiles(x, error, levels)``
 #: (conformal scorers with ``needs_quantiles``: fit the final quantile model once, applied by their ``predict_quantiles``),
 #: ``config_patch(site, field_source, config)`` (protocols and jobs: config changes the job needs, given the resolved config
 #: as a plain dict, returned as a plain nested dict merged into it before the context is built, e.g. calibrate's wider GCC

@@ -12,6 +12,7 @@ import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.stages.field_calibration import FieldCalibration
+from acoustlab.toolkit.map_frame import CRS, EASTING, LATITUDE, LONGITUDE, NORTHING, geographic_of
 
 
 @dataclass(frozen=True)
@@ -22,14 +23,21 @@ class MapProjection:
     rotation: np.ndarray
     translation: np.ndarray
     crs: str
+    #: the mics were given in latitude/longitude: positions are written so too
+    geographic: bool = False
 
     def add_columns(self, table: pd.DataFrame) -> pd.DataFrame:
-        """``table`` with ``easting_m, northing_m, crs`` right after its ``y_m`` (NaN where ``x_m, y_m`` are)."""
+        """``table`` with ``easting_m, northing_m, crs`` (and ``latitude, longitude`` where the mics were given so) right after
+        its ``y_m`` (NaN where ``x_m, y_m`` are)."""
         projected = table[[col.TRUE_X, col.TRUE_Y]].to_numpy(float) @ self.rotation.T + self.translation
         at = table.columns.get_loc(col.TRUE_Y) + 1
-        table.insert(at, "easting_m", projected[:, 0])
-        table.insert(at + 1, "northing_m", projected[:, 1])
-        table.insert(at + 2, "crs", self.crs)
+        table.insert(at, EASTING, projected[:, 0])
+        table.insert(at + 1, NORTHING, projected[:, 1])
+        table.insert(at + 2, CRS, self.crs)
+        if self.geographic:
+            latitude, longitude = geographic_of(projected[:, 0], projected[:, 1], self.crs)
+            table.insert(at + 3, LATITUDE, latitude)
+            table.insert(at + 4, LONGITUDE, longitude)
         return table
 
 

@@ -48,7 +48,7 @@ from acoustlab.stages.field_calibration import (
     calibrated_site,
     load_calibration,
 )
-from acoustlab.stages.sites import site_from_config
+from acoustlab.stages.sites import site_from_config, site_map_projection
 from acoustlab.stages.solver_columns import add_solver_columns
 from acoustlab.toolkit.input_uncertainty import CorrelatedInputErrors, InputUncertainty
 
@@ -265,6 +265,8 @@ def placement_rules(cfg: DictConfig, field_source: Any, calibration: FieldCalibr
     calibration and the field source's map projection (``acoustlab.method.localizer``)."""
     project = hook(field_source, "projection") if field_source is not None else None
     projection = project() if project is not None else None
+    if projection is None:  # a season: the site's own mics table may place it on the map
+        projection = site_map_projection(cfg.site)
     return PlacementRules(
         plausible_margin_fraction=cfg.pipeline.plausible_margin_fraction,
         calibration=calibration,

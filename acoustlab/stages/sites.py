@@ -19,6 +19,7 @@ from acoustlab.core.errors import ConfigError, DataError, show
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import NoiseRegime, Site, require_range
 from acoustlab.toolkit.geometry import collinearity_ratio
+from acoustlab.toolkit.map_frame import map_projection, with_map_coordinates
 from acoustlab.toolkit.peer_tables import recorder_positions_m, recorders_of, without_heightless
 
 NOISE_KINDS = ("recorded", "white", "pink", "band")
@@ -34,6 +35,8 @@ def _read_csv(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataF
         table = pd.read_csv(path, comment="#")
     except Exception as exc:  # pandas raises many types for malformed CSVs
         raise DataError(f"site.{field}: cannot read {path} as CSV ({exc})") from None
+    if field == "mics_csv":  # mics given by latitude/longitude: their local frame and map coordinates
+        table = with_map_coordinates(table, f"site.{field}: {path}")
     missing = [c for c in required if c not in table.columns]
     if missing:
         raise DataError(f"site.{field}: {path} lacks columns {missing}; expected columns {list(required)}, found {list(table.columns)}")
@@ -74,6 +77,14 @@ def _opensoundscape_mics(coords_csv: str, detections_csv: str | None) -> np.ndar
         row = int(np.flatnonzero(~np.isfinite(xyz).all(axis=1))[0])
         raise DataError(f"site.coords_csv: {path}, file {coords['file'].iloc[row]!r}: its coordinates are not finite numbers")
     return recorder_positions_m(recorders_of(coords, None))
+
+
+def site_map_projection(cfg: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, str, bool] | None:
+    """The map of a site whose ``mics_csv`` places its mics on the map (``acoustlab.toolkit.map_frame``), else None."""
+    if not cfg.get("mics_csv") or cfg.get("coords_csv"):
+        return None
+    table = _read_csv(str(cfg["mics_csv"]), "mics_csv", col.MIC_XYZ)
+    return map_projection(table, f"site.mics_csv: {resolve_path(str(cfg['mics_csv']))}")
 
 
 def load_mics(cfg: Mapping[str, Any]) -> np.ndarray:

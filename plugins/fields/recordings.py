@@ -54,6 +54,7 @@ from acoustlab.core.types import RecordingBatch, Site
 from acoustlab.toolkit.audio import load_channels, load_mono
 from acoustlab.toolkit.dsp import clip_samples
 from acoustlab.toolkit.file_start import file_start_time
+from acoustlab.toolkit.map_frame import map_projection, spots_in_local_frame, with_map_coordinates
 from acoustlab.toolkit.peer_tables import RECORDER, recorders_of, without_heightless
 from acoustlab.toolkit.quality import (
     DEAD_MICS,
@@ -104,6 +105,8 @@ def _read(path_text: str, field: str, required: tuple[str, ...]) -> pd.DataFrame
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, OSError) as exc:
         raise DataError(f"field.{field}: cannot read {path} as a CSV table: {str(exc).splitlines()[0]}") from None
     table.columns = [str(c).strip() for c in table.columns]
+    if field == "mics_csv":  # mics given by latitude/longitude: their local frame and map coordinates
+        table = with_map_coordinates(table, f"field.{field}: {path}")
     if "file" in required and "file" not in table.columns and table.columns[0].startswith("Unnamed: 0"):
         table = table.rename(columns={table.columns[0]: "file"})  # the index pandas wrote (OpenSoundscape's aru_coords.csv)
     missing = [c for c in required if c not in table.columns]
@@ -302,6 +305,7 @@ class RecordingFolder:
             events[EVENT_NAME] = events[col.EVENT_ID]
             events[col.EVENT_ID] = np.arange(len(events))
         _number_text_spots(events)
+        events = spots_in_local_frame(events, mics, f"field.events_csv: {events.attrs.get('path')}")
         _numeric(events, "events_csv", (col.EVENT_ID, col.START, col.END, col.POSITION_ID))
         _numeric(events, "events_csv", (col.TRUE_X, col.TRUE_Y, col.TRUE_Z), finite=False)
         _numeric(events, "events_csv", (col.TEMPERATURE,), lower=-60.0, upper=60.0)
@@ -557,43 +561,15 @@ class RecordingFolder:
                 f"channel of {path}; each mic is its own channel"
             )
 
-    def projection(self) -> tuple[np.ndarray, np.ndarray, str] | None:
-        """The rigid map from the site's local frame to the mics table's projected coordinates, or None without them.
+    def projection(self) -> tuple[np.ndarray, np.ndarray, str, bool] | None:
+        """The rigid map from the site's local frame to the mics table's map coordinates, or None without them.
 
-        A mics table may carry ``easting_m, northing_m`` (and a ``crs`` such as ``EPSG:32617``)
-        beside the local ``x_m, y_m``; positions are then also written in those coordinates. The
-        map is the least-squares rotation and translation (no scaling, no reflection: both frames
-        are in metres) from local to projected.
-
-        Returns
-        -------
-        (rotation, translation, crs) or None
-            ``projected = local @ rotation.T + translation`` (2×2, 2 values), and the CRS text.
-
-        Raises
-        ------
-        DataError
-            When the two sets of mic coordinates do not agree within 0.5 m after the best fit.
+        A mics table may carry ``easting_m, northing_m`` (and a ``crs`` such as ``EPSG:32617``) or
+        ``latitude, longitude`` beside (or instead of) the local ``x_m, y_m``; positions are then
+        also written in map coordinates (``acoustlab.toolkit.map_frame.map_projection``).
         """
         mics, _ = self.tables()
-        if not {"easting_m", "northing_m"} <= set(mics.columns):
-            return None
-        _numeric(mics, "mics_csv", ("easting_m", "northing_m"))
-        local = mics[[col.MIC_X, col.MIC_Y]].to_numpy(float)
-        projected = mics[["easting_m", "northing_m"]].to_numpy(float)
-        lc, pc = local.mean(axis=0), projected.mean(axis=0)
-        u, _, vt = np.linalg.svd((projected - pc).T @ (local - lc))
-        rotation = u @ np.diag([1.0, np.sign(np.linalg.det(u @ vt))]) @ vt  # Kabsch, a proper rotation
-        translation = pc - lc @ rotation.T
-        residual = np.linalg.norm(local @ rotation.T + translation - projected, axis=1)
-        if residual.max() > 0.5:
-            worst = int(residual.argmax())
-            raise DataError(
-                f"field.mics_csv: {mics.attrs.get('path')}, line {worst + 2}: x_m, y_m and easting_m, northing_m disagree "
-                f"by {residual[worst]:.2f} m after the best rotation and shift; both must describe the same mic positions in metres"
-            )
-        crs = str(mics["crs"].dropna().iloc[0]) if "crs" in mics and mics["crs"].notna().any() else ""
-        return rotation, translation, crs
+        return map_projection(mics, f"field.mics_csv: {mics.attrs.get('path')}")
 
     def input_files(self) -> list[Path]:
         """Every table and audio file these recordings are read from (the cache key hashes their contents)."""
