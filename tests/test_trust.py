@@ -569,3 +569,35 @@ def test_radii_calibrated_on_field_spots_carry_the_drift_that_grows_after_them()
     np.testing.assert_allclose(on_simulation.radius_m, full.radius_m)
     no_drift = pipeline._input_allowance(position, features, events, calibrated_on_field=True, calibration_times_s=None)
     assert (no_drift.radius_m == 0).all()
+
+
+def test_a_fix_on_a_subset_of_the_mics_that_fits_worse_than_timing_noise_allows_is_flagged():
+    """Flagged exactly where the solver left usable mics out and its residual is above the good fixes' limit: a fix on every
+    usable mic, a subset fitting well, a fix whose missing mics were dropped for bad clips, and no fix are not."""
+    from types import SimpleNamespace
+
+    from acoustlab.core import columns as col
+    from acoustlab.method.localizer import with_support_flags
+
+    features = pd.DataFrame(
+        {
+            col.SOLVER_X: [1.0, 1.0, 1.0, 1.0, np.nan],
+            col.SOLVER_Y: [2.0, 2.0, 2.0, 2.0, np.nan],
+            col.solver_column("residual_s"): [3e-3, 3e-3, 5e-5, 3e-3, np.nan],
+            col.SOLVER_N_MICS_USED: [5, 9, 5, 6, np.nan],
+        }
+    )
+    predictions = pd.DataFrame(
+        {col.MICS_DROPPED: ["", "", "", "1;4;7", ""], col.QUALITY_FLAGS: ["", "", "", "mic 1: dead", ""], col.RADIUS_NOTE: ""}
+    )
+    out = with_support_flags(predictions, features, SimpleNamespace(residual_limit_s_=1e-4), 9)
+    assert out[col.WEAK_SUPPORT].tolist() == [True, False, False, False, False]
+    assert (
+        out[col.QUALITY_FLAGS]
+        .iloc[0]
+        .startswith("weak support: the fix rests on 5 of 9 mics with a residual of 3.00 ms, above the 0.10 ms")
+    )
+    assert "its radius may be too small" in out[col.RADIUS_NOTE].iloc[0] and out[col.RADIUS_NOTE].iloc[1:].eq("").all()
+    assert out[col.QUALITY_FLAGS].iloc[3] == "mic 1: dead"
+    unknown = with_support_flags(predictions, features, SimpleNamespace(residual_limit_s_=None), 9)  # no redundancy in training
+    assert not unknown[col.WEAK_SUPPORT].any() and unknown[col.QUALITY_FLAGS].equals(predictions[col.QUALITY_FLAGS])

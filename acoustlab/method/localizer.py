@@ -142,6 +142,7 @@ class FittedLocalizer:
         c = self.components
         predictions, trust = self.method.predict(features, as_field_events(detections))
         predictions = without_truth(predictions, features, detections)
+        predictions = with_support_flags(predictions, features, self.method.support, c.site.n_mics)
         table = positions_table(predictions, c.levels, list(c.scorers))
         if extra_fields is not None:  # after event_id, in place of a column of the same name
             table = table.drop(columns=[name for name in extra_fields.columns if name in table])
@@ -203,6 +204,49 @@ def without_truth(predictions: pd.DataFrame, features: pd.DataFrame, detections:
         predictions[col.PLACED] = has_fix & good
         predictions[col.ABSTAIN_REASON] = np.where(good, reason, "quality: " + predictions[col.QUALITY_FLAGS].astype(str))
     return predictions
+
+
+def with_support_flags(predictions: pd.DataFrame, features: pd.DataFrame, support: Any, n_mics: int) -> pd.DataFrame:
+    """``predictions`` with ``weak_support`` (bool) and, where it is true, a note in ``quality_flags`` and ``radius_note``.
+
+    A solver fix has weak support where the solver left mics out (it rests on fewer than the mics
+    whose clips were usable) and its residual is above what good fixes of the training simulation
+    reach (``TrainingSupport.residual_limit_s_``: the timing noise those fixes had): the mics it
+    kept disagree with one another more than timing noise explains, so a second source, an echo
+    or a wrong peak may have moved it, and a radius calibrated on fixes that fit their time
+    differences may be too small. The position is still reported; the flag says to look twice.
+    Without a residual limit (no redundant mics in training, or no trust check) nothing is flagged.
+    """
+    out = predictions.copy()
+    limit = getattr(support, "residual_limit_s_", None) if support is not None else None
+    residual_name = col.solver_column("residual_s")
+    weak = np.zeros(len(out), dtype=bool)
+    if limit is not None and residual_name in features and col.SOLVER_N_MICS_USED in features:
+        residual_s = features[residual_name].to_numpy(float)
+        used = features[col.SOLVER_N_MICS_USED].to_numpy(float)
+        dropped = out[col.MICS_DROPPED].fillna("").astype(str) if col.MICS_DROPPED in out else pd.Series("", index=out.index)
+        usable = n_mics - np.array([len([m for m in d.split(";") if m]) for d in dropped], dtype=float)
+        fixed = np.isfinite(features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(float)).all(axis=1)
+        weak = fixed & np.isfinite(residual_s) & (residual_s > limit) & np.isfinite(used) & (used < usable)
+        if weak.any():
+            notes = np.array(
+                [
+                    f"weak support: the fix rests on {int(u)} of {int(n)} mics with a residual of {1e3 * r:.2f} ms, above the "
+                    f"{1e3 * limit:.2f} ms of good fixes (a second source, an echo or a wrong peak?); its radius may be too small"
+                    if w
+                    else ""
+                    for w, u, n, r in zip(weak, used, usable, residual_s, strict=True)
+                ],
+                dtype=object,
+            )
+            for name in (col.QUALITY_FLAGS, col.RADIUS_NOTE):
+                if name in out:
+                    current = out[name].fillna("").astype(str).to_numpy(object)
+                    out[name] = np.where(weak, np.where(current != "", current + "; " + notes, notes), current)
+                else:
+                    out[name] = notes
+    out[col.WEAK_SUPPORT] = weak
+    return out
 
 
 def unknown_position_rows(detections: pd.DataFrame) -> np.ndarray:

@@ -20,6 +20,7 @@ DETECTION_FIELDS = (
     col.MICS_DROPPED,
     col.MICS_USED,
     col.HARDWARE_FAILURE,
+    col.WEAK_SUPPORT,
 )
 
 
@@ -41,7 +42,8 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
 
     Columns: the detection's own fields (``quality_flags``; ``mics_dropped``: the mics, by index in
     the mics table's order, whose clips were unusable and were left out of the solve; ``mics_used``:
-    the mics the solver's fix rests on, also without those the solver found inconsistent); ``x_m, y_m, z_m`` (the method's estimate, all three from
+    the mics the solver's fix rests on, also without those the solver found inconsistent; ``weak_support``: that fix rests
+    on a subset of the usable mics with a residual above good fixes', said in ``quality_flags`` and ``radius_note``); ``x_m, y_m, z_m`` (the method's estimate, all three from
     one estimate: the solver's fix with its height, estimated with ``solver.dimensions=3`` or else
     assumed, or the model's, which has no height: ``z_m`` NaN; NaN where it abstains);
     ``solver_x_m, solver_y_m, solver_z_m, model_x_m, model_y_m`` and ``solver_model_distance_m``;
