@@ -583,16 +583,16 @@ def test_a_season_folder_with_an_attacker_s_method_runs_no_code(season, compose_
 
 
 @pytest.mark.slow
-def test_a_season_on_mics_given_in_latitude_longitude_is_a_map_layer_in_their_utm_zone(compose_cfg, tmp_path):
+def test_a_season_on_mics_given_in_latitude_longitude_is_a_map_layer_in_their_utm_zone(compose_cfg, tmp_path, caplog):
     """Mics as a GPS shows them (latitude/longitude, no local coordinates): the season is placed in their local frame and
     every position is also written in the UTM zone's easting/northing and in latitude/longitude, and the GeoPackage a GIS
-    opens is in that zone."""
+    opens is in that zone; their survey error (``position_sigma_m``) is carried by the radii."""
     gpd = pytest.importorskip("geopandas")
     from test_map_frame import gps_table
 
     from acoustlab.toolkit.map_frame import geographic_of
 
-    gps_table().to_csv(tmp_path / "mics.csv", index=False)
+    gps_table(position_sigma_m=3.0).to_csv(tmp_path / "mics.csv", index=False)
     overrides = season_overrides(tmp_path, tmp_path / "out", f"paths.outputs_dir={tmp_path / 'outputs'}")
     overrides[0:1] = ["+site=from_csv", f"site.mics_csv={tmp_path / 'mics.csv'}"]
     cfg = compose_cfg(overrides)
@@ -603,7 +603,12 @@ def test_a_season_on_mics_given_in_latitude_longitude_is_a_map_layer_in_their_ut
         ),
         tmp_path,
     )
-    run_experiment(cfg, tmp_path / "run")
+    with caplog.at_level(logging.INFO):
+        run_experiment(cfg, tmp_path / "run")
+    # a GPS-surveyed array without playbacks: the radii carry the survey's error, as localize's do, and say so
+    assert "the radii carry the mics table's survey error, position_sigma_m up to 3.00 m" in caplog.text
+    fitted = load_method(tmp_path / "out", read_manifest(tmp_path / "out")["method_sha256"])
+    assert fitted.components.input_uncertainty.mic_position_m == 3.0
     table = pd.read_parquet(tmp_path / "run" / "positions.parquet")
     placed = table["placed"].to_numpy(bool)
     assert placed.sum() >= 6 and (table["crs"] == "EPSG:32617").all()

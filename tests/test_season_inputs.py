@@ -489,3 +489,18 @@ def test_a_season_with_a_weather_table_carries_each_event_s_air_and_without_one_
     assert SeasonLocalize({}, {"format": "raven"}, {}).with_weather(events, recordings) is events
     with pytest.raises(Exception, match="protocol.events.pad_s must be a number >= 0"):
         SeasonLocalize({}, {"format": "raven"}, {"pad_s": -1}).pad_s()
+
+
+def test_a_site_table_edited_in_place_keys_another_method(tmp_path):
+    """The season reuses a fitted method only for the same config; the site's mics table edited under the same path is
+    another array (other mics, another survey error), so it is another method."""
+    from acoustlab.season.protocol import SeasonLocalize
+
+    path = tmp_path / "mics.csv"
+    path.write_text("x_m,y_m,z_m\n0,0,1.5\n40,0,1.5\n20,35,1.5\n")
+    config = {"site": {"mics_csv": str(path)}, "protocol": {}}
+    season = SeasonLocalize({}, {"format": "raven"}, {})
+    first = season.method_key(config)
+    assert season.method_key(config) == first
+    path.write_text("x_m,y_m,z_m\n0,0,1.5\n40,0,1.5\n20,36,1.5\n")
+    assert season.method_key(config) != first

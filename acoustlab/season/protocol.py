@@ -37,6 +37,7 @@ import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.cores import free_cores
+from acoustlab.core.digests import file_sha256
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.resources import resolve_path
 from acoustlab.core.types import Site
@@ -67,6 +68,7 @@ from acoustlab.season.stream import (
 )
 from acoustlab.season.weather import read_weather, weather_at
 from acoustlab.stages.field_calibration import FieldCalibration
+from acoustlab.stages.mic_survey import mics_table_of, survey_allowance
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 from acoustlab.toolkit.quality import QualityThresholds
@@ -305,6 +307,10 @@ class SeasonLocalize:
         protocol = plain.get("protocol", {})  # of the season's own settings, only these shape the fitted method
         plain["protocol"] = {name: protocol.get(name) for name in ("_target_", "max_train_rows", "seed")}
         plain["saved_as"] = SAVED_METHOD_FORMAT
+        site = config.get("site", {})
+        for name in ("mics_csv", "trees_csv"):  # the site's tables: a file edited in place is another array, another method
+            if site.get(name) and resolve_path(str(site[name])).is_file():
+                plain[f"{name}_sha256"] = file_sha256(resolve_path(str(site[name])))
         return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()
 
     def fit(self, context: RunContext, folder: Path) -> None:
@@ -381,6 +387,11 @@ class SeasonLocalize:
             self.warn_about_calibration(context.calibration)
             if not self.weather_csv:  # with a logger's readings each event has its own air, as in localize
                 context = self.with_assumed_weather(context)
+        else:  # the radii carry the site's mics table's survey error, as localize's do (a calibration's replaces it)
+            stated = survey_allowance(
+                context.components.input_uncertainty, mics_table_of(None, context.settings.config["site"]), context.site.n_mics
+            )
+            context = dataclasses.replace(context, components=dataclasses.replace(context.components, input_uncertainty=stated))
         started = time.perf_counter()
         metrics: dict[str, Any] = {"season": {"output_dir": str(folder), "stage": self.stage}}
         if self.stage in ("fit", "all"):

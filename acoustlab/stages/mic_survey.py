@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from acoustlab.core.contracts import FieldSource, hook
 from acoustlab.core.errors import ConfigError, show
+from acoustlab.stages.sites import site_mics_table
 from acoustlab.toolkit.input_uncertainty import InputUncertainty
 
 log = logging.getLogger(__name__)
@@ -44,10 +47,13 @@ def mic_position_sigmas(mics_table: pd.DataFrame | None, n_mics: int) -> np.ndar
     return given
 
 
-def mics_table_of(field_source: FieldSource | None) -> pd.DataFrame | None:
-    """The field source's mics table (``tables()[0]``), or None where it has none (a simulated field)."""
+def mics_table_of(field_source: FieldSource | None, site_cfg: Mapping[str, Any] | None = None) -> pd.DataFrame | None:
+    """The mics table the run's mics come from: the field source's (``tables()[0]``), else the site's ``mics_csv`` (a
+    season's), or None where there is none (a simulated site and field)."""
     tables = hook(field_source, "tables") if field_source is not None else None
-    return tables()[0] if tables is not None else None
+    if tables is not None:
+        return tables()[0]
+    return site_mics_table(site_cfg) if site_cfg is not None else None
 
 
 def survey_allowance(stated: InputUncertainty, mics_table: pd.DataFrame | None, n_mics: int) -> InputUncertainty:

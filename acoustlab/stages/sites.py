@@ -79,12 +79,17 @@ def _opensoundscape_mics(coords_csv: str, detections_csv: str | None) -> np.ndar
     return recorder_positions_m(recorders_of(coords, None))
 
 
-def site_map_projection(cfg: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, str, bool] | None:
-    """The map of a site whose ``mics_csv`` places its mics on the map (``acoustlab.toolkit.map_frame``), else None."""
+def site_mics_table(cfg: Mapping[str, Any]) -> pd.DataFrame | None:
+    """The site's ``mics_csv`` as read (its local frame made from latitude/longitude where given), or None without one."""
     if not cfg.get("mics_csv") or cfg.get("coords_csv"):
         return None
-    table = _read_csv(str(cfg["mics_csv"]), "mics_csv", col.MIC_XYZ)
-    return map_projection(table, f"site.mics_csv: {resolve_path(str(cfg['mics_csv']))}")
+    return _read_csv(str(cfg["mics_csv"]), "mics_csv", col.MIC_XYZ)
+
+
+def site_map_projection(cfg: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, str, bool] | None:
+    """The map of a site whose ``mics_csv`` places its mics on the map (``acoustlab.toolkit.map_frame``), else None."""
+    table = site_mics_table(cfg)
+    return None if table is None else map_projection(table, f"site.mics_csv: {resolve_path(str(cfg['mics_csv']))}")
 
 
 def load_mics(cfg: Mapping[str, Any]) -> np.ndarray:

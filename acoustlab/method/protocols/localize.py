@@ -70,7 +70,9 @@ class LocalizeProtocol:
         stage_start = time.perf_counter()
         components, stated = context.components, None
         if context.calibration is None:  # the radii carry the mics table's stated survey error (a calibration's replaces it)
-            stated = survey_allowance(components.input_uncertainty, mics_table_of(context.field_source), context.site.n_mics)
+            stated = survey_allowance(
+                components.input_uncertainty, mics_table_of(context.field_source, context.settings.config["site"]), context.site.n_mics
+            )
             components = dataclasses.replace(components, input_uncertainty=stated)
         result = self.fit_and_place(dataset, LocalizationPipeline(components), field_data)
         timings["models_s"] = time.perf_counter() - stage_start
