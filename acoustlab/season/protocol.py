@@ -184,7 +184,7 @@ class SeasonLocalize:
         """How far past its detections an event's clip reaches even where every recorder detected it, s (a late-starting box)."""
         given = self.events_cfg.get("pad_s")
         try:
-            pad = 0.01 if given is None else float(given)
+            pad = 0.05 if given is None else float(given)
         except (TypeError, ValueError):
             pad = np.nan
         if not np.isfinite(pad) or pad < 0:
