@@ -81,6 +81,8 @@ ANNEALING_FLOOR = 0.02
 ANNEALING_HEIGHT_POWER = 2.0
 #: What can be estimated.
 PARAMETER_KINDS = ("temperature", "clocks", "drift", "positions")
+#: Names of the spots' position parameters (``spot_<k>_x_m``: the k-th spot in order of its first playback).
+SPOT_PREFIX = "spot_"
 
 
 @dataclass
@@ -104,6 +106,11 @@ class Playbacks:
     candidates_s : numpy.ndarray or None
         (N, P, K) every pair's GCC candidate lags t_j − t_i, s (NaN where fewer than K), of which
         ``tdoa_s`` holds one pick per pair; None where only the picks are known.
+    source_sigma_m : numpy.ndarray or None
+        (N,) the horizontal standard deviation per axis of each playback's surveyed spot, m (one
+        value per spot; 0 or None: surveyed exactly). A spot off its survey moves every time
+        difference of its playbacks alike; such spots' positions are estimated with the array and
+        their uncertainty widens the array's (``calibrate_array``).
     """
 
     source_m: np.ndarray
@@ -114,6 +121,7 @@ class Playbacks:
     spot: np.ndarray
     pairs: list[tuple[int, int]]
     candidates_s: np.ndarray | None = None
+    source_sigma_m: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.pairs = [(int(i), int(j)) for i, j in self.pairs]
@@ -137,6 +145,7 @@ class Playbacks:
             self.spot[rows],
             self.pairs,
             None if self.candidates_s is None else self.candidates_s[rows],
+            None if self.source_sigma_m is None else self.source_sigma_m[rows],
         )
 
     def picked(self, expected_tdoa_s: np.ndarray) -> Playbacks:
@@ -361,6 +370,17 @@ class _Model:
         for m in self.moved:
             names += [f"mic_{m}_x_m", f"mic_{m}_y_m"]
             sd += [float(priors.position_sigma_m[m])] * 2
+        # spots surveyed with an error: nuisance parameters, estimated with the array and marginalised out of its covariance
+        self.spot_rows: dict[str, np.ndarray] = {}
+        if playbacks.source_sigma_m is not None:
+            spots = np.asarray(playbacks.spot)
+            for k, spot in enumerate(spots[np.sort(np.unique(spots, return_index=True)[1])]):  # in order of first playback
+                rows = np.flatnonzero(spots == spot)
+                sigma = float(np.max(playbacks.source_sigma_m[rows]))
+                if sigma > 0:
+                    names += [f"{SPOT_PREFIX}{k}_x_m", f"{SPOT_PREFIX}{k}_y_m"]
+                    sd += [sigma] * 2
+                    self.spot_rows[f"{SPOT_PREFIX}{k}"] = rows
         self.names, self.sd = names, np.asarray(sd, dtype=float)
         # the thermometer's offset stays within MAX_TEMPERATURE_PRIORS of its prior σ: wrong peaks must not
         # take the air below absolute zero (the speed-of-sound formula refuses it) on the way to a fit
@@ -381,11 +401,22 @@ class _Model:
             mics[m, 1] += theta[f"mic_{m}_y_m"]
         return float(theta.get("temperature_offset_c", 0.0)), clocks, drift, mics
 
+    def sources_m(self, u: np.ndarray) -> np.ndarray:
+        """(N, 3) each playback's spot, moved off its survey by the spot parameters."""
+        if not self.spot_rows:
+            return self.pb.source_m
+        theta = dict(zip(self.names, self.sd * u, strict=True))
+        source = self.pb.source_m.astype(float).copy()
+        for name, rows in self.spot_rows.items():
+            source[rows, 0] += theta[f"{name}_x_m"]
+            source[rows, 1] += theta[f"{name}_y_m"]
+        return source
+
     def arrival_s(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(N, M) arrival times less the emission's, and the (N, M) distances, (N, M, 3) spot − mic vectors and (N,) speeds."""
         offset, clocks, drift, mics = self.unpack(u)
         speed = speed_of_sound_m_s(self.pb.temperature_c + offset, self.pb.relative_humidity_pct)
-        diff = self.pb.source_m[:, None, :] - mics[None]
+        diff = self.sources_m(u)[:, None, :] - mics[None]
         dist = np.sqrt((diff**2).sum(-1))
         return dist / speed[:, None] + clocks[None, :] + drift[None, :] * self.t[:, None], dist, diff, speed
 
@@ -411,6 +442,9 @@ class _Model:
                 d_arrival[:, int(name.split("_")[1])] = 1.0
             elif name.startswith("drift_"):
                 d_arrival[:, int(name.split("_")[1])] = self.t
+            elif name.startswith(SPOT_PREFIX):  # d‖s − p_m‖/ds / c for every mic of that spot's playbacks
+                rows, axis = self.spot_rows[name.rsplit("_", 2)[0]], 0 if name.split("_")[-2] == "x" else 1
+                d_arrival[rows] = diff[rows, :, axis] / dist[rows] / speed[rows, None]
             else:
                 m, axis = int(name.split("_")[1]), 0 if name.split("_")[2] == "x" else 1
                 d_arrival[:, m] = -diff[:, m, axis] / dist[:, m] / speed  # d‖s − p_m‖/dp_m / c
@@ -623,6 +657,15 @@ def calibrate_array(
     offset, clocks, drift, mics = model.unpack(u)
     after, dist, _, speed = model.predicted_s(u)
     loading = playbacks.pair_differences_s(-dist / speed[:, None] ** 2 * model.dcdt[:, None])
+    # the spots are nuisance parameters: the array's covariance is the Gaussian marginal (its block), their shifts reported
+    keep = np.array([not n.startswith(SPOT_PREFIX) for n in model.names], dtype=bool)
+    spot_shift = (model.sources_m(u) - playbacks.source_m)[:, :2]
+    spot_extra = {
+        "spot_shift_m": {
+            str(playbacks.spot[rows[0]]): [round(float(v), 4) for v in spot_shift[rows[0]]] for rows in model.spot_rows.values()
+        }
+    }
+    names = [n for n, k in zip(model.names, keep, strict=True) if k]
     return ArrayCalibration(
         mic_ids=list(mic_ids),
         mic_positions_m=mics,
@@ -632,10 +675,10 @@ def calibrate_array(
         clock_drift=drift,
         drift_origin_s=origin,
         timing_sigma_s=sigma_t,
-        parameters=model.names,
-        covariance=covariance,
-        prior_sd=model.sd,
-        identified=identified,
+        parameters=names,
+        covariance=covariance[np.ix_(keep, keep)],
+        prior_sd=model.sd[keep],
+        identified={n: identified[n] for n in names},
         not_identified=not_identified,
         residual_before_s=before - playbacks.tdoa_s,
         residual_after_s=after - playbacks.tdoa_s,
@@ -647,7 +690,8 @@ def calibrate_array(
         extra={
             "redundancy": redundancy(playbacks, len(model.names)),
             "sd_unit": SD_UNIT,
-            "sd_over_per_pair": {name: round(float(f), 4) for name, f in zip(model.names, factor, strict=True)},
+            "sd_over_per_pair": {name: round(float(f), 4) for name, f, k in zip(model.names, factor, keep, strict=True) if k},
+            **(spot_extra if model.spot_rows else {}),
         },
     )
 
