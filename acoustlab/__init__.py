@@ -14,7 +14,8 @@ The package is layered; each subpackage imports only from the ones listed before
 
 Plugins live in the top-level ``plugins`` package and are selected through Hydra config
 groups; ``acoustlab`` never imports ``plugins``. Entry points: ``python -m acoustlab``,
-``python -m acoustlab.report``, ``python -m acoustlab.upload``, ``python -m acoustlab.catalog``.
+``python -m acoustlab.report``, ``python -m acoustlab.upload``, ``python -m acoustlab.catalog``,
+``python -m acoustlab.aligned_clips`` (its function: ``acoustlab.api.aligned_clips``).
 """
 
 __version__ = "0.2.0"

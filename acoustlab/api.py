@@ -344,6 +344,17 @@ def season(
     return pd.read_parquet(folder / "positions.parquet")
 
 
+def aligned_clips(run_dir: str | Path, events: Sequence[object], out_dir: str | Path | None = None) -> list[Path]:
+    """Each event's clips aligned by its time differences, with each mic's residual at the fix, as
+    ``python -m acoustlab.aligned_clips`` writes them (``RUN_DIR/aligned/event_<id>.wav`` and ``.csv``); the WAV paths.
+
+    ``events``: event ids as ``positions.csv`` gives them; ``run_dir``: a ``localize`` or ``season`` run's folder.
+    """
+    from acoustlab.aligned_clips import write_aligned_clips
+
+    return write_aligned_clips(run_dir, events, out_dir)
+
+
 def solve(
     mic_positions_m: np.ndarray,
     tdoa_s: np.ndarray,

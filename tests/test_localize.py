@@ -128,12 +128,27 @@ def test_localize_a_folder_of_recordings_without_truth(compose_cfg, tmp_path):
     """Simulated frozen-lake events written as files with a mics and an events table but no positions: every detection
     gets a row, and (the truth being known here) the positions are where the sources were."""
     batch, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 8)
-    table, _, _ = localize(compose_cfg, tmp_path, *overrides)
+    table, _, run_dir = localize(compose_cfg, tmp_path, *overrides)
     assert len(table) == 8 and table["event_id"].tolist() == list(range(8))
     check_radii(table)
     placed = table["placed"].to_numpy(bool)
     err = np.hypot(table["x_m"] - batch.events["x_m"].to_numpy(), table["y_m"] - batch.events["y_m"].to_numpy())[placed]
     assert placed.mean() >= 0.75 and np.median(err) < 2.0
+    # the clips of a placed event, aligned by its time differences, cut again from the run's own recordings
+    import soundfile as sf
+
+    from acoustlab.api import aligned_clips
+
+    event = int(table["event_id"][placed].iloc[0])
+    (wav,) = aligned_clips(run_dir, [event])
+    audio, _ = sf.read(wav)
+    per_mic = pd.read_csv(wav.with_suffix(".csv"))
+    assert audio.shape[1] == batch.audio.shape[1] == len(per_mic)
+    row = table[table["event_id"] == event].iloc[0]
+    arrival = np.r_[0.0, [row[f"tdoa_0_{m}_s"] for m in range(1, len(per_mic))]]
+    np.testing.assert_array_equal(per_mic["shift_samples"], np.round(arrival * batch.sample_rate_hz).astype(int))
+    used = per_mic["fix_uses_mic"].to_numpy(bool)
+    assert used.sum() >= 3 and (per_mic["residual_m"][used].abs() < 1.0).all(), per_mic
 
 
 @pytest.mark.slow

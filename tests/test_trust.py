@@ -601,3 +601,27 @@ def test_a_fix_on_a_subset_of_the_mics_that_fits_worse_than_timing_noise_allows_
     assert out[col.QUALITY_FLAGS].iloc[3] == "mic 1: dead"
     unknown = with_support_flags(predictions, features, SimpleNamespace(residual_limit_s_=None), 9)  # no redundancy in training
     assert not unknown[col.WEAK_SUPPORT].any() and unknown[col.QUALITY_FLAGS].equals(predictions[col.QUALITY_FLAGS])
+
+
+def test_each_mic_s_residual_at_the_fix_is_near_zero_where_the_fix_explains_it_and_its_peak_s_error_where_not():
+    from acoustlab.core import columns as col
+    from acoustlab.method.localizer import mic_residual_column, with_mic_residuals
+
+    mics = np.array([[0.0, 0.0, 1.5], [40.0, 0.0, 1.5], [40.0, 40.0, 1.5], [0.0, 40.0, 1.5]])
+    source, speed = np.array([10.0, 20.0, 1.5]), 343.0
+    arrival = np.linalg.norm(source - mics, axis=1) / speed
+    tdoa = arrival - arrival[0]
+    tdoa[3] += 2e-3  # mic 3's peak 2 ms late: the solver left it out
+    features = pd.DataFrame(
+        {
+            col.SOLVER_X: [source[0], np.nan],
+            col.SOLVER_Y: [source[1], np.nan],
+            col.SOLVER_SOURCE_HEIGHT: [1.5, np.nan],
+            col.ENV_SPEED_OF_SOUND: speed,
+            **{col.tdoa_lag(0, m): tdoa[m] for m in range(1, 4)},
+        }
+    )
+    out = with_mic_residuals(pd.DataFrame({col.MICS_USED: ["0;1;2", ""]}), features, mics)
+    residual = out[[mic_residual_column(m) for m in range(4)]].to_numpy(float)
+    np.testing.assert_allclose(residual[0], [0.0, 0.0, 0.0, 2e-3 * speed], atol=1e-9)
+    assert np.isnan(residual[1]).all()  # no fix: no residual

@@ -52,7 +52,8 @@ OPTIONAL_PROPERTIES: dict[str, Any] = {
 #: ``config_patch(site, field_source, config)`` (protocols and jobs: config changes the job needs, given the resolved config
 #: as a plain dict, returned as a plain nested dict merged into it before the context is built, e.g. calibrate's wider GCC
 #: lag window; None for none), ``radius_notes(predicted_m, gdop, **region)`` (conformal scorers: (B,) why a row's radii
-#: are infinite, '' where they are not, e.g. a Mondrian region without calibration events).
+#: are infinite, '' where they are not, e.g. a Mondrian region without calibration events), ``load_events(site, event_ids)``
+#: (field sources: the clips of those events only, as ``load`` cuts them: ``python -m acoustlab.aligned_clips``).
 OPTIONAL_HOOKS = (
     "preflight",
     "validate",
@@ -61,6 +62,7 @@ OPTIONAL_HOOKS = (
     "fit_quantiles",
     "tables",
     "load_chunks",
+    "load_events",
     "config_patch",
     "radius_notes",
 )

@@ -143,6 +143,7 @@ class FittedLocalizer:
         predictions, trust = self.method.predict(features, as_field_events(detections))
         predictions = without_truth(predictions, features, detections)
         predictions = with_support_flags(predictions, features, self.method.support, c.site.n_mics)
+        predictions = with_mic_residuals(predictions, features, c.site.mic_positions_m)
         table = positions_table(predictions, c.levels, list(c.scorers))
         if extra_fields is not None:  # after event_id, in place of a column of the same name
             table = table.drop(columns=[name for name in extra_fields.columns if name in table])
@@ -246,6 +247,46 @@ def with_support_flags(predictions: pd.DataFrame, features: pd.DataFrame, suppor
                 else:
                     out[name] = notes
     out[col.WEAK_SUPPORT] = weak
+    return out
+
+
+def mic_residual_column(mic: int) -> str:
+    """The positions table's column of mic ``mic``'s arrival residual at the solver's fix, m."""
+    return f"residual_mic_{mic}_m"
+
+
+def with_mic_residuals(predictions: pd.DataFrame, features: pd.DataFrame, mics_m: np.ndarray) -> pd.DataFrame:
+    """``predictions`` with each mic's arrival residual at the solver's fix (``residual_mic_<m>_m``), m of range.
+
+    The measured arrival of mic m relative to mic 0 is ``tdoa_0_<m>_s`` (t_0's 0); the fix predicts
+    ``‖s − p_m‖ / c`` plus one emission time, taken as the mean over the mics the fix rests on
+    (``mics_used``) of measured less predicted. A mic's residual is its measured less predicted
+    arrival less that time, times c: near 0 for every mic the fix explains, metres for a mic whose
+    peak it does not (a left-out mic's residual says how far off its peak was). NaN without a fix,
+    without a mic's time difference, or without the speed of sound the solver used.
+    """
+    out = predictions.copy()
+    n_mics = len(mics_m)
+    names = [col.tdoa_lag(0, m) for m in range(1, n_mics)]
+    if not set(names) <= set(features.columns) or col.ENV_SPEED_OF_SOUND not in features:
+        return out
+    measured = np.column_stack([np.zeros(len(features)), features[names].to_numpy(float)])  # (B, M) arrival after mic 0's, s
+    z = features[col.SOLVER_SOURCE_HEIGHT].to_numpy(float) if col.SOLVER_SOURCE_HEIGHT in features else np.full(len(features), np.nan)
+    source = np.column_stack([features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(float), z])
+    speed = features[col.ENV_SPEED_OF_SOUND].to_numpy(float)
+    predicted = np.linalg.norm(source[:, None, :] - np.asarray(mics_m, float)[None], axis=-1) / speed[:, None]  # (B, M), s
+    used = np.ones((len(features), n_mics), dtype=bool)
+    if col.MICS_USED in out:
+        for k, text in enumerate(out[col.MICS_USED].fillna("").astype(str)):
+            if text:
+                used[k] = np.isin(np.arange(n_mics), [int(m) for m in text.split(";") if m])
+    gap = np.where(used, measured - predicted, np.nan)
+    counted = np.isfinite(gap).sum(axis=1, keepdims=True)
+    emission = np.where(counted > 0, np.nansum(gap, axis=1, keepdims=True) / np.maximum(counted, 1), np.nan)  # no fix: NaN
+    gap = measured - predicted
+    residual = (gap - emission) * speed[:, None]
+    for m in range(n_mics):
+        out[mic_residual_column(m)] = residual[:, m]
     return out
 
 

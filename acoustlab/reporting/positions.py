@@ -57,7 +57,8 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
     and ``abstain_reason``; quality flags from the solver stage (``solver__failure``,
     ``solver__consistency``, ``solver__n_mics_used``, GDOPs, …); ``tdoa_0_<j>_s``, the measured
     time differences t_j − t_0 (s, the strongest GCC peak of each pair with mic 0, after a field
-    calibration's clock correction).
+    calibration's clock correction); ``residual_mic_<m>_m``, each mic's arrival residual at the
+    solver's fix (m of range; ``acoustlab.method.localizer.with_mic_residuals``).
     """
     out = pd.DataFrame({c: predictions[c] for c in DETECTION_FIELDS if c in predictions})
     if "event_name" in predictions and col.EVENT_ID in out:  # the user's own text ids (call00, …) where they gave them
@@ -113,6 +114,9 @@ def positions_table(predictions: pd.DataFrame, levels: list[float], scorers: lis
         if col.GROUP_SEPARATOR in c and c.startswith("solver__"):
             out[c] = predictions[c]
         if c.startswith("tdoa_0_"):  # the measured time differences to mic 0 the solver worked from, s
+            out[c] = predictions[c]
+    for c in predictions.columns:  # each mic's arrival residual at the solver's fix, m
+        if c.startswith("residual_mic_"):
             out[c] = predictions[c]
     return out
 

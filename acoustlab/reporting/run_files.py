@@ -52,6 +52,11 @@ def write_metrics(run_dir: Path, metrics: dict[str, Any]) -> None:
     atomic_write_bytes(run_dir / "metrics.json", json.dumps(metrics, indent=2, default=str).encode())
 
 
+def write_config(run_dir: Path, config: dict[str, Any]) -> None:
+    """``config_resolved.yaml``: the run's whole resolved config (what ``python -m acoustlab.aligned_clips`` and the report read)."""
+    atomic_write_bytes(run_dir / "config_resolved.yaml", yaml.safe_dump(config, sort_keys=False, allow_unicode=True).encode())
+
+
 def write_results(run_dir: Path, config: dict[str, Any], predictions: pd.DataFrame, metrics: dict) -> None:
     """The results a run must never lose, each written atomically: predictions, resolved config, metrics, and the pending marker.
 
@@ -61,7 +66,7 @@ def write_results(run_dir: Path, config: dict[str, Any], predictions: pd.DataFra
         Naming the file and the free space, when the run directory cannot be written.
     """
     atomic_write_bytes(run_dir / "predictions.parquet", predictions.to_parquet(index=False))
-    atomic_write_bytes(run_dir / "config_resolved.yaml", yaml.safe_dump(config, sort_keys=False, allow_unicode=True).encode())
+    write_config(run_dir, config)
     write_metrics(run_dir, metrics)
     atomic_write_bytes(run_dir / PENDING_FILE, json.dumps({"destination": None, "error": "not yet sent to the tracker"}).encode())
 

@@ -47,7 +47,7 @@ from acoustlab.method.run_context import RunContext, simulated_dataset
 from acoustlab.method.saved import load_method, save_method, saved_info
 from acoustlab.method.splits import cap_rows
 from acoustlab.reporting.positions import localization_summary
-from acoustlab.reporting.run_files import write_metrics, write_positions
+from acoustlab.reporting.run_files import write_config, write_metrics, write_positions
 from acoustlab.season.detections import FORMATS, read_detections
 from acoustlab.season.events import group_detections
 from acoustlab.season.recorder_files import RecorderFiles
@@ -416,6 +416,8 @@ class SeasonLocalize:
             metrics["season"].update({"n_events": manifest["n_events"], "method_sha256": manifest["method_sha256"]})
         metrics["season"]["seconds"] = time.perf_counter() - started
         metrics.update(context.settings.record)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        write_config(run_dir, context.settings.config)
         write_metrics(run_dir, metrics)
         return metrics
 

@@ -598,6 +598,26 @@ class RecordingFolder:
         for first in range(0, len(events), self.chunk_events):
             yield self._batch(mics, events.iloc[first : first + self.chunk_events])
 
+    def load_events(self, site: Site, event_ids: list[str]) -> RecordingBatch:
+        """The clips of the events named ``event_ids`` (as the positions table gives them: the user's text ids, else
+        the numbers), in that order, cut as ``load`` cuts them.
+
+        Raises
+        ------
+        DataError
+            Naming the ids the events table does not have.
+        """
+        mics, events = self.validate(site)
+        names = (events[EVENT_NAME] if EVENT_NAME in events else events[col.EVENT_ID]).astype(str).to_numpy()
+        wanted = [str(e) for e in event_ids]
+        missing = [e for e in wanted if e not in set(names)]
+        if missing:
+            raise DataError(
+                f"field.events_csv: no event {', '.join(missing[:5])} (events: {', '.join(names[:5])}{', …' if len(names) > 5 else ''})"
+            )
+        rows = [int(np.flatnonzero(names == e)[0]) for e in wanted]
+        return self._batch(mics, events.iloc[rows])
+
     def _batch(self, mics: pd.DataFrame, events: pd.DataFrame) -> RecordingBatch:
         """The clips of ``events`` on every mic, each flagged; ``dead_mics`` and the stated ``hardware_failure`` per event."""
         fs = self.sample_rate_hz
