@@ -508,3 +508,20 @@ def test_a_mic_is_weak_exactly_when_none_of_its_pairs_reaches_the_height(n_mics,
     np.testing.assert_array_equal(weakly_correlated_mics(heights, pairs, n_mics, 0.05)[0], expected)
     heights[0, 0] = np.nan  # a missing height counts as no peak
     assert weakly_correlated_mics(heights, pairs, n_mics, 0.05).shape == (1, n_mics)
+
+
+@given(scale=st.floats(0.05, 1.0), seed=st.integers(0, 10**6))
+def test_a_relative_gcc_height_drops_the_same_mics_whatever_the_recordings_scale_of_heights(scale, seed):
+    """``features.gcc.min_peak_relative``: a file coding that lowers every GCC height alike (an MP3's lost high band) drops
+    no other mic under the relative rule, while a fixed height drops the good mics too once the heights fall below it."""
+    from itertools import combinations
+
+    from acoustlab.toolkit.quality import weakly_correlated_mics
+
+    pairs = list(combinations(range(6), 2))
+    rng = np.random.default_rng(seed)
+    heights = np.array([[rng.uniform(0.15, 0.3) if 5 not in (i, j) else rng.uniform(0.0, 0.02) for i, j in pairs]])  # mic 5: noise
+    expected = np.array([[False] * 5 + [True]])
+    np.testing.assert_array_equal(weakly_correlated_mics(heights * scale, pairs, 6, None, relative=0.2), expected)
+    absolute = weakly_correlated_mics(heights * scale, pairs, 6, 0.03)
+    assert absolute[0, 5] and (absolute[0, :5].all() if scale * 0.3 < 0.03 else not absolute[0, :5].any())

@@ -61,6 +61,7 @@ def solve_detections(components: Components, features: pd.DataFrame, detections:
         rules.plausible_margin_fraction,
         rules.calibration,
         rules.min_gcc_peak,
+        rules.min_gcc_peak_relative,
     )
 
 

@@ -53,6 +53,8 @@ class PlacementRules:
         ``calibration=PATH``: its thermometer offset and clocks are applied before the solver (the site is already its array).
     min_gcc_peak : float, optional
         ``features.gcc.min_peak``: a recorder without a GCC peak that high with another is left out of the solve.
+    min_gcc_peak_relative : float, optional
+        ``features.gcc.min_peak_relative``: the same, with the height a share of the event's strongest pair peak.
     projection : MapProjection, optional
         Positions are also written in the mics table's projected coordinates.
     """
@@ -60,4 +62,5 @@ class PlacementRules:
     plausible_margin_fraction: float | None = None
     calibration: FieldCalibration | None = None
     min_gcc_peak: float | None = None
+    min_gcc_peak_relative: float | None = None
     projection: MapProjection | None = None

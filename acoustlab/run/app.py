@@ -271,6 +271,7 @@ def placement_rules(cfg: DictConfig, field_source: Any, calibration: FieldCalibr
         plausible_margin_fraction=cfg.pipeline.plausible_margin_fraction,
         calibration=calibration,
         min_gcc_peak=OmegaConf.select(cfg, "features.gcc.min_peak", default=None),
+        min_gcc_peak_relative=OmegaConf.select(cfg, "features.gcc.min_peak_relative", default=None),
         projection=None if projection is None else MapProjection(*projection),
     )
 

@@ -479,14 +479,16 @@ def field_solver_columns(
     plausible_margin_fraction: float | None,
     calibration: FieldCalibration | None,
     min_gcc_peak: float | None = None,
+    min_gcc_peak_relative: float | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The solver stage of field recordings (``localize`` and every season chunk alike): the calibration, then the solver's columns.
 
     ``min_gcc_peak`` (``features.gcc.min_peak``): a mic without a GCC peak that high with any other
-    mic is left out of its event's solve (``drop_weakly_correlated_mics``); None keeps every mic.
+    mic is left out of its event's solve (``drop_weakly_correlated_mics``), as is one below
+    ``min_gcc_peak_relative`` (``features.gcc.min_peak_relative``) × its event's strongest pair peak; None keeps every mic.
     """
-    if min_gcc_peak is not None:
-        events = drop_weakly_correlated_mics(features, events, site, min_gcc_peak)
+    if min_gcc_peak is not None or min_gcc_peak_relative is not None:
+        events = drop_weakly_correlated_mics(features, events, site, min_gcc_peak, min_gcc_peak_relative)
     group = calibration.held_out_group(events) if calibration is not None else np.full(len(events), -1)
     if (group < 0).all():
         return _solved(features, events, site, solver, plausible_margin_fraction, calibration)

@@ -102,8 +102,11 @@ def subset_inputs(inputs: SolverInputs, rows: np.ndarray, keep: np.ndarray, site
     )
 
 
-def drop_weakly_correlated_mics(features: pd.DataFrame, events: pd.DataFrame, site: Site, min_peak: float) -> pd.DataFrame:
-    """``events`` with every mic whose strongest GCC peak is below ``min_peak`` left out (``features.gcc.min_peak``).
+def drop_weakly_correlated_mics(
+    features: pd.DataFrame, events: pd.DataFrame, site: Site, min_peak: float | None, relative: float | None = None
+) -> pd.DataFrame:
+    """``events`` with every mic whose strongest GCC peak is below ``min_peak`` (``features.gcc.min_peak``) or below
+    ``relative`` × its event's strongest (``features.gcc.min_peak_relative``) left out.
 
     Such a mic joins ``mics_dropped`` and its event's ``quality_flags`` say ``mic <m>: weak_gcc``
     (``acoustlab.toolkit.quality.weakly_correlated_mics``); the event is solved from the others while
@@ -121,9 +124,11 @@ def drop_weakly_correlated_mics(features: pd.DataFrame, events: pd.DataFrame, si
     if missing:
         raise ConfigError(
             f"features.gcc.min_peak needs the GCC heights of the xcorr feature group ({missing[0]}, …); "
-            "use features=physics or physics_lean, or set features.gcc.min_peak=null"
+            "use features=physics or physics_lean, or set features.gcc.min_peak=null and features.gcc.min_peak_relative=null"
         )
-    weak = weakly_correlated_mics(features[names].to_numpy(float), pairs, site.n_mics, float(min_peak))
+    weak = weakly_correlated_mics(
+        features[names].to_numpy(float), pairs, site.n_mics, None if min_peak is None else float(min_peak), relative
+    )
     events = events.copy()
     usable = events["quality_ok"].fillna(True).to_numpy(bool, copy=True) if "quality_ok" in events else np.ones(len(events), bool)
     already = dropped_mask(events[col.MICS_DROPPED] if col.MICS_DROPPED in events else None, len(events), site.n_mics)

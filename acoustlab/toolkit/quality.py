@@ -70,8 +70,11 @@ def failed_positions(events: pd.DataFrame) -> np.ndarray:
     return out
 
 
-def weakly_correlated_mics(heights: np.ndarray, pairs: list[tuple[int, int]], n_mics: int, min_peak: float) -> np.ndarray:
-    """(E, M) True where a mic's strongest GCC peak with any other mic is below ``min_peak``.
+def weakly_correlated_mics(
+    heights: np.ndarray, pairs: list[tuple[int, int]], n_mics: int, min_peak: float | None, relative: float | None = None
+) -> np.ndarray:
+    """(E, M) True where a mic's strongest GCC peak with any other mic is below ``min_peak``, or below ``relative`` times the
+    event's strongest pair peak.
 
     A recorder that hears only its own noise (a wind-hit or covered microphone, a clock jump) has
     no clear peak with anyone, while each good mic keeps a clear peak with another good one; the
@@ -85,15 +88,25 @@ def weakly_correlated_mics(heights: np.ndarray, pairs: list[tuple[int, int]], n_
         The P mic pairs, in the order of ``heights``' columns.
     n_mics : int
         Mics of the array.
-    min_peak : float
-        The height a mic needs with at least one other mic.
+    min_peak : float or None
+        The height a mic needs with at least one other mic (None: no absolute height).
+    relative : float or None
+        The share of its event's strongest pair peak a mic's strongest peak needs (None: none). A
+        GCC's height depends on the band, the call's length and the files' coding (an MP3 keeps
+        less of the high band than a WAV), so one height does not hold across recordings; the
+        event's own strongest pair sets the scale there.
     """
     heights = np.where(np.isfinite(heights), heights, -np.inf)
     best = np.full((heights.shape[0], n_mics), -np.inf)
     for p, (i, j) in enumerate(pairs):
         best[:, i] = np.maximum(best[:, i], heights[:, p])
         best[:, j] = np.maximum(best[:, j], heights[:, p])
-    return best < min_peak
+    weak = np.zeros(best.shape, dtype=bool)
+    if min_peak is not None:
+        weak |= best < min_peak
+    if relative is not None:
+        weak |= best < relative * best.max(axis=1, keepdims=True)
+    return weak
 
 
 def dropped_mask(dropped: pd.Series | None, n_events: int, n_mics: int) -> np.ndarray:

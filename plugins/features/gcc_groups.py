@@ -56,6 +56,9 @@ class _GccGroup:
         Field recordings only: a mic whose strongest GCC peak with every other mic is below this
         height (dimensionless, 1 = a perfect match) is left out of that event's solve and flagged
         ``weak_gcc``; None (default) keeps every mic. Read by the solver stage, not by the GCC.
+    min_peak_relative : float, optional
+        Field recordings only: the same, with the height a share (0–1) of the event's strongest
+        pair peak, a scale that holds across recorders and file codings; None (default) off.
     """
 
     cache_version = "1"
@@ -70,6 +73,7 @@ class _GccGroup:
         "device_memory_gb": 4.0,
         "search": "fine",
         "min_peak": None,
+        "min_peak_relative": None,
     }
 
     def __init__(self, gcc: Mapping[str, Any] | None = None, **settings: Any) -> None:
@@ -99,6 +103,11 @@ class _GccGroup:
         min_peak = params["min_peak"]
         if min_peak is not None and not (isinstance(min_peak, (int, float)) and 0.0 < float(min_peak) <= 1.0):
             raise ConfigError(f"features.gcc.min_peak must be a GCC height in (0, 1] or null (off); got {min_peak!r}")
+        relative = params["min_peak_relative"]
+        if relative is not None and not (isinstance(relative, (int, float)) and 0.0 < float(relative) < 1.0):
+            raise ConfigError(
+                f"features.gcc.min_peak_relative must be a share in (0, 1) of the event's strongest peak or null (off); got {relative!r}"
+            )
 
     def _candidates(self, batch: RecordingBatch, site: Site, band_hz=None):
         band = event_band_hz(batch.events, self.band_hz, batch.sample_rate_hz) if band_hz is None else band_hz
