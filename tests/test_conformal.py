@@ -532,3 +532,37 @@ def test_pac_settings_are_checked_in_one_line():
         SplitConformal(position_method="pac", pac_delta=1.5)
     with pytest.raises(ConfigError, match="pac_epsilon must lie in"):
         SplitConformal(position_method="pac", pac_epsilon=-0.1)
+
+
+def test_ellipses_calibrated_on_field_spots_take_the_position_level_quantile():
+    """Under a field calibration the ellipses' guarantee is over spots, as the radii's: with the calibration rows' position
+    ids their size is the pooled-CDF quantile over positions (``grouped_conformal_quantile``); a method saved without them,
+    the event-level one. One spot with many bad events pulls the event quantile up, not the position one."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from acoustlab.core import columns as col
+    from acoustlab.method.fitted import FittedMethod
+    from acoustlab.toolkit.conformal import conformal_quantile, grouped_conformal_quantile
+    from acoustlab.toolkit.regions import mahalanobis, shape_matrices
+    from tests.test_pipeline_calibration import site3
+
+    site = site3()
+    rng = np.random.default_rng(3)
+    groups = np.r_[np.repeat(np.arange(20), 3), np.full(40, 20)]  # 20 spots of 3 calls, one spot of 40 calls
+    position = rng.uniform(5, 35, (groups.size, 2))
+    error = rng.normal(0, 1.0, (groups.size, 2)) * np.where(groups == 20, 4.0, 1.0)[:, None]
+    predicted, height = np.ones(groups.size), np.full(groups.size, 1.5)
+    scores = mahalanobis(error, shape_matrices(site.mic_positions_m, position, height))
+    for given, expected in ((groups, grouped_conformal_quantile(scores, groups, 0.8)), (None, conformal_quantile(scores, 0.8))):
+        out = pd.DataFrame(index=range(1))
+        holder = SimpleNamespace(
+            pipeline=SimpleNamespace(c=SimpleNamespace(site=site, levels=[0.8])),
+            ellipse_calibration=(error, position, predicted, height, given),
+        )
+        at = np.array([[20.0, 20.0]])
+        FittedMethod._add_ellipses(holder, out, at, np.ones(1), pd.DataFrame({col.SOLVER_SOURCE_HEIGHT: [1.5]}))
+        shape = shape_matrices(site.mic_positions_m, at, 1.5)
+        assert out[col.ellipse(0.8, "a_m")].iloc[0] == pytest.approx(expected * np.sqrt(np.linalg.eigvalsh(shape)[0, 1]))
+    assert grouped_conformal_quantile(scores, groups, 0.8) < conformal_quantile(scores, 0.8)

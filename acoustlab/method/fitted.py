@@ -27,7 +27,7 @@ from acoustlab.method.trust import (
     TrainingSupport,
     TrustedDecision,
 )
-from acoustlab.toolkit.conformal import conformal_quantile
+from acoustlab.toolkit.conformal import calibration_quantile, conformal_quantile
 from acoustlab.toolkit.event_physics import source_height_m
 from acoustlab.toolkit.regions import ellipse_axes, mahalanobis, shape_matrices
 
@@ -74,7 +74,8 @@ class FittedMethod:
     #: scorers calibrated on the simulated training rows (``conformal.unsupported_levels=rescaled``), by name
     simulation_scorers: dict[str, ConformalScorer] = field(default_factory=dict)
     #: (error_xy, position, predicted error, source height) of the calibration events, for ellipses
-    ellipse_calibration: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+    #: (error xy, position, predicted error, height, position ids or None): the calibration rows of the ellipses (groups: over positions)
+    ellipse_calibration: tuple[Any, ...] | None = None
     #: (earliest, latest) time of the field rows that calibrated the radii, s (a calibration's drift grows after them)
     calibration_times_s: tuple[float, float] | None = None
 
@@ -267,13 +268,14 @@ class FittedMethod:
     def _add_ellipses(self, out: pd.DataFrame, position: np.ndarray, predicted: np.ndarray, features: pd.DataFrame) -> None:
         """Ellipse columns ``ellipse__<level>__a_m|b_m|angle_deg``: shape from the TDOA geometry, size from conformal on the calibration events."""
         site = self.pipeline.c.site
-        cal_error_xy, cal_position, cal_pred, cal_height = self.ellipse_calibration
+        cal_error_xy, cal_position, cal_pred, cal_height, *rest = self.ellipse_calibration  # a method saved before: no groups
+        groups = rest[0] if rest else None
         ok = np.isfinite(cal_error_xy).all(axis=1)
         shape = shape_matrices(site.mic_positions_m, cal_position[ok], cal_height[ok])
         scores = mahalanobis(cal_error_xy[ok], shape) / cal_pred[ok]
         test_shape = shape_matrices(site.mic_positions_m, position, source_height_m(features, site))
         for level in self.pipeline.c.levels:
-            q = conformal_quantile(scores, level)
+            q = conformal_quantile(scores, level) if groups is None else calibration_quantile(scores, level, "position", groups[ok])
             a, b, angle = ellipse_axes(test_shape, q * predicted)
             for name, values in (("a_m", a), ("b_m", b), ("angle_deg", angle)):
                 out[col.ellipse(level, name)] = values

@@ -464,6 +464,8 @@ class LocalizationPipeline:
                 cal.gate.position_m[rows],
                 fitted.oof_predicted[rows],
                 source_height_m(features.iloc[train[rows]], self.c.site),
+                # calibrated on field spots, an ellipse's guarantee is over spots, as the radii's (their events cluster)
+                split.groups[train][rows] if fitted.calibrated_on_field else None,
             )
         for name, configured in self.c.extra_gates.items():  # compared on the same out-of-fold and test predictions
             fitted.extra_gates[name] = self._fit_gate(
