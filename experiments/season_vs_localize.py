@@ -272,11 +272,11 @@ def main() -> None:
         + (f" --gap {args.gap}" if args.gap != "shaped" else "")
         + "`: "
         f"{len(truth)} events of the second simulator (image-source, {args.n_positions} positions), as events "
-        "(`protocol=field_eval`, what `localize` does) and laid out as a season (long files, one Raven selection per clip, "
+        "as the simulator renders them (`protocol=field_eval`), and laid out as recordings (long files, one Raven selection per clip, "
         + {"shaped": "noise of each clip's own spectrum and level", "white": "white noise at each clip's noise level", "zeros": "silence"}[
             args.gap
         ]
-        + " between the clips). "
+        + " between the clips) placed by `localize` (one file per mic, the selections as its events table) and as a season. "
         "Failures are infinite errors; [95 % bootstrap over positions]. `gate` is the reported position.",
         "",
         table.to_markdown(),
