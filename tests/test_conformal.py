@@ -555,11 +555,11 @@ def test_ellipses_calibrated_on_field_spots_take_the_position_level_quantile():
     error = rng.normal(0, 1.0, (groups.size, 2)) * np.where(groups == 20, 4.0, 1.0)[:, None]
     predicted, height = np.ones(groups.size), np.full(groups.size, 1.5)
     scores = mahalanobis(error, shape_matrices(site.mic_positions_m, position, height))
-    for given, expected in ((groups, grouped_conformal_quantile(scores, groups, 0.8)), (None, conformal_quantile(scores, 0.8))):
+    for stored, expected in ((groups, grouped_conformal_quantile(scores, groups, 0.8)), (None, conformal_quantile(scores, 0.8))):
         out = pd.DataFrame(index=range(1))
         holder = SimpleNamespace(
             pipeline=SimpleNamespace(c=SimpleNamespace(site=site, levels=[0.8])),
-            ellipse_calibration=(error, position, predicted, height, given),
+            ellipse_calibration=(error, position, predicted, height, stored),
         )
         at = np.array([[20.0, 20.0]])
         FittedMethod._add_ellipses(holder, out, at, np.ones(1), pd.DataFrame({col.SOLVER_SOURCE_HEIGHT: [1.5]}))

@@ -311,7 +311,8 @@ def test_the_console_positions_summary_names_events_gives_a_radius_and_only_dete
 
 def test_an_uncalibrated_array_s_radii_carry_the_mics_table_s_survey_error(caplog):
     """Without a calibration the mics table's ``position_sigma_m`` becomes the radii's mic allowance (the largest mic's);
-    a table without it leaves the positions exact and says so; a stated ``mic_position_m`` and a simulated field win."""
+    a table without it is taken as a consumer GPS's (2 m per axis) and says so with the figure; a surveyed table (0s), a stated
+    ``mic_position_m`` and a simulated field keep theirs."""
     from acoustlab.core.errors import ConfigError
     from acoustlab.stages.mic_survey import survey_allowance
     from acoustlab.toolkit.input_uncertainty import InputUncertainty
@@ -325,7 +326,8 @@ def test_an_uncalibrated_array_s_radii_carry_the_mics_table_s_survey_error(caplo
         assert "up to 2.50 m" in caplog.text
         caplog.clear()
         assert survey_allowance(stated, surveyed, 3) == stated  # surveyed mics keep today's radii
-        assert survey_allowance(stated, mics, 3) == stated and "taken as exact" in caplog.text
+        assert survey_allowance(stated, mics, 3).mic_position_m == 2.0 and "consumer GPS puts them, 2.00 m off per axis" in caplog.text
+        assert survey_allowance(InputUncertainty(unsurveyed_mic_position_m=4.0), mics, 3).mic_position_m == 4.0
         caplog.clear()
         assert survey_allowance(stated, None, 3) == stated and not caplog.text  # a simulated field has no table
     given = InputUncertainty(mic_position_m=0.3)

@@ -54,6 +54,7 @@ def test_localize_season_and_the_api_place_the_same_clips_alike(compose_cfg, tmp
             "y_m": site.mic_positions_m[:, 1],
             "z_m": site.mic_positions_m[:, 2],
             "file": [files[r] for r in manifest["recorders"]],
+            "position_sigma_m": 0.0,  # the season's own mics, exactly where it rendered them
         }
     )
     mics.to_csv(tmp_path / "mics.csv", index=False)

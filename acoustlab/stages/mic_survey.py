@@ -61,22 +61,25 @@ def survey_allowance(stated: InputUncertainty, mics_table: pd.DataFrame | None, 
 
     ``conformal.input_uncertainty.mic_position_m`` given (> 0) is kept; else the largest of the
     table's ``position_sigma_m`` (a mic's error moves every fix that uses it; the largest is the one
-    a radius must carry). A table without the column leaves the positions exact and says so in one
-    line: a consumer GPS is metres off, and radii that take its positions as exact are too small.
-    Without a mics table (a simulated field) nothing changes.
+    a radius must carry). A table without the column is taken to be a consumer GPS's survey
+    (``unsurveyed_mic_position_m``, 2 m per axis), said in one line with the figure: radii that take
+    metres-off positions as exact are too small, and a surveyed array says so with 0s. Without a
+    mics table (a simulated field) nothing changes.
     """
     if stated.mic_position_m > 0 or mics_table is None:
         return stated
     sigmas_m = mic_position_sigmas(mics_table, n_mics)
     if sigmas_m is None:
+        assumed = float(stated.unsurveyed_mic_position_m)
         log.warning(
-            "the mics' positions are taken as exact (no %s in the mics table, conformal.input_uncertainty.mic_position_m=0): "
-            "if they come from a GPS (metres off), the radii are too small; give each mic's %s, or calibrate "
-            "the array with playbacks (docs/calibrate.md)",
+            "no %s in the mics table and no calibration: the radii assume the mics are where a consumer GPS puts them, "
+            "%.2f m off per axis (conformal.input_uncertainty.unsurveyed_mic_position_m); give each mic's %s (0 for a "
+            "surveyed mic), or calibrate the array with playbacks (docs/calibrate.md)",
             SIGMA_COLUMN,
+            assumed,
             SIGMA_COLUMN,
         )
-        return stated
+        return dataclasses.replace(stated, mic_position_m=assumed)
     largest = float(np.max(sigmas_m)) if sigmas_m.size else 0.0
     if largest > 0:
         log.info(

@@ -64,6 +64,10 @@ class InputUncertainty:
     max_sigma_m : float
         The allowance never exceeds this per axis (m): beyond it the fix is not located by its
         inputs at all, and a radius saying so in tens of metres helps no one.
+    unsurveyed_mic_position_m : float
+        The survey error per axis a field run assumes for mics whose table gives no
+        ``position_sigma_m`` and that no calibration fitted, m: a consumer GPS's (2 m per axis
+        is about 5 m at 95 % horizontally). Only a mics table reaches it (``acoustlab.stages.mic_survey``).
 
     The allowance is marginal over thermometers (and surveys, clocks): it is the spread of the fix
     over the errors a user's instruments may have, not the shift of one season-long bias, which
@@ -75,9 +79,10 @@ class InputUncertainty:
     clock_offset_s: float = 0.0
     exact_above_m: float = 0.5
     max_sigma_m: float = 10.0
+    unsurveyed_mic_position_m: float = 2.0
 
     def __post_init__(self) -> None:
-        for name in ("temperature_c", "mic_position_m", "clock_offset_s", "exact_above_m", "max_sigma_m"):
+        for name in ("temperature_c", "mic_position_m", "clock_offset_s", "exact_above_m", "max_sigma_m", "unsurveyed_mic_position_m"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ConfigError(f"conformal.input_uncertainty.{name} must be a finite number >= 0; got {value}")
