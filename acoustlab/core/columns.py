@@ -71,8 +71,8 @@ HARDWARE_FAILURE = "hardware_failure"
 MICS_DROPPED = "mics_dropped"
 #: The mics a field fix rests on, by index in the mics table's order (``;``-separated): neither dropped nor left out by the solver.
 MICS_USED = "mics_used"
-#: An events table's column: a playback spot's survey error per axis, m (empty or 0: surveyed exactly).
-SPOT_SIGMA = "position_sigma_m"
+#: A mics table's column: a mic's survey error per axis, m (0: surveyed); an events table's: its playback spot's (empty or 0: exact).
+POSITION_SIGMA = "position_sigma_m"
 #: A field fix on a subset of the usable mics with a residual above good fixes' (``acoustlab.method.localizer.with_support_flags``).
 WEAK_SUPPORT = "weak_support"
 #: Samples of an event's own clip in a batch padded to its longest (the features see only these).

@@ -28,6 +28,7 @@ from acoustlab.core.contracts import FeatureSet
 from acoustlab.core.types import Site
 from acoustlab.method.fitted import FittedMethod
 from acoustlab.method.pipeline import Components
+from acoustlab.method.trust import TrainingSupport
 from acoustlab.reporting.positions import positions_table
 from acoustlab.stages.field_calibration import CALIBRATION_COLUMN, FieldCalibration, field_solver_columns
 
@@ -208,7 +209,7 @@ def without_truth(predictions: pd.DataFrame, features: pd.DataFrame, detections:
     return predictions
 
 
-def with_support_flags(predictions: pd.DataFrame, features: pd.DataFrame, support: Any, n_mics: int) -> pd.DataFrame:
+def with_support_flags(predictions: pd.DataFrame, features: pd.DataFrame, support: TrainingSupport | None, n_mics: int) -> pd.DataFrame:
     """``predictions`` with ``weak_support`` (bool) and, where it is true, a note in ``quality_flags`` and ``radius_note``.
 
     A solver fix has weak support where the solver left mics out (it rests on fewer than the mics
@@ -220,7 +221,7 @@ def with_support_flags(predictions: pd.DataFrame, features: pd.DataFrame, suppor
     Without a residual limit (no redundant mics in training, or no trust check) nothing is flagged.
     """
     out = predictions.copy()
-    limit = getattr(support, "residual_limit_s_", None) if support is not None else None
+    limit = support.residual_limit_s_ if support is not None else None
     residual_name = col.solver_column("residual_s")
     weak = np.zeros(len(out), dtype=bool)
     if limit is not None and residual_name in features and col.SOLVER_N_MICS_USED in features:

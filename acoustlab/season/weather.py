@@ -17,11 +17,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError, show
 
 log = logging.getLogger(__name__)
 
-TIME, TEMPERATURE, HUMIDITY = "time", "temperature_c", "relative_humidity_pct"
+TIME, TEMPERATURE, HUMIDITY = "time", col.TEMPERATURE, col.HUMIDITY
 #: Plausible ranges of each reading (the site's limits for the air): a value outside is a logger fault or a unit slip.
 RANGES = {TEMPERATURE: (-60.0, 60.0, "°C"), HUMIDITY: (0.0, 100.0, "%")}
 

@@ -108,7 +108,7 @@ def playbacks_from(
     source = np.column_stack([ev[[col.TRUE_X, col.TRUE_Y]].to_numpy(float), np.where(np.isfinite(z), z, assumed_source_height_m(site))])
     temperature = ev[col.TEMPERATURE].fillna(temperature_c).to_numpy(float) if col.TEMPERATURE in ev else np.full(len(ev), temperature_c)
     humidity = ev[col.HUMIDITY].fillna(humidity_pct).to_numpy(float) if col.HUMIDITY in ev else np.full(len(ev), humidity_pct)
-    spot_sigma = np.nan_to_num(ev[col.SPOT_SIGMA].to_numpy(float), nan=0.0) if col.SPOT_SIGMA in ev else None
+    spot_sigma = np.nan_to_num(ev[col.POSITION_SIGMA].to_numpy(float), nan=0.0) if col.POSITION_SIGMA in ev else None
     playbacks = Playbacks(
         source,
         lags[:, :, 0],

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from acoustlab.core import columns as col
 from acoustlab.core.contracts import FieldSource, hook
 from acoustlab.core.errors import ConfigError, show
 from acoustlab.stages.sites import site_mics_table
@@ -23,7 +24,7 @@ from acoustlab.toolkit.input_uncertainty import InputUncertainty
 log = logging.getLogger(__name__)
 
 #: The mics table's column: each mic's horizontal position error per axis, m (0 for a surveyed mic).
-SIGMA_COLUMN = "position_sigma_m"
+SIGMA_COLUMN = col.POSITION_SIGMA
 
 
 def mic_position_sigmas(mics_table: pd.DataFrame | None, n_mics: int) -> np.ndarray | None:

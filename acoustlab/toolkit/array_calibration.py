@@ -659,12 +659,6 @@ def calibrate_array(
     loading = playbacks.pair_differences_s(-dist / speed[:, None] ** 2 * model.dcdt[:, None])
     # the spots are nuisance parameters: the array's covariance is the Gaussian marginal (its block), their shifts reported
     keep = np.array([not n.startswith(SPOT_PREFIX) for n in model.names], dtype=bool)
-    spot_shift = (model.sources_m(u) - playbacks.source_m)[:, :2]
-    spot_extra = {
-        "spot_shift_m": {
-            str(playbacks.spot[rows[0]]): [round(float(v), 4) for v in spot_shift[rows[0]]] for rows in model.spot_rows.values()
-        }
-    }
     names = [n for n, k in zip(model.names, keep, strict=True) if k]
     return ArrayCalibration(
         mic_ids=list(mic_ids),
@@ -691,9 +685,18 @@ def calibrate_array(
             "redundancy": redundancy(playbacks, len(model.names)),
             "sd_unit": SD_UNIT,
             "sd_over_per_pair": {name: round(float(f), 4) for name, f, k in zip(model.names, factor, keep, strict=True) if k},
-            **(spot_extra if model.spot_rows else {}),
+            **_spot_shifts(model, u),
         },
     )
+
+
+def _spot_shifts(model: _Model, u: np.ndarray) -> dict[str, Any]:
+    """``{"spot_shift_m": {spot: [dx, dy]}}`` of the spots estimated with the array (m), or {} where none was."""
+    if not model.spot_rows:
+        return {}
+    shift = (model.sources_m(u) - model.pb.source_m)[:, :2]
+    spots = np.asarray(model.pb.spot)
+    return {"spot_shift_m": {str(spots[rows[0]]): [round(float(v), 4) for v in shift[rows[0]]] for rows in model.spot_rows.values()}}
 
 
 def independent_share(pairs: list[tuple[int, int]], measured: np.ndarray) -> np.ndarray:

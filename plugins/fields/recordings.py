@@ -308,7 +308,7 @@ class RecordingFolder:
         events = spots_in_local_frame(events, mics, f"field.events_csv: {events.attrs.get('path')}")
         _numeric(events, "events_csv", (col.EVENT_ID, col.START, col.END, col.POSITION_ID))
         _numeric(events, "events_csv", (col.TRUE_X, col.TRUE_Y, col.TRUE_Z), finite=False)
-        _numeric(events, "events_csv", (col.SPOT_SIGMA,), finite=False, lower=0.0)  # a spot's survey error per axis, m
+        _numeric(events, "events_csv", (col.POSITION_SIGMA,), finite=False, lower=0.0)  # a spot's survey error per axis, m
         _numeric(events, "events_csv", (col.TEMPERATURE,), lower=-60.0, upper=60.0)
         _numeric(events, "events_csv", ("time_s",), finite=False)
         self._check_bands(events)
@@ -694,8 +694,8 @@ class RecordingFolder:
             rows[EVENT_NAME] = events[EVENT_NAME].to_numpy(object)
         if "time_s" in events:  # when the event happened (clock drift of a field calibration is per second of it)
             rows["time_s"] = events["time_s"].to_numpy(float)
-        if col.SPOT_SIGMA in events:  # a playback spot's survey error: calibrate estimates the spot with the array
-            rows[col.SPOT_SIGMA] = events[col.SPOT_SIGMA].to_numpy(float)
+        if col.POSITION_SIGMA in events:  # a playback spot's survey error: calibrate estimates the spot with the array
+            rows[col.POSITION_SIGMA] = events[col.POSITION_SIGMA].to_numpy(float)
         return RecordingBatch(audio=audio, sample_rate_hz=fs, events=rows)
 
 

@@ -99,7 +99,7 @@ class CalibrateProtocol:
         if unknown:
             raise ConfigError(f"protocol.estimate: {unknown} cannot be estimated; choose from {list(PARAMETER_KINDS)}")
         for name, value in (
-            ("position_sigma_m", position_sigma_m),
+            (col.POSITION_SIGMA, position_sigma_m),  # protocol.position_sigma_m: the mics table column's default
             ("temperature_sigma_c", temperature_sigma_c),
             ("clock_sigma_s", clock_sigma_s),
             ("drift_sigma", drift_sigma),
