@@ -338,17 +338,23 @@ def test_an_uncalibrated_array_s_radii_carry_the_mics_table_s_survey_error(caplo
 
 @pytest.mark.slow
 def test_localize_on_gps_surveyed_mics_widens_the_radii_and_records_the_allowance(compose_cfg, tmp_path):
+    """Surveyed mics (``position_sigma_m`` 0) keep the simulation's radii; GPS-placed ones (3 m) widen them; a table without
+    the column is taken as a consumer GPS's 2 m, recorded in ``metrics.json``."""
     _, overrides = simulated_folder(compose_cfg, tmp_path / "recordings", 6)
-    exact, exact_metrics, _ = localize(compose_cfg, tmp_path / "exact", *overrides)
     mics_csv = next(o.split("=", 1)[1] for o in overrides if o.startswith("field.mics_csv="))
     table = pd.read_csv(mics_csv)
-    table.assign(position_sigma_m=2.0).to_csv(tmp_path / "gps_mics.csv", index=False)
-    gps_overrides = [f"field.mics_csv={tmp_path / 'gps_mics.csv'}" if o.startswith("field.mics_csv=") else o for o in overrides]
-    gps, gps_metrics, _ = localize(compose_cfg, tmp_path / "gps", *gps_overrides)
-    assert exact_metrics["input_allowance"]["mic_position_m"] == 0.0 and gps_metrics["input_allowance"]["mic_position_m"] == 2.0
+    runs = {}
+    for name, sigma in (("surveyed", 0.0), ("gps", 3.0), ("unsurveyed", None)):
+        (table if sigma is None else table.assign(position_sigma_m=sigma)).to_csv(tmp_path / f"{name}.csv", index=False)
+        given = [f"field.mics_csv={tmp_path / f'{name}.csv'}" if o.startswith("field.mics_csv=") else o for o in overrides]
+        runs[name] = localize(compose_cfg, tmp_path / name, *given)
+    allowance = {name: metrics["input_allowance"]["mic_position_m"] for name, (_, metrics, _) in runs.items()}
+    assert allowance == {"surveyed": 0.0, "gps": 3.0, "unsurveyed": 2.0}
+    exact, gps, unsurveyed = (runs[name][0] for name in ("surveyed", "gps", "unsurveyed"))
     placed = exact["placed"].to_numpy(bool) & gps["placed"].to_numpy(bool)
     radius = "radius_gdop_scaled_0.95_m"
-    assert placed.any() and (gps[radius][placed] > exact[radius][placed]).all()
+    assert placed.any() and (gps[radius][placed] > unsurveyed[radius][placed]).all()
+    assert (unsurveyed[radius][placed] > exact[radius][placed]).all()
     pd.testing.assert_series_equal(gps["x_m"], exact["x_m"])  # the positions themselves do not move
 
 
