@@ -476,6 +476,15 @@ def test_a_bad_weather_table_stops_with_one_line_naming_file_line_and_column(tmp
         read_weather(write_weather(tmp_path / "w.csv", rows, header))
 
 
+def test_an_empty_missing_or_undecodable_weather_table_stops_with_one_line(tmp_path):
+    (tmp_path / "empty.csv").write_text("")
+    (tmp_path / "binary.csv").write_bytes(b"\xff\xfe\x00time\x00")
+    for name, message in (("empty.csv", "cannot read"), ("missing.csv", "cannot read"), ("binary.csv", "")):
+        with pytest.raises(DataError, match=r"protocol.weather_csv: .*" + message) as info:
+            read_weather(tmp_path / name)
+        assert "\n" not in str(info.value)
+
+
 def test_a_season_with_a_weather_table_carries_each_event_s_air_and_without_one_none(tmp_path):
     from types import SimpleNamespace
 

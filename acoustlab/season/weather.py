@@ -37,7 +37,7 @@ def read_weather(path: Path) -> pd.DataFrame:
     """
     try:
         table = pd.read_csv(path, dtype=str, keep_default_na=False)
-    except (OSError, pd.errors.ParserError, UnicodeDecodeError) as exc:
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise DataError(f"protocol.weather_csv: cannot read {path}: {str(exc).splitlines()[0]}") from None
     for needed in (TIME, TEMPERATURE):
         if needed not in table:
