@@ -625,3 +625,14 @@ def test_each_mic_s_residual_at_the_fix_is_near_zero_where_the_fix_explains_it_a
     residual = out[[mic_residual_column(m) for m in range(4)]].to_numpy(float)
     np.testing.assert_allclose(residual[0], [0.0, 0.0, 0.0, 2e-3 * speed], atol=1e-9)
     assert np.isnan(residual[1]).all()  # no fix: no residual
+
+
+def test_the_localization_summary_counts_the_placed_fixes_with_weak_support():
+    from acoustlab.core import columns as col
+    from acoustlab.reporting.positions import localization_summary
+
+    table = pd.DataFrame(
+        {col.PLACED: [True, True, False, True], col.WEAK_SUPPORT: [True, False, True, True], "source": "solver", "radius_fixed_0.8_m": 1.0}
+    )
+    assert localization_summary(table, [0.8], ["fixed"])["n_weak_support"] == 2  # the unplaced one is not counted
+    assert localization_summary(table.drop(columns=col.WEAK_SUPPORT), [0.8], ["fixed"])["n_weak_support"] == 0

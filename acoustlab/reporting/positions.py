@@ -134,6 +134,10 @@ def localization_summary(table: pd.DataFrame, levels: list[float], scorers: list
         "n_detections": len(table),
         "n_placed": int(table[col.PLACED].sum()),
         "share_from_model": float((table["source"] == "model").mean()) if len(table) else float("nan"),
+        # placed fixes resting on a subset of the mics that fit worse than timing noise allows (look at these twice)
+        "n_weak_support": int((table[col.WEAK_SUPPORT].fillna(False).to_numpy(bool) & table[col.PLACED].to_numpy(bool)).sum())
+        if col.WEAK_SUPPORT in table
+        else 0,
         "radius_m": radii,
     }
 

@@ -407,8 +407,13 @@ class SeasonLocalize:
             write_positions(run_dir, table, csv=self.write_csv)
             radii = read_manifest(folder)["radii"]
             metrics[col.METRICS_LOCALIZATION] = localization_summary(table, radii["levels"], radii["scorers"])
+            summary = metrics[col.METRICS_LOCALIZATION]
             log.info(
-                "season: %d detections, %d placed; positions in %s", len(table), int(table[col.PLACED].sum()), run_dir / "positions.parquet"
+                "season: %d detections, %d placed (%d on weak support: weak_support in positions.csv); positions in %s",
+                len(table),
+                summary["n_placed"],
+                summary["n_weak_support"],
+                run_dir / "positions.parquet",
             )
         if (folder / "season.json").is_file():
             manifest = read_manifest(folder)
