@@ -49,7 +49,9 @@ def test_split_conformal_covers_on_exchangeable_data(seed, n, level, normaliser)
         radius = scorer.radius(pred[r, n:], g[r, n:])[:, 0]
         covered.append(np.mean(err[r, n:] <= radius))
     mean = float(np.mean(covered))
-    mc = 3 * np.std(covered) / np.sqrt(reps)
+    # Monte-Carlo slack: 4.5 standard errors. Hypothesis draws 20 examples a CI run, so at 3 one run in twenty failed by
+    # chance alone (seed 137215, n 93 at 0.5: 3.2 standard errors below); at 4.5 about one in 10,000
+    mc = 4.5 * np.std(covered) / np.sqrt(reps)
     assert level - mc <= mean <= level + 1 / (n + 1) + mc
 
 
