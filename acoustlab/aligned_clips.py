@@ -26,6 +26,8 @@ import soundfile as sf
 from acoustlab.core import columns as col
 from acoustlab.core.errors import ConfigError, DataError
 from acoustlab.core.types import RecordingBatch
+from acoustlab.method.localizer import mic_residual_column
+from acoustlab.toolkit.quality import dropped_mask
 
 log = logging.getLogger("acoustlab.aligned_clips")
 
@@ -108,11 +110,10 @@ def write_aligned_clips(run_dir: str | Path, event_ids: Sequence[object], out_di
     out = Path(out_dir) if out_dir is not None else run_dir / ALIGNED
     out.mkdir(parents=True, exist_ok=True)
     n_mics = batch.audio.shape[1]
+    uses = dropped_mask(rows.get(col.MICS_USED), len(rows), n_mics)  # the mics each fix rests on (the same ";"-list)
     written = []
     for k, row in rows.iterrows():
         arrival = np.array([0.0] + [float(row.get(f"tdoa_0_{m}_s", np.nan)) for m in range(1, n_mics)])
-        used_text = str(row.get(col.MICS_USED, "") or "")
-        used = {int(m) for m in used_text.split(";") if m}
         n = int(batch.events[col.CLIP_SAMPLES].iloc[k]) if col.CLIP_SAMPLES in batch.events else batch.audio.shape[-1]
         shifts = np.where(np.isfinite(arrival), np.round(arrival * batch.sample_rate_hz), 0).astype(int)
         channels = np.stack([shifted(batch.audio[k, m, :n], int(shifts[m])) for m in range(n_mics)], axis=1)
@@ -123,8 +124,8 @@ def write_aligned_clips(run_dir: str | Path, event_ids: Sequence[object], out_di
                 "mic": np.arange(n_mics),
                 "arrival_after_mic0_s": arrival,
                 "shift_samples": shifts,
-                "residual_m": [float(row.get(f"residual_mic_{m}_m", np.nan)) for m in range(n_mics)],
-                "fix_uses_mic": [m in used for m in range(n_mics)],
+                "residual_m": [float(row.get(mic_residual_column(m), np.nan)) for m in range(n_mics)],
+                "fix_uses_mic": uses[k],
             }
         ).to_csv(out / f"{stem}.csv", index=False)
         written.append(out / f"{stem}.wav")

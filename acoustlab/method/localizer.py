@@ -31,6 +31,7 @@ from acoustlab.method.pipeline import Components
 from acoustlab.method.trust import TrainingSupport
 from acoustlab.reporting.positions import positions_table
 from acoustlab.stages.field_calibration import CALIBRATION_COLUMN, FieldCalibration, field_solver_columns
+from acoustlab.toolkit.quality import dropped_mask
 
 #: The rank-1 lag columns of the pairs (0, j): t_j − t_0 in s.
 TDOA_TO_MIC0 = re.compile(r"tdoa__lag_0_(\d+)_s")
@@ -227,8 +228,7 @@ def with_support_flags(predictions: pd.DataFrame, features: pd.DataFrame, suppor
     if limit is not None and residual_name in features and col.SOLVER_N_MICS_USED in features:
         residual_s = features[residual_name].to_numpy(float)
         used = features[col.SOLVER_N_MICS_USED].to_numpy(float)
-        dropped = out[col.MICS_DROPPED].fillna("").astype(str) if col.MICS_DROPPED in out else pd.Series("", index=out.index)
-        usable = n_mics - np.array([len([m for m in d.split(";") if m]) for d in dropped], dtype=float)
+        usable = n_mics - dropped_mask(out.get(col.MICS_DROPPED), len(out), n_mics).sum(axis=1)
         fixed = np.isfinite(features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(float)).all(axis=1)
         weak = fixed & np.isfinite(residual_s) & (residual_s > limit) & np.isfinite(used) & (used < usable)
         if weak.any():
@@ -277,15 +277,12 @@ def with_mic_residuals(predictions: pd.DataFrame, features: pd.DataFrame, mics_m
     source = np.column_stack([features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(float), z])
     speed = features[col.ENV_SPEED_OF_SOUND].to_numpy(float)
     predicted = np.linalg.norm(source[:, None, :] - np.asarray(mics_m, float)[None], axis=-1) / speed[:, None]  # (B, M), s
-    used = np.ones((len(features), n_mics), dtype=bool)
-    if col.MICS_USED in out:
-        for k, text in enumerate(out[col.MICS_USED].fillna("").astype(str)):
-            if text:
-                used[k] = np.isin(np.arange(n_mics), [int(m) for m in text.split(";") if m])
-    gap = np.where(used, measured - predicted, np.nan)
-    counted = np.isfinite(gap).sum(axis=1, keepdims=True)
-    emission = np.where(counted > 0, np.nansum(gap, axis=1, keepdims=True) / np.maximum(counted, 1), np.nan)  # no fix: NaN
+    used = dropped_mask(out.get(col.MICS_USED), len(out), n_mics)  # the same ";"-list as mics_dropped
+    used[~used.any(axis=1)] = True  # none listed: every mic
     gap = measured - predicted
+    kept = np.where(used, gap, np.nan)
+    counted = np.isfinite(kept).sum(axis=1, keepdims=True)
+    emission = np.where(counted > 0, np.nansum(kept, axis=1, keepdims=True) / np.maximum(counted, 1), np.nan)  # no fix: NaN
     residual = (gap - emission) * speed[:, None]
     for m in range(n_mics):
         out[mic_residual_column(m)] = residual[:, m]

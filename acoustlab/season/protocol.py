@@ -170,15 +170,19 @@ class SeasonLocalize:
         """Linkage distance, s: the array's largest travel time at the slowest sound speed, plus 10 ms."""
         if self.events_cfg.get("margin_s") is not None:
             return float(self.events_cfg["margin_s"])
-        return float(self.travel_s(site, list(map(str, range(site.n_mics)))).to_numpy().max()) + 0.01
+        return float(self._travel_times_s(site).max()) + 0.01
 
     @staticmethod
-    def travel_s(site: Site, recorders: list[str]) -> pd.DataFrame:
-        """Travel time between each two recorders (in the site's mic order) at the slowest sound speed of the site, s."""
+    def _travel_times_s(site: Site) -> np.ndarray:
+        """(M, M) travel time between each two mics at the slowest sound speed of the site, s."""
         mics = site.mic_positions_m
         distance = np.linalg.norm(mics[:, None, :] - mics[None, :, :], axis=-1)
-        slowest = speed_of_sound_m_s(site.temperature_range_c[0], site.relative_humidity_range_pct[0])
-        return pd.DataFrame(distance / slowest, index=recorders, columns=recorders)
+        return distance / speed_of_sound_m_s(site.temperature_range_c[0], site.relative_humidity_range_pct[0])
+
+    @classmethod
+    def travel_s(cls, site: Site, recorders: list[str]) -> pd.DataFrame:
+        """``_travel_times_s`` by recorder id (the recorders in the site's mic order), s."""
+        return pd.DataFrame(cls._travel_times_s(site), index=recorders, columns=recorders)
 
     def pad_s(self) -> float:
         """How far past its detections an event's clip reaches even where every recorder detected it, s (a late-starting box)."""

@@ -50,6 +50,30 @@ def utm_crs(latitude_deg: float, longitude_deg: float) -> str:
     return f"EPSG:{(32600 if latitude_deg >= 0 else 32700) + zone}"
 
 
+def _degrees(table: pd.DataFrame, where: str, every_row: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(latitude, longitude) of ``table``, degrees; with ``every_row`` false an empty cell is NaN (a row without a spot).
+
+    Raises
+    ------
+    DataError
+        Naming ``where``, the line and the column of the first value that is not a latitude in
+        [−90, 90] or a longitude in [−180, 180] (an empty cell too, with ``every_row``).
+    """
+    values = []
+    for name, limit in ((LATITUDE, 90.0), (LONGITUDE, 180.0)):
+        raw = table[name]
+        v = pd.to_numeric(raw, errors="coerce").to_numpy(float)
+        given = np.ones(len(raw), bool) if every_row else raw.notna().to_numpy() & (raw.astype(str).str.strip() != "").to_numpy()
+        bad = given & (~np.isfinite(v) | (np.abs(v) > limit))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise DataError(
+                f"{where}, line {i + 2}, column '{name}': {show(raw.iloc[i])} is not a number in [-{limit:g}, {limit:g}] degrees"
+            )
+        values.append(np.where(given, v, np.nan))
+    return values[0], values[1]
+
+
 def with_map_coordinates(mics: pd.DataFrame, where: str) -> pd.DataFrame:
     """``mics`` with ``easting_m, northing_m, crs`` from its ``latitude, longitude`` (and ``x_m, y_m`` where it has none).
 
@@ -67,17 +91,7 @@ def with_map_coordinates(mics: pd.DataFrame, where: str) -> pd.DataFrame:
         raise DataError(f"{where}: give both '{LATITUDE}' and '{LONGITUDE}' (WGS 84 degrees), or neither")
     if {EASTING, NORTHING} & set(mics.columns):
         raise DataError(f"{where}: give the mics on the map once: latitude/longitude or easting_m/northing_m with a crs, not both")
-    values = {}
-    for name, limit in ((LATITUDE, 90.0), (LONGITUDE, 180.0)):
-        v = pd.to_numeric(mics[name], errors="coerce").to_numpy(float)
-        bad = ~np.isfinite(v) | (np.abs(v) > limit)
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise DataError(
-                f"{where}, line {i + 2}, column '{name}': {show(mics[name].iloc[i])} is not a number in [-{limit:g}, {limit:g}] degrees"
-            )
-        values[name] = v
-    lat, lon = values[LATITUDE], values[LONGITUDE]
+    lat, lon = _degrees(mics, where, every_row=True)
     crs = utm_crs(float(np.mean(lat)), float(np.mean(lon)))
     transformer = _pyproj(where).Transformer.from_crs("EPSG:4326", crs, always_xy=True)
     easting, northing = transformer.transform(lon, lat)
@@ -156,20 +170,9 @@ def spots_in_local_frame(events: pd.DataFrame, mics: pd.DataFrame, where: str) -
             f"{where}: spots in latitude/longitude need the mics on the map (latitude/longitude, or easting_m/northing_m and a crs)"
         )
     rotation, translation, crs, _ = projection
-    values = {}
-    for name, limit in ((LATITUDE, 90.0), (LONGITUDE, 180.0)):
-        raw = events[name]
-        v = pd.to_numeric(raw, errors="coerce").to_numpy(float)
-        given = raw.notna().to_numpy() & (raw.astype(str).str.strip() != "").to_numpy()
-        bad = given & (~np.isfinite(v) | (np.abs(v) > limit))
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise DataError(
-                f"{where}, line {i + 2}, column '{name}': {show(raw.iloc[i])} is not a number in [-{limit:g}, {limit:g}] degrees"
-            )
-        values[name] = np.where(given, v, np.nan)
+    latitude, longitude = _degrees(events, where, every_row=False)
     transformer = _pyproj(where).Transformer.from_crs("EPSG:4326", crs, always_xy=True)
-    easting, northing = transformer.transform(values[LONGITUDE], values[LATITUDE])
+    easting, northing = transformer.transform(longitude, latitude)
     local = (np.c_[easting, northing] - translation) @ rotation  # the inverse of map = local @ rotation.T + translation
     out = events.copy()
     out[col.TRUE_X], out[col.TRUE_Y] = local[:, 0], local[:, 1]
