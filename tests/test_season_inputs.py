@@ -454,18 +454,21 @@ def test_a_weather_table_gives_each_event_its_air_interpolated_in_time(tmp_path,
     np.testing.assert_allclose(air["temperature_c"], [4.0, 7.0, 13.0, 16.0])
     np.testing.assert_allclose(air["relative_humidity_pct"], [90.0, 85.0, 75.0, 70.0])
     assert "1 of 4 events lie outside w.csv's readings" in caplog.text
-    only_temperature = read_weather(write_weather(tmp_path / "t.csv", ["2026-05-01T05:00:00Z,4.0"], "time,temperature_c"))
-    air = weather_at(only_temperature, np.array([5.0]), pd.Timestamp("2026-05-01T06:00:00+01:00"), tmp_path / "t.csv")
-    assert list(air.columns) == ["temperature_c"] and air["temperature_c"].iloc[0] == 4.0
-    with pytest.raises(DataError, match="carry time zone but the recordings' start times do not"):
-        weather_at(only_temperature, np.array([5.0]), origin, tmp_path / "t.csv")
+    # a zoned logger reads in UTC, as the files' zoned start times do (the recordings' origin is naive UTC then)
+    zoned = read_weather(
+        write_weather(tmp_path / "t.csv", ["2026-05-01T07:00:00+02:00,4.0", "2026-05-01T06:00:00Z,10.0"], "time,temperature_c")
+    )
+    air = weather_at(zoned, np.array([1800.0]), origin, tmp_path / "t.csv")
+    assert list(air.columns) == ["temperature_c"] and air["temperature_c"].iloc[0] == pytest.approx(7.0)
+    with pytest.raises(DataError, match=r"t.csv, line 3, column time: '2026-05-01T06:00:00' lacks a UTC offset"):
+        read_weather(write_weather(tmp_path / "t.csv", ["2026-05-01T05:00:00Z,4.0", "2026-05-01T06:00:00,5.0"], "time,temperature_c"))
 
 
 @pytest.mark.parametrize(
     ("header", "rows", "message"),
     [
         ("time,temp", ["2026-05-01T05:00:00,4"], "has no 'temperature_c' column"),
-        ("time,temperature_c", ["yesterday,4"], r"line 2, column 'time': 'yesterday' is not an ISO 8601 time"),
+        ("time,temperature_c", ["yesterday,4"], r"line 2, column time: 'yesterday' is not an ISO 8601 time"),
         ("time,temperature_c", ["2026-05-01T05:00:00,4", "2026-05-01T05:01:00,277.1"], r"line 3, column 'temperature_c': '277.1' is not"),
         ("time,temperature_c,relative_humidity_pct", ["2026-05-01T05:00:00,4,"], r"column 'relative_humidity_pct': '' is not a number"),
         ("time,temperature_c", ["2026-05-01T05:00:00,4", "2026-05-01T05:00:00,5"], r"line 3: time '2026-05-01T05:00:00' is given twice"),

@@ -2,8 +2,9 @@
 
 The speed of sound grows by about 0.6 m/s per °C; a season assuming one temperature for every
 detection places its calls with the error of that assumption (a 5 °C day–night swing is a 0.9 %
-error in every range difference). ``protocol.weather_csv`` is a CSV with ``time`` (ISO 8601, the
-recorders' clock: a zone given where the file starts carry one) and ``temperature_c``, optionally
+error in every range difference). ``protocol.weather_csv`` is a CSV with ``time`` (ISO 8601, read
+as every start time is: ``acoustlab.toolkit.table_times.iso_times``, times with a UTC offset
+converted to UTC as the files' own zoned start times are) and ``temperature_c``, optionally
 ``relative_humidity_pct``; each event gets the values interpolated linearly in time at the middle
 of its detections, the way ``localize`` takes each event's own temperature from its events table.
 An event outside the table's span takes the nearest reading, said in one line with how many.
@@ -19,6 +20,7 @@ import pandas as pd
 
 from acoustlab.core import columns as col
 from acoustlab.core.errors import DataError, show
+from acoustlab.toolkit.table_times import iso_times
 
 log = logging.getLogger(__name__)
 
@@ -44,11 +46,7 @@ def read_weather(path: Path) -> pd.DataFrame:
             raise DataError(f"protocol.weather_csv: {path} has no '{needed}' column (it needs {TIME}, {TEMPERATURE}[, {HUMIDITY}])")
     if table.empty:
         raise DataError(f"protocol.weather_csv: {path} has no readings")
-    times = pd.to_datetime(table[TIME], errors="coerce", format="ISO8601")
-    if times.isna().any():
-        i = int(np.flatnonzero(times.isna().to_numpy())[0])
-        raise DataError(f"protocol.weather_csv: {path}, line {i + 2}, column '{TIME}': {show(table[TIME].iloc[i])} is not an ISO 8601 time")
-    out = pd.DataFrame({TIME: times})
+    out = pd.DataFrame({TIME: iso_times(table[TIME], f"protocol.weather_csv: {path}", TIME)})
     for name in (TEMPERATURE, HUMIDITY):
         if name not in table:
             continue
@@ -70,23 +68,9 @@ def read_weather(path: Path) -> pd.DataFrame:
 
 
 def weather_at(weather: pd.DataFrame, seconds: np.ndarray, origin: pd.Timestamp, path: Path) -> pd.DataFrame:
-    """(E,) ``temperature_c`` (and ``relative_humidity_pct`` where the table has it) at each of ``seconds`` after ``origin``.
-
-    Raises
-    ------
-    DataError
-        Where one of the table and the recordings' start times carries a time zone and the other does not.
-    """
-    times = weather[TIME]
-    aware_table, aware_files = times.dt.tz is not None, origin.tzinfo is not None
-    if aware_table != aware_files:
-        raise DataError(
-            f"protocol.weather_csv: {path}'s times {'carry' if aware_table else 'carry no'} time zone but the recordings' start times "
-            f"{'do' if aware_files else 'do not'}; give both in one clock"
-        )
-    if aware_table:
-        times = times.dt.tz_convert(origin.tzinfo)
-    at = np.asarray((times - origin).dt.total_seconds(), dtype=float)
+    """(E,) ``temperature_c`` (and ``relative_humidity_pct`` where the table has it) at each of ``seconds`` after ``origin``
+    (the recordings' naive start time, UTC where the files gave a zone)."""
+    at = np.asarray((weather[TIME] - origin).dt.total_seconds(), dtype=float)
     seconds = np.asarray(seconds, dtype=float)
     outside = (seconds < at[0]) | (seconds > at[-1])
     if outside.any():
