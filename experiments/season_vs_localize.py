@@ -134,6 +134,7 @@ def lay_out(site_name: str, n_positions: int, folder: Path, gap_fill: str = "sha
             "x_m": mics[:, 0],
             "y_m": mics[:, 1],
             "z_m": mics[:, 2],
+            "position_sigma_m": 0.0,  # the simulator's own mics, exact: the same inputs as the season's site
         }
     ).to_csv(folder / "whole" / "mics.csv", index=False)
     pd.DataFrame(
