@@ -272,7 +272,7 @@ def main() -> None:
         + (f" --extra {' '.join(args.extra)}" if args.extra else "")
         + (f" --gap {args.gap}" if args.gap != "shaped" else "")
         + "`: "
-        f"{len(truth)} events of the second simulator (image-source, {args.n_positions} positions), as events "
+        f"{len(truth)} events of the second simulator (image-source, {args.n_positions} positions), "
         "as the simulator renders them (`protocol=field_eval`), and laid out as recordings (long files, one Raven selection per clip, "
         + {"shaped": "noise of each clip's own spectrum and level", "white": "white noise at each clip's noise level", "zeros": "silence"}[
             args.gap
