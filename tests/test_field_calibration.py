@@ -919,8 +919,9 @@ def test_the_calibration_sigma_holds_over_random_arrays_with_white_noise_per_mic
 
 def test_spots_surveyed_with_an_error_widen_the_array_s_sigma_to_cover_the_truth():
     """Spots 1 m (σ per axis) off their survey, 6 mics 2 m off theirs, 12 random arrays of 12 spots: taken as exact, the mics'
-    errors lie beyond 3σ far more often than 0.27 %; with each spot's ``source_sigma_m`` the spots are estimated with the
-    array and marginalised out, and the mics' σ covers their errors at the stated rate (and the spots' shifts are reported)."""
+    errors lie beyond 3σ more often than 0.27 % (the cluster-robust σ by spot catches part of a spot's survey error, not
+    all); with each spot's ``source_sigma_m`` the spots are estimated with the array and marginalised out, and the mics' σ
+    covers their errors at the stated rate (and the spots' shifts are reported)."""
     n_mics, z = 6, {"exact": [], "stated": []}
     for seed in range(12):
         stated, true = array(n_mics, seed)
@@ -944,4 +945,22 @@ def test_spots_surveyed_with_an_error_widen_the_array_s_sigma_to_cover_the_truth
                 shifts = np.array(list(cal.extra["spot_shift_m"].values()))
                 assert shifts.shape == (12, 2) and np.corrcoef(shifts.ravel(), (spots - surveyed)[:, :2].ravel())[0, 1] > 0.5
     beyond = {name: float(np.mean(np.abs(np.concatenate(v)) > 3)) for name, v in z.items()}
-    assert beyond["exact"] > 0.04 and beyond["stated"] <= 0.02, beyond
+    assert beyond["exact"] > 0.01 and beyond["stated"] <= min(0.02, beyond["exact"] / 2), beyond
+
+
+def test_the_calibration_sigma_holds_for_three_mics_and_ten_spots_with_a_multipath_bias_per_spot():
+    """3 mics (2 m off), 10 spots × 3 playbacks, one multipath bias per spot and pair (60 µs) over 40 random arrays: 10
+    spots for 9 unknowns pull the fit towards each spot, and the plain cluster-robust σ, on the fitted residuals, left
+    7 % of the mics' coordinates beyond 3 σ; with each spot's residuals corrected for its leverage (CR3) they hold
+    (≤ 3 %, 0.27 % expected)."""
+    from acoustlab.method.protocols.calibrate import CalibrateProtocol
+
+    z = []
+    for seed in range(40):
+        stated, true = array(3, 300 + seed)
+        rng = np.random.default_rng(seed)
+        pb = playbacks(true, spots_in(rng, 10), np.zeros(3), 0.0, noise_s=1e-5, seed=seed)
+        pb.tdoa_s += rng.normal(0, 6e-5, (10, pb.tdoa_s.shape[1]))[pb.spot]
+        cal = CalibrateProtocol().calibrate(pb, Priors(stated, np.full(3, 2.0)), list("abc"))
+        z += [(cal.mic_positions_m[m, k] - true[m, k]) / cal.sd(f"mic_{m}_{axis}_m") for m in range(3) for k, axis in enumerate("xy")]
+    assert np.mean(np.abs(z) > 3) <= 0.03, np.mean(np.abs(z) > 3)
