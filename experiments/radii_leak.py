@@ -17,8 +17,10 @@ split-conformal radii (the ⌈(n+1)ℓ⌉-th smallest error, pooled over the pla
 Coverage is measured at 50 new spots × 3 calls solved with the full calibration, per position (the
 mean over spots of the share of their calls covered), and averaged over replications. Three timing
 noise kinds: white (20 µs per mic and call), per-spot multipath (a 60 µs delay per mic and spot
-shared by its playbacks, plus 10 µs white), heavy-tailed (Student t, 3 degrees of freedom, 20 µs).
-Writes experiments/results/radii_leak.md.
+shared by its playbacks, plus 10 µs white), heavy-tailed (Student t, 3 degrees of freedom, 20 µs);
+and for ``calibration_sigma.py`` a ground reflection merged with every direct path (the peak moved
+by ``REFLECTION_FRACTION`` of ``toolkit.ground_reflection``'s shift in a 0.5–2 kHz band: a bias every
+spot shares, plus 10 µs white). Writes experiments/results/radii_leak.md.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from acoustlab.core.types import NoiseRegime, Site
 from acoustlab.method.protocols.calibrate import CalibrateProtocol, _solve_errors
 from acoustlab.toolkit.array_calibration import Playbacks, Priors
 from acoustlab.toolkit.conformal import conformal_quantile
+from acoustlab.toolkit.ground_reflection import peak_shift_per_fraction_s, reflection_delay_s
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 from acoustlab.toolkit.recorder_clocks import clock_errors_s
 
@@ -42,6 +45,8 @@ LEVELS = (0.5, 0.8, 0.95)
 NOISES = ("white", "multipath", "heavy")
 SCHEMES = ("in-sample", "held out", "fresh spots")
 PER = 3
+#: the "reflection" noise: a hard ground's reflection merged with the direct path, the peaks measured in a low band (Hz)
+REFLECTION_FRACTION, REFLECTION_BAND_HZ = 0.35, (500.0, 2000.0)
 
 
 def site_of(mics_m: np.ndarray) -> Site:
@@ -63,6 +68,9 @@ def playbacks(rng, true_mics, spots, clocks, noise: str, first_spot: int) -> Pla
         arrival += rng.normal(0, 2e-5, (n, m))
     elif noise == "multipath":
         arrival += np.repeat(rng.normal(0, 6e-5, (len(spots), m)), PER, axis=0) + rng.normal(0, 1e-5, (n, m))
+    elif noise == "reflection":  # the ground reflection within the direct path's peak: the same fraction at every spot
+        delay = reflection_delay_s(source, true_mics, speed)
+        arrival += REFLECTION_FRACTION * peak_shift_per_fraction_s(delay, REFLECTION_BAND_HZ) + rng.normal(0, 1e-5, (n, m))
     else:
         arrival += 2e-5 * rng.standard_t(3, (n, m))
     pairs = list(itertools.combinations(range(m), 2))

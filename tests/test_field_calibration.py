@@ -964,3 +964,27 @@ def test_the_calibration_sigma_holds_for_three_mics_and_ten_spots_with_a_multipa
         cal = CalibrateProtocol().calibrate(pb, Priors(stated, np.full(3, 2.0)), list("abc"))
         z += [(cal.mic_positions_m[m, k] - true[m, k]) / cal.sd(f"mic_{m}_{axis}_m") for m in range(3) for k, axis in enumerate("xy")]
     assert np.mean(np.abs(z) > 3) <= 0.03, np.mean(np.abs(z) > 3)
+
+
+def test_a_ground_reflection_every_spot_shares_is_carried_by_the_sigma_where_its_band_is_given():
+    """3 mics 2 m off, 20 spots × 3 playbacks, each arrival's peak moved by 0.35 of a hard ground's reflection in a 0.5–2
+    kHz band (``toolkit.ground_reflection``), 30 random arrays: the σ without it leaves the mics' coordinates beyond
+    3 σ far more often than 0.27 % (the jackknife over spots cannot see a bias every spot shares); told the band, the σ
+    holds them, and calibration.json's ``shared_bias`` says what it carried."""
+    from acoustlab.toolkit.ground_reflection import peak_shift_per_fraction_s, reflection_delay_s
+
+    band, z = (500.0, 2000.0), {None: [], "band": []}
+    for seed in range(30):
+        stated, true = array(3, 400 + seed)
+        rng = np.random.default_rng(seed)
+        pb = playbacks(true, spots_in(rng, 20), np.zeros(3), 0.0, noise_s=1e-5, seed=seed)
+        speed = speed_of_sound_m_s(pb.temperature_c, pb.relative_humidity_pct)
+        arrival_shift = 0.35 * peak_shift_per_fraction_s(reflection_delay_s(pb.source_m, true, speed), band)
+        pb.tdoa_s += pb.pair_differences_s(arrival_shift)
+        for key, told in ((None, None), ("band", band)):
+            cal = calibrate_array(pb, Priors(stated, np.full(3, 2.0)), list("abc"), reflection_band_hz=told)
+            z[key] += [(cal.mic_positions_m[m, k] - true[m, k]) / cal.sd(f"mic_{m}_{a}_m") for m in range(3) for k, a in enumerate("xy")]
+            assert ("shared_bias" in cal.extra) == (told is not None)
+    beyond = {key: float(np.mean(np.abs(v) > 3)) for key, v in z.items()}
+    assert beyond[None] > 0.02 and beyond["band"] <= 0.01, beyond
+    assert cal.extra["shared_bias"]["band_hz"] == [500.0, 2000.0] and cal.extra["shared_bias"]["fraction_max"] == 0.5

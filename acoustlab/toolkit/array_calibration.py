@@ -42,6 +42,7 @@ import numpy as np
 from scipy.optimize import brentq, least_squares, minimize
 
 from acoustlab.core.errors import DataError
+from acoustlab.toolkit.ground_reflection import peak_shift_per_fraction_s, reflection_delay_s
 from acoustlab.toolkit.physics import speed_of_sound_m_s
 from acoustlab.toolkit.recorder_clocks import clock_errors_s, seconds_since_origin
 
@@ -58,6 +59,8 @@ CAUCHY_K = 2.385
 MIN_REDUNDANCY = 2.0
 #: The reweighting stops when no estimate moves by more than this fraction of its prior standard deviation in a pass.
 CONVERGED_PRIORS = 1e-4
+#: The largest fraction of a ground reflection's delay by which a merged GCC peak moves (two equal peaks merge halfway).
+REFLECTION_FRACTION_MAX = 0.5
 #: A spot's leverage in any direction is capped here in the cluster-robust σ (``by_spot_covariance``): at most a 33× residual.
 MAX_LEVERAGE = 0.97
 #: A residual beyond this many timing-noise units counts as an outlier in the report.
@@ -66,8 +69,10 @@ OUTLIER_K = 5.0
 SD_UNIT = (
     "each estimate's sd counts a playback's m - 1 independent time differences (not its m(m - 1)/2 pairs, which share mics), "
     "at least the cluster-robust sd by spot (a spot's playbacks share its multipath), and in a run the larger of that and the "
-    "jackknife's over spots; it does not cover a bias every spot shares (e.g. the ground reflection inside every direct "
-    "path's peak); sd_over_per_pair: each sd over the posterior's with every pair independent"
+    "jackknife's over spots; where shared_bias is given it also carries a ground reflection within the direct path's "
+    "peak, up to half its delay at every spot alike; it does not cover other biases every spot shares (e.g. a speaker "
+    "stand surveyed off in the same direction everywhere); sd_over_per_pair: each sd over the posterior's with every pair "
+    "independent"
 )
 #: The thermometer's offset is bounded to this many prior standard deviations (±30 °C for the default 3 °C).
 MAX_TEMPERATURE_PRIORS = 10.0
@@ -582,6 +587,7 @@ def calibrate_array(
     timing_sigma_s: float = 1e-4,
     min_drift_span_s: float = 3600.0,
     max_reweight: int = 50,
+    reflection_band_hz: tuple[float, float] | None = None,
 ) -> ArrayCalibration:
     """Estimate the thermometer offset, clock offsets and drifts, and mic positions from playbacks (module docstring).
 
@@ -602,6 +608,10 @@ def calibrate_array(
         Drift is estimated only from playbacks spread over at least this long, s.
     max_reweight : int
         At most this many reweighting passes (they stop when the estimates hold; a warning if they do not).
+    reflection_band_hz : (float, float), optional
+        The band the playbacks' GCC peaks were measured in, Hz: the covariance then also carries a
+        ground reflection within the direct path's peak, a bias every spot shares
+        (``shared_reflection_response``); None: it does not.
 
     Raises
     ------
@@ -644,7 +654,11 @@ def calibrate_array(
     by_spot = by_spot_covariance(
         np.linalg.pinv(by_playback.T @ by_playback), by_playback, model.residuals(u, sigma_t, weights), spot_of_row
     )
-    # each σ over the per-pair posterior's: the playback's share and the spots' spread together
+    shared = None
+    if reflection_band_hz is not None:  # a bias all spots share: its direction of the estimates, at most REFLECTION_FRACTION_MAX of it
+        shared = shared_reflection_response(model, u, jac, cov_u, sigma_t, weights, reflection_band_hz)
+        by_spot = by_spot + REFLECTION_FRACTION_MAX**2 / 3 * np.outer(shared, shared)
+    # each σ over the per-pair posterior's: the playback's share, the spots' spread and a shared reflection together
     factor = np.sqrt(np.divide(np.diag(by_spot), np.diag(cov_u), out=np.ones(len(cov_u)), where=np.diag(cov_u) > 0))
     covariance = by_spot * np.outer(model.sd, model.sd)
     ratio = np.sqrt(np.clip(np.diag(cov_u), 0, None))  # identification is the geometry's: the per-pair posterior's
@@ -688,8 +702,51 @@ def calibrate_array(
             "sd_unit": SD_UNIT,
             "sd_over_per_pair": {name: round(float(f), 4) for name, f, k in zip(model.names, factor, keep, strict=True) if k},
             **_spot_shifts(model, u),
+            **_reflection_summary(model, shared, reflection_band_hz, keep),
         },
     )
+
+
+def shared_reflection_response(
+    model: _Model,
+    u: np.ndarray,
+    jac: np.ndarray,
+    cov_u: np.ndarray,
+    sigma_t: float,
+    weights: np.ndarray,
+    band_hz: tuple[float, float],
+) -> np.ndarray:
+    """(K,) how the fit's estimates move (units of their priors) if every arrival sits one reflection's worth late.
+
+    Each arrival's peak moves by a fraction a of ``peak_shift_per_fraction_s`` of its ground
+    reflection's delay at the fitted array and spots (``acoustlab.toolkit.ground_reflection``);
+    the least-squares fit, linearised at its solution, answers a pattern b of its pairs' time
+    differences with (JᵀJ)⁻¹ Jᵀ b. The fraction a is one for the whole calibration (one ground),
+    unknown in sign (a soft ground at grazing incidence reflects with the phase inverted) and at
+    most ``REFLECTION_FRACTION_MAX`` (two equal peaks merge halfway); taken as uniform over that
+    range, its variance is REFLECTION_FRACTION_MAX² / 3.
+    """
+    *_, mics = model.unpack(u)
+    *_, speed = model.predicted_s(u)
+    shift = peak_shift_per_fraction_s(reflection_delay_s(model.sources_m(u), mics, speed), band_hz)  # (N, M) s
+    rows = int(model.measured.sum())
+    pattern = model.pb.pair_differences_s(shift)[model.measured] / sigma_t * np.sqrt(weights)
+    return cov_u @ jac[:rows].T @ pattern
+
+
+def _reflection_summary(model: _Model, response: np.ndarray | None, band_hz: tuple[float, float] | None, keep: np.ndarray) -> dict:
+    """``{"shared_bias": …}``: the reflection allowance's band and what it adds at its largest, per estimate; {} without one."""
+    if response is None:
+        return {}
+    at_most = response * model.sd * REFLECTION_FRACTION_MAX  # in the estimates' own units, at a = REFLECTION_FRACTION_MAX
+    return {
+        "shared_bias": {
+            "kind": "a ground reflection within the direct path's GCC peak, the same fraction of its delay at every spot",
+            "band_hz": [float(band_hz[0]), float(band_hz[1])],
+            "fraction_max": REFLECTION_FRACTION_MAX,
+            "shift_at_fraction_max": {n: float(v) for n, v, k in zip(model.names, at_most, keep, strict=True) if k},
+        }
+    }
 
 
 def _spot_shifts(model: _Model, u: np.ndarray) -> dict[str, Any]:

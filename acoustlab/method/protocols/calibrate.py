@@ -81,6 +81,10 @@ class CalibrateProtocol:
         Drift is estimated only from playbacks spread over at least this long, s.
     held_out_folds : int
         Spots are held out in this many groups to measure what the calibration buys (0: not measured).
+    reflection_band_hz : list of float, optional
+        The band of the playbacks' GCC peaks, Hz (the playback sweep's 1–8 kHz by default): the σ
+        then carries a ground reflection within the direct path's peak, a bias every spot shares
+        (``toolkit.array_calibration.shared_reflection_response``); null: it does not.
     """
 
     needs_field = True
@@ -94,6 +98,7 @@ class CalibrateProtocol:
         drift_sigma: float = 1e-5,
         min_drift_span_s: float = 3600.0,
         held_out_folds: int = 10,
+        reflection_band_hz: list[float] | tuple[float, float] | None = (1000.0, 8000.0),
     ) -> None:
         unknown = sorted(set(estimate) - set(PARAMETER_KINDS))
         if unknown:
@@ -115,6 +120,7 @@ class CalibrateProtocol:
         self.drift_sigma = float(drift_sigma)
         self.min_drift_span_s = float(min_drift_span_s)
         self.held_out_folds = int(held_out_folds)
+        self.reflection_band_hz = None if reflection_band_hz is None else _band(reflection_band_hz)
 
     def config_patch(self, site: Site, field_source: FieldSource | None, config: dict[str, Any]) -> dict[str, Any] | None:
         """The GCC lag window's margin widened to what the stated mics and clocks may be off, where the config's is narrower.
@@ -213,7 +219,9 @@ class CalibrateProtocol:
 
     def calibrate(self, playbacks: Playbacks, priors: Priors, mic_ids: list[str]) -> ArrayCalibration:
         """The calibration from every playback."""
-        return calibrate_array(playbacks, priors, mic_ids, self.estimate, min_drift_span_s=self.min_drift_span_s)
+        return calibrate_array(
+            playbacks, priors, mic_ids, self.estimate, min_drift_span_s=self.min_drift_span_s, reflection_band_hz=self.reflection_band_hz
+        )
 
     def annealed_prediction(
         self, playbacks: Playbacks, candidate_lags_s: np.ndarray, candidate_heights: np.ndarray | None, priors: Priors
@@ -295,6 +303,14 @@ class CalibrateProtocol:
             "calibrated": summary(calibrated, residual["calibrated"]),
         }
         return held_out, jackknife_sd(without), arrays
+
+
+def _band(band: list[float] | tuple[float, float]) -> tuple[float, float]:
+    """``protocol.reflection_band_hz`` checked: two frequencies, 0 <= low < high, Hz."""
+    values = list(band)
+    if len(values) != 2 or not all(np.isfinite(float(v)) for v in values) or not 0 <= float(values[0]) < float(values[1]):
+        raise ConfigError(f"protocol.reflection_band_hz must be [low, high] in Hz with 0 <= low < high; got {band}")
+    return float(values[0]), float(values[1])
 
 
 def held_out_array(calibration: ArrayCalibration, spots: list[str]) -> dict[str, Any]:

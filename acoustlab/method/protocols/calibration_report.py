@@ -32,6 +32,8 @@ SUMMARY_KEYS = (
     "redundancy",
     "held_out",
     "jackknife_sd",
+    "shared_bias",
+    "sd_unit",
 )
 
 
@@ -62,7 +64,7 @@ def calibration_metrics(calibration: ArrayCalibration, path: Path, digest: str, 
     return {
         "file": str(path),
         "sha256": digest,
-        **{k: summary[k] for k in SUMMARY_KEYS},
+        **{k: summary.get(k) for k in SUMMARY_KEYS},  # shared_bias only where the band was given
         "clock_offset_ms": [round(1e3 * v, 4) for v in summary["clock_offset_s"]],
         "mic_position_shift_m": summary["mic_position_shift_m"],
         "second_peak_ratio": peak_ratio,
@@ -118,6 +120,7 @@ def log_calibration(calibration: ArrayCalibration) -> None:
         1e3 * (summary["residual_median_abs_before_s"] or np.nan),
         1e3 * (summary["residual_median_abs_after_s"] or np.nan),
     )
+    log_sigma_cover(calibration)
     held = calibration.extra["held_out"]
     if held is not None:
         log.info(
@@ -132,3 +135,20 @@ def log_calibration(calibration: ArrayCalibration) -> None:
             held["stated"]["p95_m"],
             held["calibrated"]["p95_m"],
         )
+
+
+def log_sigma_cover(calibration: ArrayCalibration) -> None:
+    """One line: what the σ beside each estimate covers and what it does not (``sd_unit`` in calibration.json)."""
+    shared = calibration.extra.get("shared_bias")
+    reflection = (
+        f"a ground reflection within the direct path's peak in {shared['band_hz'][0]:g}–{shared['band_hz'][1]:g} Hz "
+        f"(up to {shared['fraction_max']:g} of its delay, the same at every spot: mics up to "
+        f"{max((abs(v) for n, v in shared['shift_at_fraction_max'].items() if n.startswith('mic_')), default=0.0):.3f} m)"
+        if shared
+        else "no ground reflection (protocol.reflection_band_hz=null)"
+    )
+    log.info(
+        "the ± σ count each playback's independent time differences, at least the spread between spots, and %s; not "
+        "covered: any other bias every spot shares (a speaker stand off its survey in the same direction everywhere)",
+        reflection,
+    )
