@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
+import shlex
 import tempfile
 from pathlib import Path
 
@@ -120,7 +121,7 @@ def main() -> None:
         "# The calibration's σ against the truth (synthetic playbacks)",
         "",
         f"`python experiments/calibration_sigma.py --replications {args.replications} --spots {' '.join(map(str, args.spots))} "
-        f"--mics {' '.join(map(str, args.mics))} --noises {' '.join(args.noises)}`: the share of estimates (mic coordinates, "
+        f"--mics {' '.join(map(str, args.mics))} --noises {shlex.join(args.noises)}`: the share of estimates (mic coordinates, "
         "clocks, the thermometer) whose error exceeds 2 and 3 of their σ, over the replications; a σ that holds has 4.6 % and "
         "0.27 %. 'median factor': how much the spot-level σ exceeds the per-pair posterior's.",
         "",

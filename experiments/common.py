@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import platform
+import shlex
 import shutil
 import subprocess
 import sys
@@ -103,7 +104,7 @@ def provenance() -> dict[str, Any]:
     shown = script.relative_to(REPO).as_posix() if script.is_relative_to(REPO) else str(script)
     changes = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)experiments/results")
     return {
-        "command": " ".join(["python", shown, *sys.argv[1:]]),
+        "command": shlex.join(["python", shown, *sys.argv[1:]]),  # quoted as a shell needs it, to be run again as it stands
         "commit": git("rev-parse", "HEAD"),
         "uncommitted_changes": bool(changes),
         "date": datetime.date.today().isoformat(),
