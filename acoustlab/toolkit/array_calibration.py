@@ -647,17 +647,7 @@ def calibrate_array(
         log.warning("calibration: the robust fit still moved after %d reweighting passes; its estimates may not have settled", max_reweight)
     jac = model.jacobian(u, sigma_t, weights)
     cov_u = np.linalg.pinv(jac.T @ jac)  # every pair independent: what the geometry identifies
-    rows = model.measured.sum()
-    by_playback = jac.copy()
-    by_playback[:rows] *= np.sqrt(independent_share(playbacks.pairs, model.measured))[:, None]
-    spot_of_row = np.broadcast_to(np.asarray(playbacks.spot)[:, None], model.measured.shape)[model.measured]
-    by_spot = by_spot_covariance(
-        np.linalg.pinv(by_playback.T @ by_playback), by_playback, model.residuals(u, sigma_t, weights), spot_of_row
-    )
-    shared = None
-    if reflection_band_hz is not None:  # a bias all spots share: its direction of the estimates, at most REFLECTION_FRACTION_MAX of it
-        shared = shared_reflection_response(model, u, jac, cov_u, sigma_t, weights, reflection_band_hz)
-        by_spot = by_spot + REFLECTION_FRACTION_MAX**2 / 3 * np.outer(shared, shared)
+    by_spot, shared = _spot_level_covariance(model, u, jac, cov_u, sigma_t, weights, reflection_band_hz)
     # each σ over the per-pair posterior's: the playback's share, the spots' spread and a shared reflection together
     factor = np.sqrt(np.divide(np.diag(by_spot), np.diag(cov_u), out=np.ones(len(cov_u)), where=np.diag(cov_u) > 0))
     covariance = by_spot * np.outer(model.sd, model.sd)
@@ -705,6 +695,35 @@ def calibrate_array(
             **_reflection_summary(model, shared, reflection_band_hz, keep),
         },
     )
+
+
+def _spot_level_covariance(
+    model: _Model,
+    u: np.ndarray,
+    jac: np.ndarray,
+    cov_u: np.ndarray,
+    sigma_t: float,
+    weights: np.ndarray,
+    reflection_band_hz: tuple[float, float] | None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The covariance a calibration reports (units of the priors), and the shared reflection's response (None without one).
+
+    A playback's m − 1 independent differences (``independent_share``), at least the cluster-robust
+    spread by spot (``by_spot_covariance``), plus a ground reflection every spot shares where its band
+    is given (``shared_reflection_response``, at most ``REFLECTION_FRACTION_MAX`` of it, either sign).
+    """
+    playbacks = model.pb
+    rows = model.measured.sum()
+    by_playback = jac.copy()
+    by_playback[:rows] *= np.sqrt(independent_share(playbacks.pairs, model.measured))[:, None]
+    spot_of_row = np.broadcast_to(np.asarray(playbacks.spot)[:, None], model.measured.shape)[model.measured]
+    by_spot = by_spot_covariance(
+        np.linalg.pinv(by_playback.T @ by_playback), by_playback, model.residuals(u, sigma_t, weights), spot_of_row
+    )
+    if reflection_band_hz is None:
+        return by_spot, None
+    shared = shared_reflection_response(model, u, jac, cov_u, sigma_t, weights, reflection_band_hz)
+    return by_spot + REFLECTION_FRACTION_MAX**2 / 3 * np.outer(shared, shared), shared
 
 
 def shared_reflection_response(
