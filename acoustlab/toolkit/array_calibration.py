@@ -647,7 +647,7 @@ def calibrate_array(
         log.warning("calibration: the robust fit still moved after %d reweighting passes; its estimates may not have settled", max_reweight)
     jac = model.jacobian(u, sigma_t, weights)
     cov_u = np.linalg.pinv(jac.T @ jac)  # every pair independent: what the geometry identifies
-    by_spot, shared = _spot_level_covariance(model, u, jac, cov_u, sigma_t, weights, reflection_band_hz)
+    by_spot, shared = _spot_level_covariance(model, _Solution(u, jac, cov_u, sigma_t, weights), reflection_band_hz)
     # each σ over the per-pair posterior's: the playback's share, the spots' spread and a shared reflection together
     factor = np.sqrt(np.divide(np.diag(by_spot), np.diag(cov_u), out=np.ones(len(cov_u)), where=np.diag(cov_u) > 0))
     covariance = by_spot * np.outer(model.sd, model.sd)
@@ -697,14 +697,19 @@ def calibrate_array(
     )
 
 
+@dataclass(frozen=True)
+class _Solution:
+    """Where the robust fit ended: parameters u (units of the priors), its Jacobian there and (JᵀJ)⁻¹, timing σ and weights."""
+
+    u: np.ndarray
+    jac: np.ndarray
+    cov_u: np.ndarray
+    sigma_t: float
+    weights: np.ndarray
+
+
 def _spot_level_covariance(
-    model: _Model,
-    u: np.ndarray,
-    jac: np.ndarray,
-    cov_u: np.ndarray,
-    sigma_t: float,
-    weights: np.ndarray,
-    reflection_band_hz: tuple[float, float] | None,
+    model: _Model, fit: _Solution, reflection_band_hz: tuple[float, float] | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The covariance a calibration reports (units of the priors), and the shared reflection's response (None without one).
 
@@ -714,27 +719,18 @@ def _spot_level_covariance(
     """
     playbacks = model.pb
     rows = model.measured.sum()
-    by_playback = jac.copy()
+    by_playback = fit.jac.copy()
     by_playback[:rows] *= np.sqrt(independent_share(playbacks.pairs, model.measured))[:, None]
     spot_of_row = np.broadcast_to(np.asarray(playbacks.spot)[:, None], model.measured.shape)[model.measured]
-    by_spot = by_spot_covariance(
-        np.linalg.pinv(by_playback.T @ by_playback), by_playback, model.residuals(u, sigma_t, weights), spot_of_row
-    )
+    residual = model.residuals(fit.u, fit.sigma_t, fit.weights)
+    by_spot = by_spot_covariance(np.linalg.pinv(by_playback.T @ by_playback), by_playback, residual, spot_of_row)
     if reflection_band_hz is None:
         return by_spot, None
-    shared = shared_reflection_response(model, u, jac, cov_u, sigma_t, weights, reflection_band_hz)
+    shared = shared_reflection_response(model, fit, reflection_band_hz)
     return by_spot + REFLECTION_FRACTION_MAX**2 / 3 * np.outer(shared, shared), shared
 
 
-def shared_reflection_response(
-    model: _Model,
-    u: np.ndarray,
-    jac: np.ndarray,
-    cov_u: np.ndarray,
-    sigma_t: float,
-    weights: np.ndarray,
-    band_hz: tuple[float, float],
-) -> np.ndarray:
+def shared_reflection_response(model: _Model, fit: _Solution, band_hz: tuple[float, float]) -> np.ndarray:
     """(K,) how the fit's estimates move (units of their priors) if every arrival sits one reflection's worth late.
 
     Each arrival's peak moves by a fraction a of ``peak_shift_per_fraction_s`` of its ground
@@ -745,12 +741,12 @@ def shared_reflection_response(
     most ``REFLECTION_FRACTION_MAX`` (two equal peaks merge halfway); taken as uniform over that
     range, its variance is REFLECTION_FRACTION_MAX² / 3.
     """
-    *_, mics = model.unpack(u)
-    *_, speed = model.predicted_s(u)
-    shift = peak_shift_per_fraction_s(reflection_delay_s(model.sources_m(u), mics, speed), band_hz)  # (N, M) s
+    *_, mics = model.unpack(fit.u)
+    *_, speed = model.predicted_s(fit.u)
+    shift = peak_shift_per_fraction_s(reflection_delay_s(model.sources_m(fit.u), mics, speed), band_hz)  # (N, M) s
     rows = int(model.measured.sum())
-    pattern = model.pb.pair_differences_s(shift)[model.measured] / sigma_t * np.sqrt(weights)
-    return cov_u @ jac[:rows].T @ pattern
+    pattern = model.pb.pair_differences_s(shift)[model.measured] / fit.sigma_t * np.sqrt(fit.weights)
+    return fit.cov_u @ fit.jac[:rows].T @ pattern
 
 
 def _reflection_summary(model: _Model, response: np.ndarray | None, band_hz: tuple[float, float] | None, keep: np.ndarray) -> dict:
