@@ -494,7 +494,7 @@ def test_the_input_allowance_is_exact_where_first_order_is_poor_and_capped():
 
     mics = np.array([[0.0, 0, 1], [50, 0, 1], [25, 43, 1]])
     source = np.array([[25.0, 15, 1.5], [80, 0, 1.5], [60, 20, 1.5]])
-    stated = InputUncertainty(temperature_c=1.0, mic_position_m=0.5, clock_offset_s=1e-4)
+    stated = InputUncertainty(temperature_c=1.0, mic_position_m=0.5, clock_offset_s=1e-4, max_sigma_m=10.0)
     weather = (np.full(3, 10.0), np.full(3, 60.0))
     first, exact = position_sigma_m(mics, source, *weather, stated), monte_carlo_sigma_m(mics, source, *weather, stated)
     assert exact[0] == pytest.approx(first[0], rel=0.15)  # well inside: the linearisation holds

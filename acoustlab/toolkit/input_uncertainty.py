@@ -63,7 +63,10 @@ class InputUncertainty:
         (``monte_carlo_sigma_m``): near a baseline extension the linearisation overstates the shift.
     max_sigma_m : float
         The allowance never exceeds this per axis (m): beyond it the fix is not located by its
-        inputs at all, and a radius saying so in tens of metres helps no one.
+        inputs at all. It is large (a 0.95 radius of about 120 m) so that a radius far outside the
+        array still says how badly the fix is placed: capped at 10 m, the 0.95 radii of fixes
+        beyond 0.3 array extents outside a GPS-surveyed forest array covered 0.86 of them
+        (``experiments/field_workflow.py``'s arm without playbacks).
     unsurveyed_mic_position_m : float
         The survey error per axis a field run assumes for mics whose table gives no
         ``position_sigma_m`` and that no calibration fitted, m: a consumer GPS's (2 m per axis
@@ -78,7 +81,7 @@ class InputUncertainty:
     mic_position_m: float = 0.0
     clock_offset_s: float = 0.0
     exact_above_m: float = 0.5
-    max_sigma_m: float = 10.0
+    max_sigma_m: float = 50.0
     unsurveyed_mic_position_m: float = 2.0
 
     def __post_init__(self) -> None:
@@ -118,7 +121,7 @@ class CorrelatedInputErrors:
 
     covariance: np.ndarray
     exact_above_m: float = 0.5
-    max_sigma_m: float = 10.0
+    max_sigma_m: float = 50.0
     drifts: bool = False
     drift_origin_s: float = 0.0
 
