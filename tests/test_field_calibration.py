@@ -988,3 +988,33 @@ def test_a_ground_reflection_every_spot_shares_is_carried_by_the_sigma_where_its
     beyond = {key: float(np.mean(np.abs(v) > 3)) for key, v in z.items()}
     assert beyond[None] > 0.02 and beyond["band"] <= 0.01, beyond
     assert cal.extra["shared_bias"]["band_hz"] == [500.0, 2000.0] and cal.extra["shared_bias"]["fraction_max"] == 0.5
+
+
+@given(seed=st.integers(0, 10_000), n_spots=st.integers(4, 12), rows_per_spot=st.integers(3, 9), n_params=st.integers(2, 6))
+@settings(max_examples=examples(25), deadline=None)
+def test_the_sigma_by_spot_is_the_delete_one_spot_jackknife_of_the_fit(seed, n_spots, rows_per_spot, n_params):
+    """For a least-squares fit with its prior rows, each spot's leverage-corrected score A J_sᵀ (I − H_ss)⁻¹ r_s is exactly
+    how far the estimates move when that spot is left out (Woodbury), so the σ by spot is the delete-one-spot jackknife
+    about the full fit, (G − 1)/G Σ δδᵀ, plus the prior's A·A; each variance is at least the posterior's."""
+    from acoustlab.toolkit.array_calibration import by_spot_covariance
+
+    rng = np.random.default_rng(seed)
+    spot = np.repeat(np.arange(n_spots), rows_per_spot)
+    data = rng.normal(size=(spot.size, n_params)) * rng.uniform(0.5, 2.0, n_params)
+    y = data @ rng.normal(size=n_params) + rng.normal(size=spot.size) + rng.normal(0, 2.0, n_spots)[spot]
+    jac = np.vstack([data, np.eye(n_params)])  # data rows, then the prior's rows (u ~ N(0, 1))
+    target = np.r_[y, np.zeros(n_params)]
+    posterior = np.linalg.inv(jac.T @ jac)
+    fit = posterior @ jac.T @ target
+    hat_max = max(np.linalg.eigvalsh(data[spot == s] @ posterior @ data[spot == s].T).max() for s in range(n_spots))
+    if hat_max > 0.95:  # beyond the leverage cap the score is capped, not exact
+        return
+    moved = []
+    for s in range(n_spots):
+        keep = np.r_[spot != s, np.ones(n_params, dtype=bool)]
+        moved.append(np.linalg.lstsq(jac[keep], target[keep], rcond=None)[0] - fit)
+    moved = np.array(moved)
+    jackknife = (n_spots - 1) / n_spots * moved.T @ moved + posterior @ posterior
+    residual = jac @ fit - target  # predicted − measured, as the calibration's residuals are
+    out = by_spot_covariance(posterior, jac, residual, spot)
+    np.testing.assert_allclose(np.diag(out), np.maximum(np.diag(posterior), np.diag(jackknife)), rtol=1e-8)
