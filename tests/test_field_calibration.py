@@ -1018,3 +1018,12 @@ def test_the_sigma_by_spot_is_the_delete_one_spot_jackknife_of_the_fit(seed, n_s
     residual = jac @ fit - target  # predicted − measured, as the calibration's residuals are
     out = by_spot_covariance(posterior, jac, residual, spot)
     np.testing.assert_allclose(np.diag(out), np.maximum(np.diag(posterior), np.diag(jackknife)), rtol=1e-8)
+
+
+@pytest.mark.parametrize("band", [[8000.0, 1000.0], [2000.0, 2000.0], [-5.0, 1000.0], ["x", 1000.0], [1000.0]])
+def test_a_reflection_band_that_is_no_band_is_refused_naming_the_setting(band):
+    from acoustlab.method.protocols.calibrate import CalibrateProtocol
+
+    with pytest.raises(ConfigError, match="protocol.reflection_band_hz"):
+        CalibrateProtocol(reflection_band_hz=band)
+    assert CalibrateProtocol(reflection_band_hz=None).reflection_band_hz is None

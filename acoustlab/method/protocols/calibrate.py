@@ -31,7 +31,7 @@ import pandas as pd
 from acoustlab.core import columns as col
 from acoustlab.core.contracts import FieldSource, SolverInputs
 from acoustlab.core.errors import ConfigError, DataError
-from acoustlab.core.types import Site
+from acoustlab.core.types import Site, require_range
 from acoustlab.method.protocols.calibration_report import (
     calibration_metrics,
     log_calibration,
@@ -306,11 +306,11 @@ class CalibrateProtocol:
 
 
 def _band(band: list[float] | tuple[float, float]) -> tuple[float, float]:
-    """``protocol.reflection_band_hz`` checked: two frequencies, 0 <= low < high, Hz."""
-    values = list(band)
-    if len(values) != 2 or not all(np.isfinite(float(v)) for v in values) or not 0 <= float(values[0]) < float(values[1]):
-        raise ConfigError(f"protocol.reflection_band_hz must be [low, high] in Hz with 0 <= low < high; got {band}")
-    return float(values[0]), float(values[1])
+    """``protocol.reflection_band_hz`` checked as every config range is (``require_range``), and not empty, Hz."""
+    low, high = require_range("protocol.reflection_band_hz", band, lower=0.0)
+    if low == high:
+        raise ConfigError(f"protocol.reflection_band_hz must be [low, high] in Hz with low < high; got {band}")
+    return low, high
 
 
 def held_out_array(calibration: ArrayCalibration, spots: list[str]) -> dict[str, Any]:
