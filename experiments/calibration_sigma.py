@@ -104,12 +104,12 @@ def main() -> None:
         reps = [replication(10_000 * n_mics + 100 * n_spots + r, n_mics, n_spots, noise) for r in range(args.replications)]
         cell = {"mics": n_mics, "spots": n_spots, "noise": noise, "n_z": int(sum(len(rep["factor"]) for rep in reps))}
         cell["median factor"] = float(np.median(np.concatenate([rep["factor"] for rep in reps])))
+        mic = np.concatenate([rep["mic"] for rep in reps])
+        held = np.array([rep["held"] for rep in reps])
+        cell["allowance held at 0.95"] = {"mean": float(held.mean()), "5 %": float(np.quantile(held, 0.05))}
         for form in FORMS:
             z = np.abs(np.concatenate([rep[form] for rep in reps]))
-            mic = np.concatenate([rep["mic"] for rep in reps])
             cell[form] = {"beyond 2": float(np.mean(z > 2)), "beyond 3": float(np.mean(z > 3)), "mics beyond 3": float(np.mean(z[mic] > 3))}
-            held = np.array([rep["held"] for rep in reps])
-            cell["allowance held at 0.95"] = {"mean": float(held.mean()), "5 %": float(np.quantile(held, 0.05))}
             allowance = f"{held.mean():.3f} ({np.quantile(held, 0.05):.2f})" if form == FORMS[0] else "—"
             rows.append(
                 f"| {n_mics} | {n_spots} | {noise} | {form} | {100 * cell[form]['beyond 2']:.1f} % | {100 * cell[form]['beyond 3']:.1f} % | "

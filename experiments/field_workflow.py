@@ -43,6 +43,9 @@ from common import REPO, machine, run_in_process, write_results
 from field_calibration import IMPAIRED, calibrate
 from field_radii_draws import FAILED_M, LEVELS, SCORERS, draw_coverage
 
+from acoustlab.core import columns as col
+from acoustlab.reporting.metrics import coverage_by_position, position_bootstrap_ci, share_gross
+
 log = logging.getLogger("experiments.field_workflow")
 METHOD = ["model=xgboost", "error_model=xgboost_quantile", "gate=learned", "conformal=paper"]
 #: what a user without playbacks states of the instruments: a consumer GPS, a clock within ±1 ms (uniform), a thermometer
@@ -63,29 +66,19 @@ def errors_of(predictions: pd.DataFrame, column: str) -> np.ndarray:
     return np.nan_to_num(predictions[column].to_numpy(float), nan=FAILED_M, posinf=FAILED_M)
 
 
-def gross_share(predictions: pd.DataFrame, column: str) -> dict[str, float]:
-    """The share of calls > 5 m off (failures included) with its 95 % position-bootstrap interval."""
-    gross = errors_of(predictions, column) > 5.0
-    _, inverse = np.unique(predictions["position_id"].to_numpy(), return_inverse=True)
-    per_position = np.bincount(inverse, weights=gross), np.bincount(inverse)
-    rng = np.random.default_rng(0)
-    boot = []
-    for _ in range(N_BOOT):
-        k = rng.integers(0, per_position[1].size, per_position[1].size)
-        boot.append(per_position[0][k].sum() / per_position[1][k].sum())
-    return {"share": float(gross.mean()), "low": float(np.quantile(boot, 0.025)), "high": float(np.quantile(boot, 0.975))}
+def gross_share(predictions: pd.DataFrame, method: str) -> dict[str, float]:
+    """A method's share of calls > 5 m off (failures included) with its 95 % position-bootstrap interval (the project's own)."""
+    low, high = position_bootstrap_ci(predictions, [], [], n_boot=N_BOOT)[col.METRICS_ERRORS][method]["share_gt_5m"]
+    return {"share": share_gross(predictions[col.error_m(method)].to_numpy(float)), "low": low, "high": high}
 
 
 def position_coverage(predictions: pd.DataFrame, scorer: str) -> dict[str, float]:
-    """Per level: the mean over positions of the share of their calls within the run's own radius."""
-    error = errors_of(predictions, "error_gate_m")
-    position = predictions["position_id"].to_numpy()
-    out = {}
-    for level in LEVELS:
-        radius = predictions[f"radius__{scorer}__{level}"].to_numpy(float)
-        covered = pd.Series(error <= radius).groupby(position).mean()
-        out[str(level)] = float(covered.mean()) if np.isfinite(radius).any() else float("nan")  # no radius: the level unsupported
-    return out
+    """Per level: the mean over positions of the share of their calls within the run's own radius; NaN where it has none."""
+    by_position = coverage_by_position(predictions, list(LEVELS), [scorer])[scorer]
+    return {
+        str(level): by_position[col.level_key(level)]["mean"] if np.isfinite(predictions[col.radius(scorer, level)]).any() else float("nan")
+        for level in LEVELS
+    }
 
 
 def radius_summary(predictions: pd.DataFrame, scorer: str) -> dict[str, float]:
@@ -153,7 +146,7 @@ def site_rows(site: str, runs: list[dict], opts: argparse.Namespace) -> tuple[li
     rows, raw = [], {}
     for name in ("calibrated", "without playbacks", "surveyed"):
         p = pooled_predictions(runs, name)
-        solver, reported = gross_share(p, "error_solver_m"), gross_share(p, "error_gate_m")
+        solver, reported = gross_share(p, "solver"), gross_share(p, "gate")
         raw[name] = {"n_calls": len(p), "solver_gt_5m": solver, "reported_gt_5m": reported}
         for scorer in SCORERS:
             if name == "calibrated":
