@@ -23,9 +23,6 @@ from acoustlab.toolkit.input_uncertainty import InputUncertainty
 
 log = logging.getLogger(__name__)
 
-#: The mics table's column: each mic's horizontal position error per axis, m (0 for a surveyed mic).
-SIGMA_COLUMN = col.POSITION_SIGMA
-
 
 def mic_position_sigmas(mics_table: pd.DataFrame | None, n_mics: int) -> np.ndarray | None:
     """(M,) each mic's stated horizontal error per axis from the mics table, m; None where it states none.
@@ -35,14 +32,14 @@ def mic_position_sigmas(mics_table: pd.DataFrame | None, n_mics: int) -> np.ndar
     ConfigError
         Naming the line and the value, for a value that is not a number ≥ 0.
     """
-    if mics_table is None or SIGMA_COLUMN not in mics_table or len(mics_table) != n_mics:
+    if mics_table is None or col.POSITION_SIGMA not in mics_table or len(mics_table) != n_mics:
         return None
-    given = pd.to_numeric(mics_table[SIGMA_COLUMN], errors="coerce").to_numpy(float)
+    given = pd.to_numeric(mics_table[col.POSITION_SIGMA], errors="coerce").to_numpy(float)
     bad = ~np.isfinite(given) | (given < 0)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise ConfigError(
-            f"field.mics_csv, line {i + 2}, column '{SIGMA_COLUMN}': {show(mics_table[SIGMA_COLUMN].iloc[i])} "
+            f"field.mics_csv, line {i + 2}, column '{col.POSITION_SIGMA}': {show(mics_table[col.POSITION_SIGMA].iloc[i])} "
             "is not a number >= 0 (m; 0 for a surveyed mic)"
         )
     return given
@@ -76,9 +73,9 @@ def survey_allowance(stated: InputUncertainty, mics_table: pd.DataFrame | None, 
             "no %s in the mics table and no calibration: the radii assume the mics are where a consumer GPS puts them, "
             "%.2f m off per axis (conformal.input_uncertainty.unsurveyed_mic_position_m); give each mic's %s (0 for a "
             "surveyed mic), or calibrate the array with playbacks (docs/calibrate.md)",
-            SIGMA_COLUMN,
+            col.POSITION_SIGMA,
             assumed,
-            SIGMA_COLUMN,
+            col.POSITION_SIGMA,
         )
         return dataclasses.replace(stated, mic_position_m=assumed)
     largest = float(np.max(sigmas_m)) if sigmas_m.size else 0.0
@@ -86,7 +83,7 @@ def survey_allowance(stated: InputUncertainty, mics_table: pd.DataFrame | None, 
         log.info(
             "no calibration: the radii carry the mics table's survey error, %s up to %.2f m per axis "
             "(conformal.input_uncertainty.mic_position_m=%.2f; calibrate the array with playbacks to shrink it)",
-            SIGMA_COLUMN,
+            col.POSITION_SIGMA,
             largest,
             largest,
         )
