@@ -13,8 +13,9 @@ each a ``protocol=field_eval`` run of the same method:
 * **calibrated**: ``calibrate`` from the 1–8 kHz sweep played 3 times at ``--spots`` spots that
   ``plan_playbacks`` puts (``calibration=PATH``), then calls at ``--spots`` of the field's positions
   calibrate the radii at the position level. The spots are redrawn ``--draws`` times from the
-  run's predictions (the scorers of ``conf/conformal/paper.yaml``, pooled over spots as by
-  default); each draw's coverage is the mean over the other positions of the share of their calls
+  run's predictions (the scorers of ``conf/conformal/paper.yaml``, each position's calls pooled as
+  by default, and one call drawn per position, ``position_method=subsample``, from the same
+  predictions); each draw's coverage is the mean over the other positions of the share of their calls
   covered. The spots of calls are not the sweep's, so no call is solved with an array fitted on
   its own spot. Also one run with ``protocol.calibration_positions`` (the spots join training and the
   pipeline calibrates the radii itself): one user's set of spots, through the job's own code path.
@@ -41,7 +42,7 @@ import numpy as np
 import pandas as pd
 from common import REPO, machine, run_in_process, write_results
 from field_calibration import IMPAIRED, calibrate
-from field_radii_draws import FAILED_M, LEVELS, SCORERS, draw_coverage
+from field_radii_draws import FAILED_M, LEVELS, POSITION_METHODS, SCORERS, draw_coverage
 
 from acoustlab.core import columns as col
 from acoustlab.reporting.metrics import coverage_by_position, position_bootstrap_ci, share_gross
@@ -118,7 +119,10 @@ def array_runs(site: str, a: int, opts: argparse.Namespace) -> dict[str, dict]:
         path = Path(tmp) / "cal" / "calibration.json"
         calibrated = [*field, *IMPAIRED, f"calibration={path}"]
         predictions, _ = arm(calibrated, KEPT / f"{site}_{a}_calibrated.parquet")
-        draws = {name: draw_coverage(predictions, opts.spots, scorer, "pooled", opts.draws, seed=a) for name, scorer in SCORERS.items()}
+        draws = {
+            method: {name: draw_coverage(predictions, opts.spots, scorer, method, opts.draws, seed=a) for name, scorer in SCORERS.items()}
+            for method in POSITION_METHODS
+        }
         own, metrics = arm([*calibrated, f"protocol.calibration_positions={opts.spots}"], KEPT / f"{site}_{a}_one_set.parquet")
         out["calibrated"] = {
             "predictions": predictions,
@@ -144,37 +148,39 @@ def pooled_predictions(runs: list[dict], name: str) -> pd.DataFrame:
 def site_rows(site: str, runs: list[dict], opts: argparse.Namespace) -> tuple[list[str], dict]:
     """The site's table rows and raw figures."""
     rows, raw = [], {}
-    for name in ("calibrated", "without playbacks", "surveyed"):
+    for name, method in (*(("calibrated", m) for m in POSITION_METHODS), ("without playbacks", None), ("surveyed", None)):
         p = pooled_predictions(runs, name)
         solver, reported = gross_share(p, "solver"), gross_share(p, "gate")
-        raw[name] = {"n_calls": len(p), "solver_gt_5m": solver, "reported_gt_5m": reported}
+        label = name if method in (None, "pooled") else f"{name}, {method}"
+        raw[label] = {"n_calls": len(p), "solver_gt_5m": solver, "reported_gt_5m": reported}
         for scorer in SCORERS:
             if name == "calibrated":
-                coverage = np.concatenate([r[name]["draws"][scorer]["coverage"] for r in runs])
-                ratio = np.concatenate([r[name]["draws"][scorer]["radius_over_oracle"] for r in runs])
+                coverage = np.concatenate([r[name]["draws"][method][scorer]["coverage"] for r in runs])
+                ratio = np.concatenate([r[name]["draws"][method][scorer]["radius_over_oracle"] for r in runs])
                 cells = [
                     f"{coverage[:, k].mean():.3f} ({np.quantile(coverage[:, k], 0.05):.2f}–{np.quantile(coverage[:, k], 0.95):.2f})"
                     for k in range(len(LEVELS))
                 ]
-                own = pooled_predictions([{name: r[name]["one_set"]} for r in runs], name)
-                one = position_coverage(own, scorer)
-                radius = f"{np.median(ratio):.2f} (one set: {radius_ratio(own, scorer):.2f})"
-                raw[name][scorer] = {
+                raw[label][scorer] = {
                     "mean_coverage_over_draws": coverage.mean(axis=0).tolist(),
                     "coverage_5_95": np.quantile(coverage, [0.05, 0.95], axis=0).tolist(),
                     "median_radius_over_oracle_0.8": float(np.median(ratio)),
-                    "one_set_coverage": one,
-                    "one_set_statement": [r[name]["one_set"]["one_set"] for r in runs],
                 }
-                cells = [f"{c}; one set {fmt_share(one[str(level)])}" for c, level in zip(cells, LEVELS, strict=True)]
+                radius = f"{np.median(ratio):.2f}"
+                if method == "pooled":  # the job's own run with its default position method: one user's set
+                    own = pooled_predictions([{name: r[name]["one_set"]} for r in runs], name)
+                    one = position_coverage(own, scorer)
+                    radius += f" (one set: {radius_ratio(own, scorer):.2f})"
+                    raw[label][scorer] |= {"one_set_coverage": one, "one_set_statement": [r[name]["one_set"]["one_set"] for r in runs]}
+                    cells = [f"{c}; one set {fmt_share(one[str(level)])}" for c, level in zip(cells, LEVELS, strict=True)]
             else:
                 coverage = position_coverage(p, scorer)
                 sizes = radius_summary(p, scorer)
                 cells = [f"{coverage[str(level)]:.3f}" for level in LEVELS]
                 radius = f"{sizes['0.8']['median_m'] / sizes['0.8']['oracle_m']:.2f} (0.95: {sizes['0.95']['median_m']:.2f} m)"
-                raw[name][scorer] = {"coverage_by_position": coverage, "radii": sizes}
+                raw[label][scorer] = {"coverage_by_position": coverage, "radii": sizes}
             rows.append(
-                f"| {site} | {name} | {scorer} | {100 * reported['share']:.1f} ({100 * reported['low']:.1f}–{100 * reported['high']:.1f}) | "
+                f"| {site} | {label} | {scorer} | {100 * reported['share']:.1f} ({100 * reported['low']:.1f}–{100 * reported['high']:.1f}) | "
                 f"{100 * solver['share']:.1f} | {reported['share'] / max(solver['share'], 1e-12):.2f} | {' | '.join(cells)} | {radius} |"
             )
     return rows, raw
@@ -208,7 +214,8 @@ def main() -> None:
         f"mics 2 m off per axis, clocks within ±1 ms and the thermometer 3 °C high; {opts.n_positions} positions × 5 calls per array "
         f"(30 % outside the array). **calibrated**: `calibrate` from the sweep at {opts.spots} planned spots, radii from the calls "
         f"at {opts.spots} field positions: coverage is the mean over {opts.draws} draws of those positions per array (5–95 % range of "
-        "one draw), and 'one set' the job's own run with `protocol.calibration_positions` (one draw, spots in training). **without "
+        "one draw), pooled over each position's calls as by default or, in the 'subsample' rows, one call drawn per position "
+        "(`conformal.position_method=subsample`), and 'one set' the job's own run with `protocol.calibration_positions` (one draw, spots in training). **without "
         "playbacks**: the stated array, radii from the simulation grown by the allowance for mics 2 m, clocks 0.58 ms, thermometer "
         "3 °C. **surveyed**: the same sources without any error. Coverage per position (the mean over positions of the share of "
         "their calls covered); > 5 m: the reported position, failures as errors, 95 % position-bootstrap interval; radius: the "

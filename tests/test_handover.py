@@ -141,8 +141,10 @@ def test_outside_the_array_the_hand_over_admits_no_estimate_ten_metres_off():
     """The audit's grid on the lake's 3-mic array: exact time differences and two random decoys per pair, the solver's fix
     exact, every grid point a model estimate. Judged in position metres (misfit × GDOP) with the tolerance accurate
     estimates set, no point outside the array and 10 m or more from the source passes, for sources inside, 40 m south and
-    85 m east; the range-metre RMS rule (1.8 m, the lake's) admitted hundreds at 85 m east."""
-    from acoustlab.method.trust import TrainingSupport, misfit_excess_position_m
+    85 m east; the range-metre RMS rule (1.8 m, the lake's) admitted hundreds at 85 m east. Inside the array a few ghosts,
+    where decoys close the triangle, explain the lags as well as the source; the radius rule keeps the fix there (with the
+    lake's median widest radius inside its array, 0.84 m in ``experiments/handover.py``'s own-simulation run)."""
+    from acoustlab.method.trust import TrainingSupport, beyond_radius, misfit_excess_position_m
     from acoustlab.run.plugin_checks import compose_config
     from acoustlab.stages.sites import site_from_config
     from acoustlab.toolkit.geometry import gdop
@@ -180,3 +182,37 @@ def test_outside_the_array_the_hand_over_admits_no_estimate_ten_metres_off():
         assert not (passes & far & outside).any()
         assert (passes & far).sum() <= 5  # inside the array a decoy can meet all three pairs at a few points
         assert passes[np.argmin(np.hypot(*(grid - source).T))]  # the truth itself passes
+        handed = np.ones(len(grid), dtype=bool)
+        overruled = beyond_radius(handed, grid, np.repeat(source[None], len(grid), 0), np.full((len(grid), 1), 0.84))
+        assert not (passes & ~overruled & far).any()  # with the radius rule none 10 m or more off is reported
+
+
+def test_a_model_estimate_farther_from_the_solver_fix_than_its_widest_radius_is_never_reported():
+    """Without GCC candidates the misfit cannot judge a hand-over; the radius still does: a reported model estimate lies
+    within the detection's widest radius of the solver's fix, the overruled rows report that fix with their reason, and
+    deciding rows again gives what predicting them alone gives."""
+    features, events = measured_scene()
+    features = features.drop(columns=[c for c in features if c.startswith("tdoa__lag")])
+    groups = events["position_id"].to_numpy()
+    train, test = np.flatnonzero(groups < 50), np.flatnonzero(groups >= 50)
+    features.loc[test[: len(test) // 2], "tdoa__hint_x_m"] += 15.0  # half the test detections' model inputs point 15 m away
+    radii = [col.radius("fixed", level) for level in (0.5, 0.8, 0.95)]
+    fitted = LocalizationPipeline(components(ModelOnlyGate(), TrustSettings(novelty_factor=0, support_margin_m=100.0))).fit(
+        features, events, train
+    )
+    out, summary = fitted.predict(features.iloc[test], events.iloc[test])
+    solver, reported = out[list(col.estimate_xy("solver"))].to_numpy(), out[list(col.estimate_xy("gate"))].to_numpy()
+    apart = np.hypot(*(reported - solver).T)
+    widest = out[radii].max(axis=1).to_numpy()
+    overruled = (out[col.TRUST_REASON] == trust.REASON_BEYOND_RADIUS).to_numpy()
+    assert overruled.sum() >= 0.3 * len(out)  # the misled model's estimates were caught …
+    assert (apart[out[col.SUBSTITUTED].to_numpy()] <= widest[out[col.SUBSTITUTED].to_numpy()]).all()
+    np.testing.assert_array_equal(reported[overruled], solver[overruled])  # … and the solver's fix reported there
+    assert out[col.SUBSTITUTED].mean() >= 0.3  # the model's accurate estimates still pass
+    assert summary["overridden"][trust.REASON_BEYOND_RADIUS] == overruled.sum()
+    first, _ = fitted.predict(features.iloc[test[::2]], events.iloc[test[::2]])  # the rows alone give what they gave together
+    pd.testing.assert_frame_equal(first.reset_index(drop=True), out.iloc[::2].reset_index(drop=True))
+    off = LocalizationPipeline(
+        components(ModelOnlyGate(), TrustSettings(novelty_factor=0, support_margin_m=100.0, handover_check=False))
+    ).fit_predict(features, events, train, test)
+    assert off.predictions[col.SUBSTITUTED].all()  # with the hand-over check off the rule is off too

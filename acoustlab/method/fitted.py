@@ -23,9 +23,12 @@ from acoustlab.core.contracts import (
 )
 from acoustlab.method.estimates import TestEstimates, crb_from_features, error_2d_m, hull_distance_extent
 from acoustlab.method.trust import (
+    REASON_BEYOND_RADIUS,
     REASON_MIC_DROPPED,
     TrainingSupport,
     TrustedDecision,
+    beyond_radius,
+    splice_trusted,
 )
 from acoustlab.toolkit.conformal import calibration_quantile, conformal_quantile
 from acoustlab.toolkit.event_physics import source_height_m
@@ -92,11 +95,40 @@ class FittedMethod:
         """Predictions of every row of ``features``/``events`` (same length, same order) and the trust check's summary.
 
         Truth columns of ``events`` (``x_m, y_m``) may be NaN (field detections): errors are then
-        infinite and mean nothing; the localize protocols blank them.
+        infinite and mean nothing; the localize protocols blank them. Where the hand-over check is on,
+        a hand-over whose model estimate lies farther from the solver's fix than the row's widest
+        radius (``trust.beyond_radius``) is decided again with the solver's fix kept, and that row's
+        error model and radii are those of the fix: rows are predicted independently, so deciding a
+        row again gives what deciding it so at once would.
         """
-        pipe = self.pipeline
         if len(features) != len(events):
             raise ValueError(f"features ({len(features)} rows) and events ({len(events)} rows) must have the same rows")
+        out, trusted = self._predict_rows(features, events)
+        far = np.flatnonzero(self._beyond_radius(out))
+        if far.size:
+            again, decided = self._predict_rows(features.iloc[far], events.iloc[far], overrule=REASON_BEYOND_RADIUS)
+            again.index = out.index[far]
+            out = pd.concat([out.drop(index=out.index[far]), again]).sort_index()
+            trusted = splice_trusted(trusted, far, decided)
+        return out, self.pipeline._trust_summary(self.support, trusted)
+
+    def _beyond_radius(self, out: pd.DataFrame) -> np.ndarray:
+        """(B,) the rows ``trust.beyond_radius`` overrules; none where the hand-over check is off or nothing has a radius."""
+        radius_columns = [col.radius(name, level) for name in self.scorers for level in self.pipeline.c.levels]
+        if self.support is None or not self.support.settings.handover_check or not radius_columns:
+            return np.zeros(len(out), dtype=bool)
+        return beyond_radius(
+            out[col.SUBSTITUTED].to_numpy(bool),
+            out[list(col.estimate_xy("gate"))].to_numpy(float),
+            out[list(col.estimate_xy("solver"))].to_numpy(float),
+            out[radius_columns].to_numpy(float),
+        )
+
+    def _predict_rows(
+        self, features: pd.DataFrame, events: pd.DataFrame, overrule: str | None = None
+    ) -> tuple[pd.DataFrame, TrustedDecision]:
+        """``predict``'s table and the configured gate's decision; ``overrule``: why every hand-over of these rows is undone."""
+        pipe = self.pipeline
         rows = np.arange(len(features))
         solver_xy = features[list(col.SOLVER_ESTIMATE_COLUMNS)].to_numpy(dtype=float)
         truth = events[[col.TRUE_X, col.TRUE_Y]].to_numpy(dtype=float)
@@ -105,12 +137,17 @@ class FittedMethod:
         if col.MICS_DROPPED in events:  # solved without a bad mic: the point model saw that mic's clip, so its estimate is not used
             dropped = events[col.MICS_DROPPED].fillna("").astype(str).to_numpy() != ""
             cues = dataclasses.replace(cues, distrust=np.where(dropped, REASON_MIC_DROPPED, cues.distrust).astype(object))
-        trusted = pipe._decide(self.gate, rows, solver_xy, model_xy, features, cues)
+        own = (
+            cues
+            if overrule is None
+            else dataclasses.replace(cues, distrust=np.where(cues.distrust == "", overrule, cues.distrust).astype(object))
+        )
+        trusted = pipe._decide(self.gate, rows, solver_xy, model_xy, features, own)
         gdop_at_estimate = pipe._gdop_at(trusted.decision.position_m, features)
         estimate = TestEstimates(
             model_xy,
             self.support,
-            cues,
+            own,
             trusted,
             gdop_at_estimate,
             pipe._error_inputs(features[self.ecols], solver_xy, model_xy, trusted.decision, gdop_at_estimate),
@@ -119,13 +156,13 @@ class FittedMethod:
         out = self._table(features, events, solver_xy, truth, estimate, predicted)
         if self.ellipse_calibration is not None:
             self._add_ellipses(out, trusted.decision.position_m, predicted, features)
-        for name, gate in self.extra_gates.items():  # compared on the same predictions
+        for name, gate in self.extra_gates.items():  # compared on the same predictions, each with the support's own cues
             position = pipe._decide(gate, rows, solver_xy, model_xy, features, cues).decision.position_m
             pipe._add_method(out, col.extra_gate_method(name), position, truth)
         if self.selective is not None:
             self._place_selectively(out, predicted, trusted)
         self._add_radii(out, features, events, estimate, predicted)
-        return out, pipe._trust_summary(self.support, trusted)
+        return out, trusted
 
     def _table(
         self,

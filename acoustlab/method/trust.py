@@ -26,6 +26,12 @@ domain and checks every gate's decision against it:
   an array the range differences change slowly with position, so a misfit in range metres admits
   estimates tens of metres off there; scaled by the GDOP it does not. It needs no training data
   of the site, so it holds where the simulation does not match the site.
+* **The radius** (``beyond_radius``, part of the hand-over check): a model estimate farther from the
+  solver's fix than the detection's own widest finite radius is not reported. The radius states
+  that the truth lies within it of the reported estimate; reporting a model estimate that far from
+  a fix of the same measurements would state that the fix is off by more than the radius, which the
+  gate cannot know. Where several GCC candidates of a 3-mic array happen to close the triangle
+  (a ghost the measurements cannot tell from the source), this is the rule that keeps the fix.
 * **The rule** (``support_cues`` once per rows, ``apply_trust`` per gate): where the gate substituted the model's estimate but the
   model is outside its support (its input is novel, its own estimate lies outside the training
   hull, or the solver's consistent fix lies outside it), the solver's fix is kept and the row
@@ -56,6 +62,7 @@ REASON_NOVEL = "solver fix kept: the detection is unlike the model's training da
 REASON_MODEL_OUTSIDE = "solver fix kept: the model's estimate lies outside its training region"
 REASON_EXPLAINS_WORSE = "solver fix kept: the model's estimate explains the measured time differences worse"
 REASON_MIC_DROPPED = "solver fix kept: a mic's clip was unusable and left out, and the model's features include it"
+REASON_BEYOND_RADIUS = "solver fix kept: the model's estimate lies farther from it than the detection's widest radius"
 REASON_ABSTAIN = "no estimate: no solver fix, and the model is outside its training support"
 REASON_ABSTAIN_MISFIT = "no estimate: no solver fix, and the model's estimate does not explain the measured time differences"
 
@@ -413,6 +420,40 @@ def misfit_excess_position_m(misfit_m: tuple[np.ndarray, np.ndarray] | None, mod
     solver, model = (np.asarray(m, dtype=float) for m in misfit_m)
     scale = np.ones(n) if model_gdop is None else np.asarray(model_gdop, dtype=float)
     return (model - np.where(np.isfinite(solver), solver, 0.0)) * scale
+
+
+def beyond_radius(substituted: np.ndarray, reported_xy: np.ndarray, solver_xy: np.ndarray, radii_m: np.ndarray) -> np.ndarray:
+    """(B,) the hand-overs whose model estimate lies farther from the solver's fix than the row's widest finite radius.
+
+    Parameters
+    ----------
+    substituted : numpy.ndarray
+        (B,) bool: the reported estimate is the point model's.
+    reported_xy, solver_xy : numpy.ndarray
+        (B, 2) the reported estimates and the solver's fixes, m (a row without a fix never counts).
+    radii_m : numpy.ndarray
+        (B, R) every radius of each row, m (infinite or NaN ones, a level without a guarantee, are
+        left out; a row without a finite radius never counts).
+    """
+    radii = np.where(np.isfinite(radii_m), radii_m, -np.inf)
+    widest = radii.max(axis=1, initial=-np.inf)
+    distance = np.hypot(*(np.asarray(reported_xy, dtype=float) - np.asarray(solver_xy, dtype=float)).T)
+    return np.asarray(substituted, dtype=bool) & np.isfinite(widest) & np.isfinite(distance) & (distance > widest)
+
+
+def splice_trusted(whole: TrustedDecision, rows: np.ndarray, part: TrustedDecision) -> TrustedDecision:
+    """``whole`` with its ``rows`` replaced by ``part`` (the same rows decided again)."""
+
+    def put(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        out = np.array(a, copy=True)
+        out[rows] = b
+        return out
+
+    decision = GateDecision(
+        put(whole.decision.position_m, part.decision.position_m), put(whole.decision.substituted, part.decision.substituted)
+    )
+    flags = {name: put(values, part.flags[name]) for name, values in whole.flags.items()}
+    return TrustedDecision(decision, put(whole.reason, part.reason), flags, put(whole.gate_position_m, part.gate_position_m))
 
 
 def apply_trust(decision: GateDecision, solver_xy: np.ndarray, cues: SupportCues) -> TrustedDecision:
