@@ -89,6 +89,26 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
+def _git(*args: str) -> str:
+    proc = subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True)
+    return proc.stdout.strip() if proc.returncode == 0 else ""
+
+
+#: the paths whose content decides what a run predicts
+CODE_PATHS = ("acoustlab", "conf", "plugins")
+
+
+def code_version() -> str:
+    """The git tree ids of the code a run executes (``CODE_PATHS`` at HEAD); '' where they have uncommitted changes.
+
+    Kept predictions are reused only when it matches, so a result headed by a commit is never made
+    from predictions an older code made (a commit of docs or results alone keeps them).
+    """
+    if _git("status", "--porcelain", "--untracked-files=no", "--", *CODE_PATHS):
+        return ""
+    return " ".join(_git("rev-parse", f"HEAD:{path}") for path in CODE_PATHS)
+
+
 def provenance() -> dict[str, Any]:
     """What made a result: the command line, the commit (and whether the work tree had changes), the day, the packages.
 
@@ -96,10 +116,7 @@ def provenance() -> dict[str, Any]:
     update moves the learned models' figures): ``packages`` says which releases made this one.
     """
 
-    def git(*args: str) -> str:
-        proc = subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True)
-        return proc.stdout.strip() if proc.returncode == 0 else ""
-
+    git = _git
     script = Path(sys.argv[0]).resolve()
     shown = script.relative_to(REPO).as_posix() if script.is_relative_to(REPO) else str(script)
     changes = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)experiments/results")

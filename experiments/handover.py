@@ -26,7 +26,7 @@ import logging
 
 import numpy as np
 import pandas as pd
-from common import REPO, fmt, machine, run_in_process, write_results
+from common import REPO, code_version, fmt, machine, run_in_process, write_results
 
 from acoustlab.core import columns as col
 from acoustlab.method import trust
@@ -94,14 +94,20 @@ def rows_for(label: str, p: pd.DataFrame) -> tuple[list[str], dict]:
 
 
 def predictions_of(label: str, overrides: list[str]) -> tuple[pd.DataFrame, dict]:
-    """A run's predictions and metrics, kept under outputs/ (git-ignored) so the tables can be remade without re-running."""
+    """A run's predictions and metrics, kept under outputs/ (git-ignored) so the tables can be remade without re-running.
+
+    Reused only for the same overrides and the same code (``common.code_version``).
+    """
     keep = KEPT / (label.replace("/", "_") + ".parquet")
     metrics_file = keep.with_suffix(".json")
-    if keep.is_file() and metrics_file.is_file() and json.loads(metrics_file.read_text()).get("overrides") == overrides:
-        log.info("%s: reusing %s", label, keep)
-        return pd.read_parquet(keep), json.loads(metrics_file.read_text())
+    code = code_version()
+    if keep.is_file() and metrics_file.is_file():
+        kept = json.loads(metrics_file.read_text())
+        if code and kept.get("overrides") == overrides and kept.get("code") == code:
+            log.info("%s: reusing %s", label, keep)
+            return pd.read_parquet(keep), kept
     metrics = run_in_process(overrides, keep)
-    metrics["overrides"] = overrides
+    metrics["overrides"], metrics["code"] = overrides, code
     metrics_file.write_text(json.dumps(metrics, default=str))
     return pd.read_parquet(keep), metrics
 
