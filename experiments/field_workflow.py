@@ -215,7 +215,7 @@ def main() -> None:
         f"(30 % outside the array). **calibrated**: `calibrate` from the sweep at {opts.spots} planned spots, radii from the calls "
         f"at {opts.spots} field positions: coverage is the mean over {opts.draws} draws of those positions per array (5–95 % range of "
         "one draw), pooled over each position's calls as by default or, in the 'subsample' rows, one call drawn per position "
-        "(`conformal.position_method=subsample`), and 'one set' the job's own run with `protocol.calibration_positions` (one draw, spots in training). **without "
+        "(`position_method: subsample` on each scorer), and 'one set' the job's own run with `protocol.calibration_positions` (one draw, spots in training). **without "
         "playbacks**: the stated array, radii from the simulation grown by the allowance for mics 2 m, clocks 0.58 ms, thermometer "
         "3 °C. **surveyed**: the same sources without any error. Coverage per position (the mean over positions of the share of "
         "their calls covered); > 5 m: the reported position, failures as errors, 95 % position-bootstrap interval; radius: the "
