@@ -216,3 +216,14 @@ def test_a_model_estimate_farther_from_the_solver_fix_than_its_widest_radius_is_
         components(ModelOnlyGate(), TrustSettings(novelty_factor=0, support_margin_m=100.0, handover_check=False))
     ).fit_predict(features, events, train, test)
     assert off.predictions[col.SUBSTITUTED].all()  # with the hand-over check off the rule is off too
+
+
+def test_a_fix_its_residual_shows_wrong_keeps_the_gates_hand_over_however_far():
+    """The radius rule trusts the solver's fix only where nothing shows it wrong: a redundant array's inconsistent fix (a
+    gross error the gate is there to replace) leaves the hand-over standing; a fix the residual cannot judge does not."""
+    solver = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [np.nan, np.nan]])
+    model = np.array([[12.0, 0.0], [12.0, 0.0], [3.0, 0.0], [12.0, 0.0]])
+    radii = np.array([[2.0, 5.0, np.inf], [2.0, 5.0, np.inf], [2.0, 5.0, np.inf], [2.0, 5.0, 8.0]])
+    wrong = np.array([False, True, False, False])
+    assert trust.beyond_radius(np.ones(4, dtype=bool), model, solver, radii, wrong).tolist() == [True, False, False, False]
+    assert not trust.beyond_radius(np.zeros(4, dtype=bool), model, solver, radii).any()  # no hand-over, nothing to undo

@@ -104,7 +104,7 @@ class FittedMethod:
         if len(features) != len(events):
             raise ValueError(f"features ({len(features)} rows) and events ({len(events)} rows) must have the same rows")
         out, trusted = self._predict_rows(features, events)
-        far = np.flatnonzero(self._beyond_radius(out))
+        far = np.flatnonzero(self._beyond_radius(out, features))
         if far.size:
             again, decided = self._predict_rows(features.iloc[far], events.iloc[far], overrule=REASON_BEYOND_RADIUS)
             again.index = out.index[far]
@@ -112,7 +112,7 @@ class FittedMethod:
             trusted = splice_trusted(trusted, far, decided)
         return out, self.pipeline._trust_summary(self.support, trusted)
 
-    def _beyond_radius(self, out: pd.DataFrame) -> np.ndarray:
+    def _beyond_radius(self, out: pd.DataFrame, features: pd.DataFrame) -> np.ndarray:
         """(B,) the rows ``trust.beyond_radius`` overrules; none where the hand-over check is off or nothing has a radius."""
         radius_columns = [col.radius(name, level) for name in self.scorers for level in self.pipeline.c.levels]
         if self.support is None or not self.support.settings.handover_check or not radius_columns:
@@ -122,6 +122,7 @@ class FittedMethod:
             out[list(col.estimate_xy("gate"))].to_numpy(float),
             out[list(col.estimate_xy("solver"))].to_numpy(float),
             out[radius_columns].to_numpy(float),
+            self.support.inconsistent(features),
         )
 
     def _predict_rows(

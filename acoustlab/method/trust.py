@@ -27,7 +27,8 @@ domain and checks every gate's decision against it:
   estimates tens of metres off there; scaled by the GDOP it does not. It needs no training data
   of the site, so it holds where the simulation does not match the site.
 * **The radius** (``beyond_radius``, part of the hand-over check): a model estimate farther from the
-  solver's fix than the detection's own widest finite radius is not reported. The radius states
+  solver's fix than the detection's own widest finite radius is not reported, unless the array's
+  redundancy shows that fix inconsistent with its time differences (then the gate's hand-over stands). The radius states
   that the truth lies within it of the reported estimate; reporting a model estimate that far from
   a fix of the same measurements would state that the fix is off by more than the radius, which the
   gate cannot know. Where several GCC candidates of a 3-mic array happen to close the triangle
@@ -271,17 +272,27 @@ class TrainingSupport:
 
     def consistent(self, features: pd.DataFrame) -> np.ndarray:
         """(B,) True where the solver's fix fits its TDOAs as well as good training fixes did (False without redundancy)."""
+        judged, residual = self._judged_residual(features)
+        return judged & (residual <= self.residual_limit_s_) if judged.any() else judged
+
+    def inconsistent(self, features: pd.DataFrame) -> np.ndarray:
+        """(B,) True where the array's redundancy shows the solver's fix does not fit its TDOAs (False where it cannot tell)."""
+        judged, residual = self._judged_residual(features)
+        return judged & (residual > self.residual_limit_s_) if judged.any() else judged
+
+    def _judged_residual(self, features: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+        """(B,) where a fix's residual can show whether it fits its TDOAs, and (B,) the residual, s."""
         name = col.solver_column("residual_s")
         if self.residual_limit_s_ is None or name not in features:
-            return np.zeros(len(features), dtype=bool)
+            return np.zeros(len(features), dtype=bool), np.full(len(features), np.nan)
         residual = features[name].to_numpy(float)
-        consistent = np.isfinite(residual) & (residual <= self.residual_limit_s_)
+        judged = np.isfinite(residual)
         used, dims = col.solver_column("n_mics_used"), col.solver_column("dimensions_used")
         if used in features and dims in features:  # a fix from exactly as many mics as unknowns + 1 fits any TDOAs: no evidence
             n_used, n_dims = features[used].to_numpy(float), features[dims].to_numpy(float)
             known = np.isfinite(n_used) & np.isfinite(n_dims)
-            consistent &= ~known | (n_used >= n_dims + 2)
-        return consistent
+            judged &= ~known | (n_used >= n_dims + 2)
+        return judged, residual
 
     def description(self) -> dict[str, Any]:
         """The training region for metrics.json: hull vertices (m), height range (m), limits."""
@@ -422,8 +433,15 @@ def misfit_excess_position_m(misfit_m: tuple[np.ndarray, np.ndarray] | None, mod
     return (model - np.where(np.isfinite(solver), solver, 0.0)) * scale
 
 
-def beyond_radius(substituted: np.ndarray, reported_xy: np.ndarray, solver_xy: np.ndarray, radii_m: np.ndarray) -> np.ndarray:
+def beyond_radius(
+    substituted: np.ndarray, reported_xy: np.ndarray, solver_xy: np.ndarray, radii_m: np.ndarray, solver_wrong: np.ndarray | None = None
+) -> np.ndarray:
     """(B,) the hand-overs whose model estimate lies farther from the solver's fix than the row's widest finite radius.
+
+    A fix the array's redundancy shows wrong (``solver_wrong``: its residual above good fixes') is
+    exactly where a gate should hand over, however far the model's estimate lies from it; such rows
+    never count. Where the residual cannot tell (a 3-mic array fits every fix exactly), the fix is
+    what the measurements give, and the rule holds.
 
     Parameters
     ----------
@@ -434,11 +452,14 @@ def beyond_radius(substituted: np.ndarray, reported_xy: np.ndarray, solver_xy: n
     radii_m : numpy.ndarray
         (B, R) every radius of each row, m (infinite or NaN ones, a level without a guarantee, are
         left out; a row without a finite radius never counts).
+    solver_wrong : numpy.ndarray, optional
+        (B,) bool: the fix is known inconsistent (``TrainingSupport.inconsistent``).
     """
     radii = np.where(np.isfinite(radii_m), radii_m, -np.inf)
     widest = radii.max(axis=1, initial=-np.inf)
     distance = np.hypot(*(np.asarray(reported_xy, dtype=float) - np.asarray(solver_xy, dtype=float)).T)
-    return np.asarray(substituted, dtype=bool) & np.isfinite(widest) & np.isfinite(distance) & (distance > widest)
+    wrong = np.zeros(len(widest), dtype=bool) if solver_wrong is None else np.asarray(solver_wrong, dtype=bool)
+    return np.asarray(substituted, dtype=bool) & ~wrong & np.isfinite(widest) & np.isfinite(distance) & (distance > widest)
 
 
 def splice_trusted(whole: TrustedDecision, rows: np.ndarray, part: TrustedDecision) -> TrustedDecision:
