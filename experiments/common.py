@@ -116,13 +116,12 @@ def provenance() -> dict[str, Any]:
     update moves the learned models' figures): ``packages`` says which releases made this one.
     """
 
-    git = _git
     script = Path(sys.argv[0]).resolve()
     shown = script.relative_to(REPO).as_posix() if script.is_relative_to(REPO) else str(script)
-    changes = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)experiments/results")
+    changes = _git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)experiments/results")
     return {
         "command": shlex.join(["python", shown, *sys.argv[1:]]),  # quoted as a shell needs it, to be run again as it stands
-        "commit": git("rev-parse", "HEAD"),
+        "commit": _git("rev-parse", "HEAD"),
         "uncommitted_changes": bool(changes),
         "date": datetime.date.today().isoformat(),
         "packages": package_versions(),

@@ -24,6 +24,7 @@ from acoustlab.core.contracts import (
 from acoustlab.method.estimates import TestEstimates, crb_from_features, error_2d_m, hull_distance_extent
 from acoustlab.method.trust import (
     REASON_BEYOND_RADIUS,
+    REASON_GATE,
     REASON_MIC_DROPPED,
     TrainingSupport,
     TrustedDecision,
@@ -141,7 +142,7 @@ class FittedMethod:
         own = (
             cues
             if overrule is None
-            else dataclasses.replace(cues, distrust=np.where(cues.distrust == "", overrule, cues.distrust).astype(object))
+            else dataclasses.replace(cues, distrust=np.where(cues.distrust == REASON_GATE, overrule, cues.distrust).astype(object))
         )
         trusted = pipe._decide(self.gate, rows, solver_xy, model_xy, features, own)
         gdop_at_estimate = pipe._gdop_at(trusted.decision.position_m, features)

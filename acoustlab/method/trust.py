@@ -272,27 +272,24 @@ class TrainingSupport:
 
     def consistent(self, features: pd.DataFrame) -> np.ndarray:
         """(B,) True where the solver's fix fits its TDOAs as well as good training fixes did (False without redundancy)."""
-        judged, residual = self._judged_residual(features)
-        return judged & (residual <= self.residual_limit_s_) if judged.any() else judged
+        return self._residual_excess_s(features) <= 0  # NaN (cannot tell) compares False
 
     def inconsistent(self, features: pd.DataFrame) -> np.ndarray:
         """(B,) True where the array's redundancy shows the solver's fix does not fit its TDOAs (False where it cannot tell)."""
-        judged, residual = self._judged_residual(features)
-        return judged & (residual > self.residual_limit_s_) if judged.any() else judged
+        return self._residual_excess_s(features) > 0
 
-    def _judged_residual(self, features: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
-        """(B,) where a fix's residual can show whether it fits its TDOAs, and (B,) the residual, s."""
+    def _residual_excess_s(self, features: pd.DataFrame) -> np.ndarray:
+        """(B,) each fix's TDOA residual less the consistency limit, s; NaN where the residual cannot tell."""
         name = col.solver_column("residual_s")
         if self.residual_limit_s_ is None or name not in features:
-            return np.zeros(len(features), dtype=bool), np.full(len(features), np.nan)
-        residual = features[name].to_numpy(float)
-        judged = np.isfinite(residual)
+            return np.full(len(features), np.nan)
+        excess = features[name].to_numpy(float) - self.residual_limit_s_
         used, dims = col.solver_column("n_mics_used"), col.solver_column("dimensions_used")
         if used in features and dims in features:  # a fix from exactly as many mics as unknowns + 1 fits any TDOAs: no evidence
             n_used, n_dims = features[used].to_numpy(float), features[dims].to_numpy(float)
             known = np.isfinite(n_used) & np.isfinite(n_dims)
-            judged &= ~known | (n_used >= n_dims + 2)
-        return judged, residual
+            excess[known & (n_used < n_dims + 2)] = np.nan
+        return excess
 
     def description(self) -> dict[str, Any]:
         """The training region for metrics.json: hull vertices (m), height range (m), limits."""
